@@ -1,0 +1,586 @@
+"""Open scan archives: a directory, a ``.zip``, a ``.tar`` or ``.tar.gz``, locally or at an
+fsspec URL, laid out as the archive contract in DESIGN.md says.
+
+:func:`open_archive` extracts a file archive safely into a temporary directory (rejecting
+absolute paths, ``..`` components, links and device files before anything is written),
+reads and validates ``inspection.toml``, and checks the layout: ``frames/`` or one
+registered cloud, never both, and every listed frame present. Point files are read later,
+one at a time, by :meth:`ScanArchive.read_frame` / :meth:`ScanArchive.iter_frames`; call
+:func:`validate_archive` to read them all once, before writing anything anywhere, so that a
+bad frame halfway through never leaves half-written results.
+
+Example
+-------
+>>> with open_archive("runs/MH1042-MH1043.zip") as arc:  # doctest: +SKIP
+...     validate_archive(arc)
+...     for i, points in arc.iter_frames():
+...         ...
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import re
+import shutil
+import stat
+import tarfile
+import tempfile
+import weakref
+import zipfile
+import zlib
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+
+from pipescan.core.errors import ArchiveError, MetadataError
+from pipescan.core.model import FrameRef, InspectionMeta
+from pipescan.storage.metadata import INSPECTION_FILE, read_inspection_toml
+from pipescan.storage.pointfiles import POINT_SUFFIXES, is_point_file, point_suffix, read_points
+
+FRAMES_DIR = "frames"
+_COPY_CHUNK_BYTES = 1 << 20
+# Files that archiving tools add and that are never content (macOS resource forks, ...).
+_JUNK_NAMES = {"__MACOSX", ".DS_Store", "Thumbs.db", "desktop.ini"}
+# tarfile.FilterError exists from Python 3.11.4 on; before that nothing raises it.
+_TAR_FILTER_ERRORS: tuple[type[Exception], ...] = (
+    (tarfile.FilterError,) if hasattr(tarfile, "FilterError") else ()
+)
+_UNSAFE_HINT = (
+    "rebuild the archive with plain relative paths: no absolute paths, no '..', "
+    "no symlinks, hardlinks or device files"
+)
+
+
+@dataclass(frozen=True)
+class ArchiveSummary:
+    """What :func:`validate_archive` checked: frames read (0 for a cloud archive) and
+    points read (None when point files were not read)."""
+
+    frame_count: int
+    point_count: int | None
+
+
+class ScanArchive:
+    """An opened, validated scan archive. Use as a context manager (``with``).
+
+    Attributes
+    ----------
+    name : str
+        The archive as given to :func:`open_archive` (path or URL), used in messages.
+    root : pathlib.Path
+        The directory holding the (extracted) content: ``inspection.toml``, ``frames/``...
+    meta : InspectionMeta
+        The metadata, with ``meta.frames`` filled from ``[[frames]]`` or, without it, from
+        the point files in ``frames/`` in natural file-name order (``2`` before ``10``).
+        Empty for a cloud archive.
+    cloud_member : str or None
+        The registered cloud's path relative to ``root`` (e.g. ``"cloud.las"``), or None
+        for a frames archive.
+    """
+
+    def __init__(
+        self,
+        *,
+        name: str,
+        root: Path,
+        meta: InspectionMeta,
+        cloud_member: str | None,
+        tempdir: Path | None = None,
+    ) -> None:
+        self.name = name
+        self.root = root
+        self.meta = meta
+        self.cloud_member = cloud_member
+        self._closed = False
+        # Remove the extraction even if the caller forgets close(): at GC or interpreter exit.
+        self._cleanup = (
+            weakref.finalize(self, shutil.rmtree, tempdir, ignore_errors=True)
+            if tempdir is not None
+            else None
+        )
+
+    def __enter__(self) -> ScanArchive:
+        return self
+
+    def __exit__(self, *exc_info: object) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        content = f"{len(self.meta.frames)} frames" if self.has_frames else self.cloud_member
+        return f"ScanArchive({self.name!r}, asset_id={self.meta.asset_id!r}, {content})"
+
+    @property
+    def has_frames(self) -> bool:
+        """True for a frames archive, False for a registered-cloud archive."""
+        return self.cloud_member is None
+
+    @property
+    def frame_count(self) -> int:
+        """Number of frames (0 for a cloud archive)."""
+        return len(self.meta.frames)
+
+    @cached_property
+    def content_hash(self) -> str:
+        """SHA-256 (hex) over the sorted member paths and bytes of ``inspection.toml`` and
+        the point files in use. The same bytes give the same hash, whatever the container."""
+        self._check_open()
+        members = [INSPECTION_FILE]
+        members += [f.file for f in self.meta.frames]
+        if self.cloud_member is not None:
+            members.append(self.cloud_member)
+        digest = hashlib.sha256()
+        for member in sorted(members):
+            path = self.root / member
+            # Path and size delimit each member, so that bytes cannot shift between members.
+            digest.update(member.encode("utf-8") + b"\0")
+            digest.update(path.stat().st_size.to_bytes(8, "little"))
+            with path.open("rb") as fh:
+                while chunk := fh.read(_COPY_CHUNK_BYTES):
+                    digest.update(chunk)
+        return digest.hexdigest()
+
+    def read_frame(self, i: int) -> np.ndarray:
+        """Read frame ``i`` (in ``meta.frames`` order).
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape ``(N, 3)``, float64, metres, in the sensor frame of that frame.
+
+        Raises
+        ------
+        PointFileError
+            The frame file is corrupt, empty, holds NaN/inf or millimetres.
+        ArchiveError
+            The archive holds a cloud, not frames, or is closed.
+        IndexError
+            ``i`` is out of range.
+        """
+        self._check_open()
+        if not self.has_frames:
+            raise ArchiveError(
+                "the archive holds a registered cloud, not frames",
+                archive=self.name,
+                file=self.cloud_member,
+                hint="use read_cloud()",
+            )
+        if not 0 <= i < len(self.meta.frames):
+            raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+        ref = self.meta.frames[i]
+        return read_points(self.root / ref.file, archive=self.name, member=ref.file, kind="frame")
+
+    def iter_frames(self, indices: Iterable[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(i, points)`` for each frame (or each index in ``indices``), one at a time.
+
+        ``points`` is as :meth:`read_frame` returns; only one frame is in memory at once.
+        """
+        for i in range(self.frame_count) if indices is None else indices:
+            yield i, self.read_frame(i)
+
+    def read_cloud(self) -> np.ndarray:
+        """Read the registered cloud.
+
+        Returns
+        -------
+        numpy.ndarray
+            Shape ``(N, 3)``, float64, metres, in the cloud's common frame.
+
+        Raises
+        ------
+        PointFileError
+            The cloud file is corrupt, empty, holds NaN/inf or millimetres.
+        ArchiveError
+            The archive holds frames, not a cloud, or is closed.
+        """
+        self._check_open()
+        if self.cloud_member is None:
+            raise ArchiveError(
+                "the archive holds frames, not a registered cloud",
+                archive=self.name,
+                file=f"{FRAMES_DIR}/",
+                hint="use read_frame() or iter_frames()",
+            )
+        return read_points(
+            self.root / self.cloud_member, archive=self.name, member=self.cloud_member, kind="cloud"
+        )
+
+    def close(self) -> None:
+        """Remove the temporary extraction, if any. Safe to call more than once."""
+        self._closed = True
+        if self._cleanup is not None:
+            self._cleanup()
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ArchiveError("the archive is closed", archive=self.name)
+
+
+def open_archive(uri: str | Path, *, workdir: Path | None = None) -> ScanArchive:
+    """Open and validate a scan archive.
+
+    Parameters
+    ----------
+    uri
+        A directory, a ``.zip``, ``.tar`` or ``.tar.gz``/``.tgz`` file (recognised by
+        content), or an fsspec URL of one (``file://``, ``s3://``, ``memory://`` ...). A
+        remote archive is first copied, streamed, to the temporary directory. A single
+        top-level folder holding ``inspection.toml`` is looked into.
+    workdir
+        Where to create the temporary extraction directory (default: the system's).
+
+    Returns
+    -------
+    ScanArchive
+        Validated: ``inspection.toml`` parsed, the layout checked, every listed frame
+        present. Point file *contents* are checked as they are read.
+
+    Raises
+    ------
+    ArchiveError
+        Missing or unreadable archive, an unsafe member ("unsafe path"), a bad layout
+        (both or neither of ``frames/`` and a cloud).
+    MetadataError
+        ``inspection.toml`` missing or invalid, or a ``[[frames]]`` file missing or not a
+        point file.
+    """
+    name = str(uri)
+    tempdir: Path | None = None
+    try:
+        local = _local_path(uri)
+        if local is None:
+            tempdir = _make_tempdir(workdir)
+            local = _fetch(name, tempdir / "download")
+        if not local.exists():
+            raise ArchiveError(
+                "the archive does not exist", archive=name, hint="check the path or URL"
+            )
+        if local.is_dir():
+            content = local
+        else:
+            tempdir = tempdir or _make_tempdir(workdir)
+            content = tempdir / "content"
+            content.mkdir()
+            _extract(local, content, name)
+            if local.is_relative_to(tempdir):
+                local.unlink()  # a downloaded copy: once extracted, it only takes up disk
+        root = _find_root(content)
+        meta, cloud_member = _inspect_layout(root, name)
+        return ScanArchive(
+            name=name, root=root, meta=meta, cloud_member=cloud_member, tempdir=tempdir
+        )
+    except BaseException:
+        if tempdir is not None:
+            shutil.rmtree(tempdir, ignore_errors=True)
+        raise
+
+
+def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveSummary:
+    """Check a whole archive before anything is processed or written.
+
+    With ``check_points``, every point file is read once, one at a time, and checked as
+    :func:`~pipescan.storage.pointfiles.read_points` does; the first problem is raised.
+
+    Returns
+    -------
+    ArchiveSummary
+        Frame count, and the total point count (None without ``check_points``).
+
+    Raises
+    ------
+    PointFileError
+        The first corrupt, empty, non-finite or millimetre point file.
+    ArchiveError
+        A point file vanished since the archive was opened.
+    """
+    for ref in arc.meta.frames:
+        if not (arc.root / ref.file).is_file():
+            raise ArchiveError(
+                "the frame file is missing (removed since the archive was opened?)",
+                archive=arc.name,
+                file=ref.file,
+                field="points",
+            )
+    if not check_points:
+        return ArchiveSummary(frame_count=arc.frame_count, point_count=None)
+    if arc.has_frames:
+        total = sum(len(points) for _, points in arc.iter_frames())
+    else:
+        total = len(arc.read_cloud())
+    return ArchiveSummary(frame_count=arc.frame_count, point_count=total)
+
+
+# --- locating and fetching --------------------------------------------------------------------
+
+
+def _local_path(uri: str | Path) -> Path | None:
+    """The local path of ``uri``, or None when it is a remote fsspec URL."""
+    if isinstance(uri, Path) or "://" not in uri:
+        return Path(uri)
+    import fsspec
+    from fsspec.implementations.local import LocalFileSystem
+
+    try:
+        fs, path = fsspec.core.url_to_fs(uri)
+    except (ValueError, ImportError) as exc:
+        raise ArchiveError(
+            f"cannot open the URL: {exc}",
+            archive=uri,
+            hint="install the fsspec backend for this protocol (e.g. s3fs for s3://)",
+        ) from exc
+    return Path(path) if isinstance(fs, LocalFileSystem) else None
+
+
+def _make_tempdir(workdir: Path | None) -> Path:
+    if workdir is not None:
+        Path(workdir).mkdir(parents=True, exist_ok=True)
+    return Path(tempfile.mkdtemp(prefix="pipescan-archive-", dir=workdir))
+
+
+def _fetch(uri: str, dest: Path) -> Path:
+    """Copy a remote archive (file or directory) to ``dest``, streamed; return the local copy."""
+    import fsspec
+
+    dest.mkdir(parents=True)
+    try:
+        fs, path = fsspec.core.url_to_fs(uri)
+        if not fs.exists(path):
+            raise ArchiveError("the archive does not exist", archive=uri, hint="check the URL")
+        if fs.isdir(path):
+            base = path.rstrip("/")
+            for remote in fs.find(base):
+                member = remote[len(base) :].lstrip("/")
+                _check_member_path(member, uri)
+                target = dest / member
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with fs.open(remote, "rb") as src, target.open("wb") as dst:
+                    shutil.copyfileobj(src, dst, _COPY_CHUNK_BYTES)
+            return dest
+        target = dest / (PurePosixPath(path).name or "archive")
+        with fs.open(path, "rb") as src, target.open("wb") as dst:
+            shutil.copyfileobj(src, dst, _COPY_CHUNK_BYTES)
+        return target
+    except (OSError, ValueError, ImportError) as exc:
+        raise ArchiveError(
+            f"cannot copy the archive: {exc}",
+            archive=uri,
+            hint="check the URL, the credentials and that the fsspec backend is installed",
+        ) from exc
+
+
+# --- safe extraction --------------------------------------------------------------------------
+
+
+def _unsafe(member: str, archive: str, why: str) -> ArchiveError:
+    return ArchiveError(
+        f"unsafe path: member {member!r} {why}; the archive was rejected",
+        archive=archive,
+        file=member,
+        field="path",
+        hint=_UNSAFE_HINT,
+    )
+
+
+def _check_member_path(member: str, archive: str) -> None:
+    """Reject absolute paths and ``..`` components (with either slash)."""
+    normal = member.replace("\\", "/")
+    if normal.startswith("/") or re.match(r"^[A-Za-z]:", normal):
+        raise _unsafe(member, archive, "is an absolute path")
+    if ".." in normal.split("/"):
+        raise _unsafe(member, archive, "has a '..' component")
+
+
+def _extract(path: Path, dest: Path, archive: str) -> None:
+    if zipfile.is_zipfile(path):
+        _extract_zip(path, dest, archive)
+    elif tarfile.is_tarfile(path):
+        _extract_tar(path, dest, archive)
+    else:
+        raise ArchiveError(
+            "not a directory, .zip, .tar or .tar.gz archive",
+            archive=archive,
+            hint="give a directory, or pack it with zip or tar",
+        )
+
+
+def _extract_zip(path: Path, dest: Path, archive: str) -> None:
+    try:
+        with zipfile.ZipFile(path) as zf:
+            infos = zf.infolist()
+            # Check every member before writing any, so a bad archive leaves nothing behind.
+            for info in infos:
+                _check_member_path(info.filename, archive)
+                mode = info.external_attr >> 16  # Unix mode, when a Unix tool wrote the zip
+                if stat.S_ISLNK(mode):
+                    raise _unsafe(info.filename, archive, "is a symlink")
+                if stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
+                    raise _unsafe(info.filename, archive, "is a device or special file")
+            for info in infos:
+                target = dest / info.filename.replace("\\", "/")
+                if info.is_dir():
+                    target.mkdir(parents=True, exist_ok=True)
+                    continue
+                target.parent.mkdir(parents=True, exist_ok=True)
+                with zf.open(info) as src, target.open("wb") as dst:
+                    shutil.copyfileobj(src, dst, _COPY_CHUNK_BYTES)
+    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as exc:
+        raise ArchiveError(
+            f"cannot extract the zip archive: {exc}",
+            archive=archive,
+            hint="the archive is corrupt, truncated or encrypted: pack it again",
+        ) from exc
+
+
+def _extract_tar(path: Path, dest: Path, archive: str) -> None:
+    try:
+        with tarfile.open(path, "r:*") as tf:
+            members = tf.getmembers()
+            for member in members:
+                _check_member_path(member.name, archive)
+                if member.issym():
+                    raise _unsafe(member.name, archive, f"is a symlink to {member.linkname!r}")
+                if member.islnk():
+                    raise _unsafe(member.name, archive, f"is a hardlink to {member.linkname!r}")
+                if not (member.isfile() or member.isdir()):
+                    raise _unsafe(member.name, archive, "is a device or special file")
+            if hasattr(tarfile, "data_filter"):
+                # Belt and braces: the "data" filter repeats the checks above and drops
+                # set-uid bits; it is missing on Python 3.11 before 3.11.4.
+                tf.extractall(dest, members=members, filter="data")
+            else:
+                tf.extractall(dest, members=members)
+    except _TAR_FILTER_ERRORS as exc:
+        refused = getattr(exc, "tarinfo", None)
+        name = refused.name if refused is not None else "?"
+        raise _unsafe(name, archive, f"was refused by the tar data filter: {exc}") from exc
+    except (tarfile.TarError, EOFError, zlib.error, OSError) as exc:
+        raise ArchiveError(
+            f"cannot extract the tar archive: {exc}",
+            archive=archive,
+            hint="the archive is corrupt or truncated: pack it again",
+        ) from exc
+
+
+def _find_root(content: Path) -> Path:
+    """``content``, or its single top-level folder when that holds ``inspection.toml``."""
+    if (content / INSPECTION_FILE).is_file():
+        return content
+    entries = [e for e in content.iterdir() if not _is_junk(e.name)]
+    if len(entries) == 1 and entries[0].is_dir() and (entries[0] / INSPECTION_FILE).is_file():
+        return entries[0]
+    return content
+
+
+def _is_junk(name: str) -> bool:
+    return name in _JUNK_NAMES or name.startswith(".")
+
+
+# --- layout -----------------------------------------------------------------------------------
+
+
+def natural_key(name: str) -> list[int | str]:
+    """Sort key that orders digit runs by value: ``f2.las`` before ``f10.las``."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _point_files(folder: Path) -> list[str]:
+    return sorted(
+        (p.name for p in folder.iterdir() if p.is_file() and not _is_junk(p.name)),
+        key=natural_key,
+    )
+
+
+def _layout_error(reason: str, archive: str, member: str, hint: str) -> ArchiveError:
+    return ArchiveError(reason, archive=archive, file=member, field="layout", hint=hint)
+
+
+def _inspect_layout(root: Path, name: str) -> tuple[InspectionMeta, str | None]:
+    """Validate the metadata and the layout; return the metadata with frames filled in and
+    the registered cloud's member path (None for a frames archive)."""
+    meta = read_inspection_toml(root / INSPECTION_FILE, archive=name)
+    frames_dir = root / FRAMES_DIR
+    frame_files = (
+        [f for f in _point_files(frames_dir) if is_point_file(f)] if frames_dir.is_dir() else []
+    )
+    root_points = [f for f in _point_files(root) if is_point_file(f)]
+    clouds = [f for f in root_points if PurePosixPath(f).stem.lower() == "cloud"]
+    has_frames = bool(meta.frames) or bool(frame_files)
+
+    if len(clouds) > 1:
+        raise _layout_error(
+            f"holds {len(clouds)} registered clouds ({', '.join(clouds)})",
+            name,
+            clouds[1],
+            hint="keep one cloud.<suffix>",
+        )
+    if has_frames and clouds:
+        raise _layout_error(
+            f"holds both {FRAMES_DIR}/ and a registered cloud ({clouds[0]}); keep one",
+            name,
+            clouds[0],
+            hint="an archive holds either the raw frames or one registered cloud",
+        )
+    if not has_frames:
+        if not clouds and len(root_points) > 1:
+            raise _layout_error(
+                f"has no {FRAMES_DIR}/ and {len(root_points)} point files at its root "
+                f"({', '.join(root_points[:5])})",
+                name,
+                root_points[1],
+                hint=f"put frames in {FRAMES_DIR}/, or keep one registered cloud named "
+                "cloud.<suffix>",
+            )
+        cloud = clouds[0] if clouds else (root_points[0] if root_points else None)
+        if cloud is None:
+            what = (
+                f"{FRAMES_DIR}/ holds no point files"
+                if frames_dir.is_dir()
+                else f"holds neither {FRAMES_DIR}/ nor a registered cloud"
+            )
+            raise _layout_error(
+                what,
+                name,
+                f"{FRAMES_DIR}/",
+                hint=f"add the frames as {FRAMES_DIR}/<name>.<suffix> or one cloud.<suffix>, "
+                f"with a suffix among {', '.join(POINT_SUFFIXES)}",
+            )
+        return meta, cloud
+
+    if meta.frames:
+        return dataclasses.replace(meta, frames=_resolve_listed(meta.frames, root, name)), None
+    listed = tuple(FrameRef(file=f"{FRAMES_DIR}/{f}") for f in frame_files)
+    return dataclasses.replace(meta, frames=listed), None
+
+
+def _resolve_listed(frames: tuple[FrameRef, ...], root: Path, name: str) -> tuple[FrameRef, ...]:
+    """Check every ``[[frames]]`` file is a point file present in the archive."""
+    resolved = []
+    for i, ref in enumerate(frames):
+        field = f"frames[{i}].file"
+        if not is_point_file(ref.file):
+            raise MetadataError(
+                f"{ref.file!r} has the unsupported suffix {point_suffix(ref.file) or '(none)'!r}",
+                archive=name,
+                file=INSPECTION_FILE,
+                field=field,
+                hint=f"frames must be point files: {', '.join(POINT_SUFFIXES)}",
+            )
+        if not (root / ref.file).is_file():
+            # Tolerate a path given relative to frames/ rather than to the root.
+            in_frames = f"{FRAMES_DIR}/{ref.file}"
+            if (root / in_frames).is_file():
+                ref = dataclasses.replace(ref, file=in_frames)
+            else:
+                raise MetadataError(
+                    f"lists {ref.file!r}, which is not in the archive",
+                    archive=name,
+                    file=INSPECTION_FILE,
+                    field=field,
+                    hint="add the file, or fix the path (relative to the archive root, "
+                    f"e.g. {FRAMES_DIR}/000001.npy)",
+                )
+        resolved.append(ref)
+    return tuple(resolved)

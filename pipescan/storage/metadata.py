@@ -1,0 +1,369 @@
+"""Parse and validate ``inspection.toml``, the metadata of one scan archive.
+
+The schema is a pydantic v2 model; :func:`parse_inspection_toml` turns its result into the
+core :class:`~pipescan.core.model.InspectionMeta` and every problem (TOML syntax, a missing
+or misspelt key, a bad value, inconsistent ``[[frames]]``) into a :class:`MetadataError`
+that names the archive, ``inspection.toml`` and the exact field (a dotted path such as
+``frames[3].odometer_m``, or ``line 7`` for a syntax error), with a hint on the fix.
+
+Unknown keys are ignored, so that newer archives still open; but a misspelt required key
+is reported as missing, with a "did you mean" for the key that was found instead.
+"""
+
+from __future__ import annotations
+
+import difflib
+import math
+import re
+import tomllib
+from collections.abc import Sequence
+from datetime import date, datetime, time
+from pathlib import Path, PurePosixPath
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic_core import PydanticCustomError
+
+from pipescan.core.errors import MetadataError
+from pipescan.core.model import FrameRef, InspectionMeta
+
+INSPECTION_FILE = "inspection.toml"
+
+MIN_DIAMETER_M = 0.05
+"""Nominal diameters must be greater than this (50 mm: smaller is not a pipe you crawl)."""
+
+MAX_DIAMETER_M = 6.0
+"""Nominal diameters must be at most this (6 m: larger is a tunnel, or millimetres)."""
+
+ODOMETER_TOLERANCE_M = 0.05
+"""How far the cable counter may step back between frames (slack, jitter) before the
+``[[frames]]`` order is taken to be wrong."""
+
+_EXAMPLES = {
+    "asset_id": 'asset_id = "MH1042-MH1043"',
+    "inspected_at": "inspected_at = 2024-05-17 (or a datetime, e.g. 2024-05-17T09:30:00Z)",
+    "nominal_diameter_m": "nominal_diameter_m = 0.5 (metres)",
+    "file": 'file = "frames/000001.npy" in each [[frames]] table',
+}
+
+
+class _FrameEntry(BaseModel):
+    """One ``[[frames]]`` table."""
+
+    model_config = ConfigDict(extra="ignore", allow_inf_nan=False, str_strip_whitespace=True)
+
+    file: str = Field(min_length=1)
+    time_s: float | None = None
+    odometer_m: float | None = None
+
+
+class InspectionDocument(BaseModel):
+    """The schema of ``inspection.toml`` (see the archive contract in DESIGN.md).
+
+    ``nominal_diameter_m`` is optional here because it is required only for circular
+    pipes; :func:`parse_inspection_toml` enforces that, and the ``[[frames]]`` consistency,
+    where it can name the exact field.
+    """
+
+    model_config = ConfigDict(
+        extra="ignore",
+        allow_inf_nan=False,
+        str_strip_whitespace=True,
+        coerce_numbers_to_str=True,  # asset_id = 1042 is an id, not an error
+    )
+
+    asset_id: str = Field(min_length=1)
+    inspected_at: datetime
+    nominal_diameter_m: float | None = None
+    upstream_node: str | None = None
+    downstream_node: str | None = None
+    direction: Literal["downstream", "upstream"] = "downstream"
+    chainage_offset_m: float = Field(default=0.0, ge=0.0)
+    material: str | None = None
+    pipe_shape: str = Field(default="circular", min_length=1)
+    frames: list[_FrameEntry] = Field(default_factory=list)
+
+    @field_validator("inspected_at", mode="before")
+    @classmethod
+    def _parse_inspected_at(cls, value: Any) -> datetime:
+        # TOML gives native dates and datetimes; strings are parsed as ISO 8601.
+        if isinstance(value, datetime):
+            return value
+        if isinstance(value, date):
+            return datetime(value.year, value.month, value.day)
+        if isinstance(value, time):
+            raise PydanticCustomError(
+                "time_without_date", "a time of day {value} without a date", {"value": value}
+            )
+        if isinstance(value, str):
+            try:
+                return datetime.fromisoformat(value.strip())
+            except ValueError:
+                pass
+        raise PydanticCustomError(
+            "not_iso_date", "{value} is not an ISO 8601 date or datetime", {"value": repr(value)}
+        )
+
+    @field_validator("nominal_diameter_m")
+    @classmethod
+    def _plausible_diameter(cls, value: float | None) -> float | None:
+        if value is None or MIN_DIAMETER_M < value <= MAX_DIAMETER_M:
+            return value
+        if MIN_DIAMETER_M * 1000 < value <= MAX_DIAMETER_M * 1000:
+            raise PydanticCustomError(
+                "diameter_in_mm",
+                "{value} looks like millimetres: write {metres}",
+                {"value": f"{value:g}", "metres": f"{value / 1000:g}"},
+            )
+        raise PydanticCustomError(
+            "implausible_diameter",
+            "{value} m is not a plausible pipe diameter (expected {low} < d <= {high} m)",
+            {"value": f"{value:g}", "low": f"{MIN_DIAMETER_M:g}", "high": f"{MAX_DIAMETER_M:g}"},
+        )
+
+    @field_validator("pipe_shape")
+    @classmethod
+    def _lower_shape(cls, value: str) -> str:
+        return value.lower()
+
+
+def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
+    """Read and validate an ``inspection.toml`` file.
+
+    Parameters
+    ----------
+    path
+        The file on disk.
+    archive
+        The archive's name, for error messages.
+
+    Returns
+    -------
+    InspectionMeta
+        As :func:`parse_inspection_toml`.
+
+    Raises
+    ------
+    MetadataError
+        The file is missing, not UTF-8, or invalid (see :func:`parse_inspection_toml`).
+    """
+    if not path.is_file():
+        raise MetadataError(
+            "the archive has no inspection.toml at its root",
+            archive=archive,
+            file=INSPECTION_FILE,
+            hint="add inspection.toml with at least asset_id, inspected_at and "
+            "nominal_diameter_m next to frames/ (or the cloud)",
+        )
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise MetadataError(
+            f"the file is not UTF-8 text (byte {exc.start})",
+            archive=archive,
+            file=INSPECTION_FILE,
+            hint="save inspection.toml as UTF-8",
+        ) from exc
+    return parse_inspection_toml(text, archive=archive)
+
+
+def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
+    """Parse and validate the text of ``inspection.toml``.
+
+    Parameters
+    ----------
+    text
+        The TOML document.
+    archive
+        The archive's name, for error messages.
+
+    Returns
+    -------
+    InspectionMeta
+        The validated metadata. ``frames`` holds the ``[[frames]]`` entries in the order
+        given (file paths relative to the archive root, ``/``-separated), or is empty when
+        the document has none. ``inspected_at`` is a datetime (midnight for a bare date;
+        timezone-aware only when the document gives an offset). ``pipe_shape`` is lower
+        case. For a non-circular pipe without ``nominal_diameter_m`` the diameter is NaN.
+
+    Raises
+    ------
+    MetadataError
+        With ``file="inspection.toml"`` and ``field`` the dotted path of the first problem
+        (``"line N"`` for a TOML syntax error); the message counts any further problems.
+
+    Examples
+    --------
+    >>> meta = parse_inspection_toml(
+    ...     'asset_id = "MH1-MH2"\\ninspected_at = 2024-05-17\\nnominal_diameter_m = 0.5',
+    ...     archive="run.zip",
+    ... )
+    >>> meta.asset_id, meta.nominal_diameter_m, meta.frames
+    ('MH1-MH2', 0.5, ())
+    """
+
+    def fail(reason: str, field: str | None, hint: str | None = None) -> MetadataError:
+        return MetadataError(reason, archive=archive, file=INSPECTION_FILE, field=field, hint=hint)
+
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        match = re.search(r"line (\d+)", str(exc))
+        raise fail(
+            f"TOML syntax error: {exc}",
+            f"line {match.group(1)}" if match else None,
+            hint="check quotes, '=' and brackets on that line; strings need double quotes",
+        ) from exc
+
+    try:
+        doc = InspectionDocument.model_validate(raw)
+    except ValidationError as exc:
+        raise _metadata_error(exc, raw, fail) from exc
+
+    if doc.nominal_diameter_m is None and doc.pipe_shape == "circular":
+        raise fail(
+            "required field is missing: circular pipes need it",
+            "nominal_diameter_m",
+            hint=_missing_hint("nominal_diameter_m", raw),
+        )
+    frames = _check_frames(doc.frames, fail)
+    return InspectionMeta(
+        asset_id=doc.asset_id,
+        inspected_at=doc.inspected_at,
+        nominal_diameter_m=(
+            doc.nominal_diameter_m if doc.nominal_diameter_m is not None else math.nan
+        ),
+        upstream_node=doc.upstream_node,
+        downstream_node=doc.downstream_node,
+        direction=doc.direction,
+        chainage_offset_m=doc.chainage_offset_m,
+        material=doc.material,
+        pipe_shape=doc.pipe_shape,
+        frames=frames,
+    )
+
+
+def _check_frames(entries: Sequence[_FrameEntry], fail: Any) -> tuple[FrameRef, ...]:
+    """Normalise ``[[frames]]`` file paths and check the entries agree with each other."""
+    frames: list[FrameRef] = []
+    seen: dict[str, int] = {}
+    for i, entry in enumerate(entries):
+        file = entry.file.replace("\\", "/")
+        parts = PurePosixPath(file).parts
+        if file.startswith("/") or re.match(r"^[A-Za-z]:", file) or ".." in parts:
+            raise fail(
+                f"{entry.file!r} is not a path inside the archive",
+                f"frames[{i}].file",
+                hint='give the path relative to the archive root, e.g. "frames/000001.npy"',
+            )
+        file = str(PurePosixPath(*[p for p in parts if p != "."]))
+        if file in seen:
+            raise fail(
+                f"{file!r} is listed twice (first as frames[{seen[file]}])",
+                f"frames[{i}].file",
+                hint="list each frame once",
+            )
+        seen[file] = i
+        frames.append(FrameRef(file=file, time_s=entry.time_s, odometer_m=entry.odometer_m))
+
+    for key in ("time_s", "odometer_m"):
+        given = [getattr(f, key) is not None for f in frames]
+        if any(given) and not all(given):
+            i = given.index(False)
+            raise fail(
+                f"{key} is given for some frames but not for this one",
+                f"frames[{i}].{key}",
+                hint=f"give {key} for every [[frames]] entry or for none",
+            )
+    for i in range(1, len(frames)):
+        before, now = frames[i - 1], frames[i]
+        if before.time_s is not None and now.time_s is not None and now.time_s < before.time_s:
+            raise fail(
+                f"time goes backwards: {now.time_s:g} s after {before.time_s:g} s "
+                f"at frames[{i - 1}]",
+                f"frames[{i}].time_s",
+                hint="list [[frames]] in capture order",
+            )
+        if (
+            before.odometer_m is not None
+            and now.odometer_m is not None
+            and now.odometer_m < before.odometer_m - ODOMETER_TOLERANCE_M
+        ):
+            raise fail(
+                f"the odometer goes back {before.odometer_m - now.odometer_m:.3g} m: "
+                f"{now.odometer_m:g} m after {before.odometer_m:g} m at frames[{i - 1}] "
+                f"(more than the {ODOMETER_TOLERANCE_M:g} m tolerance)",
+                f"frames[{i}].odometer_m",
+                hint="list [[frames]] in capture order, and check the odometer values",
+            )
+    return tuple(frames)
+
+
+def _metadata_error(exc: ValidationError, raw: dict[str, Any], fail: Any) -> MetadataError:
+    """Turn the first pydantic error into a MetadataError naming its dotted field path."""
+    errors = exc.errors(include_url=False)
+    first = errors[0]
+    loc = first["loc"]
+    field = _dotted(loc)
+    more = f" ({len(errors) - 1} more problem(s) in inspection.toml)" if len(errors) > 1 else ""
+    ctx = first.get("ctx") or {}
+    if first["type"] == "missing":
+        return fail("required field is missing" + more, field, hint=_missing_hint(loc, raw))
+    reason = first["msg"].removeprefix("Value error, ")
+    if first["type"] not in _CUSTOM_ERROR_TYPES:  # their messages already quote the value
+        reason += f", got {_short_repr(first['input'])}"
+    hint = ctx.get("hint") or _HINTS.get(str(loc[-1]) if loc else "")
+    if loc and loc[0] == "frames" and len(loc) == 1:
+        hint = "write each frame as a [[frames]] table with file = ..."
+    return fail(reason + more, field, hint=hint)
+
+
+_CUSTOM_ERROR_TYPES = {
+    "diameter_in_mm",
+    "implausible_diameter",
+    "not_iso_date",
+    "time_without_date",
+}
+
+_HINTS = {
+    "nominal_diameter_m": "nominal_diameter_m is the design inner diameter in metres",
+    "inspected_at": "write an ISO 8601 date or datetime, e.g. inspected_at = 2024-05-17",
+    "direction": 'write direction = "downstream" or "upstream"',
+    "chainage_offset_m": "give the distance in metres from the upstream node to the scan start",
+    "asset_id": 'write the pipe asset id, e.g. asset_id = "MH1042-MH1043"',
+    "file": 'give the frame file relative to the archive root, e.g. "frames/000001.npy"',
+}
+
+
+def _dotted(loc: Sequence[int | str]) -> str:
+    text = ""
+    for part in loc:
+        text += f"[{part}]" if isinstance(part, int) else ("." if text else "") + str(part)
+    return text
+
+
+def _short_repr(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _missing_hint(loc: Sequence[int | str] | str, raw: dict[str, Any]) -> str:
+    """Suggest the fix for a missing key, spotting a misspelling of it among the keys given."""
+    loc = (loc,) if isinstance(loc, str) else tuple(loc)
+    table: Any = raw
+    for part in loc[:-1]:
+        try:
+            table = table[part]
+        except (KeyError, IndexError, TypeError):
+            table = {}
+            break
+    name = str(loc[-1])
+    known = InspectionDocument.model_fields if len(loc) == 1 else _FrameEntry.model_fields
+    given = [k for k in table if k not in known] if isinstance(table, dict) else []
+    normal = {re.sub(r"[^a-z0-9]", "", k.lower()): k for k in given}
+    close = normal.get(re.sub(r"[^a-z0-9]", "", name)) or next(
+        iter(difflib.get_close_matches(name, given, n=1, cutoff=0.6)), None
+    )
+    if close is not None:
+        return f"found {close!r}: did you mean {name!r}?"
+    return f"add {_EXAMPLES.get(name, name + ' = ...')}"
