@@ -1,0 +1,139 @@
+"""Cutting a registered cloud into cross-sections along the pipe axis.
+
+Sections are aligned to whole multiples of the step in chainage from the upstream node, and keyed
+by integer millimetres so that the same section of two inspections has the same key.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipescan.core.axis import PipeAxis
+from pipescan.core.measures import MeasureParams, measure_section
+from pipescan.core.model import SectionMeasures
+
+
+@dataclass(frozen=True)
+class ChainageWindow:
+    """A run of whole sections, processed together: ``[start_mm, end_mm)`` in steps of ``step_mm``."""
+
+    start_mm: int
+    end_mm: int
+    step_mm: int
+
+    @property
+    def start_m(self) -> float:
+        return self.start_mm / 1000.0
+
+    @property
+    def end_m(self) -> float:
+        return self.end_mm / 1000.0
+
+    def section_starts_mm(self) -> range:
+        return range(self.start_mm, self.end_mm, self.step_mm)
+
+
+def plan_windows(
+    chainage_min_m: float, chainage_max_m: float, *, step_m: float = 0.1, window_m: float = 2.0
+) -> list[ChainageWindow]:
+    """Split a chainage range into windows of whole sections.
+
+    Parameters
+    ----------
+    chainage_min_m, chainage_max_m : float
+        The range to cover; it is widened to whole sections.
+    step_m : float
+        Section length (0.1 m by default).
+    window_m : float
+        Target window length; rounded to a whole number of sections.
+
+    Returns
+    -------
+    list of ChainageWindow
+        Consecutive, non-overlapping windows that together cover the range.
+    """
+    step_mm = round(step_m * 1000)
+    if step_mm <= 0:
+        raise ValueError("step_m must be at least 1 mm")
+    per_window = max(1, round(window_m * 1000 / step_mm))
+    first = math.floor(round(chainage_min_m * 1000, 6) / step_mm) * step_mm
+    last = math.ceil(round(chainage_max_m * 1000, 6) / step_mm) * step_mm
+    windows = []
+    start = first
+    while start < last:
+        end = min(start + per_window * step_mm, last)
+        windows.append(ChainageWindow(start, end, step_mm))
+        start = end
+    return windows
+
+
+def iter_section_points(
+    points_m: np.ndarray, axis: PipeAxis, window: ChainageWindow
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield ``(section_start_mm, points_2d)`` for every section of a window.
+
+    Parameters
+    ----------
+    points_m : (N, 3) float
+        Registered points in the world frame, metres. Points outside the window are ignored.
+    axis : PipeAxis
+    window : ChainageWindow
+
+    Yields
+    ------
+    section_start_mm : int
+    points_2d : (K, 2) float
+        The section's points projected on the plane perpendicular to the axis (metres).
+    """
+    chain_mm = axis.chainage(points_m) * 1000.0
+    inside = (chain_mm >= window.start_mm) & (chain_mm < window.end_mm)
+    pts = points_m[inside]
+    chain_mm = chain_mm[inside]
+    index = ((chain_mm - window.start_mm) // window.step_mm).astype(np.int64)
+    order = np.argsort(index, kind="stable")
+    index, pts = index[order], pts[order]
+    starts = list(window.section_starts_mm())
+    bounds = np.searchsorted(index, np.arange(len(starts) + 1))
+    plane = axis.to_section_plane(pts) if len(pts) else np.empty((0, 2))
+    for i, start_mm in enumerate(starts):
+        yield start_mm, plane[bounds[i] : bounds[i + 1]]
+
+
+def measure_window(
+    points_m: np.ndarray,
+    axis: PipeAxis,
+    window: ChainageWindow,
+    *,
+    nominal_diameter_m: float,
+    params: MeasureParams = MeasureParams(),
+) -> list[SectionMeasures]:
+    """Measure every section of a chainage window.
+
+    Parameters
+    ----------
+    points_m : (N, 3) float
+        Registered points in the world frame, metres (those of the window, or more).
+    axis : PipeAxis
+    window : ChainageWindow
+    nominal_diameter_m : float
+    params : MeasureParams
+
+    Returns
+    -------
+    list of SectionMeasures
+        One per section of the window, in chainage order, whatever its status.
+    """
+    return [
+        measure_section(
+            pts2d,
+            chainage_start_m=start_mm / 1000.0,
+            chainage_end_m=(start_mm + window.step_mm) / 1000.0,
+            nominal_diameter_m=nominal_diameter_m,
+            params=params,
+        )
+        for start_mm, pts2d in iter_section_points(points_m, axis, window)
+    ]
