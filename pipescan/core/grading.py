@@ -1,0 +1,514 @@
+"""Condition grades from section measures, and defects from flagged sections.
+
+Threshold tables are data: TOML files shipped in ``pipescan/core/tables/`` (or any TOML file
+given by path), each recording its source. A table holds rules; each rule grades one measure
+column of :class:`~pipescan.core.model.SectionMeasures` (a ratio) into condition classes
+0 (worst) to 4 (best) for one EN 13508-2 code.
+
+Grading rule (v1)
+-----------------
+A section's grade is the worst (lowest) class over the table's graded rules whose measure the
+section has (not None, not NaN), and the governing code is that rule's code. With the default
+table this is BAA on ``deformation_ratio`` (the rigid or flexible rule, by pipe class), BBC on
+``deposit_height_ratio`` and BBE on ``blockage_ratio`` (cross-section loss, which includes
+obstacles). A section whose status is not ``ok`` is unmeasured: its grade is None, whatever
+figures it carries.
+
+Everything here is pure: small dataclasses in, small dataclasses out.
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass, replace
+from importlib import resources
+from itertools import pairwise
+from pathlib import Path
+from typing import Any, Literal
+
+from pipescan.core.errors import GradingError
+from pipescan.core.model import Defect, SectionMeasures
+
+__all__ = [
+    "DEFAULT_TABLE",
+    "GRADEABLE_MEASURES",
+    "GradeRule",
+    "ThresholdTable",
+    "available_tables",
+    "flag_section",
+    "grade_section",
+    "grade_sections",
+    "load_table",
+    "merge_defects",
+]
+
+PipeClass = Literal["rigid", "flexible"]
+
+DEFAULT_TABLE = "vsa-2023"
+#: The SectionMeasures columns a rule may grade. All are ratios (fractions).
+GRADEABLE_MEASURES = frozenset(
+    {"deformation_ratio", "deposit_height_ratio", "blockage_ratio", "ovality_ratio"}
+)
+_PIPE_CLASSES = ("rigid", "flexible")
+_N_BOUNDS = 4  # lower bounds of classes 0..3; class 4 is everything below the last
+_RULE_KEYS = {"code", "pipe_class", "label", "measure", "lower_bounds_ratio", "graded"}
+_TABLE_KEYS = {"name", "title", "source", "rules"}
+# Sections whose chainage intervals meet within this distance are adjacent. Chainages are
+# sums of 0.1 m steps, so exact float equality would split spans on rounding noise.
+_ADJACENT_TOL_M = 1e-6
+
+
+@dataclass(frozen=True)
+class GradeRule:
+    """One code's thresholds on one measure column.
+
+    Attributes
+    ----------
+    code
+        EN 13508-2 observation code, e.g. ``"BAA"``.
+    measure
+        The :class:`SectionMeasures` column graded, e.g. ``"deformation_ratio"``.
+    lower_bounds_ratio
+        Lower bounds of classes 0, 1, 2, 3 (strictly decreasing fractions). A value at or
+        above ``lower_bounds_ratio[k]`` and below ``lower_bounds_ratio[k - 1]`` is class k;
+        below the last bound it is class 4.
+    pipe_class
+        ``"rigid"`` or ``"flexible"`` when the rule applies to one class of pipe only,
+        None when it applies to all.
+    label
+        Human-readable description for reports.
+    graded
+        False for rules listed for reference only (not used by :func:`grade_section`).
+    """
+
+    code: str
+    measure: str
+    lower_bounds_ratio: tuple[float, float, float, float]
+    pipe_class: PipeClass | None = None
+    label: str = ""
+    graded: bool = True
+
+    def classify(self, value_ratio: float) -> int:
+        """Condition class (0 worst ... 4 best) of one measured value (a fraction).
+
+        >>> GradeRule("BAA", "deformation_ratio", (0.07, 0.04, 0.03, 0.01)).classify(0.0699)
+        1
+        """
+        for condition_class, bound in enumerate(self.lower_bounds_ratio):
+            if value_ratio >= bound:
+                return condition_class
+        return _N_BOUNDS
+
+    def applies_to(self, pipe_class: PipeClass) -> bool:
+        """Whether this rule grades sections of a pipe of ``pipe_class``."""
+        return self.graded and (self.pipe_class is None or self.pipe_class == pipe_class)
+
+
+@dataclass(frozen=True)
+class ThresholdTable:
+    """A validated threshold table.
+
+    Attributes
+    ----------
+    name
+        Short name, e.g. ``"vsa-2023"``; stored with each graded inspection.
+    source
+        Full citation of where the thresholds come from.
+    rules
+        The rules, in file order (which also breaks ties between codes of equal class).
+    title
+        Optional longer title.
+    path
+        The file it was read from.
+    """
+
+    name: str
+    source: str
+    rules: tuple[GradeRule, ...]
+    title: str = ""
+    path: str = ""
+
+    def rules_for(self, pipe_class: PipeClass) -> tuple[GradeRule, ...]:
+        """The graded rules applying to a pipe of ``pipe_class``, in table order."""
+        return tuple(r for r in self.rules if r.applies_to(pipe_class))
+
+
+def _tables_dir() -> Any:
+    return resources.files("pipescan.core").joinpath("tables")
+
+
+def available_tables() -> list[str]:
+    """Names of the threshold tables shipped with pipescan, sorted.
+
+    Returns
+    -------
+    list of str
+        E.g. ``["vsa-2023"]``; each can be passed to :func:`load_table`.
+    """
+    return sorted(
+        entry.name.removesuffix(".toml")
+        for entry in _tables_dir().iterdir()
+        if entry.name.endswith(".toml")
+    )
+
+
+def load_table(name_or_path: str | Path = DEFAULT_TABLE) -> ThresholdTable:
+    """Read and validate a threshold table.
+
+    Parameters
+    ----------
+    name_or_path
+        The name of a shipped table (see :func:`available_tables`) or the path of a TOML file.
+
+    Returns
+    -------
+    ThresholdTable
+
+    Raises
+    ------
+    GradingError
+        The table is unknown, unreadable, not TOML, or a field is missing or invalid. The
+        error names the file and the field.
+
+    Examples
+    --------
+    >>> load_table("vsa-2023").rules_for("rigid")[0].lower_bounds_ratio
+    (0.07, 0.04, 0.03, 0.01)
+    """
+    text, file_label = _read_table_text(name_or_path)
+    try:
+        data = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise GradingError(
+            f"not valid TOML: {exc}", file=file_label, hint="fix the TOML syntax"
+        ) from exc
+    return _parse_table(data, file_label)
+
+
+def _read_table_text(name_or_path: str | Path) -> tuple[str, str]:
+    text_name = str(name_or_path)
+    looks_like_path = (
+        isinstance(name_or_path, Path) or text_name.endswith(".toml") or "/" in text_name
+    )
+    if looks_like_path:
+        path = Path(name_or_path)
+        try:
+            return path.read_text(encoding="utf-8"), str(path)
+        except FileNotFoundError as exc:
+            raise GradingError(
+                "threshold table file not found",
+                file=str(path),
+                hint=f"give an existing TOML file or one of {available_tables()}",
+            ) from exc
+        except (OSError, UnicodeDecodeError) as exc:
+            raise GradingError(f"cannot read threshold table: {exc}", file=str(path)) from exc
+    entry = _tables_dir().joinpath(f"{text_name}.toml")
+    if not entry.is_file():
+        raise GradingError(
+            f"unknown threshold table {text_name!r}",
+            hint=f"use one of {available_tables()} or the path of a TOML file",
+        )
+    return entry.read_text(encoding="utf-8"), f"{text_name}.toml"
+
+
+def _parse_table(data: dict[str, Any], file_label: str) -> ThresholdTable:
+    def fail(field: str, message: str, hint: str | None = None) -> GradingError:
+        return GradingError(message, file=file_label, field=field, hint=hint)
+
+    unknown = set(data) - _TABLE_KEYS
+    if unknown:
+        raise fail(sorted(unknown)[0], "unknown key", hint=f"allowed keys: {sorted(_TABLE_KEYS)}")
+    for key in ("name", "source"):
+        value = data.get(key)
+        if not isinstance(value, str) or not value.strip():
+            raise fail(key, "missing or empty", hint="give a non-empty string")
+    title = data.get("title", "")
+    if not isinstance(title, str):
+        raise fail("title", "must be a string")
+    raw_rules = data.get("rules")
+    if not isinstance(raw_rules, list) or not raw_rules:
+        raise fail("rules", "missing or empty", hint="add at least one [[rules]] table")
+    rules = tuple(_parse_rule(raw, f"rules[{i}]", fail) for i, raw in enumerate(raw_rules))
+    for pipe_class in _PIPE_CLASSES:
+        if not any(r.applies_to(pipe_class) for r in rules):  # type: ignore[arg-type]
+            raise fail(
+                "rules",
+                f"no graded rule applies to {pipe_class} pipes",
+                hint="set graded = true on at least one rule without a pipe_class",
+            )
+    return ThresholdTable(
+        name=data["name"].strip(),
+        source=data["source"].strip(),
+        rules=rules,
+        title=title.strip(),
+        path=file_label,
+    )
+
+
+def _parse_rule(raw: Any, where: str, fail: Any) -> GradeRule:
+    if not isinstance(raw, dict):
+        raise fail(where, "must be a table", hint="write it as [[rules]]")
+    unknown = set(raw) - _RULE_KEYS
+    if unknown:
+        raise fail(
+            f"{where}.{sorted(unknown)[0]}", "unknown key", hint=f"allowed: {sorted(_RULE_KEYS)}"
+        )
+    code = raw.get("code")
+    if not isinstance(code, str) or not code.strip():
+        raise fail(f"{where}.code", "missing or empty", hint='e.g. code = "BAA"')
+    measure = raw.get("measure")
+    if measure not in GRADEABLE_MEASURES:
+        raise fail(
+            f"{where}.measure",
+            f"{measure!r} is not a gradeable measure",
+            hint=f"use one of {sorted(GRADEABLE_MEASURES)}",
+        )
+    pipe_class = raw.get("pipe_class")
+    if pipe_class is not None and pipe_class not in _PIPE_CLASSES:
+        raise fail(
+            f"{where}.pipe_class",
+            f"{pipe_class!r} is not a pipe class",
+            hint='use "rigid" or "flexible", or leave it out',
+        )
+    bounds = raw.get("lower_bounds_ratio")
+    if (
+        not isinstance(bounds, list)
+        or len(bounds) != _N_BOUNDS
+        or not all(isinstance(b, int | float) and not isinstance(b, bool) for b in bounds)
+        or not all(math.isfinite(b) for b in bounds)
+    ):
+        raise fail(
+            f"{where}.lower_bounds_ratio",
+            "must be a list of 4 finite numbers",
+            hint="lower bounds of classes 0, 1, 2, 3 as fractions, e.g. [0.07, 0.04, 0.03, 0.01]",
+        )
+    if any(hi <= lo for hi, lo in pairwise(bounds)):
+        raise fail(
+            f"{where}.lower_bounds_ratio",
+            f"{bounds} is not strictly decreasing",
+            hint="class 0 (worst) has the highest lower bound",
+        )
+    if bounds[0] > 1.0:
+        raise fail(
+            f"{where}.lower_bounds_ratio",
+            f"{bounds} looks like percentages",
+            hint="bounds are fractions: write 0.07 for 7 %",
+        )
+    graded = raw.get("graded", True)
+    if not isinstance(graded, bool):
+        raise fail(f"{where}.graded", "must be true or false")
+    label = raw.get("label", "")
+    if not isinstance(label, str):
+        raise fail(f"{where}.label", "must be a string")
+    return GradeRule(
+        code=code.strip(),
+        measure=measure,
+        lower_bounds_ratio=tuple(float(b) for b in bounds),  # type: ignore[arg-type]
+        pipe_class=pipe_class,
+        label=label,
+        graded=graded,
+    )
+
+
+def _measure_value(s: SectionMeasures, measure: str) -> float | None:
+    value = getattr(s, measure)
+    if value is None or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+def _grade_with_rule(
+    s: SectionMeasures, table: ThresholdTable, pipe_class: PipeClass
+) -> tuple[int | None, GradeRule | None]:
+    if not s.is_ok:
+        return None, None
+    worst: tuple[int, GradeRule] | None = None
+    for rule in table.rules_for(pipe_class):
+        value = _measure_value(s, rule.measure)
+        if value is None:
+            continue
+        condition_class = rule.classify(value)
+        # Strictly lower only: on a tie the earlier rule in the table governs.
+        if worst is None or condition_class < worst[0]:
+            worst = (condition_class, rule)
+    if worst is None:
+        return None, None
+    return worst
+
+
+def grade_section(
+    s: SectionMeasures, table: ThresholdTable, *, pipe_class: PipeClass = "rigid"
+) -> tuple[int | None, str | None]:
+    """Grade one section: the worst class over the measures it has, and the governing code.
+
+    Parameters
+    ----------
+    s
+        The section. Only ``ok`` sections are graded.
+    table
+        The threshold table (see :func:`load_table`).
+    pipe_class
+        ``"rigid"`` or ``"flexible"``: selects the BAA deformation rule.
+
+    Returns
+    -------
+    grade : int or None
+        0 (worst) ... 4 (best); None when the status is not ``ok`` or no graded measure is
+        available.
+    code : str or None
+        The EN 13508-2 code of the rule giving that grade; on a tie, the rule listed first in
+        the table.
+
+    Examples
+    --------
+    BAA on a rigid pipe: 7 % deformation or more is class 0, 4-7 % class 1.
+
+    >>> from pipescan.core.model import SectionStatus
+    >>> s = SectionMeasures(0.0, 0.1, 0.196, SectionStatus.OK, 900, 1.0,
+    ...                     deformation_ratio=0.0699)
+    >>> grade_section(s, load_table())
+    (1, 'BAA')
+    """
+    grade, rule = _grade_with_rule(s, table, pipe_class)
+    return grade, (rule.code if rule is not None else None)
+
+
+def grade_sections(
+    sections: Iterable[SectionMeasures],
+    table: ThresholdTable,
+    *,
+    pipe_class: PipeClass = "rigid",
+) -> list[SectionMeasures]:
+    """Copies of ``sections`` with ``grade`` set by :func:`grade_section` (None if unmeasured)."""
+    return [replace(s, grade=grade_section(s, table, pipe_class=pipe_class)[0]) for s in sections]
+
+
+def flag_section(
+    s: SectionMeasures, *, blockage_threshold_ratio: float = 0.10, flag_grade: int = 2
+) -> bool:
+    """Whether a section is over the report's threshold.
+
+    A section is flagged when its status is ``ok`` and its blockage is at or above
+    ``blockage_threshold_ratio``, or its (already computed) ``grade`` is ``flag_grade`` or
+    worse. Unmeasured sections are never flagged: they are reported as unmeasured instead.
+
+    Parameters
+    ----------
+    s
+        The section, graded (see :func:`grade_sections`).
+    blockage_threshold_ratio
+        Blockage (a fraction) at or above which a section is flagged; 0.10 is 10 %.
+    flag_grade
+        Condition class at or below which (i.e. as bad or worse) a section is flagged.
+    """
+    if not s.is_ok:
+        return False
+    blockage = _measure_value(s, "blockage_ratio")
+    if blockage is not None and blockage >= blockage_threshold_ratio:
+        return True
+    return s.grade is not None and s.grade <= flag_grade
+
+
+def merge_defects(
+    sections: Sequence[SectionMeasures],
+    table: ThresholdTable,
+    *,
+    blockage_threshold_ratio: float = 0.10,
+    flag_grade: int = 2,
+    pipe_class: PipeClass = "rigid",
+) -> list[Defect]:
+    """Merge adjacent flagged sections into defects.
+
+    Sections are graded with ``table`` (any stored ``grade`` is ignored), flagged by
+    :func:`flag_section`, and taken in chainage order. Flagged sections whose intervals touch
+    form one span; an unflagged or unmeasured section, or a gap in chainage, ends a span.
+
+    For each span:
+
+    - ``grade`` is the worst grade in the span;
+    - ``code`` and ``measure`` are those of the governing rule of a worst-graded section; when
+      the span was flagged on blockage alone (no section at ``flag_grade`` or worse), they are
+      the table's graded rule on ``blockage_ratio`` (BBE in the default table);
+    - ``peak_chainage_m`` is the start of the section where that measure is largest (the first
+      such section on a tie) and ``peak_value`` that value (a fraction);
+    - ``peak_blockage_ratio`` is the largest blockage in the span (None if none measured).
+
+    Parameters
+    ----------
+    sections
+        The sections of one inspection, in any order.
+    table
+        Threshold table.
+    blockage_threshold_ratio, flag_grade
+        Flagging thresholds, see :func:`flag_section`.
+    pipe_class
+        ``"rigid"`` or ``"flexible"``.
+
+    Returns
+    -------
+    list of Defect
+        In chainage order; empty when nothing is flagged.
+    """
+    ordered = sorted(sections, key=lambda s: s.chainage_start_m)
+    graded = [_grade_with_rule(s, table, pipe_class) for s in ordered]
+    flags = [
+        flag_section(
+            replace(s, grade=g),
+            blockage_threshold_ratio=blockage_threshold_ratio,
+            flag_grade=flag_grade,
+        )
+        for s, (g, _) in zip(ordered, graded, strict=True)
+    ]
+
+    spans: list[list[int]] = []
+    for i, flagged in enumerate(flags):
+        if not flagged:
+            continue
+        touches_previous = (
+            spans
+            and spans[-1][-1] == i - 1
+            and abs(ordered[i].chainage_start_m - ordered[i - 1].chainage_end_m) <= _ADJACENT_TOL_M
+        )
+        if touches_previous:
+            spans[-1].append(i)
+        else:
+            spans.append([i])
+
+    blockage_rule = next(
+        (r for r in table.rules_for(pipe_class) if r.measure == "blockage_ratio"), None
+    )
+    defects = []
+    for span in spans:
+        grades = [g for i in span if (g := graded[i][0]) is not None]
+        worst_grade = min(grades) if grades else None
+        if worst_grade is not None and (worst_grade <= flag_grade or blockage_rule is None):
+            governing = next(graded[i][1] for i in span if graded[i][0] == worst_grade)
+            code, measure = governing.code, governing.measure  # type: ignore[union-attr]
+        elif blockage_rule is not None:
+            code, measure = blockage_rule.code, blockage_rule.measure
+        else:
+            # Flagged on blockage with no grade at all and no blockage rule in the table.
+            code, measure = "", "blockage_ratio"
+        candidates = [
+            (value, i) for i in span if (value := _measure_value(ordered[i], measure)) is not None
+        ]
+        # max() keeps the first of equal values, so ties go to the upstream section.
+        peak_value, peak_index = max(candidates, key=lambda vi: vi[0])
+        blockages = [
+            b for i in span if (b := _measure_value(ordered[i], "blockage_ratio")) is not None
+        ]
+        defects.append(
+            Defect(
+                code=code,
+                measure=measure,
+                chainage_start_m=ordered[span[0]].chainage_start_m,
+                chainage_end_m=ordered[span[-1]].chainage_end_m,
+                peak_chainage_m=ordered[peak_index].chainage_start_m,
+                peak_value=peak_value,
+                peak_blockage_ratio=max(blockages) if blockages else None,
+                grade=worst_grade,
+            )
+        )
+    return defects
