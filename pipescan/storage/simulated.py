@@ -1,0 +1,405 @@
+"""Write a simulated scan to disk as a scan archive, with its ground truth beside it.
+
+The archive is an ordinary scan archive (DESIGN.md, "Scan archive"): ``inspection.toml`` and
+``frames/NNNNNN.npy``. The ground truth sits in ``ground_truth/``, which archive readers
+ignore:
+
+- ``poses.csv``: ``frame_index, time_s, odometer_m, true_travel_m`` and the 16 entries of
+  ``T_world_sensor``, row-major (``T00 ... T33``).
+- ``sections.csv``: one :class:`~pipescan.core.simulate.TrueSection` per row (0.1 m sections).
+- ``scene.toml``: the generator, the seed, ``T_world_pipe`` and every scenario parameter.
+
+TOML is written by the small writer below (no extra dependency); ``tomllib`` reads it back.
+The archive is written into a temporary sibling directory and renamed into place at the end,
+so a crash never leaves half an archive under ``out_dir``.
+"""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import math
+import os
+import shutil
+import tempfile
+import tomllib
+from collections.abc import Callable, Mapping
+from datetime import date, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from pipescan.core.errors import ArchiveError
+from pipescan.core.simulate import (
+    BoxObstacle,
+    DepositFill,
+    EllipticalDeformation,
+    Scenario,
+    SimulatedScan,
+    TrueSection,
+)
+
+GENERATOR = "pipescan.core.simulate"
+"""Value of ``generator`` in ``ground_truth/scene.toml``: marks a simulated archive."""
+
+SECTION_STEP_M = 0.1
+"""Section length of ``ground_truth/sections.csv``."""
+
+POSE_COLUMNS = (
+    "frame_index",
+    "time_s",
+    "odometer_m",
+    "true_travel_m",
+    *(f"T{r}{c}" for r in range(4) for c in range(4)),
+)
+SECTION_COLUMNS = tuple(f.name for f in dataclasses.fields(TrueSection))
+
+_SCENE = Path("ground_truth") / "scene.toml"
+
+
+# --------------------------------------------------------------------------- TOML writer
+
+
+def _toml_key(key: str) -> str:
+    if key and all(ch.isalnum() or ch in "_-" for ch in key):
+        return key
+    return _toml_string(key)
+
+
+def _toml_string(text: str) -> str:
+    out = ['"']
+    for ch in text:
+        if ch == '"':
+            out.append('\\"')
+        elif ch == "\\":
+            out.append("\\\\")
+        elif ch == "\n":
+            out.append("\\n")
+        elif ch == "\t":
+            out.append("\\t")
+        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
+            out.append(f"\\u{ord(ch):04x}")
+        else:
+            out.append(ch)
+    out.append('"')
+    return "".join(out)
+
+
+def _toml_value(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int | np.integer):
+        return str(int(value))
+    if isinstance(value, float | np.floating):
+        v = float(value)
+        if math.isnan(v):
+            return "nan"
+        if math.isinf(v):
+            return "inf" if v > 0 else "-inf"
+        return repr(v)  # shortest repr that round-trips; valid TOML (1e-05, 0.1, 3.0)
+    if isinstance(value, str):
+        return _toml_string(value)
+    if isinstance(value, datetime | date):
+        return value.isoformat()
+    if isinstance(value, list | tuple | np.ndarray):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    raise TypeError(f"cannot write {type(value).__name__} as TOML: {value!r}")
+
+
+def _is_table_array(value: Any) -> bool:
+    return (
+        isinstance(value, list | tuple)
+        and len(value) > 0
+        and all(isinstance(v, Mapping) for v in value)
+    )
+
+
+def dumps_toml(doc: Mapping[str, Any]) -> str:
+    """Serialise a mapping to TOML: scalars, arrays, tables and arrays of tables.
+
+    ``None`` values are left out (TOML has no null). Raises ``TypeError`` for other types.
+    """
+    lines: list[str] = []
+
+    def emit(table: Mapping[str, Any], prefix: str) -> None:
+        nested: list[tuple[str, Any]] = []
+        for key, value in table.items():
+            if value is None:
+                continue
+            if isinstance(value, Mapping) or _is_table_array(value):
+                nested.append((key, value))
+            else:
+                lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
+        for key, value in nested:
+            name = f"{prefix}{_toml_key(key)}"
+            if isinstance(value, Mapping):
+                lines.extend(["", f"[{name}]"])
+                emit(value, name + ".")
+            else:
+                for item in value:
+                    lines.extend(["", f"[[{name}]]"])
+                    emit(item, name + ".")
+
+    emit(doc, "")
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+# --------------------------------------------------------------------------- writing
+
+
+def _inspection_doc(scan: SimulatedScan) -> dict[str, Any]:
+    meta = scan.meta
+    return {
+        "asset_id": meta.asset_id,
+        "inspected_at": meta.inspected_at,
+        "nominal_diameter_m": meta.nominal_diameter_m,
+        "upstream_node": meta.upstream_node,
+        "downstream_node": meta.downstream_node,
+        "direction": meta.direction,
+        "chainage_offset_m": meta.chainage_offset_m,
+        "material": meta.material,
+        "pipe_shape": meta.pipe_shape,
+        "frames": [
+            {"file": f.file, "time_s": f.time_s, "odometer_m": f.odometer_m} for f in meta.frames
+        ],
+    }
+
+
+def _scene_doc(scan: SimulatedScan) -> dict[str, Any]:
+    scenario = dataclasses.asdict(scan.scenario)
+    return {
+        "generator": GENERATOR,
+        "seed": scan.seed,
+        "n_frames": len(scan),
+        "rays_per_frame": scan.scenario.rays_per_frame,
+        "end_wall_m": scan.scenario.end_wall_m,
+        "T_world_pipe": scan.T_world_pipe.tolist(),
+        # TOML has no null: name the fields that are None so that they read back as None.
+        "null_fields": [k for k, v in scenario.items() if v is None],
+        "scenario": scenario,
+    }
+
+
+def _is_simulated_archive(path: Path) -> bool:
+    try:
+        with (path / _SCENE).open("rb") as fh:
+            return tomllib.load(fh).get("generator") == GENERATOR
+    except (OSError, tomllib.TOMLDecodeError):
+        return False
+
+
+def write_simulated_archive(
+    scan: SimulatedScan,
+    out_dir: Path,
+    *,
+    progress: Callable[[int, int], None] | None = None,
+) -> Path:
+    """Write ``scan`` as a scan archive directory with its ground truth.
+
+    Parameters
+    ----------
+    scan
+        The simulated scan; its frames are generated and written one at a time.
+    out_dir
+        The archive directory to create. It may exist if it is empty or holds a previous
+        simulated archive (which is replaced).
+    progress
+        Called as ``progress(frames_done, frames_total)`` after each frame.
+
+    Returns
+    -------
+    Path
+        ``out_dir``.
+
+    Raises
+    ------
+    ArchiveError
+        When ``out_dir`` is a file, or a non-empty directory that is not a simulated archive.
+    """
+    out_dir = Path(out_dir)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise ArchiveError(
+            "exists and is not a directory", archive=str(out_dir), hint="choose another path"
+        )
+    replace_existing = out_dir.is_dir() and any(out_dir.iterdir())
+    if replace_existing and not _is_simulated_archive(out_dir):
+        raise ArchiveError(
+            "is a non-empty directory that is not a simulated archive; refusing to overwrite it",
+            archive=str(out_dir),
+            file=str(_SCENE),
+            hint="choose an empty or new directory, or delete it first",
+        )
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        (tmp / "frames").mkdir()
+        (tmp / "ground_truth").mkdir()
+        total = len(scan)
+        for frame in scan.frames():
+            np.save(tmp / scan.meta.frames[frame.index].file, frame.points_sensor)
+            if progress is not None:
+                progress(frame.index + 1, total)
+        (tmp / "inspection.toml").write_text(dumps_toml(_inspection_doc(scan)), encoding="utf-8")
+        _write_poses(tmp / "ground_truth" / "poses.csv", scan)
+        _write_sections(tmp / "ground_truth" / "sections.csv", scan.true_sections(SECTION_STEP_M))
+        # Written last: its presence marks a complete simulated archive.
+        (tmp / _SCENE).write_text(dumps_toml(_scene_doc(scan)), encoding="utf-8")
+        _swap_into_place(tmp, out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return out_dir
+
+
+def _swap_into_place(tmp: Path, out_dir: Path) -> None:
+    if out_dir.exists():
+        # Move the old archive aside first: rename is atomic, rmtree is not.
+        trash = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))
+        os.replace(out_dir, trash / "archive")
+        os.replace(tmp, out_dir)
+        shutil.rmtree(trash, ignore_errors=True)
+    else:
+        os.replace(tmp, out_dir)
+
+
+def _write_poses(path: Path, scan: SimulatedScan) -> None:
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(POSE_COLUMNS)
+        for i in range(len(scan)):
+            row = [i, scan.times_s[i], scan.odometer_m[i], scan.true_travel_m[i]]
+            row += scan.T_world_sensor[i].reshape(16).tolist()
+            writer.writerow([repr(float(v)) if not isinstance(v, int) else v for v in row])
+
+
+def _write_sections(path: Path, sections: list[TrueSection]) -> None:
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(SECTION_COLUMNS)
+        for s in sections:
+            writer.writerow(
+                [
+                    str(getattr(s, c)).lower() if c == "in_shadow" else repr(getattr(s, c))
+                    for c in SECTION_COLUMNS
+                ]
+            )
+
+
+# --------------------------------------------------------------------------- reading
+
+
+def _ground_truth_file(archive_dir: Path, name: str) -> Path:
+    path = Path(archive_dir) / "ground_truth" / name
+    if not path.is_file():
+        raise ArchiveError(
+            "has no ground truth",
+            archive=str(archive_dir),
+            file=f"ground_truth/{name}",
+            hint="only archives written by write_simulated_archive carry ground truth",
+        )
+    return path
+
+
+def read_ground_truth(archive_dir: Path) -> tuple[np.ndarray, list[TrueSection]]:
+    """Read the true poses and sections of a simulated archive.
+
+    Parameters
+    ----------
+    archive_dir
+        A directory written by :func:`write_simulated_archive`.
+
+    Returns
+    -------
+    poses
+        (F, 4, 4) float64 true ``T_world_sensor`` per frame.
+    sections
+        The :class:`TrueSection` list (0.1 m sections).
+
+    Raises
+    ------
+    ArchiveError
+        When a ground-truth file is missing or has the wrong columns.
+    """
+    archive_dir = Path(archive_dir)
+    poses_path = _ground_truth_file(archive_dir, "poses.csv")
+    sections_path = _ground_truth_file(archive_dir, "sections.csv")
+    with poses_path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    _check_header(rows, POSE_COLUMNS, archive_dir, "poses.csv")
+    try:
+        table = np.array([[float(v) for v in row] for row in rows[1:]], dtype=np.float64)
+    except ValueError as exc:
+        raise _bad_rows(archive_dir, "poses.csv", exc) from exc
+    if table.size and table.shape[1] != len(POSE_COLUMNS):
+        raise _bad_rows(archive_dir, "poses.csv", "a row has the wrong number of values")
+    poses = table[:, 4:].reshape(-1, 4, 4) if table.size else np.empty((0, 4, 4))
+    with sections_path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    _check_header(rows, SECTION_COLUMNS, archive_dir, "sections.csv")
+    sections = []
+    try:
+        for row in rows[1:]:
+            values = dict(zip(SECTION_COLUMNS, row, strict=True))
+            in_shadow = values.pop("in_shadow") == "true"
+            floats = {k: float(v) for k, v in values.items()}
+            sections.append(TrueSection(**floats, in_shadow=in_shadow))
+    except ValueError as exc:
+        raise _bad_rows(archive_dir, "sections.csv", exc) from exc
+    return poses, sections
+
+
+def _bad_rows(archive_dir: Path, name: str, reason: object) -> ArchiveError:
+    return ArchiveError(
+        f"unreadable row: {reason}",
+        archive=str(archive_dir),
+        file=f"ground_truth/{name}",
+        hint="write the archive again with write_simulated_archive",
+    )
+
+
+def _check_header(
+    rows: list[list[str]], expected: tuple[str, ...], archive_dir: Path, name: str
+) -> None:
+    if not rows or tuple(rows[0]) != expected:
+        raise ArchiveError(
+            f"unexpected columns (expected {', '.join(expected)})",
+            archive=str(archive_dir),
+            file=f"ground_truth/{name}",
+            hint="write the archive again with write_simulated_archive",
+        )
+
+
+def read_simulated_scene(archive_dir: Path) -> tuple[Scenario, int, np.ndarray]:
+    """Read back the scenario, seed and ``T_world_pipe`` (4, 4) of a simulated archive.
+
+    ``simulate_scan(scenario, seed)`` then regenerates the same scan.
+
+    Raises
+    ------
+    ArchiveError
+        When ``ground_truth/scene.toml`` is missing or not written by the simulator.
+    """
+    path = _ground_truth_file(Path(archive_dir), "scene.toml")
+    with path.open("rb") as fh:
+        doc = tomllib.load(fh)
+    if doc.get("generator") != GENERATOR:
+        raise ArchiveError(
+            f"generator is not {GENERATOR!r}",
+            archive=str(archive_dir),
+            file=str(_SCENE),
+            field="generator",
+        )
+    raw = dict(doc["scenario"])
+    nested = {
+        "deformations": EllipticalDeformation,
+        "deposits": DepositFill,
+        "obstacles": BoxObstacle,
+    }
+    for key, cls in nested.items():
+        raw[key] = tuple(cls(**item) for item in raw.get(key, []))
+    raw["world_origin_m"] = tuple(raw["world_origin_m"])
+    raw.update(dict.fromkeys(doc.get("null_fields", [])))
+    known = {f.name for f in dataclasses.fields(Scenario)}
+    scenario = Scenario(**{k: v for k, v in raw.items() if k in known})
+    return scenario, int(doc["seed"]), np.array(doc["T_world_pipe"], dtype=np.float64)
