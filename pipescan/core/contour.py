@@ -31,30 +31,34 @@ CONTOUR_METHODS: tuple[str, ...] = ("polar", "grid")
 
 
 def remove_stray_points(
-    points_2d: np.ndarray, *, radius_m: float = 0.02, min_neighbours: int = 3
+    points: np.ndarray, *, radius_m: float = 0.02, min_neighbours: int = 3
 ) -> np.ndarray:
     """Drop isolated points (spurious early returns, dust) from a projected section.
 
-    A real surface seen by the sensor leaves many points within ``radius_m`` of each other; a
-    stray return has none. This is the paper's denoising step, and it is what makes a single
-    stray point unable to move a figure.
+    A real surface seen by the sensor leaves many points close together; a stray return has
+    none. Points are counted on a grid of ``radius_m`` cells: a point is kept when its cell and
+    the 8 around it hold more than ``min_neighbours`` other points. This is the paper's
+    denoising step, in O(N), and it is what makes a single stray point unable to move a figure.
 
     Parameters
     ----------
-    points_2d : (N, 2) float
-        Projected section points, metres.
+    points : (N, 2) or (N, 3) float
+        Section points; the first two columns are the section plane (metres).
 
     Returns
     -------
-    (K, 2) float
-        The points with at least ``min_neighbours`` others within ``radius_m``.
+    (K, 2) or (K, 3) float
+        The points that have neighbours.
     """
-    pts = np.asarray(points_2d, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
     if len(pts) <= min_neighbours:
         return pts[:0]
-    tree = cKDTree(pts)
-    counts = tree.query_ball_point(pts, radius_m, return_length=True)
-    return pts[counts > min_neighbours]  # the count includes the point itself
+    ij = np.floor((pts[:, :2] - pts[:, :2].min(axis=0)) / radius_m).astype(np.int64) + 1
+    shape = tuple(ij.max(axis=0) + 2)
+    counts = np.zeros(shape, dtype=np.int64)
+    np.add.at(counts, (ij[:, 0], ij[:, 1]), 1)
+    block = ndimage.convolve(counts, np.ones((3, 3), dtype=np.int64), mode="constant")
+    return pts[block[ij[:, 0], ij[:, 1]] - 1 >= min_neighbours]
 
 
 # --------------------------------------------------------------------------------------------
@@ -124,22 +128,35 @@ class PolarProfile:
 
 
 def polar_profile(
-    points_2d: np.ndarray,
+    points: np.ndarray,
     *,
     bins: int = 360,
-    min_points_per_bin: int = 2,
+    slices: int = 4,
+    min_slices: int = 3,
+    section_length_m: float | None = None,
     centre: np.ndarray | None = None,
 ) -> PolarProfile:
-    """Median radius per angle bin.
+    """Robust radius per angle bin, judged along the section's length.
+
+    The section is split into ``slices`` sub-slices along the axis. Each (bin, sub-slice) cell
+    gets the median radius of its points; a bin is seen when at least ``min_slices`` of its
+    sub-slices have points, and its radius is the median of those sub-slice radii. So a face
+    perpendicular to the axis (an obstacle's front, the pipe's end wall), which lies in one
+    sub-slice, is outvoted by the wall behind it; and a few points that leak across the
+    section's boundary from a neighbour cannot make an unseen arc (a shadow) look seen.
 
     Parameters
     ----------
-    points_2d : (N, 2) float
-        Projected, denoised section points, metres, axis at the origin.
+    points : (N, 2) or (N, 3) float
+        Section points, metres: columns 0-1 in the section plane with the axis at the origin,
+        column 2 (optional) the distance along the axis from the section's start. Without it,
+        the whole section counts as one sub-slice.
     bins : int
         Number of equal angle bins around the centre.
-    min_points_per_bin : int
-        A bin with fewer points is unseen (NaN).
+    slices, min_slices : int
+        Sub-slices along the section, and how many must have points for a bin to be seen.
+    section_length_m : float, optional
+        Length of the section (default: the span of column 2).
     centre : (2,) float, optional
         Centre of the profile; default the origin (the fitted axis).
 
@@ -147,24 +164,37 @@ def polar_profile(
     -------
     PolarProfile
     """
-    pts = np.asarray(points_2d, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
     c = np.zeros(2) if centre is None else np.asarray(centre, dtype=np.float64)
-    rel = pts - c
+    rel = pts[:, :2] - c
     ang = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * np.pi)
     rad = np.hypot(rel[:, 0], rel[:, 1])
-    idx = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
-    counts = np.bincount(idx, minlength=bins)
-    radii = np.full(bins, np.nan)
+    b_idx = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    if pts.shape[1] >= 3 and len(pts):
+        length = section_length_m or max(float(np.ptp(pts[:, 2])), 1e-9)
+        s_idx = np.clip((pts[:, 2] * slices / length).astype(np.int64), 0, slices - 1)
+    else:
+        slices, min_slices = 1, 1
+        s_idx = np.zeros(len(pts), dtype=np.int64)
+    cell = b_idx * slices + s_idx
+    counts = np.bincount(cell, minlength=bins * slices)
+    cell_median = np.full(bins * slices, np.nan)
     if len(pts):
-        # Sorted by (bin, radius), a bin's median is the middle of its run.
-        order = np.lexsort((rad, idx))
+        # Sorted by (cell, radius), a cell's median is the middle of its run.
+        order = np.lexsort((rad, cell))
         sorted_rad = rad[order]
         starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
-        good = np.flatnonzero(counts >= min_points_per_bin)
+        good = np.flatnonzero(counts > 0)
         lo, n = starts[good], counts[good]
-        radii[good] = 0.5 * (sorted_rad[lo + (n - 1) // 2] + sorted_rad[lo + n // 2])
+        cell_median[good] = 0.5 * (sorted_rad[lo + (n - 1) // 2] + sorted_rad[lo + n // 2])
+    per_bin = cell_median.reshape(bins, slices)
+    seen_slices = np.isfinite(per_bin).sum(axis=1)
+    radii = np.full(bins, np.nan)
+    seen = seen_slices >= min_slices
+    if seen.any():
+        radii[seen] = np.nanmedian(per_bin[seen], axis=1)
     angles = (np.arange(bins) + 0.5) * 2.0 * np.pi / bins
-    return PolarProfile(angles_rad=angles, radii_m=radii, counts=counts)
+    return PolarProfile(angles_rad=angles, radii_m=radii, counts=counts.reshape(bins, slices).sum(1))
 
 
 # --------------------------------------------------------------------------------------------

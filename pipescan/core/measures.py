@@ -50,6 +50,9 @@ class MeasureParams:
         ovality and deformation; anything further in is a deposit or an obstacle.
     stray_radius_m, stray_min_neighbours
         Stray-point removal (see ``remove_stray_points``).
+    max_points : int
+        A denser section is thinned to this many points, drawn at random with a fixed seed:
+        the per-angle medians do not need more, and the cost stays bounded.
     grid : GridParams
         Parameters of the paper's grid method.
     """
@@ -61,10 +64,11 @@ class MeasureParams:
     wall_tolerance_ratio: float = 0.12
     stray_radius_m: float = 0.02
     stray_min_neighbours: int = 3
+    max_points: int = 40_000
     grid: GridParams = GridParams()
 
 
-def choose_bins(point_count: int, *, points_per_bin: int = 8) -> int:
+def choose_bins(point_count: int, *, points_per_bin: int = 16) -> int:
     """Angular bins for a section: as fine as 1° when the points allow, never coarser than 5°."""
     for bins in _BIN_CHOICES:
         if point_count >= points_per_bin * bins:
@@ -125,9 +129,10 @@ def measure_section(
 
     Parameters
     ----------
-    points_2d : (N, 2) float
+    points_2d : (N, 2) or (N, 3) float
         The section's points projected onto the plane perpendicular to the axis, metres, the
-        axis at the origin, column 0 across and column 1 up.
+        axis at the origin, column 0 across and column 1 up; column 2, when given, is the
+        distance along the axis from the section's start (see ``polar_profile``).
     chainage_start_m, chainage_end_m : float
         The section's interval.
     nominal_diameter_m : float
@@ -160,10 +165,17 @@ def measure_section(
     )
     if len(raw) == 0:
         return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)
+    if len(raw) > params.max_points:
+        keep = np.random.default_rng(0).choice(len(raw), params.max_points, replace=False)
+        raw_used = raw[np.sort(keep)]
+    else:
+        raw_used = raw
     pts = remove_stray_points(
-        raw, radius_m=params.stray_radius_m, min_neighbours=params.stray_min_neighbours
+        raw_used, radius_m=params.stray_radius_m, min_neighbours=params.stray_min_neighbours
     )
-    profile: PolarProfile = polar_profile(pts, bins=choose_bins(len(pts)))
+    profile: PolarProfile = polar_profile(
+        pts, bins=choose_bins(len(pts)), section_length_m=chainage_end_m - chainage_start_m
+    )
     coverage = profile.coverage_ratio
     if len(pts) < params.min_points:
         return SectionMeasures(
@@ -178,7 +190,7 @@ def measure_section(
 
     if params.method == "grid":
         try:
-            polygon = grid_contour(pts, params.grid).polygon
+            polygon = grid_contour(pts[:, :2], params.grid).polygon
         except GeometryError:
             return SectionMeasures(status=SectionStatus.NO_CONTOUR, coverage_ratio=coverage, **base)
         radii = radii_of_polygon(polygon, profile.angles_rad)

@@ -86,8 +86,9 @@ def iter_section_points(
     Yields
     ------
     section_start_mm : int
-    points_2d : (K, 2) float
-        The section's points projected on the plane perpendicular to the axis (metres).
+    points_local : (K, 3) float
+        The section's points: columns 0-1 projected on the plane perpendicular to the axis,
+        column 2 the position within the section along the chainage, in [0, step), metres.
     """
     chain_mm = axis.chainage(points_m) * 1000.0
     inside = (chain_mm >= window.start_mm) & (chain_mm < window.end_mm)
@@ -95,12 +96,15 @@ def iter_section_points(
     chain_mm = chain_mm[inside]
     index = ((chain_mm - window.start_mm) // window.step_mm).astype(np.int64)
     order = np.argsort(index, kind="stable")
-    index, pts = index[order], pts[order]
+    index, pts, chain_mm = index[order], pts[order], chain_mm[order]
     starts = list(window.section_starts_mm())
     bounds = np.searchsorted(index, np.arange(len(starts) + 1))
     plane = axis.to_section_plane(pts) if len(pts) else np.empty((0, 2))
+    # Distance along the axis from each section's start (for the sub-slice test).
+    along_m = (chain_mm - window.start_mm - index * window.step_mm) / 1000.0
+    local = np.column_stack((plane, along_m)) if len(pts) else np.empty((0, 3))
     for i, start_mm in enumerate(starts):
-        yield start_mm, plane[bounds[i] : bounds[i + 1]]
+        yield start_mm, local[bounds[i] : bounds[i + 1]]
 
 
 def measure_window(
