@@ -1,0 +1,361 @@
+"""Database engines, schema migrations and sessions.
+
+The embedded default is a SQLite file (:data:`DEFAULT_DATABASE_URL`); at scale the same
+models and migrations run on PostgreSQL. :func:`connect` is the one entry point for code that
+wants a ready database: it migrates a new or outdated SQLite file on first use and refuses a
+PostgreSQL database that is not at the current revision (migrating a shared server is an
+explicit operator step: ``pipescan db upgrade``).
+
+SQLite is set up for several processes writing one file (Prefect fans work out over
+processes): write-ahead logging, so readers never block the writer; a 30 s busy timeout, so a
+writer waits for the lock instead of failing with "database is locked"; and writes that take
+the lock when their transaction begins (``BEGIN IMMEDIATE``), because in WAL mode a
+transaction that read first and then tries to write after another process committed fails at
+once, whatever the timeout. WAL needs a local file system (not NFS or SMB).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import sqlalchemy as sa
+from alembic import command
+from alembic.config import Config
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+from alembic.util import CommandError
+from sqlalchemy import event
+from sqlalchemy.engine import URL, Connection, Engine, make_url
+from sqlalchemy.orm import Session
+
+from pipescan import __version__
+from pipescan.core.errors import PipescanError
+
+DEFAULT_DATABASE_URL = "sqlite:///pipescan.db"
+"""A SQLite file in the working directory."""
+
+SQLITE_BUSY_TIMEOUT_S = 30.0
+"""How long a SQLite writer waits for another writer's lock before giving up, in seconds."""
+
+MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+"""The Alembic script directory shipped inside the package."""
+
+# Connection execution option read by the SQLite "begin" listener.
+_BEGIN_IMMEDIATE = "pipescan_sqlite_begin_immediate"
+
+# Date-prefixed revision files, e.g. versions/2026_11_23_0001_initial_schema.py.
+_FILE_TEMPLATE = "%(year)d_%(month).2d_%(day).2d_%(hour).2d%(minute).2d_%(slug)s"
+
+
+class StorageError(PipescanError):
+    """The database is unreachable, at the wrong schema revision, or refused a write."""
+
+
+def _is_sqlite(url: URL) -> bool:
+    return url.get_backend_name() == "sqlite"
+
+
+def _display_url(url: URL) -> str:
+    return url.render_as_string(hide_password=True)
+
+
+def create_engine_for(url: str | URL) -> Engine:
+    """Create an engine for a database URL, set up for pipescan.
+
+    Parameters
+    ----------
+    url
+        A SQLAlchemy URL, e.g. ``sqlite:///pipescan.db`` (relative to the working directory),
+        ``sqlite:////abs/path/pipescan.db`` or ``postgresql+psycopg://user@host/pipescan``.
+
+    Returns
+    -------
+    Engine
+        For SQLite: foreign keys enforced, WAL journal, a busy timeout of
+        :data:`SQLITE_BUSY_TIMEOUT_S`, and the parent directory of the file created if
+        missing. For other databases: a pooled engine that checks connections before use.
+
+    Raises
+    ------
+    StorageError
+        If the URL cannot be parsed or names a driver that is not installed.
+    """
+    try:
+        parsed = make_url(url)
+    except sa.exc.ArgumentError as exc:
+        raise StorageError(
+            f"cannot parse database URL {url!r}",
+            hint="use e.g. sqlite:///pipescan.db or postgresql+psycopg://user@host/db",
+        ) from exc
+    try:
+        if _is_sqlite(parsed):
+            _ensure_sqlite_parent_dir(parsed)
+            engine = sa.create_engine(parsed, connect_args={"timeout": SQLITE_BUSY_TIMEOUT_S})
+            _install_sqlite_listeners(engine)
+            return engine
+        return sa.create_engine(parsed, pool_pre_ping=True)
+    except (ImportError, sa.exc.NoSuchModuleError) as exc:
+        raise StorageError(
+            f"no database driver for {_display_url(parsed)}: {exc}",
+            hint="install the driver named in the URL, e.g. pip install 'psycopg[binary]'",
+        ) from exc
+
+
+def _ensure_sqlite_parent_dir(url: URL) -> None:
+    database = url.database or ""
+    if database in ("", ":memory:") or database.startswith("file:") or url.query.get("uri"):
+        return
+    Path(database).expanduser().parent.mkdir(parents=True, exist_ok=True)
+
+
+def _install_sqlite_listeners(engine: Engine) -> None:
+    busy_timeout_ms = int(SQLITE_BUSY_TIMEOUT_S * 1000)
+
+    @event.listens_for(engine, "connect")
+    def _on_connect(dbapi_connection: Any, _record: Any) -> None:
+        # Take transaction control away from the sqlite3 module, which would otherwise begin
+        # a transaction lazily before the first INSERT; the "begin" listener below emits
+        # BEGIN itself (SQLAlchemy's documented recipe for pysqlite).
+        dbapi_connection.isolation_level = None
+        cursor = dbapi_connection.cursor()
+        try:
+            # busy_timeout first, so that switching a brand-new file to WAL waits for a
+            # concurrent first connection instead of failing.
+            cursor.execute(f"PRAGMA busy_timeout = {busy_timeout_ms}")
+            cursor.execute("PRAGMA journal_mode = WAL")
+            cursor.execute("PRAGMA foreign_keys = ON")
+        finally:
+            cursor.close()
+
+    @event.listens_for(engine, "begin")
+    def _on_begin(connection: Connection) -> None:
+        immediate = connection.get_execution_options().get(_BEGIN_IMMEDIATE, False)
+        connection.exec_driver_sql("BEGIN IMMEDIATE" if immediate else "BEGIN")
+
+
+@contextmanager
+def session_scope(engine: Engine, *, write: bool = False) -> Iterator[Session]:
+    """A session that commits when the block ends and rolls back if it raises.
+
+    Parameters
+    ----------
+    engine
+        From :func:`create_engine_for` or :func:`connect`.
+    write
+        The block writes. On SQLite its transaction then takes the write lock when it begins,
+        so that concurrent writers queue (up to the busy timeout) rather than fail.
+
+    Yields
+    ------
+    Session
+        With ``expire_on_commit=False``, so values read in the block stay readable after it.
+    """
+    bind = engine.execution_options(**{_BEGIN_IMMEDIATE: True}) if write else engine
+    session = Session(bind=bind, expire_on_commit=False)
+    try:
+        yield session
+        session.commit()
+    except BaseException:
+        session.rollback()
+        raise
+    finally:
+        session.close()
+
+
+def _set_sqlite_foreign_keys(connection: Connection, *, on: bool) -> None:
+    # The pragma only takes effect outside a transaction, so it goes straight to the driver
+    # (through SQLAlchemy it would autobegin one first).
+    driver_connection = connection.connection.driver_connection
+    if driver_connection is None:  # pragma: no cover - only after the connection is closed
+        raise StorageError("the SQLite connection is closed")
+    driver_connection.execute(f"PRAGMA foreign_keys = {'ON' if on else 'OFF'}")
+
+
+@contextmanager
+def migration_connection(engine: Engine) -> Iterator[Connection]:
+    """A connection inside one transaction to run schema migrations in.
+
+    On SQLite, the transaction holds the write lock from the start (two processes migrating
+    the same new file run one after the other, and the second finds nothing to do), and
+    foreign keys are off while it runs: a batch migration copies a table, drops the original
+    and renames the copy, and with foreign keys on that drop would cascade-delete the rows of
+    every child table. The foreign keys are checked before committing instead.
+
+    Yields
+    ------
+    Connection
+        Already in a transaction; it is committed when the block ends without error.
+
+    Raises
+    ------
+    StorageError
+        If, on SQLite, the migrated data violates a foreign key.
+    """
+    with engine.connect() as connection:
+        sqlite = connection.dialect.name == "sqlite"
+        if sqlite:
+            _set_sqlite_foreign_keys(connection, on=False)
+            connection.execution_options(**{_BEGIN_IMMEDIATE: True})
+        try:
+            with connection.begin():
+                yield connection
+                if sqlite:
+                    violations = connection.exec_driver_sql("PRAGMA foreign_key_check").all()
+                    if violations:
+                        raise StorageError(
+                            f"the migration left {len(violations)} rows that violate a foreign "
+                            f"key, e.g. {tuple(violations[0])} (table, rowid, parent, fk id)",
+                            hint="the migration was rolled back; report this as a bug",
+                        )
+        finally:
+            if sqlite:
+                _set_sqlite_foreign_keys(connection, on=True)
+
+
+def alembic_config() -> Config:
+    """An Alembic configuration pointing at the package's migrations, with no ini file."""
+    config = Config()
+    config.set_main_option("script_location", str(MIGRATIONS_DIR))
+    config.set_main_option("path_separator", "os")
+    # ConfigParser interpolation: % must be doubled.
+    config.set_main_option("file_template", _FILE_TEMPLATE.replace("%", "%%"))
+    return config
+
+
+def head_revision() -> str:
+    """The newest schema revision this version of pipescan ships."""
+    head = ScriptDirectory.from_config(alembic_config()).get_current_head()
+    if head is None:  # pragma: no cover - the package always ships a revision
+        raise StorageError(f"no migrations found in {MIGRATIONS_DIR}")
+    return head
+
+
+@contextmanager
+def _engine_from(url_or_engine: str | URL | Engine) -> Iterator[Engine]:
+    if isinstance(url_or_engine, Engine):
+        yield url_or_engine
+        return
+    engine = create_engine_for(url_or_engine)
+    try:
+        yield engine
+    finally:
+        engine.dispose()
+
+
+def _run_alembic(url_or_engine: str | URL | Engine, fn: Any, revision: str) -> None:
+    with _engine_from(url_or_engine) as engine, migration_connection(engine) as connection:
+        config = alembic_config()
+        # env.py runs on this connection (and inside its transaction) instead of its own.
+        config.attributes["connection"] = connection
+        try:
+            fn(config, revision)
+        except CommandError as exc:
+            raise StorageError(
+                f"cannot migrate {_display_url(engine.url)} to {revision!r}: {exc}",
+                hint="give 'head', 'base', a step such as '-1' or a pipescan revision id",
+            ) from exc
+
+
+def upgrade(url_or_engine: str | URL | Engine, revision: str = "head") -> None:
+    """Migrate a database up to ``revision`` (default: the newest), in one transaction.
+
+    Parameters
+    ----------
+    url_or_engine
+        A database URL or an engine from :func:`create_engine_for`. An engine built here
+        from a URL is disposed of afterwards.
+    revision
+        An Alembic revision id, ``"head"`` or a relative step such as ``"+1"``.
+
+    Raises
+    ------
+    StorageError
+        If the revision is unknown or the migrated data violates a foreign key. Nothing is
+        changed in that case.
+    """
+    _run_alembic(url_or_engine, command.upgrade, revision)
+
+
+def downgrade(url_or_engine: str | URL | Engine, revision: str = "-1") -> None:
+    """Migrate a database down to ``revision`` (default: one step), in one transaction.
+
+    ``"base"`` drops every pipescan table and its data.
+
+    Raises
+    ------
+    StorageError
+        If the revision is unknown; nothing is changed in that case.
+    """
+    _run_alembic(url_or_engine, command.downgrade, revision)
+
+
+def current_revision(engine: Engine) -> str | None:
+    """The database's schema revision, or None for a database that was never migrated."""
+    with engine.connect() as connection:
+        return MigrationContext.configure(connection).get_current_revision()
+
+
+def connect(url: str | URL = DEFAULT_DATABASE_URL) -> Engine:
+    """An engine on a database at the current schema revision.
+
+    A new or outdated SQLite database is migrated to the newest revision here, on first use.
+    A PostgreSQL (or other) database is only checked: migrating a shared server is left to
+    the operator.
+
+    Parameters
+    ----------
+    url
+        A SQLAlchemy database URL.
+
+    Returns
+    -------
+    Engine
+        Ready for the functions of ``pipescan.storage.repository``.
+
+    Raises
+    ------
+    StorageError
+        If the database is unreachable, was migrated by a newer pipescan, or (not SQLite) is
+        not at the newest revision.
+    """
+    engine = create_engine_for(url)
+    try:
+        _ensure_at_head(engine)
+    except BaseException:
+        engine.dispose()
+        raise
+    return engine
+
+
+def _ensure_at_head(engine: Engine) -> None:
+    where = _display_url(engine.url)
+    try:
+        current = current_revision(engine)
+    except sa.exc.DBAPIError as exc:
+        raise StorageError(
+            f"cannot open database {where}: {exc.orig}",
+            hint="check the URL, that the server is running and that you may connect",
+        ) from exc
+    head = head_revision()
+    if current == head:
+        return
+    if current is not None:
+        try:
+            ScriptDirectory.from_config(alembic_config()).get_revision(current)
+        except CommandError as exc:
+            raise StorageError(
+                f"database {where} is at schema revision {current}, which pipescan "
+                f"{__version__} does not know",
+                hint="it was migrated by a newer pipescan; upgrade pipescan",
+            ) from exc
+    if engine.dialect.name == "sqlite":
+        upgrade(engine)
+        return
+    raise StorageError(
+        f"database {where} is at schema revision {current or 'none (empty database)'}, "
+        f"pipescan {__version__} needs {head}",
+        hint="run `pipescan db upgrade` on this database (back it up first)",
+    )

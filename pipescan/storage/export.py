@@ -1,0 +1,290 @@
+"""Export stored sections and defects as CSV or JSON Lines, for asset systems and GIS.
+
+Rows are streamed from the database in batches, so an export of a whole network does not
+have to fit in memory. Column names are the names used end to end (DESIGN.md). A figure that
+was not measured is an empty CSV cell (``null`` in JSON), never 0.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from collections.abc import Iterator, Mapping
+from typing import Any, TextIO, TypeVar
+
+import sqlalchemy as sa
+from sqlalchemy.engine import Engine
+
+from pipescan.storage.models import DefectRow, Inspection, Section
+from pipescan.storage.repository import mm_to_m
+
+__all__ = [
+    "DEFECT_CSV_COLUMNS",
+    "SECTION_CSV_COLUMNS",
+    "export_defects_csv",
+    "export_sections_csv",
+    "export_sections_jsonl",
+]
+
+SECTION_CSV_COLUMNS: tuple[str, ...] = (
+    "asset_id",
+    "inspection_id",
+    "inspected_at",
+    "chainage_start_m",
+    "chainage_end_m",
+    "open_area_m2",
+    "nominal_area_m2",
+    "blockage_ratio",
+    "ovality_ratio",
+    "deformation_ratio",
+    "deposit_height_ratio",
+    "coverage_ratio",
+    "point_count",
+    "status",
+    "grade",
+)
+"""Header of the sections CSV, in order."""
+
+DEFECT_CSV_COLUMNS: tuple[str, ...] = (
+    "asset_id",
+    "inspection_id",
+    "inspected_at",
+    "code",
+    "measure",
+    "chainage_start_m",
+    "chainage_end_m",
+    "peak_chainage_m",
+    "peak_value",
+    "peak_blockage_ratio",
+    "grade",
+)
+"""Header of the defects CSV, in order."""
+
+_MEASURE_COLUMNS = (
+    "open_area_m2",
+    "nominal_area_m2",
+    "blockage_ratio",
+    "ovality_ratio",
+    "deformation_ratio",
+    "deposit_height_ratio",
+    "coverage_ratio",
+)
+
+# Rows fetched per round trip while streaming.
+_BATCH_ROWS = 1000
+
+
+def _float_cell(value: float | None) -> str:
+    # Six significant digits: 0.1 % of a ratio and 1 cm² of area are far below what a LiDAR
+    # section resolves. Unmeasured (None) and NaN are empty, never "0".
+    if value is None or not math.isfinite(value):
+        return ""
+    return f"{value:.6g}"
+
+
+def _chainage_cell(value_m: float) -> str:
+    return f"{value_m:.3f}"
+
+
+def _int_cell(value: int | None) -> str:
+    return "" if value is None else str(value)
+
+
+# Bare Select: its type parameters differ between SQLAlchemy 2.0 and 2.1.
+_SelectT = TypeVar("_SelectT", bound=sa.Select)
+
+
+def _filtered(statement: _SelectT, asset_id: str | None, inspection_id: int | None) -> _SelectT:
+    if asset_id is not None:
+        statement = statement.where(Inspection.asset_id == asset_id)
+    if inspection_id is not None:
+        statement = statement.where(Inspection.id == inspection_id)
+    return statement
+
+
+def _stream(engine: Engine, statement: sa.Executable) -> Iterator[sa.Row[Any]]:
+    with engine.connect() as connection:
+        result = connection.execution_options(yield_per=_BATCH_ROWS).execute(statement)
+        yield from result
+
+
+def _section_rows(
+    engine: Engine, asset_id: str | None, inspection_id: int | None
+) -> Iterator[dict[str, Any]]:
+    statement = sa.select(
+        Inspection.asset_id,
+        Inspection.id.label("inspection_id"),
+        Inspection.inspected_at,
+        Section.chainage_start_mm,
+        Section.chainage_end_mm,
+        *(getattr(Section, name) for name in _MEASURE_COLUMNS),
+        Section.point_count,
+        Section.status,
+        Section.grade,
+    ).join(Section, Section.inspection_id == Inspection.id)
+    statement = _filtered(statement, asset_id, inspection_id).order_by(
+        Inspection.asset_id, Inspection.inspected_at, Inspection.id, Section.chainage_start_mm
+    )
+    for row in _stream(engine, statement):
+        record = row._asdict()
+        record["chainage_start_m"] = mm_to_m(record.pop("chainage_start_mm"))
+        record["chainage_end_m"] = mm_to_m(record.pop("chainage_end_mm"))
+        yield record
+
+
+def _defect_rows(
+    engine: Engine, asset_id: str | None, inspection_id: int | None
+) -> Iterator[dict[str, Any]]:
+    statement = sa.select(
+        Inspection.asset_id,
+        Inspection.id.label("inspection_id"),
+        Inspection.inspected_at,
+        DefectRow.code,
+        DefectRow.measure,
+        DefectRow.chainage_start_m,
+        DefectRow.chainage_end_m,
+        DefectRow.peak_chainage_m,
+        DefectRow.peak_value,
+        DefectRow.peak_blockage_ratio,
+        DefectRow.grade,
+    ).join(DefectRow, DefectRow.inspection_id == Inspection.id)
+    statement = _filtered(statement, asset_id, inspection_id).order_by(
+        Inspection.asset_id,
+        Inspection.inspected_at,
+        Inspection.id,
+        DefectRow.chainage_start_m,
+        DefectRow.id,
+    )
+    for row in _stream(engine, statement):
+        yield row._asdict()
+
+
+def _section_csv_cells(record: Mapping[str, Any]) -> list[str]:
+    return [
+        record["asset_id"],
+        str(record["inspection_id"]),
+        record["inspected_at"].isoformat(),
+        _chainage_cell(record["chainage_start_m"]),
+        _chainage_cell(record["chainage_end_m"]),
+        *(_float_cell(record[name]) for name in _MEASURE_COLUMNS),
+        str(record["point_count"]),
+        record["status"],
+        _int_cell(record["grade"]),
+    ]
+
+
+def _defect_csv_cells(record: Mapping[str, Any]) -> list[str]:
+    return [
+        record["asset_id"],
+        str(record["inspection_id"]),
+        record["inspected_at"].isoformat(),
+        record["code"],
+        record["measure"],
+        _chainage_cell(record["chainage_start_m"]),
+        _chainage_cell(record["chainage_end_m"]),
+        _chainage_cell(record["peak_chainage_m"]),
+        _float_cell(record["peak_value"]),
+        _float_cell(record["peak_blockage_ratio"]),
+        _int_cell(record["grade"]),
+    ]
+
+
+def export_sections_csv(
+    engine: Engine,
+    out: TextIO,
+    *,
+    asset_id: str | None = None,
+    inspection_id: int | None = None,
+) -> int:
+    """Write stored sections as CSV, one row per section, header :data:`SECTION_CSV_COLUMNS`.
+
+    Parameters
+    ----------
+    engine
+        From ``pipescan.storage.db.connect``.
+    out
+        A text stream; open files with ``newline=""`` (the csv module's convention). Rows end
+        with ``\\n``.
+    asset_id, inspection_id
+        Restrict the export to one asset and/or one inspection; by default every section of
+        every inspection is written.
+
+    Returns
+    -------
+    int
+        The number of data rows written (the header not counted).
+
+    Notes
+    -----
+    Rows are ordered by asset, inspection date, inspection id and chainage. Chainages are in
+    metres with three decimals (exact: they are stored in millimetres), ``inspected_at`` in
+    ISO 8601 UTC, other figures with six significant digits; unmeasured figures are empty.
+    """
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(SECTION_CSV_COLUMNS)
+    count = 0
+    for record in _section_rows(engine, asset_id, inspection_id):
+        writer.writerow(_section_csv_cells(record))
+        count += 1
+    return count
+
+
+def export_defects_csv(
+    engine: Engine,
+    out: TextIO,
+    *,
+    asset_id: str | None = None,
+    inspection_id: int | None = None,
+) -> int:
+    """Write stored defects as CSV, one row per defect, header :data:`DEFECT_CSV_COLUMNS`.
+
+    Parameters and formatting are those of :func:`export_sections_csv`; ``peak_value`` is
+    the governing measure's worst value, a ratio.
+
+    Returns
+    -------
+    int
+        The number of data rows written (the header not counted).
+    """
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(DEFECT_CSV_COLUMNS)
+    count = 0
+    for record in _defect_rows(engine, asset_id, inspection_id):
+        writer.writerow(_defect_csv_cells(record))
+        count += 1
+    return count
+
+
+def _json_number(value: float | None) -> float | None:
+    return None if value is None or not math.isfinite(value) else value
+
+
+def export_sections_jsonl(
+    engine: Engine,
+    out: TextIO,
+    *,
+    asset_id: str | None = None,
+    inspection_id: int | None = None,
+) -> int:
+    """Write stored sections as JSON Lines: one object per line, keys
+    :data:`SECTION_CSV_COLUMNS`.
+
+    Numbers are written at full precision, unmeasured figures as ``null``, ``inspected_at``
+    as ISO 8601 UTC text. Selection and order are those of :func:`export_sections_csv`.
+
+    Returns
+    -------
+    int
+        The number of lines written.
+    """
+    count = 0
+    for record in _section_rows(engine, asset_id, inspection_id):
+        obj = {name: record[name] for name in SECTION_CSV_COLUMNS}
+        obj["inspected_at"] = record["inspected_at"].isoformat()
+        for name in _MEASURE_COLUMNS:
+            obj[name] = _json_number(record[name])
+        out.write(json.dumps(obj, ensure_ascii=False, allow_nan=False))
+        out.write("\n")
+        count += 1
+    return count

@@ -1,0 +1,740 @@
+"""Reading and writing inspections: plain functions over an Engine.
+
+Every function opens and closes its own session and returns core dataclasses
+(``pipescan.core.model``) or the small frozen records defined here; ORM objects never leave a
+session. Writes are idempotent: saving the same archive with the same processing parameters
+again replaces the earlier inspection, so a retried or re-run task is safe.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import json
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from datetime import UTC, date, datetime
+from pathlib import PurePath
+from typing import Any
+
+import numpy as np
+import sqlalchemy as sa
+from sqlalchemy.dialects import postgresql, sqlite
+from sqlalchemy.engine import Engine
+from sqlalchemy.orm import Session
+
+from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
+from pipescan.storage.db import StorageError, session_scope
+from pipescan.storage.models import (
+    Asset,
+    DefectRow,
+    FrameQualityRow,
+    Inspection,
+    Section,
+)
+
+__all__ = [
+    "AssetRecord",
+    "InspectionRecord",
+    "TrendPoint",
+    "canonical_params_json",
+    "get_defects",
+    "get_frame_quality",
+    "get_inspection",
+    "get_section_trend",
+    "get_sections",
+    "latest_inspection_id",
+    "list_assets",
+    "list_inspections",
+    "m_to_mm",
+    "mm_to_m",
+    "params_hash",
+    "save_inspection",
+]
+
+
+@dataclass(frozen=True)
+class InspectionRecord:
+    """One stored inspection, with its asset's attributes and its number of sections.
+
+    ``inspected_at`` and ``created_at`` are timezone-aware, in UTC. ``nominal_diameter_m`` is
+    None for a non-circular pipe whose metadata gives none. ``params`` are the
+    processing parameters as hashed into ``params_hash``; ``registration`` is the registration
+    summary (empty when none was saved).
+    """
+
+    id: int
+    asset_id: str
+    inspected_at: datetime
+    archive_uri: str
+    content_hash: str
+    params_hash: str
+    params: dict[str, Any]
+    software_version: str
+    status: str
+    created_at: datetime
+    point_count: int
+    frame_count: int
+    scanned_length_m: float
+    registration: dict[str, Any]
+    threshold_table: str
+    upstream_node: str | None
+    downstream_node: str | None
+    nominal_diameter_m: float | None
+    pipe_shape: str
+    material: str | None
+    section_count: int
+
+
+@dataclass(frozen=True)
+class AssetRecord:
+    """One pipe asset, with how many inspections are stored and the date of the latest.
+
+    ``nominal_diameter_m`` is None for a non-circular pipe whose metadata gives none.
+    """
+
+    asset_id: str
+    upstream_node: str | None
+    downstream_node: str | None
+    nominal_diameter_m: float | None
+    pipe_shape: str
+    material: str | None
+    inspection_count: int
+    last_inspected_at: datetime | None
+
+
+@dataclass(frozen=True)
+class TrendPoint:
+    """The section covering one chainage in one inspection of an asset."""
+
+    inspection_id: int
+    inspected_at: datetime
+    section: SectionMeasures
+
+
+# ---------------------------------------------------------------------------------------------
+# Conversions
+
+
+def m_to_mm(value_m: float) -> int:
+    """A length in metres as whole millimetres (the sections' key representation)."""
+    return round(value_m * 1000.0)
+
+
+def mm_to_m(value_mm: int) -> float:
+    """Whole millimetres back to metres."""
+    return value_mm / 1000.0
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, enum.Enum):
+        return value.value
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, datetime | date):
+        return value.isoformat()
+    if isinstance(value, PurePath):
+        return value.as_posix()
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return dataclasses.asdict(value)
+    if isinstance(value, set | frozenset):
+        return sorted(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+def canonical_params_json(params: Mapping[str, Any]) -> str:
+    """The canonical JSON text of processing parameters: sorted keys, no whitespace.
+
+    Tuples become lists, enums their values, numpy scalars Python numbers, paths POSIX
+    strings, dates ISO 8601 text; so equal parameters give equal text whatever their Python
+    types.
+
+    Raises
+    ------
+    StorageError
+        If a value has no JSON form or is not finite (NaN, inf).
+    """
+    try:
+        return json.dumps(
+            dict(params),
+            sort_keys=True,
+            separators=(",", ":"),
+            ensure_ascii=False,
+            allow_nan=False,
+            default=_json_default,
+        )
+    except (TypeError, ValueError) as exc:
+        raise StorageError(
+            f"processing parameters cannot be stored as JSON: {exc}",
+            field="params",
+            hint="use numbers, strings, booleans, lists and dicts, with finite numbers",
+        ) from exc
+
+
+def params_hash(params: Mapping[str, Any]) -> str:
+    """SHA-256 (hex) of :func:`canonical_params_json`: the identity of a parameter set."""
+    return hashlib.sha256(canonical_params_json(params).encode("utf-8")).hexdigest()
+
+
+def _finite_or_none(value: float | None) -> float | None:
+    # NaN means "not computed" upstream; it is stored as NULL, never as a number.
+    if value is None:
+        return None
+    value = float(value)
+    return value if math.isfinite(value) else None
+
+
+def _require_finite(value: float, what: str, where: str) -> float:
+    value = float(value)
+    if not math.isfinite(value):
+        raise StorageError(f"{where}: {what} is {value}, expected a finite number", field=what)
+    return value
+
+
+def _contour_to_json(contour_m: np.ndarray | None, where: str) -> str | None:
+    if contour_m is None:
+        return None
+    contour = np.asarray(contour_m, dtype=np.float64)
+    if contour.ndim != 2 or contour.shape[1] != 2:
+        raise StorageError(
+            f"{where}: contour_m has shape {contour.shape}, expected (M, 2)", field="contour_m"
+        )
+    if not np.isfinite(contour).all():
+        raise StorageError(f"{where}: contour_m holds non-finite values", field="contour_m")
+    contour_mm = np.rint(contour * 1000.0).astype(np.int64)
+    return json.dumps(contour_mm.tolist(), separators=(",", ":"))
+
+
+def _contour_from_json(text: str | None) -> np.ndarray | None:
+    if text is None:
+        return None
+    return np.asarray(json.loads(text), dtype=np.float64).reshape(-1, 2) / 1000.0
+
+
+def _section_row(section: SectionMeasures) -> dict[str, Any]:
+    where = f"section at chainage {section.chainage_start_m:.3f} m"
+    start_mm = m_to_mm(section.chainage_start_m)
+    end_mm = m_to_mm(section.chainage_end_m)
+    if end_mm <= start_mm:
+        raise StorageError(
+            f"{where}: chainage_end_m {section.chainage_end_m} is not after chainage_start_m "
+            "(to the millimetre)",
+            field="chainage_end_m",
+        )
+    try:
+        status = SectionStatus(section.status).value
+    except ValueError as exc:
+        raise StorageError(
+            f"{where}: unknown status {section.status!r}",
+            field="status",
+            hint=f"use one of {', '.join(s.value for s in SectionStatus)}",
+        ) from exc
+    coverage_ratio = _require_finite(section.coverage_ratio, "coverage_ratio", where)
+    if not 0.0 <= coverage_ratio <= 1.0:
+        raise StorageError(
+            f"{where}: coverage_ratio {coverage_ratio} is outside [0, 1]", field="coverage_ratio"
+        )
+    if section.point_count < 0:
+        raise StorageError(f"{where}: point_count {section.point_count} < 0", field="point_count")
+    return {
+        "chainage_start_mm": start_mm,
+        "chainage_end_mm": end_mm,
+        "open_area_m2": _finite_or_none(section.open_area_m2),
+        "nominal_area_m2": _finite_or_none(section.nominal_area_m2),
+        "blockage_ratio": _finite_or_none(section.blockage_ratio),
+        "ovality_ratio": _finite_or_none(section.ovality_ratio),
+        "deformation_ratio": _finite_or_none(section.deformation_ratio),
+        "deposit_height_ratio": _finite_or_none(section.deposit_height_ratio),
+        "coverage_ratio": coverage_ratio,
+        "point_count": int(section.point_count),
+        "status": status,
+        "grade": None if section.grade is None else int(section.grade),
+        "contour_json": _contour_to_json(section.contour_m, where),
+    }
+
+
+def _section_from_row(row: Section) -> SectionMeasures:
+    try:
+        status = SectionStatus(row.status)
+    except ValueError as exc:
+        raise StorageError(
+            f"inspection {row.inspection_id}, section at {mm_to_m(row.chainage_start_mm):.3f} m:"
+            f" unknown status {row.status!r}",
+            field="status",
+            hint="it was written by a newer pipescan; upgrade pipescan",
+        ) from exc
+    return SectionMeasures(
+        chainage_start_m=mm_to_m(row.chainage_start_mm),
+        chainage_end_m=mm_to_m(row.chainage_end_mm),
+        # The core's type is float: an unknown nominal area is NaN there, NULL here.
+        nominal_area_m2=math.nan if row.nominal_area_m2 is None else row.nominal_area_m2,
+        status=status,
+        point_count=row.point_count,
+        coverage_ratio=row.coverage_ratio,
+        open_area_m2=row.open_area_m2,
+        blockage_ratio=row.blockage_ratio,
+        ovality_ratio=row.ovality_ratio,
+        deformation_ratio=row.deformation_ratio,
+        deposit_height_ratio=row.deposit_height_ratio,
+        grade=row.grade,
+        contour_m=_contour_from_json(row.contour_json),
+    )
+
+
+def _defect_row(defect: Defect) -> dict[str, Any]:
+    where = f"defect {defect.code} at chainage {defect.chainage_start_m:.3f} m"
+    return {
+        "code": defect.code,
+        "measure": defect.measure,
+        "chainage_start_m": _require_finite(defect.chainage_start_m, "chainage_start_m", where),
+        "chainage_end_m": _require_finite(defect.chainage_end_m, "chainage_end_m", where),
+        "peak_chainage_m": _require_finite(defect.peak_chainage_m, "peak_chainage_m", where),
+        "peak_value": _require_finite(defect.peak_value, "peak_value", where),
+        "peak_blockage_ratio": _finite_or_none(defect.peak_blockage_ratio),
+        "grade": None if defect.grade is None else int(defect.grade),
+    }
+
+
+def _frame_quality_row(quality: FrameQuality) -> dict[str, Any]:
+    # Registration must turn a failed frame into finite figures (fitness 0) or an error; a
+    # NaN here would be a bug upstream, so it is refused with the frame's index.
+    where = f"frame {quality.index}"
+    return {
+        "frame_index": int(quality.index),
+        "fitness": _require_finite(quality.fitness, "fitness", where),
+        "rmse_m": _require_finite(quality.rmse_m, "rmse_m", where),
+        "degenerate": bool(quality.degenerate),
+    }
+
+
+def _inspection_record(
+    inspection: Inspection, asset: Asset, section_count: int
+) -> InspectionRecord:
+    return InspectionRecord(
+        id=inspection.id,
+        asset_id=inspection.asset_id,
+        inspected_at=inspection.inspected_at,
+        archive_uri=inspection.archive_uri,
+        content_hash=inspection.content_hash,
+        params_hash=inspection.params_hash,
+        params=dict(inspection.params_json),
+        software_version=inspection.software_version,
+        status=inspection.status,
+        created_at=inspection.created_at,
+        point_count=inspection.point_count,
+        frame_count=inspection.frame_count,
+        scanned_length_m=inspection.scanned_length_m,
+        registration=dict(inspection.registration_json or {}),
+        threshold_table=inspection.threshold_table,
+        upstream_node=asset.upstream_node,
+        downstream_node=asset.downstream_node,
+        nominal_diameter_m=asset.nominal_diameter_m,
+        pipe_shape=asset.pipe_shape,
+        material=asset.material,
+        section_count=section_count,
+    )
+
+
+# ---------------------------------------------------------------------------------------------
+# Writing
+
+
+def _upsert_asset(session: Session, meta: InspectionMeta) -> None:
+    values = {
+        "asset_id": meta.asset_id,
+        "upstream_node": meta.upstream_node,
+        "downstream_node": meta.downstream_node,
+        "nominal_diameter_m": _finite_or_none(meta.nominal_diameter_m),
+        "pipe_shape": meta.pipe_shape,
+        "material": meta.material,
+    }
+    dialect = session.get_bind().dialect.name
+    if dialect in ("sqlite", "postgresql"):
+        insert = sqlite.insert if dialect == "sqlite" else postgresql.insert
+        statement = insert(Asset).values(**values)
+        new = statement.excluded
+        # One atomic statement: on PostgreSQL it also locks the asset's row until commit, so
+        # concurrent saves of one asset run their delete-then-insert one after the other.
+        statement = statement.on_conflict_do_update(
+            index_elements=[Asset.asset_id],
+            set_={
+                "upstream_node": sa.func.coalesce(new.upstream_node, Asset.upstream_node),
+                "downstream_node": sa.func.coalesce(new.downstream_node, Asset.downstream_node),
+                "nominal_diameter_m": sa.func.coalesce(
+                    new.nominal_diameter_m, Asset.nominal_diameter_m
+                ),
+                "pipe_shape": new.pipe_shape,
+                "material": sa.func.coalesce(new.material, Asset.material),
+            },
+        )
+        session.execute(statement)
+        return
+    asset = session.get(Asset, meta.asset_id, with_for_update=True)
+    if asset is None:
+        session.add(Asset(**values))
+        session.flush()
+        return
+    for name, value in values.items():
+        if value is not None:
+            setattr(asset, name, value)
+
+
+def _insert_sections(session: Session, inspection_id: int, rows: list[dict[str, Any]]) -> None:
+    if rows:
+        session.execute(sa.insert(Section), [{"inspection_id": inspection_id, **r} for r in rows])
+
+
+def _insert_defects(session: Session, inspection_id: int, rows: list[dict[str, Any]]) -> None:
+    if rows:
+        session.execute(sa.insert(DefectRow), [{"inspection_id": inspection_id, **r} for r in rows])
+
+
+def _insert_frame_quality(session: Session, inspection_id: int, rows: list[dict[str, Any]]) -> None:
+    if rows:
+        session.execute(
+            sa.insert(FrameQualityRow), [{"inspection_id": inspection_id, **r} for r in rows]
+        )
+
+
+def _check_unique(keys: list[int], what: str, unit: str) -> None:
+    seen: set[int] = set()
+    for key in keys:
+        if key in seen:
+            raise StorageError(f"two {what} share the key {key}{unit}", hint="they must be unique")
+        seen.add(key)
+
+
+def save_inspection(
+    engine: Engine,
+    *,
+    meta: InspectionMeta,
+    archive_uri: str,
+    content_hash: str,
+    params: Mapping[str, Any],
+    software_version: str,
+    sections: Sequence[SectionMeasures],
+    defects: Sequence[Defect],
+    frame_quality: Sequence[FrameQuality] = (),
+    registration: Mapping[str, Any] | None = None,
+    status: str = "ok",
+    threshold_table: str = "",
+    point_count: int = 0,
+    frame_count: int = 0,
+    scanned_length_m: float = 0.0,
+) -> int:
+    """Store one processed inspection, replacing an earlier save of the same work.
+
+    In one transaction: the asset is inserted or updated from ``meta``; any inspection of the
+    same asset with the same ``content_hash`` and parameter hash is deleted (with its
+    sections, defects and frame quality); the inspection and all its rows are inserted. If
+    anything fails, the database is left as it was.
+
+    Parameters
+    ----------
+    engine
+        From ``pipescan.storage.db.connect``.
+    meta
+        The archive's metadata. A naive ``inspected_at`` is taken as UTC. A NaN
+        ``nominal_diameter_m`` (non-circular pipe) is stored as NULL.
+    archive_uri
+        Where the archive was read from (path or URL), for the record.
+    content_hash
+        Hash of the archive's content, identifying the scan independent of its location.
+    params
+        The processing parameters, JSON-serialisable (see :func:`canonical_params_json`);
+        their hash is the second half of the inspection's identity.
+    software_version
+        pipescan's version that produced the figures.
+    sections
+        One per section; chainages are stored to the millimetre and must be distinct at that
+        resolution. NaN figures are stored as NULL (unmeasured).
+    defects, frame_quality
+        The merged defects and the per-frame registration quality.
+    registration
+        JSON summary of the registration (mean fitness, RMSE, degenerate frames, engine).
+    status
+        The inspection's status: ``"ok"``, ``"partial"``, ``"failed"``, ...
+    threshold_table
+        Name of the grading table the grades come from.
+    point_count, frame_count, scanned_length_m
+        Size of the scan: points and frames read, and the chainage length covered, in metres.
+
+    Returns
+    -------
+    int
+        The new inspection's id (a new id also when it replaced an earlier save).
+
+    Raises
+    ------
+    StorageError
+        If a value cannot be stored (non-finite chainages or coverage, duplicate chainages,
+        unknown status, parameters without a JSON form) or the database refuses the write;
+        nothing is written then.
+    """
+    inspected_at = meta.inspected_at
+    if inspected_at.tzinfo is None or inspected_at.utcoffset() is None:
+        # inspection.toml without an offset (or a bare date) gives a naive datetime: UTC is
+        # the only reading that does not depend on the machine that processed the scan.
+        inspected_at = inspected_at.replace(tzinfo=UTC)
+    where = f"inspection of asset {meta.asset_id} from {archive_uri}"
+    canonical = canonical_params_json(params)
+    registration_json = (
+        None if registration is None else json.loads(canonical_params_json(registration))
+    )
+    # Validate and convert everything before touching the database.
+    section_rows = [_section_row(s) for s in sections]
+    _check_unique([r["chainage_start_mm"] for r in section_rows], "sections", " mm of chainage")
+    defect_rows = [_defect_row(d) for d in defects]
+    quality_rows = [_frame_quality_row(q) for q in frame_quality]
+    _check_unique([r["frame_index"] for r in quality_rows], "frame quality rows", " (frame)")
+
+    identity = {
+        "asset_id": meta.asset_id,
+        "content_hash": content_hash,
+        "params_hash": hashlib.sha256(canonical.encode("utf-8")).hexdigest(),
+    }
+    try:
+        with session_scope(engine, write=True) as session:
+            _upsert_asset(session, meta)
+            session.execute(
+                sa.delete(Inspection).filter_by(**identity),
+                execution_options={"synchronize_session": False},
+            )
+            inspection = Inspection(
+                **identity,
+                inspected_at=inspected_at,
+                archive_uri=archive_uri,
+                params_json=json.loads(canonical),
+                software_version=software_version,
+                status=status,
+                point_count=int(point_count),
+                frame_count=int(frame_count),
+                scanned_length_m=_require_finite(scanned_length_m, "scanned_length_m", where),
+                registration_json=registration_json,
+                threshold_table=threshold_table,
+            )
+            session.add(inspection)
+            session.flush()
+            inspection_id = inspection.id
+            _insert_sections(session, inspection_id, section_rows)
+            _insert_defects(session, inspection_id, defect_rows)
+            _insert_frame_quality(session, inspection_id, quality_rows)
+    except sa.exc.DBAPIError as exc:
+        raise StorageError(
+            f"could not save the {where}: {exc.orig}",
+            hint="nothing was written; if the database was locked, retry",
+        ) from exc
+    return inspection_id
+
+
+# ---------------------------------------------------------------------------------------------
+# Reading
+
+
+def _section_count_column() -> sa.ScalarSelect[int]:
+    return (
+        sa.select(sa.func.count())
+        .where(Section.inspection_id == Inspection.id)
+        .correlate(Inspection)
+        .scalar_subquery()
+    )
+
+
+def _no_inspection(inspection_id: int) -> StorageError:
+    return StorageError(
+        f"no inspection with id {inspection_id}",
+        hint="list the stored inspections and their ids with list_inspections()",
+    )
+
+
+def _require_inspection(session: Session, inspection_id: int) -> None:
+    if session.get(Inspection, inspection_id) is None:
+        raise _no_inspection(inspection_id)
+
+
+def list_assets(engine: Engine) -> list[AssetRecord]:
+    """Every asset, by asset id, with its number of inspections and latest inspection date."""
+    statement = (
+        sa.select(
+            Asset,
+            sa.func.count(Inspection.id),
+            sa.func.max(Inspection.inspected_at),
+        )
+        .outerjoin(Inspection, Inspection.asset_id == Asset.asset_id)
+        .group_by(Asset.asset_id)
+        .order_by(Asset.asset_id)
+    )
+    with session_scope(engine) as session:
+        records = []
+        # max() keeps the column's type, so the date comes back aware, in UTC.
+        for asset, count, last in session.execute(statement).all():
+            records.append(
+                AssetRecord(
+                    asset_id=asset.asset_id,
+                    upstream_node=asset.upstream_node,
+                    downstream_node=asset.downstream_node,
+                    nominal_diameter_m=asset.nominal_diameter_m,
+                    pipe_shape=asset.pipe_shape,
+                    material=asset.material,
+                    inspection_count=count,
+                    last_inspected_at=last,
+                )
+            )
+        return records
+
+
+def list_inspections(engine: Engine, asset_id: str | None = None) -> list[InspectionRecord]:
+    """The stored inspections, of one asset or of all, by asset, date and id."""
+    statement = (
+        sa.select(Inspection, Asset, _section_count_column())
+        .join(Asset, Inspection.asset_id == Asset.asset_id)
+        .order_by(Inspection.asset_id, Inspection.inspected_at, Inspection.id)
+    )
+    if asset_id is not None:
+        statement = statement.where(Inspection.asset_id == asset_id)
+    with session_scope(engine) as session:
+        return [_inspection_record(i, a, n) for i, a, n in session.execute(statement).all()]
+
+
+def get_inspection(engine: Engine, inspection_id: int) -> InspectionRecord:
+    """One inspection by id.
+
+    Raises
+    ------
+    StorageError
+        If there is no inspection with that id.
+    """
+    statement = (
+        sa.select(Inspection, Asset, _section_count_column())
+        .join(Asset, Inspection.asset_id == Asset.asset_id)
+        .where(Inspection.id == inspection_id)
+    )
+    with session_scope(engine) as session:
+        row = session.execute(statement).one_or_none()
+        if row is None:
+            raise _no_inspection(inspection_id)
+        return _inspection_record(*row)
+
+
+def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:
+    """An inspection's sections by chainage, with ``contour_m`` as (M, 2) float64 metres.
+
+    Raises
+    ------
+    StorageError
+        If there is no inspection with that id.
+    """
+    statement = (
+        sa.select(Section)
+        .where(Section.inspection_id == inspection_id)
+        .order_by(Section.chainage_start_mm)
+    )
+    with session_scope(engine) as session:
+        _require_inspection(session, inspection_id)
+        return [_section_from_row(row) for row in session.scalars(statement)]
+
+
+def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
+    """An inspection's defects by start chainage.
+
+    Raises
+    ------
+    StorageError
+        If there is no inspection with that id.
+    """
+    statement = (
+        sa.select(DefectRow)
+        .where(DefectRow.inspection_id == inspection_id)
+        .order_by(DefectRow.chainage_start_m, DefectRow.id)
+    )
+    with session_scope(engine) as session:
+        _require_inspection(session, inspection_id)
+        return [
+            Defect(
+                code=row.code,
+                measure=row.measure,
+                chainage_start_m=row.chainage_start_m,
+                chainage_end_m=row.chainage_end_m,
+                peak_chainage_m=row.peak_chainage_m,
+                peak_value=row.peak_value,
+                peak_blockage_ratio=row.peak_blockage_ratio,
+                grade=row.grade,
+            )
+            for row in session.scalars(statement)
+        ]
+
+
+def get_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
+    """An inspection's per-frame registration quality by frame index.
+
+    Raises
+    ------
+    StorageError
+        If there is no inspection with that id.
+    """
+    statement = (
+        sa.select(FrameQualityRow)
+        .where(FrameQualityRow.inspection_id == inspection_id)
+        .order_by(FrameQualityRow.frame_index)
+    )
+    with session_scope(engine) as session:
+        _require_inspection(session, inspection_id)
+        return [
+            FrameQuality(
+                index=row.frame_index,
+                fitness=row.fitness,
+                rmse_m=row.rmse_m,
+                degenerate=row.degenerate,
+            )
+            for row in session.scalars(statement)
+        ]
+
+
+def latest_inspection_id(engine: Engine, asset_id: str | None = None) -> int | None:
+    """The id of the most recent inspection (by ``inspected_at``, then the last saved), of
+    one asset or of all; None if there is none."""
+    statement = sa.select(Inspection.id).order_by(
+        Inspection.inspected_at.desc(), Inspection.id.desc()
+    )
+    if asset_id is not None:
+        statement = statement.where(Inspection.asset_id == asset_id)
+    with session_scope(engine) as session:
+        return session.scalars(statement.limit(1)).first()
+
+
+def get_section_trend(engine: Engine, asset_id: str, chainage_m: float) -> list[TrendPoint]:
+    """How the section at one chainage of an asset changed across its inspections.
+
+    Parameters
+    ----------
+    asset_id
+        The pipe asset.
+    chainage_m
+        A chainage from the upstream node, in metres; each inspection contributes the section
+        whose interval ``[start, end)`` contains it (to the millimetre), if it has one.
+
+    Returns
+    -------
+    list of TrendPoint
+        In inspection date order (then save order).
+    """
+    chainage_mm = m_to_mm(chainage_m)
+    statement = (
+        sa.select(Inspection.id, Inspection.inspected_at, Section)
+        .join(Section, Section.inspection_id == Inspection.id)
+        .where(
+            Inspection.asset_id == asset_id,
+            Section.chainage_start_mm <= chainage_mm,
+            Section.chainage_end_mm > chainage_mm,
+        )
+        .order_by(Inspection.inspected_at, Inspection.id)
+    )
+    with session_scope(engine) as session:
+        return [
+            TrendPoint(inspection_id=i, inspected_at=t, section=_section_from_row(s))
+            for i, t, s in session.execute(statement).all()
+        ]

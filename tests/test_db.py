@@ -1,0 +1,696 @@
+"""The database: migrations, engine setup, and the repository's save/get round trips.
+
+Every test uses a fresh SQLite file under tmp_path, migrated by ``connect``.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing
+import os
+import sqlite3
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import replace
+from datetime import UTC, datetime, timedelta, timezone
+from pathlib import Path
+
+import numpy as np
+import pytest
+import sqlalchemy as sa
+from alembic.autogenerate import compare_metadata
+from alembic.runtime.migration import MigrationContext
+from alembic.script import ScriptDirectory
+
+from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
+from pipescan.storage import db, repository
+from pipescan.storage.models import Base
+
+TABLES = {"assets", "inspections", "sections", "defects", "frame_quality"}
+NOMINAL_DIAMETER_M = 0.6
+NOMINAL_AREA_M2 = math.pi * NOMINAL_DIAMETER_M**2 / 4
+
+
+# ---------------------------------------------------------------------------------------------
+# Known data
+
+
+def make_meta(asset_id: str = "MH1042-MH1043", **changes: object) -> InspectionMeta:
+    meta = InspectionMeta(
+        asset_id=asset_id,
+        inspected_at=datetime(2026, 3, 4, 9, 30, tzinfo=timezone(timedelta(hours=2))),
+        nominal_diameter_m=NOMINAL_DIAMETER_M,
+        upstream_node="MH1042",
+        downstream_node="MH1043",
+        material="concrete",
+    )
+    return replace(meta, **changes)  # type: ignore[arg-type]
+
+
+def make_sections(count: int = 5) -> list[SectionMeasures]:
+    """``count`` sections of 0.1 m from 0; the last is unmeasured (no figures, no contour)."""
+    angles = np.linspace(0, 2 * np.pi, 36, endpoint=False)
+    sections = []
+    for i in range(count - 1):
+        radius_m = 0.3 - 0.01 * i
+        contour_m = np.column_stack([radius_m * np.cos(angles), radius_m * np.sin(angles)])
+        open_area_m2 = math.pi * radius_m**2
+        sections.append(
+            SectionMeasures(
+                chainage_start_m=i / 10,
+                chainage_end_m=(i + 1) / 10,
+                nominal_area_m2=NOMINAL_AREA_M2,
+                status=SectionStatus.OK,
+                point_count=1000 + i,
+                coverage_ratio=0.95,
+                open_area_m2=open_area_m2,
+                blockage_ratio=1 - open_area_m2 / NOMINAL_AREA_M2,
+                ovality_ratio=0.01 * i,
+                deformation_ratio=0.005 * i,
+                deposit_height_ratio=0.0 if i == 0 else 0.02 * i,
+                grade=4 - i,
+                contour_m=contour_m,
+            )
+        )
+    sections.append(
+        SectionMeasures(
+            chainage_start_m=(count - 1) / 10,
+            chainage_end_m=count / 10,
+            nominal_area_m2=NOMINAL_AREA_M2,
+            status=SectionStatus.TOO_FEW_POINTS,
+            point_count=3,
+            coverage_ratio=0.1,
+        )
+    )
+    return sections
+
+
+DEFECTS = [
+    Defect(
+        code="BBC",
+        measure="deposit_height_ratio",
+        chainage_start_m=0.2,
+        chainage_end_m=0.4,
+        peak_chainage_m=0.3,
+        peak_value=0.06,
+        peak_blockage_ratio=0.12,
+        grade=2,
+    ),
+    Defect(
+        code="BAA",
+        measure="deformation_ratio",
+        chainage_start_m=0.1,
+        chainage_end_m=0.2,
+        peak_chainage_m=0.1,
+        peak_value=0.05,
+        peak_blockage_ratio=None,
+        grade=None,
+    ),
+]
+FRAME_QUALITY = [
+    FrameQuality(index=0, fitness=1.0, rmse_m=0.0, degenerate=False),
+    FrameQuality(index=1, fitness=0.93, rmse_m=0.004, degenerate=True),
+]
+PARAMS = {"section_step_m": 0.1, "contour_method": "alpha_shape", "voxel_m": 0.01}
+
+
+def save(engine: sa.Engine, **changes: object) -> int:
+    arguments: dict[str, object] = {
+        "meta": make_meta(),
+        "archive_uri": "/scans/run1.zip",
+        "content_hash": "sha256:aaaa",
+        "params": PARAMS,
+        "software_version": "0.1.0",
+        "sections": make_sections(),
+        "defects": DEFECTS,
+        "frame_quality": FRAME_QUALITY,
+        "registration": {"mean_fitness": 0.965, "rmse_m": 0.002, "degenerate_frames": 1},
+        "threshold_table": "vsa-2023",
+        "point_count": 123_456,
+        "frame_count": 2,
+        "scanned_length_m": 0.5,
+    }
+    arguments.update(changes)
+    return repository.save_inspection(engine, **arguments)  # type: ignore[arg-type]
+
+
+def count_rows(engine: sa.Engine, table: str) -> int:
+    with engine.connect() as connection:
+        return connection.exec_driver_sql(f"SELECT count(*) FROM {table}").scalar_one()
+
+
+@pytest.fixture
+def db_url(tmp_path: Path) -> str:
+    return f"sqlite:///{tmp_path / 'pipescan.db'}"
+
+
+@pytest.fixture
+def engine(db_url: str):
+    engine = db.connect(db_url)
+    yield engine
+    engine.dispose()
+
+
+# ---------------------------------------------------------------------------------------------
+# Migrations
+
+
+def test_one_head_in_a_date_prefixed_file() -> None:
+    scripts = ScriptDirectory.from_config(db.alembic_config())
+    assert len(scripts.get_heads()) == 1
+    assert scripts.get_heads()[0] == db.head_revision()
+    files = sorted(p.name for p in (db.MIGRATIONS_DIR / "versions").glob("2*.py"))
+    assert files == ["2026_11_23_0001_initial_schema.py"]
+    assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
+
+
+def test_migration_matches_models(engine: sa.Engine) -> None:
+    with engine.connect() as connection:
+        context = MigrationContext.configure(connection, opts={"compare_type": True})
+        assert compare_metadata(context, Base.metadata) == []
+
+        # The comparison does see a difference when there is one.
+        changed = sa.MetaData(naming_convention=Base.metadata.naming_convention)
+        for table in Base.metadata.tables.values():
+            table.to_metadata(changed)
+        sa.Table("sections", changed, sa.Column("extra_ratio", sa.Float()), extend_existing=True)
+        changed.tables["inspections"].c.status.nullable = True
+        diffs = compare_metadata(context, changed)
+    kinds = sorted(str(d[0][0] if isinstance(d, list) else d[0]) for d in diffs)
+    assert kinds == ["add_column", "modify_nullable"]
+
+
+def test_connect_migrates_a_new_file_and_creates_its_folder(tmp_path: Path) -> None:
+    path = tmp_path / "deep" / "er" / "pipescan.db"
+    engine = db.connect(f"sqlite:///{path}")
+    try:
+        assert path.is_file()
+        assert db.current_revision(engine) == db.head_revision()
+        assert set(sa.inspect(engine).get_table_names()) >= TABLES
+        # A second connect on a database at head changes nothing.
+        save(engine)
+        db.connect(f"sqlite:///{path}").dispose()
+        assert count_rows(engine, "sections") == 5
+    finally:
+        engine.dispose()
+
+
+def test_connect_migrates_an_outdated_sqlite_file(db_url: str) -> None:
+    engine = db.create_engine_for(db_url)
+    db.upgrade(engine)
+    db.downgrade(engine, "base")
+    assert db.current_revision(engine) is None
+    engine.dispose()
+    engine = db.connect(db_url)
+    assert db.current_revision(engine) == db.head_revision()
+    engine.dispose()
+
+
+def test_connect_refuses_a_revision_it_does_not_know(engine: sa.Engine, db_url: str) -> None:
+    with engine.begin() as connection:
+        connection.exec_driver_sql("UPDATE alembic_version SET version_num = 'ffffffffffff'")
+    with pytest.raises(db.StorageError, match=r"ffffffffffff.*upgrade pipescan"):
+        db.connect(db_url)
+
+
+def test_connect_refuses_an_outdated_non_sqlite_database(
+    engine: sa.Engine, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Stand in for PostgreSQL: same check, but the dialect is not SQLite.
+    db.downgrade(engine, "base")
+    monkeypatch.setattr(engine.dialect, "name", "postgresql")
+    with pytest.raises(db.StorageError, match=r"none.*pipescan db upgrade"):
+        db._ensure_at_head(engine)
+    assert db.current_revision(engine) is None  # nothing was migrated
+
+
+def test_upgrade_downgrade_upgrade_with_data(engine: sa.Engine) -> None:
+    first = save(engine)
+    save(engine, params={**PARAMS, "voxel_m": 0.02})
+    assert count_rows(engine, "inspections") == 2
+
+    db.downgrade(engine, "base")
+    assert db.current_revision(engine) is None
+    assert not TABLES & set(sa.inspect(engine).get_table_names())
+
+    db.upgrade(engine, "head")
+    assert db.current_revision(engine) == db.head_revision()
+    second = save(engine)
+    assert repository.get_sections(engine, second) == make_sections()
+    # Ids are never reused: the sqlite_sequence restarts only with the table.
+    assert second >= first
+    # Foreign keys are back on after the migration switched them off.
+    with engine.connect() as connection:
+        assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar_one() == 1
+
+
+def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:
+    with pytest.raises(db.StorageError, match="nonexistent"):
+        db.upgrade(engine, "nonexistent")
+    assert db.current_revision(engine) == db.head_revision()
+
+
+# ---------------------------------------------------------------------------------------------
+# Engine setup
+
+
+def test_sqlite_pragmas(engine: sa.Engine, db_url: str) -> None:
+    with engine.connect() as connection:
+        assert connection.exec_driver_sql("PRAGMA journal_mode").scalar_one() == "wal"
+        assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar_one() == 1
+        busy_ms = connection.exec_driver_sql("PRAGMA busy_timeout").scalar_one()
+        assert busy_ms == db.SQLITE_BUSY_TIMEOUT_S * 1000
+    # WAL is a property of the file: a plain sqlite3 connection sees it too.
+    raw = sqlite3.connect(db_url.removeprefix("sqlite:///"))
+    try:
+        assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    finally:
+        raw.close()
+
+
+def test_deleting_an_inspection_cascades(engine: sa.Engine) -> None:
+    inspection_id = save(engine)
+    with engine.begin() as connection:
+        connection.execute(sa.text("DELETE FROM inspections WHERE id = :id"), {"id": inspection_id})
+    for table in ("sections", "defects", "frame_quality"):
+        assert count_rows(engine, table) == 0
+    assert count_rows(engine, "assets") == 1
+
+
+def test_bad_url_raises_storage_error() -> None:
+    with pytest.raises(db.StorageError, match="cannot parse"):
+        db.create_engine_for("not a url")
+
+
+def test_session_scope_rolls_back_on_error(engine: sa.Engine) -> None:
+    save(engine)
+    with pytest.raises(RuntimeError), db.session_scope(engine, write=True) as session:
+        session.execute(sa.text("DELETE FROM sections"))
+        raise RuntimeError("boom")
+    assert count_rows(engine, "sections") == 5
+
+
+# ---------------------------------------------------------------------------------------------
+# Repository
+
+
+def test_sections_round_trip(engine: sa.Engine) -> None:
+    inspection_id = save(engine)
+    expected = make_sections()
+    stored = repository.get_sections(engine, inspection_id)
+    # Dataclass equality compares every field but the contour.
+    assert stored == expected
+    unmeasured = stored[-1]
+    assert unmeasured.status is SectionStatus.TOO_FEW_POINTS
+    assert unmeasured.open_area_m2 is None
+    assert unmeasured.blockage_ratio is None
+    assert unmeasured.grade is None
+    assert unmeasured.contour_m is None
+    assert stored[0].deposit_height_ratio == 0.0  # a measured 0 stays 0, not None
+    for got, want in zip(stored[:-1], expected[:-1], strict=True):
+        assert got.contour_m is not None and want.contour_m is not None
+        assert got.contour_m.shape == want.contour_m.shape == (36, 2)
+        assert got.contour_m.dtype == np.float64
+        # Stored to the millimetre.
+        np.testing.assert_allclose(got.contour_m, want.contour_m, atol=0.0005 + 1e-12)
+    assert [s.chainage_start_m for s in stored] == [0.0, 0.1, 0.2, 0.3, 0.4]
+
+
+def test_chainages_are_keyed_to_the_millimetre(engine: sa.Engine) -> None:
+    # Accumulated float error (0.1 * 3 != 0.3) does not survive: keys are whole millimetres.
+    section = replace(make_sections(1)[0], chainage_start_m=0.1 * 3, chainage_end_m=0.1 * 4)
+    assert section.chainage_start_m != 0.3
+    stored = repository.get_sections(engine, save(engine, sections=[section]))[0]
+    assert (stored.chainage_start_m, stored.chainage_end_m) == (0.3, 0.4)
+    with engine.connect() as connection:
+        keys = connection.exec_driver_sql("SELECT chainage_start_mm, chainage_end_mm FROM sections")
+        assert keys.all() == [(300, 400)]
+
+
+def test_inspection_record(engine: sa.Engine) -> None:
+    inspection_id = save(engine)
+    record = repository.get_inspection(engine, inspection_id)
+    assert record.id == inspection_id
+    assert record.asset_id == "MH1042-MH1043"
+    # 09:30 at +02:00 is 07:30 UTC, and comes back aware.
+    assert record.inspected_at == datetime(2026, 3, 4, 7, 30, tzinfo=UTC)
+    assert record.inspected_at.utcoffset() == timedelta(0)
+    assert record.created_at.tzinfo is not None
+    assert abs(record.created_at - datetime.now(UTC)) < timedelta(minutes=1)
+    assert record.params == PARAMS
+    assert record.params_hash == repository.params_hash(PARAMS)
+    assert record.registration == {
+        "mean_fitness": 0.965,
+        "rmse_m": 0.002,
+        "degenerate_frames": 1,
+    }
+    assert (record.point_count, record.frame_count, record.scanned_length_m) == (123_456, 2, 0.5)
+    assert (record.threshold_table, record.status, record.section_count) == ("vsa-2023", "ok", 5)
+    assert (record.upstream_node, record.downstream_node) == ("MH1042", "MH1043")
+    assert (record.nominal_diameter_m, record.pipe_shape, record.material) == (
+        0.6,
+        "circular",
+        "concrete",
+    )
+    assert repository.list_inspections(engine) == [record]
+
+
+def test_defects_and_frame_quality_round_trip(engine: sa.Engine) -> None:
+    inspection_id = save(engine)
+    # Ordered by start chainage.
+    assert repository.get_defects(engine, inspection_id) == [DEFECTS[1], DEFECTS[0]]
+    assert repository.get_frame_quality(engine, inspection_id) == FRAME_QUALITY
+
+
+def test_params_hash_is_canonical() -> None:
+    a = repository.params_hash({"b": (1, 2), "a": np.float64(0.5), "c": SectionStatus.OK})
+    b = repository.params_hash({"a": 0.5, "c": "ok", "b": [1, 2]})
+    assert a == b
+    assert a != repository.params_hash({"a": 0.5, "c": "ok", "b": [1, 3]})
+    with pytest.raises(db.StorageError, match="params"):
+        repository.params_hash({"x": float("nan")})
+
+
+def test_resaving_the_same_archive_and_params_replaces(engine: sa.Engine) -> None:
+    first = save(engine)
+    # Fewer sections the second time: leftovers of the first save would show.
+    second = save(engine, sections=make_sections(3), archive_uri="/moved/run1.zip")
+    assert count_rows(engine, "inspections") == 1
+    assert count_rows(engine, "sections") == 3
+    assert count_rows(engine, "defects") == len(DEFECTS)
+    assert count_rows(engine, "frame_quality") == len(FRAME_QUALITY)
+    assert second != first
+    assert [r.id for r in repository.list_inspections(engine)] == [second]
+    assert repository.get_inspection(engine, second).archive_uri == "/moved/run1.zip"
+    with pytest.raises(db.StorageError, match=f"no inspection with id {first}"):
+        repository.get_sections(engine, first)
+
+
+def test_other_params_or_archive_add_an_inspection(engine: sa.Engine) -> None:
+    first = save(engine)
+    second = save(engine, params={**PARAMS, "contour_method": "paper"})
+    third = save(engine, content_hash="sha256:bbbb")
+    assert len({first, second, third}) == 3
+    assert count_rows(engine, "inspections") == 3
+    assert count_rows(engine, "sections") == 15
+    assert count_rows(engine, "assets") == 1
+    # Same inspection date: the last saved is the latest.
+    assert repository.latest_inspection_id(engine) == third
+    assert repository.latest_inspection_id(engine, "MH1042-MH1043") == third
+    assert repository.latest_inspection_id(engine, "other") is None
+
+
+def test_a_failure_after_the_sections_leaves_the_previous_save(
+    engine: sa.Engine, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = save(engine)
+
+    def fail(*args: object) -> None:
+        raise RuntimeError("disk full")
+
+    monkeypatch.setattr(repository, "_insert_defects", fail)
+    with pytest.raises(RuntimeError, match="disk full"):
+        save(engine, sections=make_sections(2))
+    assert [r.id for r in repository.list_inspections(engine)] == [first]
+    assert repository.get_sections(engine, first) == make_sections()
+    assert count_rows(engine, "defects") == len(DEFECTS)
+
+
+def test_a_section_the_database_refuses_leaves_the_previous_save(
+    engine: sa.Engine, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    first = save(engine)
+    # Bypass the Python-side checks so the database's CHECK constraint has to catch it.
+    original = repository._section_row
+
+    def bad_coverage(section: SectionMeasures) -> dict[str, object]:
+        return {**original(section), "coverage_ratio": 1.5}
+
+    monkeypatch.setattr(repository, "_section_row", bad_coverage)
+    with pytest.raises(db.StorageError, match="coverage_range"):
+        save(engine)
+    assert [r.id for r in repository.list_inspections(engine)] == [first]
+    assert repository.get_sections(engine, first) == make_sections()
+
+
+@pytest.mark.parametrize(
+    ("sections", "match"),
+    [
+        (
+            [*make_sections(2), replace(make_sections(2)[0], chainage_end_m=0.05)],
+            "two sections share the key 0 mm",
+        ),
+        ([replace(make_sections(1)[0], chainage_end_m=0.0004)], "chainage_end_m"),
+        ([replace(make_sections(1)[0], coverage_ratio=1.2)], "coverage_ratio"),
+        ([replace(make_sections(1)[0], coverage_ratio=math.nan)], "coverage_ratio"),
+        ([replace(make_sections(1)[0], status="melted")], "unknown status 'melted'"),
+    ],
+)
+def test_invalid_sections_are_refused_before_writing(
+    engine: sa.Engine, sections: list[SectionMeasures], match: str
+) -> None:
+    first = save(engine)
+    with pytest.raises(db.StorageError, match=match):
+        save(engine, sections=sections)
+    assert repository.get_sections(engine, first) == make_sections()
+
+
+def test_nan_figures_are_stored_as_null(engine: sa.Engine) -> None:
+    section = replace(make_sections(1)[0], blockage_ratio=math.nan, open_area_m2=math.nan)
+    inspection_id = save(engine, sections=[section])
+    stored = repository.get_sections(engine, inspection_id)[0]
+    assert stored.blockage_ratio is None
+    assert stored.open_area_m2 is None
+
+
+def test_naive_inspected_at_is_taken_as_utc(engine: sa.Engine) -> None:
+    inspection_id = save(engine, meta=make_meta(inspected_at=datetime(2024, 5, 17)))
+    record = repository.get_inspection(engine, inspection_id)
+    assert record.inspected_at == datetime(2024, 5, 17, tzinfo=UTC)
+
+
+def test_non_circular_pipe_without_diameter(engine: sa.Engine) -> None:
+    meta = make_meta(nominal_diameter_m=math.nan, pipe_shape="egg")
+    section = replace(make_sections(1)[0], nominal_area_m2=math.nan, blockage_ratio=None)
+    inspection_id = save(engine, meta=meta, sections=[section])
+    record = repository.get_inspection(engine, inspection_id)
+    assert record.nominal_diameter_m is None
+    assert record.pipe_shape == "egg"
+    assert math.isnan(repository.get_sections(engine, inspection_id)[0].nominal_area_m2)
+
+
+def test_assets_and_their_upsert(engine: sa.Engine) -> None:
+    save(engine)
+    later = datetime(2027, 1, 2, 3, 4, tzinfo=UTC)
+    # A newer save without nodes keeps the known nodes but updates what it does give.
+    save(
+        engine,
+        meta=make_meta(inspected_at=later, upstream_node=None, material="PVC"),
+        content_hash="sha256:cccc",
+    )
+    save(engine, meta=make_meta("A0-A1", nominal_diameter_m=0.3))
+    assets = repository.list_assets(engine)
+    assert [a.asset_id for a in assets] == ["A0-A1", "MH1042-MH1043"]
+    a0, mh = assets
+    assert (a0.inspection_count, a0.nominal_diameter_m) == (1, 0.3)
+    assert mh.inspection_count == 2
+    assert mh.last_inspected_at == later
+    assert (mh.upstream_node, mh.downstream_node, mh.material) == ("MH1042", "MH1043", "PVC")
+    assert [r.asset_id for r in repository.list_inspections(engine, "A0-A1")] == ["A0-A1"]
+
+
+def test_section_trend(engine: sa.Engine) -> None:
+    dates = [datetime(2024 + i, 6, 1, tzinfo=UTC) for i in range(3)]
+    ids = []
+    for i, inspected_at in enumerate(reversed(dates)):  # saved out of date order
+        blocked = replace(make_sections()[2], blockage_ratio=0.1 * (2 - i))
+        ids.append(
+            save(
+                engine,
+                meta=make_meta(inspected_at=inspected_at),
+                content_hash=f"sha256:{i}",
+                sections=[*make_sections()[:2], blocked],
+            )
+        )
+    trend = repository.get_section_trend(engine, "MH1042-MH1043", 0.25)
+    assert [p.inspected_at for p in trend] == dates
+    assert [p.inspection_id for p in trend] == ids[::-1]
+    assert [p.section.chainage_start_m for p in trend] == [0.2] * 3
+    assert [p.section.blockage_ratio for p in trend] == pytest.approx([0.0, 0.1, 0.2])
+    assert repository.get_section_trend(engine, "MH1042-MH1043", 0.3) == []
+
+
+def test_missing_inspection_is_named(engine: sa.Engine) -> None:
+    for get in (
+        repository.get_inspection,
+        repository.get_sections,
+        repository.get_defects,
+        repository.get_frame_quality,
+    ):
+        with pytest.raises(db.StorageError, match="no inspection with id 4242"):
+            get(engine, 4242)
+
+
+# ---------------------------------------------------------------------------------------------
+# Concurrency
+
+
+def test_a_writer_waits_for_the_lock_instead_of_failing(engine: sa.Engine, db_url: str) -> None:
+    # Another process holds the write lock for 0.5 s.
+    blocker = sqlite3.connect(db_url.removeprefix("sqlite:///"), isolation_level=None)
+    blocker.execute("BEGIN IMMEDIATE")
+    outcome: dict[str, object] = {}
+
+    def writer() -> None:
+        started = time.monotonic()
+        try:
+            outcome["id"] = save(engine)
+        except Exception as exc:  # reported below
+            outcome["error"] = exc
+        outcome["waited_s"] = time.monotonic() - started
+
+    thread = threading.Thread(target=writer)
+    thread.start()
+    time.sleep(0.5)
+    blocker.execute("COMMIT")
+    blocker.close()
+    thread.join(timeout=30)
+    assert "error" not in outcome, outcome.get("error")
+    assert isinstance(outcome["id"], int)
+    assert outcome["waited_s"] >= 0.4  # it did have to wait
+    assert count_rows(engine, "inspections") == 1
+
+
+def _save_many(url: str, worker: int, count: int) -> list[int]:
+    engine = db.connect(url)
+    try:
+        return [
+            save(
+                engine,
+                meta=make_meta(f"W{worker}"),
+                content_hash=f"sha256:{worker}-{i}",
+                sections=make_sections(20),
+            )
+            for i in range(count)
+        ]
+    finally:
+        engine.dispose()
+
+
+def test_concurrent_writers_in_threads(db_url: str) -> None:
+    # Separate engines, so separate SQLite connections, as in separate workers; the first
+    # connects race to create and migrate the file too.
+    results: dict[int, list[int]] = {}
+    errors: list[BaseException] = []
+
+    def run(worker: int) -> None:
+        try:
+            results[worker] = _save_many(db_url, worker, 8)
+        except BaseException as exc:
+            errors.append(exc)
+
+    threads = [threading.Thread(target=run, args=(w,)) for w in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert errors == []
+    engine = db.connect(db_url)
+    ids = [i for worker_ids in results.values() for i in worker_ids]
+    assert len(set(ids)) == 24
+    assert count_rows(engine, "inspections") == 24
+    assert count_rows(engine, "sections") == 24 * 20
+    engine.dispose()
+
+
+def test_concurrent_writers_in_processes(db_url: str) -> None:
+    context = multiprocessing.get_context("spawn")
+    with context.Pool(2) as pool:
+        results = pool.starmap(_save_many, [(db_url, 0, 5), (db_url, 1, 5)])
+    engine = db.connect(db_url)
+    assert len({i for ids in results for i in ids}) == 10
+    assert count_rows(engine, "inspections") == 10
+    assert {a.asset_id: a.inspection_count for a in repository.list_assets(engine)} == {
+        "W0": 5,
+        "W1": 5,
+    }
+    engine.dispose()
+
+
+# ---------------------------------------------------------------------------------------------
+# PostgreSQL (a real server; skipped unless PIPESCAN_TEST_POSTGRES_URL names a database whose
+# pipescan tables these tests may drop, e.g.
+# postgresql+psycopg://postgres@/pipescan_test?host=/tmp/pg&port=5432)
+
+
+@pytest.fixture
+def pg_url() -> Iterator[str]:
+    url = os.environ.get("PIPESCAN_TEST_POSTGRES_URL")
+    if not url:
+        pytest.skip("PIPESCAN_TEST_POSTGRES_URL is not set")
+    pytest.importorskip("psycopg")
+    db.downgrade(url, "base")
+    yield url
+    db.downgrade(url, "base")
+
+
+def test_postgres_needs_an_explicit_upgrade(pg_url: str) -> None:
+    with pytest.raises(db.StorageError, match="pipescan db upgrade"):
+        db.connect(pg_url)
+    db.upgrade(pg_url)
+    engine = db.connect(pg_url)
+    try:
+        with engine.connect() as connection:
+            context = MigrationContext.configure(connection, opts={"compare_type": True})
+            assert compare_metadata(context, Base.metadata) == []
+    finally:
+        engine.dispose()
+
+
+def test_postgres_round_trip_replace_and_export(pg_url: str) -> None:
+    db.upgrade(pg_url)
+    engine = db.connect(pg_url)
+    try:
+        first = save(engine)
+        second = save(engine)  # same archive and params: replaces
+        assert [r.id for r in repository.list_inspections(engine)] == [second] != [first]
+        record = repository.get_inspection(engine, second)
+        assert record.inspected_at == datetime(2026, 3, 4, 7, 30, tzinfo=UTC)
+        assert record.params == PARAMS
+        assert repository.get_sections(engine, second) == make_sections()
+        assert repository.get_defects(engine, second) == [DEFECTS[1], DEFECTS[0]]
+        assert repository.get_frame_quality(engine, second) == FRAME_QUALITY
+        assert repository.list_assets(engine)[0].last_inspected_at == record.inspected_at
+    finally:
+        engine.dispose()
+
+
+def test_postgres_concurrent_writers_of_one_asset(pg_url: str) -> None:
+    db.upgrade(pg_url)
+    errors: list[BaseException] = []
+
+    def run(worker: int) -> None:
+        engine = db.connect(pg_url)
+        try:
+            for i in range(5):
+                # Every worker saves the same new asset, and the same archive twice over.
+                save(engine, content_hash=f"sha256:{i}", sections=make_sections(20))
+        except BaseException as exc:
+            errors.append(exc)
+        finally:
+            engine.dispose()
+
+    threads = [threading.Thread(target=run, args=(w,)) for w in range(3)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+    assert errors == []
+    engine = db.connect(pg_url)
+    try:
+        assert count_rows(engine, "assets") == 1
+        assert count_rows(engine, "inspections") == 5
+        assert count_rows(engine, "sections") == 5 * 20
+    finally:
+        engine.dispose()

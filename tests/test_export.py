@@ -1,0 +1,235 @@
+"""CSV and JSON Lines exports of stored sections and defects."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+import math
+import sqlite3
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any, ClassVar
+
+import pytest
+import sqlalchemy as sa
+
+from pipescan.core.model import Defect, InspectionMeta, SectionMeasures, SectionStatus
+from pipescan.storage import db, export, repository
+
+DESIGN_COLUMNS = (
+    "asset_id,inspection_id,inspected_at,chainage_start_m,chainage_end_m,open_area_m2,"
+    "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
+    "coverage_ratio,point_count,status,grade"
+)
+NOMINAL_AREA_M2 = math.pi * 0.6**2 / 4
+MEASURED = SectionMeasures(
+    chainage_start_m=12.3,
+    chainage_end_m=12.4,
+    nominal_area_m2=NOMINAL_AREA_M2,
+    status=SectionStatus.OK,
+    point_count=1500,
+    coverage_ratio=0.9875,
+    open_area_m2=0.2474,
+    blockage_ratio=1 - 0.2474 / NOMINAL_AREA_M2,
+    ovality_ratio=0.0123456789,
+    deformation_ratio=0.0,
+    deposit_height_ratio=0.1,
+    grade=3,
+)
+UNMEASURED = SectionMeasures(
+    chainage_start_m=12.4,
+    chainage_end_m=12.5,
+    nominal_area_m2=NOMINAL_AREA_M2,
+    status=SectionStatus.LOW_COVERAGE,
+    point_count=12,
+    coverage_ratio=0.2,
+)
+DEFECT = Defect(
+    code="BBC",
+    measure="deposit_height_ratio",
+    chainage_start_m=12.3,
+    chainage_end_m=12.4,
+    peak_chainage_m=12.3,
+    peak_value=0.1,
+    peak_blockage_ratio=None,
+    grade=3,
+)
+
+
+def _save(engine: sa.Engine, asset_id: str, year: int, content_hash: str) -> int:
+    return repository.save_inspection(
+        engine,
+        meta=InspectionMeta(
+            asset_id=asset_id,
+            inspected_at=datetime(year, 5, 17, 9, 30, tzinfo=UTC),
+            nominal_diameter_m=0.6,
+        ),
+        archive_uri=f"/scans/{asset_id}-{year}.zip",
+        content_hash=content_hash,
+        params={"section_step_m": 0.1},
+        software_version="0.1.0",
+        sections=[MEASURED, UNMEASURED],
+        defects=[DEFECT],
+    )
+
+
+@pytest.fixture
+def engine(tmp_path: Path):
+    engine = db.connect(f"sqlite:///{tmp_path / 'pipescan.db'}")
+    yield engine
+    engine.dispose()
+
+
+@pytest.fixture
+def ids(engine: sa.Engine) -> dict[str, int]:
+    # Saved out of order, to check the export's ordering.
+    return {
+        "B-2025": _save(engine, "B", 2025, "h3"),
+        "A-2025": _save(engine, "A", 2025, "h2"),
+        "A-2024": _save(engine, "A", 2024, "h1"),
+    }
+
+
+def test_section_columns_are_the_design_names() -> None:
+    assert ",".join(export.SECTION_CSV_COLUMNS) == DESIGN_COLUMNS
+
+
+def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
+    out = io.StringIO()
+    written = export.export_sections_csv(engine, out, inspection_id=ids["A-2024"])
+    lines = out.getvalue().splitlines()
+    assert written == 2
+    assert len(lines) == 3
+    assert lines[0] == DESIGN_COLUMNS
+    measured, unmeasured = (
+        dict(zip(export.SECTION_CSV_COLUMNS, r, strict=True)) for r in csv.reader(lines[1:])
+    )
+    assert measured == {
+        "asset_id": "A",
+        "inspection_id": str(ids["A-2024"]),
+        "inspected_at": "2024-05-17T09:30:00+00:00",
+        "chainage_start_m": "12.300",
+        "chainage_end_m": "12.400",
+        "open_area_m2": "0.2474",
+        "nominal_area_m2": "0.282743",
+        "blockage_ratio": f"{1 - 0.2474 / NOMINAL_AREA_M2:.6g}",
+        "ovality_ratio": "0.0123457",
+        "deformation_ratio": "0",  # a measured zero stays a zero
+        "deposit_height_ratio": "0.1",
+        "coverage_ratio": "0.9875",
+        "point_count": "1500",
+        "status": "ok",
+        "grade": "3",
+    }
+    assert float(measured["blockage_ratio"]) == pytest.approx(0.125, abs=1e-3)
+    # Unmeasured figures are empty, never 0.
+    for name in (
+        "open_area_m2",
+        "blockage_ratio",
+        "ovality_ratio",
+        "deformation_ratio",
+        "deposit_height_ratio",
+        "grade",
+    ):
+        assert unmeasured[name] == "", name
+    assert (unmeasured["status"], unmeasured["point_count"]) == ("low_coverage", "12")
+    assert unmeasured["coverage_ratio"] == "0.2"
+
+
+def test_sections_csv_selection_and_order(engine: sa.Engine, ids: dict[str, int]) -> None:
+    out = io.StringIO()
+    assert export.export_sections_csv(engine, out) == 6
+    rows = list(csv.DictReader(io.StringIO(out.getvalue())))
+    order = [(r["asset_id"], int(r["inspection_id"]), r["chainage_start_m"]) for r in rows]
+    assert order == [
+        ("A", ids["A-2024"], "12.300"),
+        ("A", ids["A-2024"], "12.400"),
+        ("A", ids["A-2025"], "12.300"),
+        ("A", ids["A-2025"], "12.400"),
+        ("B", ids["B-2025"], "12.300"),
+        ("B", ids["B-2025"], "12.400"),
+    ]
+    assert export.export_sections_csv(engine, io.StringIO(), asset_id="A") == 4
+    assert export.export_sections_csv(engine, io.StringIO(), asset_id="nobody") == 0
+    assert (
+        export.export_sections_csv(engine, io.StringIO(), asset_id="B", inspection_id=ids["A-2024"])
+        == 0
+    )
+
+
+def test_defects_csv(engine: sa.Engine, ids: dict[str, int]) -> None:
+    out = io.StringIO()
+    assert export.export_defects_csv(engine, out, asset_id="B") == 1
+    rows = list(csv.DictReader(io.StringIO(out.getvalue())))
+    assert tuple(rows[0]) == export.DEFECT_CSV_COLUMNS
+    assert rows == [
+        {
+            "asset_id": "B",
+            "inspection_id": str(ids["B-2025"]),
+            "inspected_at": "2025-05-17T09:30:00+00:00",
+            "code": "BBC",
+            "measure": "deposit_height_ratio",
+            "chainage_start_m": "12.300",
+            "chainage_end_m": "12.400",
+            "peak_chainage_m": "12.300",
+            "peak_value": "0.1",
+            "peak_blockage_ratio": "",
+            "grade": "3",
+        }
+    ]
+
+
+def test_sections_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
+    out = io.StringIO()
+    assert export.export_sections_jsonl(engine, out, inspection_id=ids["A-2025"]) == 2
+    measured, unmeasured = (json.loads(line) for line in out.getvalue().splitlines())
+    assert tuple(measured) == export.SECTION_CSV_COLUMNS
+    assert measured["chainage_start_m"] == 12.3
+    assert measured["ovality_ratio"] == 0.0123456789  # full precision
+    assert measured["inspection_id"] == ids["A-2025"]
+    assert measured["inspected_at"] == "2025-05-17T09:30:00+00:00"
+    assert unmeasured["blockage_ratio"] is None
+    assert unmeasured["grade"] is None
+    assert unmeasured["status"] == "low_coverage"
+
+
+class _CountingCursor(sqlite3.Cursor):
+    fetch_sizes: ClassVar[list[int]] = []
+    fetchall_calls: ClassVar[int] = 0
+
+    def fetchmany(self, size: int | None = None) -> list[Any]:
+        rows = super().fetchmany(size) if size is not None else super().fetchmany()
+        _CountingCursor.fetch_sizes.append(len(rows))
+        return rows
+
+    def fetchall(self) -> list[Any]:
+        _CountingCursor.fetchall_calls += 1
+        return super().fetchall()
+
+
+class _CountingConnection(sqlite3.Connection):
+    def cursor(self, factory: Any = _CountingCursor) -> sqlite3.Cursor:
+        return super().cursor(factory)
+
+
+def test_export_streams_in_batches(
+    tmp_path: Path, ids: dict[str, int], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # An engine whose driver cursors count what is fetched: with batches of 2 rows, the 6
+    # rows arrive in several fetches of at most 2, never in one fetchall.
+    counting = sa.create_engine(
+        f"sqlite:///{tmp_path / 'pipescan.db'}", connect_args={"factory": _CountingConnection}
+    )
+    monkeypatch.setattr(export, "_BATCH_ROWS", 2)
+    _CountingCursor.fetch_sizes.clear()
+    _CountingCursor.fetchall_calls = 0
+    out = io.StringIO()
+    try:
+        assert export.export_sections_csv(counting, out) == 6
+    finally:
+        counting.dispose()
+    assert _CountingCursor.fetchall_calls == 0
+    assert sum(_CountingCursor.fetch_sizes) == 6
+    assert max(_CountingCursor.fetch_sizes) == 2
+    assert len(out.getvalue().splitlines()) == 7
