@@ -1,0 +1,85 @@
+"""Scratch space of one inspection run: registered points bucketed by chainage window.
+
+Registration streams frames once and writes each frame chunk's registered points into one file
+per chainage window (``win_<start_mm>/chunk_<first>.npy``). A window task then reads only its own
+files, so peak memory is set by the window, not by the length of the pipe, and chunks never
+append to a shared file (they can run in parallel, on other machines).
+
+Points are stored as float32 offsets from the axis origin: float32 keeps 0.1 mm at 1 km from the
+origin, and offsets stay small even for georeferenced clouds with large coordinates.
+"""
+
+from __future__ import annotations
+
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.core.axis import PipeAxis
+from pipescan.core.sections import ChainageWindow
+
+
+def window_dir(bucket_root: Path, window: ChainageWindow) -> Path:
+    return Path(bucket_root) / f"win_{window.start_mm:09d}"
+
+
+def write_buckets(
+    points_world_m: np.ndarray,
+    axis: PipeAxis,
+    windows: Sequence[ChainageWindow],
+    bucket_root: Path,
+    tag: str,
+) -> int:
+    """Split registered points by chainage window and write one file per window.
+
+    Parameters
+    ----------
+    points_world_m : (N, 3) float
+        Registered points, world frame, metres.
+    axis : PipeAxis
+    windows : sequence of ChainageWindow
+        Consecutive windows; points outside all of them are dropped.
+    bucket_root : Path
+        The run's bucket directory.
+    tag : str
+        Unique per writer (e.g. the chunk's first frame), so parallel writers never collide.
+
+    Returns
+    -------
+    int
+        Points written.
+    """
+    if len(points_world_m) == 0 or not windows:
+        return 0
+    chain_mm = axis.chainage(points_world_m) * 1000.0
+    edges = np.array([w.start_mm for w in windows] + [windows[-1].end_mm], dtype=np.float64)
+    which = np.searchsorted(edges, chain_mm, side="right") - 1
+    keep = (which >= 0) & (which < len(windows))
+    offsets = (points_world_m - axis.origin_m).astype(np.float32)
+    written = 0
+    for w_index in np.unique(which[keep]):
+        sel = which == w_index
+        out_dir = window_dir(bucket_root, windows[int(w_index)])
+        out_dir.mkdir(parents=True, exist_ok=True)
+        tmp = out_dir / f".{tag}.npy.tmp"
+        with tmp.open("wb") as fh:
+            np.save(fh, offsets[sel])
+        tmp.replace(out_dir / f"{tag}.npy")
+        written += int(sel.sum())
+    return written
+
+
+def read_window(bucket_root: Path, window: ChainageWindow, axis: PipeAxis) -> np.ndarray:
+    """All registered points of one window, (N, 3) float64 world frame, metres."""
+    files = sorted(window_dir(bucket_root, window).glob("*.npy"))
+    if not files:
+        return np.empty((0, 3))
+    offsets = np.concatenate([np.load(f) for f in files]).astype(np.float64)
+    return offsets + axis.origin_m
+
+
+def remove_workspace(path: Path) -> None:
+    """Delete a run's scratch directory (safe if it does not exist)."""
+    shutil.rmtree(path, ignore_errors=True)

@@ -1,0 +1,172 @@
+"""Prefect tasks of one archive's inspection: thin wrappers over core and storage.
+
+Each task reads its input, calls core or storage, and returns a small value (paths, ids, small
+dataclasses). Only I/O is retried; geometry errors are deterministic and fail at once.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from prefect import task
+
+from pipescan.core.axis import PipeAxis, fit_axis
+from pipescan.core.grading import grade_sections, load_table, merge_defects
+from pipescan.core.measures import MeasureParams
+from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
+from pipescan.core.registration import (
+    RegistrationParams,
+    Trajectory,
+    iter_registered_points,
+    register_frames,
+)
+from pipescan.core.sections import ChainageWindow, measure_window
+from pipescan.storage.archive import open_archive
+from pipescan.storage.workspace import read_window, write_buckets
+
+log = logging.getLogger("pipescan")
+
+# Retry reads and writes a couple of times: a network store or a busy database can fail once.
+_IO_RETRIES = {"retries": 2, "retry_delay_seconds": [1, 5]}
+
+
+@dataclass(frozen=True)
+class StagedArchive:
+    """An archive ready to process: its content as a local directory, and its metadata."""
+
+    name: str
+    root: Path
+    meta: InspectionMeta
+    content_hash: str
+    frame_count: int
+    cloud_member: str | None
+
+
+@dataclass(frozen=True)
+class AxisFit:
+    """The fitted axis and the chainage range the scan covers."""
+
+    axis: PipeAxis
+    chainage_min_m: float
+    chainage_max_m: float
+
+
+def _odometer(meta: InspectionMeta, i: int) -> float | None:
+    return meta.frames[i].odometer_m if meta.frames else None
+
+
+@task(name="register-chunk")
+def register_chunk(
+    staged: StagedArchive, first: int, last: int, params: RegistrationParams
+) -> Trajectory:
+    """Register frames ``first..last`` (inclusive) relative to frame ``first``."""
+    with open_archive(staged.root) as arc:
+        frames = (
+            (i, pts, _odometer(staged.meta, i))
+            for i, pts in arc.iter_frames(range(first, last + 1))
+        )
+        trajectory = register_frames(frames, params)
+    log.info("registered frames %d-%d of %d", first, last, staged.frame_count)
+    return trajectory
+
+
+def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
+    def cropped():
+        for i, pts in arc.iter_frames(indices):
+            yield i, pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+
+    yield from iter_registered_points(cropped(), trajectory)
+
+
+@task(name="fit-axis")
+def fit_pipe_axis(
+    staged: StagedArchive, trajectory: Trajectory | None, *, max_range_m: float, sample_frames: int = 40
+) -> AxisFit:
+    """Fit the pipe axis on a sample of the registered points, and the chainage they span."""
+    meta = staged.meta
+    with open_archive(staged.root) as arc:
+        if trajectory is None:
+            points = arc.read_cloud()
+            start = travel = None
+        else:
+            stride = max(1, len(trajectory.frame_indices) // sample_frames)
+            indices = trajectory.frame_indices[::stride]
+            rng = np.random.default_rng(0)
+            parts = []
+            for pts in _frame_points_world(arc, trajectory, indices, max_range_m):
+                take = min(len(pts), 5000)
+                parts.append(pts[rng.choice(len(pts), take, replace=False)])
+            points = np.concatenate(parts)
+            positions = trajectory.positions_m()
+            start, travel = positions[0], positions[-1] - positions[0]
+    axis = fit_axis(
+        points,
+        start_m=start,
+        travel_m=travel,
+        chainage_offset_m=meta.chainage_offset_m,
+        direction=meta.direction,
+    )
+    chain = axis.chainage(points)
+    lo, hi = np.percentile(chain, [0.05, 99.95])
+    return AxisFit(axis=axis, chainage_min_m=float(lo), chainage_max_m=float(hi))
+
+
+@task(name="bucket-points", **_IO_RETRIES)
+def bucket_points(
+    staged: StagedArchive,
+    trajectory: Trajectory | None,
+    first: int,
+    last: int,
+    axis: PipeAxis,
+    windows: list[ChainageWindow],
+    bucket_root: Path,
+    max_range_m: float,
+) -> int:
+    """Write the registered points of frames ``first..last`` (or the cloud) into window files."""
+    with open_archive(staged.root) as arc:
+        if trajectory is None:
+            return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
+        pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))
+    return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
+
+
+@task(name="measure-window", **_IO_RETRIES)
+def measure_sections(
+    bucket_root: Path,
+    window: ChainageWindow,
+    axis: PipeAxis,
+    nominal_diameter_m: float,
+    params: MeasureParams,
+) -> list[SectionMeasures]:
+    """Measure every section of one chainage window."""
+    points = read_window(bucket_root, window, axis)
+    sections = measure_window(
+        points, axis, window, nominal_diameter_m=nominal_diameter_m, params=params
+    )
+    log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
+    return sections
+
+
+@task(name="grade")
+def grade(
+    sections: list[SectionMeasures],
+    table_name: str,
+    *,
+    pipe_class: str,
+    blockage_threshold_ratio: float,
+    flag_grade: int,
+) -> tuple[list[SectionMeasures], list[Defect]]:
+    """Grade sections under a threshold table and merge flagged ones into defects."""
+    table = load_table(table_name)
+    graded = grade_sections(sections, table, pipe_class=pipe_class)
+    defects = merge_defects(
+        graded,
+        table,
+        blockage_threshold_ratio=blockage_threshold_ratio,
+        flag_grade=flag_grade,
+        pipe_class=pipe_class,
+    )
+    return graded, defects
