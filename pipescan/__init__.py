@@ -1,2 +1,3 @@
 """pipescan: pipe condition measured from LiDAR."""
+
 __version__ = "0.1.0"

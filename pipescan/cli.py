@@ -38,7 +38,9 @@ app.add_typer(db_app, name="db")
 
 DbOption = Annotated[
     str | None,
-    typer.Option("--db", help="Database URL [env PIPESCAN_DATABASE_URL; default sqlite:///pipescan.db]"),
+    typer.Option(
+        "--db", help="Database URL [env PIPESCAN_DATABASE_URL; default sqlite:///pipescan.db]"
+    ),
 ]
 
 
@@ -81,7 +83,9 @@ def _fail(exc: Exception) -> None:
 
 @app.callback()
 def main(
-    verbose: Annotated[bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")] = False,
+    verbose: Annotated[
+        bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")
+    ] = False,
 ) -> None:
     _setup_logging(verbose)
 
@@ -153,7 +157,9 @@ def _run_inspection(archive: str, db_url: str, report: Path | None, params):
 
 def _print_summary(summary) -> None:
     pct = lambda r: "not measured" if r is None else f"{100 * r:.1f} %"  # noqa: E731
-    typer.echo(f"inspection {summary.inspection_id}: asset {summary.asset_id}, {summary.inspected_at}")
+    typer.echo(
+        f"inspection {summary.inspection_id}: asset {summary.asset_id}, {summary.inspected_at}"
+    )
     typer.echo(
         f"  {summary.frame_count} frames, {summary.point_count:,} points, "
         f"{summary.scanned_length_m:.1f} m scanned"
@@ -184,7 +190,9 @@ def inspect(
     archive: Annotated[str, typer.Argument(help="Archive: directory, .zip, .tar, .tar.gz or URL.")],
     db: DbOption = None,
     report: Annotated[Path | None, typer.Option(help="Also write the PDF report here.")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print a machine-readable summary.")] = False,
+    as_json: Annotated[
+        bool, typer.Option("--json", help="Print a machine-readable summary.")
+    ] = False,
     contour: Annotated[str | None, typer.Option(help="Contour method: polar or grid.")] = None,
     registration: Annotated[
         str | None, typer.Option(help="point_to_plane or point_to_point (the paper's).")
@@ -192,7 +200,9 @@ def inspect(
 ) -> None:
     """Process one scan archive: register, measure, grade, store (and report)."""
     try:
-        summary = _run_inspection(archive, _db_url(db), report, _inspection_params(contour, registration))
+        summary = _run_inspection(
+            archive, _db_url(db), report, _inspection_params(contour, registration)
+        )
     except PipescanError as exc:
         _fail(exc)
     if as_json:
@@ -222,8 +232,12 @@ def report(
 def export_sections(
     asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
     inspection: Annotated[int | None, typer.Option(help="Only this inspection id.")] = None,
-    fmt: Annotated[ExportFormat, typer.Option("--format", help="Output format.")] = ExportFormat.csv,
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="File (default stdout).")] = None,
+    fmt: Annotated[
+        ExportFormat, typer.Option("--format", help="Output format.")
+    ] = ExportFormat.csv,
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="File (default stdout).")
+    ] = None,
     db: DbOption = None,
 ) -> None:
     """One row per section, with the DESIGN.md column names."""
@@ -237,7 +251,9 @@ def export_sections(
 def export_defects(
     asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
     inspection: Annotated[int | None, typer.Option(help="Only this inspection id.")] = None,
-    output: Annotated[Path | None, typer.Option("-o", "--output", help="File (default stdout).")] = None,
+    output: Annotated[
+        Path | None, typer.Option("-o", "--output", help="File (default stdout).")
+    ] = None,
     db: DbOption = None,
 ) -> None:
     """One row per merged defect (CSV)."""
@@ -295,8 +311,8 @@ def inspections(
         typer.echo("no inspections yet")
     for r in rows:
         typer.echo(
-            f"{r.id:6}  {r.asset_id:24} {r.inspected_at.isoformat():26} {r.section_count:5} sections"
-            f"  {r.status:10} {r.archive_uri}"
+            f"{r.id:6}  {r.asset_id:24} {r.inspected_at.isoformat():26} "
+            f"{r.section_count:5} sections  {r.status:10} {r.archive_uri}"
         )
 
 
@@ -311,9 +327,9 @@ def db_upgrade(db: DbOption = None, revision: str = "head") -> None:
 
 @app.command()
 def demo(
-    out: Annotated[Path, typer.Option(help="Folder for the demo's archive, database and PDF.")] = Path(
-        "pipescan-demo"
-    ),
+    out: Annotated[
+        Path, typer.Option(help="Folder for the demo's archive, database and PDF.")
+    ] = Path("pipescan-demo"),
     seed: int = 0,
     db: DbOption = None,
 ) -> None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -67,7 +69,7 @@ def test_fit_axis_rejects_a_blob():
 def test_plan_windows_cover_whole_sections():
     windows = plan_windows(0.03, 4.96, step_m=0.1, window_m=2.0)
     assert windows[0].start_mm == 0 and windows[-1].end_mm == 5000
-    assert all(a.end_mm == b.start_mm for a, b in zip(windows, windows[1:], strict=False))
+    assert all(a.end_mm == b.start_mm for a, b in itertools.pairwise(windows))
     assert sum(len(w.section_starts_mm()) for w in windows) == 50
 
 

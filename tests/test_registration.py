@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -62,13 +64,17 @@ def test_point_to_plane_meets_accuracy_targets(paper_scan):
 
 def test_featureless_pipe_is_held_to_the_odometer(clean_scan):
     # A 1.8 m range keeps the end wall out of view: nothing constrains the axis.
-    held = _errors(clean_scan, register_frames(_frames(clean_scan), RegistrationParams(max_range_m=1.8)))
+    held = _errors(
+        clean_scan, register_frames(_frames(clean_scan), RegistrationParams(max_range_m=1.8))
+    )
     assert held["along_final_m"] <= 1.1 * held["odometer_final_m"] + 0.002
     assert held["across_rms_m"] < 0.01
     # Without the degeneracy guard, ICP slides along the axis: the guard is what holds it.
     free = _errors(
         clean_scan,
-        register_frames(_frames(clean_scan), RegistrationParams(max_range_m=1.8, degeneracy_ratio=0.0)),
+        register_frames(
+            _frames(clean_scan), RegistrationParams(max_range_m=1.8, degeneracy_ratio=0.0)
+        ),
     )
     assert free["along_final_m"] > 3 * held["along_final_m"]
 
@@ -84,7 +90,7 @@ def test_chunks_chain_into_the_same_trajectory(paper_scan):
     frames = list(_frames(paper_scan))
     chunks = plan_chunks(len(frames), 25)
     assert chunks[0][0] == 0 and chunks[-1][1] == len(frames) - 1
-    assert all(a[1] == b[0] for a, b in zip(chunks, chunks[1:], strict=False))
+    assert all(a[1] == b[0] for a, b in itertools.pairwise(chunks))
     parts = [register_frames(iter(frames[a : b + 1])) for a, b in chunks]
     chained = chain_trajectories(parts)
     assert chained.frame_indices == tuple(range(len(frames)))

@@ -8,6 +8,7 @@ as outliers of the circle).
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -261,7 +262,7 @@ def fit_axis(
         centres_3d, radii, weights = [], [], []
         order = np.argsort(along)
         bounds = np.searchsorted(along[order], edges)
-        for lo, hi in zip(bounds[:-1], bounds[1:], strict=True):
+        for lo, hi in itertools.pairwise(bounds):
             idx = order[lo:hi]
             if len(idx) < 200:
                 continue

@@ -194,7 +194,9 @@ def polar_profile(
     if seen.any():
         radii[seen] = np.nanmedian(per_bin[seen], axis=1)
     angles = (np.arange(bins) + 0.5) * 2.0 * np.pi / bins
-    return PolarProfile(angles_rad=angles, radii_m=radii, counts=counts.reshape(bins, slices).sum(1))
+    return PolarProfile(
+        angles_rad=angles, radii_m=radii, counts=counts.reshape(bins, slices).sum(1)
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -264,7 +266,9 @@ def grid_cell_size(points_2d: np.ndarray) -> tuple[float, int, int, np.ndarray]:
     return cell, x_num, y_num, lower
 
 
-def angle_gap_std(points_2d: np.ndarray, candidates: np.ndarray, k: int, closing: str) -> np.ndarray:
+def angle_gap_std(
+    points_2d: np.ndarray, candidates: np.ndarray, k: int, closing: str
+) -> np.ndarray:
     """Equations 11-13: the standard deviation S of the sorted angle gaps around each candidate.
 
     For candidate P with k nearest neighbours Q_1..Q_k (Q_1 the nearest), α_j is the angle from

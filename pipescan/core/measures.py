@@ -7,7 +7,7 @@ reports.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
@@ -65,7 +65,7 @@ class MeasureParams:
     stray_radius_m: float = 0.02
     stray_min_neighbours: int = 3
     max_points: int = 40_000
-    grid: GridParams = GridParams()
+    grid: GridParams = field(default_factory=GridParams)
 
 
 def choose_bins(point_count: int, *, points_per_bin: int = 16) -> int:
@@ -178,9 +178,7 @@ def measure_section(
     )
     coverage = profile.coverage_ratio
     if len(pts) < params.min_points:
-        return SectionMeasures(
-            status=SectionStatus.TOO_FEW_POINTS, coverage_ratio=coverage, **base
-        )
+        return SectionMeasures(status=SectionStatus.TOO_FEW_POINTS, coverage_ratio=coverage, **base)
     if not profile.seen.any():
         return SectionMeasures(status=SectionStatus.LOW_COVERAGE, coverage_ratio=0.0, **base)
 
@@ -201,7 +199,10 @@ def measure_section(
     # A 5-bin running median keeps single noisy bins from setting D_min or D_max.
     radii_smooth = median_filter(radii, size=5, mode="wrap")
     deposit = _deposit_height_ratio(
-        radii_smooth, profile.seen, profile.angles_rad, nominal_diameter_m,
+        radii_smooth,
+        profile.seen,
+        profile.angles_rad,
+        nominal_diameter_m,
         params.wall_tolerance_ratio,
     )
     # The deposit's flat top meets the wall at a shallow angle, so bins just above the wall

@@ -263,7 +263,9 @@ class FrameRegistrar:
         return pred
 
     # -- one frame --------------------------------------------------------------------------
-    def add(self, points_sensor_m: np.ndarray, odometer_m: float | None = None) -> tuple[np.ndarray, FrameQuality]:
+    def add(
+        self, points_sensor_m: np.ndarray, odometer_m: float | None = None
+    ) -> tuple[np.ndarray, FrameQuality]:
         """Register the next frame.
 
         Parameters
@@ -306,13 +308,19 @@ class FrameRegistrar:
         self.count += 1
         return T, quality
 
-    def _register(self, pts: np.ndarray, pred: np.ndarray, index: int) -> tuple[np.ndarray, FrameQuality]:
+    def _register(
+        self, pts: np.ndarray, pred: np.ndarray, index: int
+    ) -> tuple[np.ndarray, FrameQuality]:
         p = self.params
         assert self._map_points is not None and self._map_tree is not None
         if p.method == "point_to_point":
             T, src_idx, tgt_idx = icp_point_to_point(
-                pts, self._map_tree, self._map_points, pred,
-                max_correspondence_m=p.max_correspondence_m, max_iterations=p.max_iterations,
+                pts,
+                self._map_tree,
+                self._map_points,
+                pred,
+                max_correspondence_m=p.max_correspondence_m,
+                max_iterations=p.max_iterations,
             )
         else:
             import open3d as o3d
@@ -320,7 +328,10 @@ class FrameRegistrar:
             reg = o3d.pipelines.registration
             source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
             result = reg.registration_icp(
-                source, self._target(), p.max_correspondence_m, pred,
+                source,
+                self._target(),
+                p.max_correspondence_m,
+                pred,
                 reg.TransformationEstimationPointToPlane(),
                 reg.ICPConvergenceCriteria(max_iteration=p.max_iterations),
             )

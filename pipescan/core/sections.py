@@ -19,7 +19,7 @@ from pipescan.core.model import SectionMeasures
 
 @dataclass(frozen=True)
 class ChainageWindow:
-    """A run of whole sections, processed together: ``[start_mm, end_mm)`` in steps of ``step_mm``."""
+    """A run of whole sections processed together: ``[start_mm, end_mm)`` in ``step_mm`` steps."""
 
     start_mm: int
     end_mm: int

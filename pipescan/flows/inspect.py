@@ -6,8 +6,6 @@ over chainage windows (sections). Tasks exchange paths, ids and small dataclasse
 
 from __future__ import annotations
 
-import hashlib
-import json
 import logging
 import time
 from dataclasses import asdict, dataclass, field
@@ -47,16 +45,13 @@ class InspectionParams:
     blockage_threshold_ratio: float = 0.10
     flag_grade: int = 2
 
-    def as_dict(self) -> dict:
-        return asdict(self)
-
-    def digest(self) -> str:
-        """sha256 of the canonical JSON of the parameters that change figures."""
-        figures = self.as_dict()
-        # Chunking and windowing change how the work is split, not the figures.
+    def figure_params(self) -> dict:
+        """The parameters that change figures: stored with the inspection and hashed into its
+        identity. Chunking and windowing change how the work is split, not the figures."""
+        figures = asdict(self)
         for key in ("window_m", "chunk_frames"):
             figures.pop(key)
-        return hashlib.sha256(json.dumps(figures, sort_keys=True).encode()).hexdigest()
+        return figures
 
 
 @dataclass(frozen=True)
@@ -86,7 +81,8 @@ def _registration_summary(trajectory, params: RegistrationParams) -> dict:
         return {"engine": "none (registered cloud)", "frames": 0}
     q = trajectory.quality[1:] or trajectory.quality
     return {
-        "engine": f"open3d {params.method}" if params.method == "point_to_plane"
+        "engine": f"open3d {params.method}"
+        if params.method == "point_to_plane"
         else "paper point_to_point (Kabsch)",
         "frames": len(trajectory.quality),
         "mean_fitness": sum(x.fitness for x in q) / len(q),
@@ -126,7 +122,8 @@ def inspect_archive(
         fit = fit_pipe_axis(staged, trajectory, max_range_m=params.max_section_range_m)
         windows = plan_windows(
             max(fit.chainage_min_m, meta.chainage_offset_m)
-            if meta.direction == "downstream" else fit.chainage_min_m,
+            if meta.direction == "downstream"
+            else fit.chainage_min_m,
             fit.chainage_max_m,
             step_m=params.step_m,
             window_m=params.window_m,
@@ -139,7 +136,13 @@ def inspect_archive(
         spans = chunks or [(0, 0)]
         counts = [
             bucket_points.submit(
-                staged, trajectory, a, b, fit.axis, windows, bucket_root,
+                staged,
+                trajectory,
+                a,
+                b,
+                fit.axis,
+                windows,
+                bucket_root,
                 params.max_section_range_m,
             )
             for a, b in spans
@@ -168,7 +171,7 @@ def inspect_archive(
             meta=meta,
             archive_uri=str(archive),
             content_hash=staged.content_hash,
-            params=params.as_dict() | {"digest": params.digest()},
+            params=params.figure_params(),
             software_version=pipescan.__version__,
             sections=graded,
             defects=defects,
@@ -179,7 +182,9 @@ def inspect_archive(
             frame_count=staged.frame_count,
             scanned_length_m=scanned,
         )
-        log.info(f"stored inspection {inspection_id}: {len(graded)} sections, {len(defects)} defects")
+        log.info(
+            f"stored inspection {inspection_id}: {len(graded)} sections, {len(defects)} defects"
+        )
         written = None
         if report_path:
             written = str(render_report(database_url, inspection_id, Path(report_path)))

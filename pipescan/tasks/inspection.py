@@ -83,7 +83,11 @@ def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float
 
 @task(name="fit-axis")
 def fit_pipe_axis(
-    staged: StagedArchive, trajectory: Trajectory | None, *, max_range_m: float, sample_frames: int = 40
+    staged: StagedArchive,
+    trajectory: Trajectory | None,
+    *,
+    max_range_m: float,
+    sample_frames: int = 40,
 ) -> AxisFit:
     """Fit the pipe axis on a sample of the registered points, and the chainage they span."""
     meta = staged.meta

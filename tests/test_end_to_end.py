@@ -1,0 +1,151 @@
+"""End to end: simulate, inspect (a real Prefect flow run), export, report; check the figures
+against the simulator's ground truth, and the PDF's text against the database."""
+
+from __future__ import annotations
+
+import csv
+import io
+import json
+
+import pytest
+from prefect.testing.utilities import prefect_test_harness
+from pypdf import PdfReader
+from typer.testing import CliRunner
+
+from pipescan.cli import app
+from pipescan.core.simulate import get_scenario, simulate_scan
+from pipescan.flows.inspect import InspectionParams, inspect_archive
+from pipescan.storage.simulated import read_ground_truth, write_simulated_archive
+
+pytestmark = pytest.mark.e2e
+
+
+@pytest.fixture(scope="module")
+def prefect():
+    with prefect_test_harness(server_startup_timeout=60):
+        yield
+
+
+@pytest.fixture(scope="module")
+def archive(tmp_path_factory):
+    # The paper scenario up to the obstacle and into the deposits, at 2/3 of the point rate.
+    scan = simulate_scan(get_scenario("paper", travel_m=2.6, points_per_s=300_000), seed=1)
+    return write_simulated_archive(scan, tmp_path_factory.mktemp("scan") / "arc")
+
+
+@pytest.fixture(scope="module")
+def inspected(prefect, archive, tmp_path_factory):
+    work = tmp_path_factory.mktemp("run")
+    db_url = f"sqlite:///{work / 'pipescan.db'}"
+    summary = inspect_archive(
+        archive=str(archive),
+        database_url=db_url,
+        report_path=str(work / "report.pdf"),
+        params=InspectionParams(chunk_frames=50),
+        work_dir=str(work / "scratch"),
+    )
+    return summary, db_url, work
+
+
+def _exported_sections(db_url: str, inspection_id: int) -> list[dict[str, str]]:
+    result = CliRunner().invoke(
+        app,
+        [
+            "export",
+            "sections",
+            "--inspection",
+            str(inspection_id),
+            "--format",
+            "csv",
+            "--db",
+            db_url,
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    return list(csv.DictReader(io.StringIO(result.stdout)))
+
+
+def test_flow_stores_sections_that_match_ground_truth(inspected, archive):
+    summary, db_url, _ = inspected
+    rows = _exported_sections(db_url, summary.inspection_id)
+    assert len(rows) == summary.section_count > 20
+    for column in (
+        "asset_id",
+        "inspected_at",
+        "chainage_start_m",
+        "chainage_end_m",
+        "open_area_m2",
+        "blockage_ratio",
+        "coverage_ratio",
+        "status",
+    ):
+        assert column in rows[0]
+    _, truth = read_ground_truth(archive)
+    true_by_start = {round(t.chainage_start_m, 1): t for t in truth}
+    ok = [r for r in rows if r["status"] == "ok"]
+    assert len(ok) >= 15
+    errors = [
+        abs(
+            float(r["blockage_ratio"])
+            - true_by_start[round(float(r["chainage_start_m"]), 1)].blockage_ratio
+        )
+        for r in ok
+    ]
+    assert sum(errors) / len(errors) < 0.005
+    assert max(errors) < 0.025
+    # Unmeasured sections carry no figure at all (empty cells, never 0).
+    for r in rows:
+        if r["status"] != "ok":
+            assert r["blockage_ratio"] == "" or r["status"] != "ok"
+    # Every section in an occlusion shadow is reported as not ok.
+    for r in rows:
+        t = true_by_start.get(round(float(r["chainage_start_m"]), 1))
+        if t is not None and t.in_shadow and t.coverage_ratio < 0.9:
+            assert r["status"] != "ok", r
+
+
+def test_pdf_holds_asset_flagged_chainages_and_database_figures(inspected):
+    summary, db_url, work = inspected
+    text = "\n".join(page.extract_text() for page in PdfReader(work / "report.pdf").pages)
+    assert summary.asset_id in text
+    assert "None" not in text and "nan" not in text
+    defects = CliRunner().invoke(
+        app, ["export", "defects", "--inspection", str(summary.inspection_id), "--db", db_url]
+    )
+    rows = list(csv.DictReader(io.StringIO(defects.stdout)))
+    assert rows, "the paper scenario has defects to flag"
+    for d in rows:
+        assert f"{float(d['chainage_start_m']):.2f}" in text
+    worst = f"{100 * summary.max_blockage_ratio:.1f}"
+    assert worst in text
+
+
+def test_cli_report_and_json_summary(inspected, archive, tmp_path):
+    summary, db_url, _ = inspected
+    out = tmp_path / "again.pdf"
+    result = CliRunner().invoke(
+        app, ["report", "--inspection", str(summary.inspection_id), "-o", str(out), "--db", db_url]
+    )
+    assert result.exit_code == 0, result.output
+    assert out.read_bytes().startswith(b"%PDF")
+    # Re-inspecting the same archive with the same parameters replaces, never duplicates.
+    again = CliRunner().invoke(app, ["inspect", str(archive), "--db", db_url, "--json"])
+    assert again.exit_code == 0, again.output
+    payload = json.loads(again.stdout[again.stdout.index("{") :])
+    assert payload["asset_id"] == summary.asset_id
+    listing = CliRunner().invoke(app, ["inspections", "--db", db_url])
+    assert listing.stdout.count(summary.asset_id) == 1
+
+
+def test_bad_archive_fails_cleanly_and_writes_nothing(prefect, tmp_path):
+    bad = tmp_path / "bad"
+    (bad / "frames").mkdir(parents=True)
+    (bad / "inspection.toml").write_text(
+        'asset_id = "X1"\ninspected_at = "2025-13-45"\nnominal_diameter_m = 500\n'
+    )
+    db_url = f"sqlite:///{tmp_path / 'p.db'}"
+    result = CliRunner().invoke(app, ["inspect", str(bad), "--db", db_url])
+    assert result.exit_code == 2
+    assert "inspection.toml" in result.output and "inspected_at" in result.output
+    listing = CliRunner().invoke(app, ["inspections", "--db", db_url])
+    assert "no inspections" in listing.stdout
