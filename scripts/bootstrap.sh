@@ -4,9 +4,9 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-# open3d needs libusb; poppler-utils renders report PDFs to PNG (tests, docs);
-# postgresql runs the storage tests against a real server.
-debs=(libusb-1.0-0 poppler-utils postgresql)
+# open3d needs libusb; WeasyPrint subsets fonts with HarfBuzz; poppler-utils renders report PDFs
+# to PNG (tests, docs); postgresql runs the storage tests against a real server.
+debs=(libusb-1.0-0 libharfbuzz-subset0 poppler-utils postgresql)
 missing=()
 for pkg in "${debs[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

@@ -1,0 +1,3 @@
+from pipescan.cli import app
+
+app()
