@@ -25,7 +25,8 @@ from pipescan.tasks.inspection import (
     measure_sections,
     register_chunk,
 )
-from pipescan.tasks.storing import render_report, save_results, stage_archive
+from pipescan.tasks.reporting import render_report
+from pipescan.tasks.storing import save_results, stage_archive
 
 log = logging.getLogger("pipescan")
 
