@@ -31,14 +31,21 @@ CONTOUR_METHODS: tuple[str, ...] = ("polar", "grid")
 
 
 def remove_stray_points(
-    points: np.ndarray, *, radius_m: float = 0.02, min_neighbours: int = 3
+    points: np.ndarray,
+    *,
+    radius_m: float = 0.02,
+    min_neighbours: int = 3,
+    relative_density: float = 0.02,
 ) -> np.ndarray:
     """Drop isolated points (spurious early returns, dust) from a projected section.
 
     A real surface seen by the sensor leaves many points close together; a stray return has
-    none. Points are counted on a grid of ``radius_m`` cells: a point is kept when its cell and
-    the 8 around it hold more than ``min_neighbours`` other points. This is the paper's
-    denoising step, in O(N), and it is what makes a single stray point unable to move a figure.
+    few. Points are counted on a grid of ``radius_m`` cells: a point is kept when its cell and
+    the 8 around it hold more than ``min_neighbours`` other points, and at least
+    ``relative_density`` times the median such count (so that in a section of 100,000 points,
+    the few hundred spurious returns scattered through the open area are removed too). This is
+    the paper's denoising step, in O(N), and it is what makes a stray point unable to move a
+    figure.
 
     Parameters
     ----------
@@ -58,7 +65,9 @@ def remove_stray_points(
     counts = np.zeros(shape, dtype=np.int64)
     np.add.at(counts, (ij[:, 0], ij[:, 1]), 1)
     block = ndimage.convolve(counts, np.ones((3, 3), dtype=np.int64), mode="constant")
-    return pts[block[ij[:, 0], ij[:, 1]] - 1 >= min_neighbours]
+    others = block[ij[:, 0], ij[:, 1]] - 1
+    threshold = max(min_neighbours, relative_density * float(np.median(others)))
+    return pts[others >= threshold]
 
 
 # --------------------------------------------------------------------------------------------
@@ -225,6 +234,9 @@ class GridParams:
         Moving-average window, in contour points, applied to the ordered boundary.
     resample_m : float
         Spacing of the interpolated contour.
+    max_jump_m : float
+        The nearest-neighbour chain may cross a gap in the data up to this long (e.g. between a
+        wall and an obstacle that hides part of it); a longer jump ends the chain.
     """
 
     k: int = 12
@@ -233,6 +245,7 @@ class GridParams:
     downsample_m: float = 0.003
     smooth_window: int = 5
     resample_m: float = 0.005
+    max_jump_m: float = 0.10
 
 
 def _thin(points_2d: np.ndarray, cell_m: float) -> np.ndarray:
@@ -443,7 +456,7 @@ def grid_contour(points_2d: np.ndarray, params: GridParams = GridParams()) -> Gr
     per_cell = np.zeros((len(counts), 2))
     np.add.at(per_cell, inverse.ravel(), edge)
     per_cell /= counts[:, None]
-    ordered = _order_nearest_neighbour(per_cell, max_jump_m=4.0 * cell)
+    ordered = _order_nearest_neighbour(per_cell, max_jump_m=max(4.0 * cell, params.max_jump_m))
     smoothed = _smooth_closed(ordered, params.smooth_window)
     polygon = _resample_closed(smoothed, params.resample_m)
     return GridContour(polygon=polygon, boundary_points=edge, cell_size_m=cell)
