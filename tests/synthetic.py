@@ -92,3 +92,45 @@ def random_rigid(rng: np.random.Generator, *, max_tilt_deg: float = 20.0) -> np.
 
 def transform(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return points @ T[:3, :3].T + T[:3, 3]
+
+
+def curved_pipe_cloud(
+    *,
+    length_m: float = 6.0,
+    bend_radius_m: float = 12.0,
+    sag_m: float = 0.03,
+    radius_m: float = 0.25,
+    points_per_m: int = 30_000,
+    noise_m: float = 0.002,
+    rng: np.random.Generator,
+) -> tuple[np.ndarray, np.ndarray]:
+    """A pipe whose centreline bends horizontally (radius ``bend_radius_m``) and sags
+    vertically (a half sine of depth ``sag_m``), z up.
+
+    Returns the points (N, 3) and each point's true distance along the centreline (N,).
+    """
+    u = np.linspace(0.0, length_m, 4001)
+
+    def centre(t):
+        return np.column_stack(
+            (
+                bend_radius_m * np.sin(t / bend_radius_m),
+                bend_radius_m * (1.0 - np.cos(t / bend_radius_m)),
+                -sag_m * np.sin(np.pi * t / length_m),
+            )
+        )
+
+    c = centre(u)
+    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))))
+    n = int(length_m * points_per_m)
+    t = rng.uniform(0.0, length_m, n)
+    p = centre(t)
+    tangent = (centre(t + 1e-4) - centre(t - 1e-4)) / 2e-4
+    tangent /= np.linalg.norm(tangent, axis=1, keepdims=True)
+    up = np.array([0.0, 0.0, 1.0]) - tangent[:, 2:3] * tangent
+    up /= np.linalg.norm(up, axis=1, keepdims=True)
+    right = np.cross(up, tangent)
+    theta = rng.uniform(0.0, 2.0 * np.pi, n)
+    r = radius_m + rng.normal(0.0, noise_m, n)
+    pts = p + (r * np.cos(theta))[:, None] * right + (r * np.sin(theta))[:, None] * up
+    return pts, np.interp(t, u, arc)

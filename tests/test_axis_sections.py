@@ -12,7 +12,13 @@ from hypothesis import strategies as st
 from pipescan.core.axis import fit_axis, fit_circle_robust
 from pipescan.core.errors import GeometryError
 from pipescan.core.sections import measure_window, plan_windows
-from tests.synthetic import pipe_cloud, random_rigid, segment_area_ratio, transform
+from tests.synthetic import (
+    curved_pipe_cloud,
+    pipe_cloud,
+    random_rigid,
+    segment_area_ratio,
+    transform,
+)
 
 R = 0.25
 
@@ -105,3 +111,36 @@ def test_blockage_invariant_under_rigid_motion_and_shuffle(seed):
     for c in base:
         if 0.3 <= c < 3.7 and base[c].is_ok:
             assert moved[c].blockage_ratio == pytest.approx(base[c].blockage_ratio, abs=0.004)
+
+
+def _profile(cloud, axis):
+    sections = []
+    for w in plan_windows(0.3, 5.7, step_m=0.1, window_m=2.0):
+        sections += measure_window(cloud, axis, w, nominal_diameter_m=0.5)
+    return sections
+
+
+def test_centreline_follows_a_bend_and_a_sag():
+    rng = np.random.default_rng(12)
+    cloud, true_arc = curved_pipe_cloud(rng=rng)
+    axis = fit_axis(cloud, start_m=np.zeros(3), travel_m=np.array([1.0, 0.0, 0.0]))
+    assert axis.is_curved
+    # Chainage is the distance along the bent centreline, not along a chord.
+    assert np.abs(axis.chainage(cloud) - true_arc).max() < 0.01
+    sections = _profile(cloud, axis)
+    ok = [s for s in sections if s.is_ok]
+    assert len(ok) >= 50
+    assert max(abs(s.blockage_ratio) for s in ok) < 0.005
+    # A straight axis through the same bend smears every section: the test can tell.
+    straight = fit_axis(
+        cloud, start_m=np.zeros(3), travel_m=np.array([1.0, 0.0, 0.0]), curve_tolerance_m=1.0
+    )
+    assert not straight.is_curved
+    smeared = [s for s in _profile(cloud, straight) if s.blockage_ratio is not None]
+    assert max(abs(s.blockage_ratio) for s in smeared) > 0.02
+
+
+def test_straight_pipe_stays_a_line():
+    rng = np.random.default_rng(13)
+    axis = fit_axis(pipe_cloud(length_m=4.0, rng=rng), start_m=np.zeros(3))
+    assert not axis.is_curved

@@ -9,23 +9,31 @@ as outliers of the circle).
 from __future__ import annotations
 
 import itertools
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.interpolate import make_smoothing_spline
+from scipy.spatial import cKDTree
 
 from pipescan.core.errors import GeometryError
 
 
 @dataclass(frozen=True)
 class PipeAxis:
-    """A straight pipe axis with a chainage origin and a section-plane basis.
+    """The pipe's centreline with a chainage origin and a section-plane basis.
+
+    A straight pipe is a line (``nodes_m`` is None). A pipe with gentle bends or sags also
+    carries a smoothed centreline: nodes a few centimetres apart, each with its own tangent and
+    up vector. A point then belongs to its nearest node; its distance along the pipe is the
+    node's arc length plus its offset along the node's tangent, and its section plane is the
+    node's.
 
     Attributes
     ----------
     origin_m : (3,) float
-        The point on the axis where chainage is ``chainage_offset_m`` (the scan's start).
+        The point on the centreline where chainage is ``chainage_offset_m`` (the scan's start).
     direction : (3,) float
-        Unit vector along the axis, pointing the way chainage grows.
+        Unit vector along the (mean) axis, pointing the way the survey travelled.
     up : (3,) float
         Unit vector perpendicular to ``direction``, pointing to the crown (against gravity).
     chainage_offset_m : float
@@ -36,6 +44,10 @@ class PipeAxis:
         moves towards it).
     radius_m : float
         The wall radius the fit found (median over slices), for diagnostics.
+    nodes_m, tangents, ups : (K, 3) float, optional
+        The curved centreline's nodes, unit tangents and unit up vectors (world frame).
+    arc_m : (K,) float, optional
+        Each node's distance along the centreline from ``origin_m`` (negative before it).
     """
 
     origin_m: np.ndarray
@@ -44,28 +56,83 @@ class PipeAxis:
     chainage_offset_m: float = 0.0
     chainage_sign: float = 1.0
     radius_m: float = float("nan")
+    nodes_m: np.ndarray | None = field(default=None, repr=False, compare=False)
+    tangents: np.ndarray | None = field(default=None, repr=False, compare=False)
+    ups: np.ndarray | None = field(default=None, repr=False, compare=False)
+    arc_m: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @property
     def right(self) -> np.ndarray:
         """Unit vector completing the right-handed section basis (right, up, direction)."""
         return np.cross(self.up, self.direction)
 
+    @property
+    def is_curved(self) -> bool:
+        return self.nodes_m is not None
+
+    def local_coordinates(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distance along the centreline and section-plane coordinates of each point.
+
+        Parameters
+        ----------
+        points_m : (N, 3) float
+            Points in the world frame, metres.
+
+        Returns
+        -------
+        along_m : (N,) float
+            Signed distance along the centreline from ``origin_m``, in the survey's direction.
+        plane_m : (N, 2) float
+            Coordinates in the local section plane: column 0 across (right), column 1 up, the
+            centreline at the origin.
+        """
+        pts = np.asarray(points_m, dtype=np.float64)
+        if self.nodes_m is None:
+            rel = pts - self.origin_m
+            return rel @ self.direction, np.column_stack((rel @ self.right, rel @ self.up))
+        assert self.tangents is not None and self.ups is not None and self.arc_m is not None
+        _, i = cKDTree(self.nodes_m).query(pts)
+        d = pts - self.nodes_m[i]
+        t, u = self.tangents[i], self.ups[i]
+        along = self.arc_m[i] + np.einsum("ij,ij->i", d, t)
+        across = np.einsum("ij,ij->i", d, np.cross(u, t))
+        return along, np.column_stack((across, np.einsum("ij,ij->i", d, u)))
+
     def distance_along(self, points_m: np.ndarray) -> np.ndarray:
-        """Signed distance of each point along ``direction`` from ``origin_m``, shape (N,)."""
-        return (np.asarray(points_m, dtype=np.float64) - self.origin_m) @ self.direction
+        """Signed distance of each point along the centreline from ``origin_m``, shape (N,)."""
+        if self.nodes_m is None:
+            return (np.asarray(points_m, dtype=np.float64) - self.origin_m) @ self.direction
+        return self.local_coordinates(points_m)[0]
 
     def chainage(self, points_m: np.ndarray) -> np.ndarray:
         """Chainage of each point in metres from the upstream node, shape (N,)."""
         return self.chainage_offset_m + self.chainage_sign * self.distance_along(points_m)
 
     def to_section_plane(self, points_m: np.ndarray) -> np.ndarray:
-        """Project points onto the plane perpendicular to the axis.
+        """Project points onto the (local) plane perpendicular to the axis.
 
         Returns (N, 2) metres: column 0 across (``right``), column 1 up, with the axis at the
         origin.
         """
-        rel = np.asarray(points_m, dtype=np.float64) - self.origin_m
-        return np.column_stack((rel @ self.right, rel @ self.up))
+        return self.local_coordinates(points_m)[1]
+
+    def point_at(self, along_m: float, across_m: float, up_m: float) -> np.ndarray:
+        """World position (3,) of local coordinates: ``along_m`` on the centreline from
+        ``origin_m``, offset ``across_m`` and ``up_m`` in that place's section plane."""
+        if self.nodes_m is None:
+            return self.origin_m + along_m * self.direction + across_m * self.right + up_m * self.up
+        assert self.tangents is not None and self.ups is not None and self.arc_m is not None
+        i = int(np.clip(np.searchsorted(self.arc_m, along_m), 1, len(self.arc_m) - 1))
+        if along_m - self.arc_m[i - 1] < self.arc_m[i] - along_m:
+            i -= 1
+        t, u = self.tangents[i], self.ups[i]
+        base = self.nodes_m[i] + (along_m - self.arc_m[i]) * t
+        return base + across_m * np.cross(u, t) + up_m * u
+
+    def section_coordinates(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Chainage (N,) and section-plane coordinates (N, 2) in one pass."""
+        along, plane = self.local_coordinates(points_m)
+        return self.chainage_offset_m + self.chainage_sign * along, plane
 
 
 def fit_circle(points_2d: np.ndarray) -> tuple[np.ndarray, float]:
@@ -178,6 +245,85 @@ def _orthonormal_up(direction: np.ndarray, up_hint: np.ndarray) -> np.ndarray:
     return up / norm
 
 
+def _slice_centres(
+    pts: np.ndarray, axis: PipeAxis, slice_m: float, min_points: int = 200
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Robust circle centres of consecutive slices along an axis (straight or curved).
+
+    Returns the slices' median distance along the axis (K,), their centres in the world frame
+    (K, 3), radii (K,) and inlier counts (K,).
+    """
+    along, plane = axis.local_coordinates(pts)
+    edges = np.arange(along.min(), along.max() + slice_m, slice_m)
+    order = np.argsort(along)
+    bounds = np.searchsorted(along[order], edges)
+    rows = []
+    for lo, hi in itertools.pairwise(bounds):
+        idx = order[lo:hi]
+        if len(idx) < min_points:
+            continue
+        try:
+            c2, r, inl = fit_circle_robust(plane[idx])
+        except GeometryError:
+            continue
+        s_mid = float(np.median(along[idx]))
+        rows.append((s_mid, axis.point_at(s_mid, c2[0], c2[1]), r, float(inl.sum())))
+    if not rows:
+        return np.empty(0), np.empty((0, 3)), np.empty(0), np.empty(0)
+    s_k, c_k, r_k, w_k = zip(*rows, strict=True)
+    return np.asarray(s_k), np.asarray(c_k), np.asarray(r_k), np.asarray(w_k)
+
+
+def _line_through(
+    centres: np.ndarray, weights: np.ndarray, near_dir: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least-squares line through points: (a point on it, unit direction)."""
+    cm = (centres * weights[:, None]).sum(0) / weights.sum()
+    _, _, vt = np.linalg.svd((centres - cm) * np.sqrt(weights)[:, None], full_matrices=False)
+    direction = vt[0] if vt[0] @ near_dir > 0 else -vt[0]
+    return cm, direction / np.linalg.norm(direction)
+
+
+def _centreline(
+    s_k: np.ndarray,
+    centres: np.ndarray,
+    up_hint: np.ndarray,
+    node_step_m: float,
+    extend_m: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """A smoothing spline through slice centres, sampled as nodes every ``node_step_m``.
+
+    The spline's smoothing is chosen by generalised cross-validation; beyond the first and last
+    centre the line continues straight along the end tangents for ``extend_m``.
+
+    Returns nodes (K, 3), unit tangents (K, 3), unit ups (K, 3) and arc lengths (K,) measured
+    from the first node.
+    """
+    order = np.argsort(s_k)
+    s_k, centres = s_k[order], centres[order]
+    splines = [make_smoothing_spline(s_k, centres[:, d]) for d in range(3)]
+    grid = np.arange(s_k[0], s_k[-1] + node_step_m / 2, node_step_m)
+    pos = np.column_stack([sp(grid) for sp in splines])
+    tan = np.column_stack([sp.derivative()(grid) for sp in splines])
+    tan /= np.linalg.norm(tan, axis=1, keepdims=True)
+    steps = np.arange(1, int(extend_m / node_step_m) + 1) * node_step_m
+    before = pos[0] - steps[::-1, None] * tan[0]
+    after = pos[-1] + steps[:, None] * tan[-1]
+    nodes = np.vstack((before, pos, after))
+    tangents = np.vstack(
+        (np.repeat(tan[:1], len(steps), 0), tan, np.repeat(tan[-1:], len(steps), 0))
+    )
+    arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(nodes, axis=0), axis=1))))
+    ups = np.asarray(up_hint, dtype=np.float64) - (tangents @ up_hint)[:, None] * tangents
+    norms = np.linalg.norm(ups, axis=1, keepdims=True)
+    if (norms < 1e-6).any():
+        raise GeometryError(
+            "the up hint is parallel to the pipe axis somewhere along it",
+            hint="a vertical shaft needs an explicit up direction",
+        )
+    return nodes, tangents, ups / norms, arc
+
+
 def fit_axis(
     points_m: np.ndarray,
     *,
@@ -187,10 +333,17 @@ def fit_axis(
     chainage_offset_m: float = 0.0,
     direction: str = "downstream",
     slice_m: float = 0.5,
+    curve_tolerance_m: float = 0.005,
+    node_step_m: float = 0.05,
     max_points: int = 200_000,
     seed: int = 0,
 ) -> PipeAxis:
-    """Fit a straight pipe axis: PCA for a first guess, then robust circle fits on slices.
+    """Fit the pipe's centreline: PCA for a first guess, then robust circle fits on slices.
+
+    The circles are fitted to the wall, so deposits and obstacles do not pull the axis. When
+    the slice centres deviate from a straight line by more than ``curve_tolerance_m`` (a bend
+    or a sag), the centreline becomes a smoothing spline through them, refined once with slices
+    cut perpendicular to it, and chainage is measured along it.
 
     Parameters
     ----------
@@ -198,11 +351,12 @@ def fit_axis(
         Registered points, metres, in the common (world) frame.
     start_m : (3,) float, optional
         The sensor position at the scan's start (first frame). Chainage ``chainage_offset_m``
-        is placed at its projection on the axis. Without it, the scan starts at the end of the
-        cloud with the lowest coordinate along the axis.
+        is placed at its projection on the centreline. Without it, the scan starts at the end
+        of the cloud with the lowest distance along the axis.
     travel_m : (3,) float, optional
         A vector along the direction the crawler moved (e.g. last minus first sensor position);
-        orients the axis. Without it, the axis points along the cloud's larger half... see Notes.
+        orients the axis. Without it, the axis is oriented so that its largest world component
+        is positive: arbitrary, but deterministic for a given cloud.
     up_hint : (3,) float
         Roughly "up" in the world frame (the first sensor frame's z for frame archives).
     chainage_offset_m : float
@@ -210,9 +364,14 @@ def fit_axis(
     direction : {"downstream", "upstream"}
         The survey direction; upstream surveys count chainage down from the offset.
     slice_m : float
-        Length of the slices whose circle centres define the line.
+        Length of the slices whose circle centres define the centreline.
+    curve_tolerance_m : float
+        Largest deviation of the slice centres from a straight line that still counts as
+        straight.
+    node_step_m : float
+        Spacing of a curved centreline's nodes.
     max_points : int
-        PCA and slice fits use a random subsample of at most this many points.
+        The fit uses a random subsample of at most this many points.
 
     Returns
     -------
@@ -223,10 +382,14 @@ def fit_axis(
     GeometryError
         When the cloud is too small or not elongated enough to have an axis.
 
-    Notes
-    -----
-    Without ``travel_m`` the axis is oriented so that its largest world component is positive:
-    arbitrary, but deterministic for a given cloud.
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> t, x = rng.uniform(0, 2 * np.pi, 20000), rng.uniform(0, 3, 20000)
+    >>> pts = np.column_stack((x, 0.25 * np.cos(t), 0.25 * np.sin(t)))
+    >>> axis = fit_axis(pts, start_m=np.zeros(3), travel_m=np.array([1.0, 0, 0]))
+    >>> (np.round(axis.direction, 3) + 0.0).tolist(), round(axis.radius_m, 3)
+    ([1.0, 0.0, 0.0], 0.25)
     """
     pts = np.asarray(points_m, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
@@ -236,6 +399,7 @@ def fit_axis(
     rng = np.random.default_rng(seed)
     if len(pts) > max_points:
         pts = pts[rng.choice(len(pts), max_points, replace=False)]
+    up_hint = np.asarray(up_hint, dtype=np.float64)
 
     centroid = pts.mean(axis=0)
     _, sing, vt = np.linalg.svd(pts - centroid, full_matrices=False)
@@ -251,50 +415,56 @@ def fit_axis(
     elif axis_dir[np.argmax(np.abs(axis_dir))] < 0:
         axis_dir = -axis_dir
 
-    # Refine: circle centres of slices along the PCA axis, then a line through them.
-    for _ in range(2):
-        up = _orthonormal_up(axis_dir, up_hint)
-        right = np.cross(up, axis_dir)
-        rel = pts - centroid
-        along = rel @ axis_dir
-        plane = np.column_stack((rel @ right, rel @ up))
-        edges = np.arange(along.min(), along.max() + slice_m, slice_m)
-        centres_3d, radii, weights = [], [], []
-        order = np.argsort(along)
-        bounds = np.searchsorted(along[order], edges)
-        for lo, hi in itertools.pairwise(bounds):
-            idx = order[lo:hi]
-            if len(idx) < 200:
-                continue
-            try:
-                c2, r, inl = fit_circle_robust(plane[idx])
-            except GeometryError:
-                continue
-            s_mid = float(np.median(along[idx]))
-            centres_3d.append(centroid + s_mid * axis_dir + c2[0] * right + c2[1] * up)
-            radii.append(r)
-            weights.append(inl.sum())
-        if len(centres_3d) < 2:
-            break
-        c = np.asarray(centres_3d)
-        w = np.asarray(weights, dtype=np.float64)
-        cm = (c * w[:, None]).sum(0) / w.sum()
-        _, _, vtc = np.linalg.svd((c - cm) * np.sqrt(w)[:, None], full_matrices=False)
-        new_dir = vtc[0] if vtc[0] @ axis_dir > 0 else -vtc[0]
-        centroid, axis_dir = cm, new_dir / np.linalg.norm(new_dir)
+    def straight(point: np.ndarray, d: np.ndarray) -> PipeAxis:
+        return PipeAxis(origin_m=point, direction=d, up=_orthonormal_up(d, up_hint))
 
-    up = _orthonormal_up(axis_dir, up_hint)
-    radius = float(np.median(radii)) if radii else float("nan")
+    # Straight refinement: a line through the slice centres, twice.
+    axis = straight(centroid, axis_dir)
+    s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m)
+    for _ in range(2):
+        if len(c_k) < 2:
+            break
+        point, axis_dir = _line_through(c_k, w_k, axis_dir)
+        axis = straight(point, axis_dir)
+        s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m)
+
+    # A bend or a sag: the centres leave the line.
+    if len(c_k) >= 5:
+        rel = c_k - axis.origin_m
+        off_line = rel - np.outer(rel @ axis.direction, axis.direction)
+        if np.linalg.norm(off_line, axis=1).max() > curve_tolerance_m:
+            for _ in range(2):
+                nodes, tangents, ups, arc = _centreline(
+                    s_k, c_k, up_hint, node_step_m, extend_m=slice_m + 1.0
+                )
+                axis = PipeAxis(
+                    origin_m=nodes[0],
+                    direction=axis.direction,
+                    up=axis.up,
+                    nodes_m=nodes,
+                    tangents=tangents,
+                    ups=ups,
+                    arc_m=arc,
+                )
+                s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m / 2)
+                if len(c_k) < 5:
+                    break
+
+    radius = float(np.median(r_k)) if len(r_k) else float("nan")
     if start_m is not None:
-        start = np.asarray(start_m, dtype=np.float64)
-        origin = centroid + ((start - centroid) @ axis_dir) * axis_dir
+        start_along = float(axis.distance_along(np.asarray(start_m, dtype=np.float64)[None])[0])
     else:
-        origin = centroid + ((pts - centroid) @ axis_dir).min() * axis_dir
+        start_along = float(axis.distance_along(pts).min())
+    origin = axis.point_at(start_along, 0.0, 0.0)
     return PipeAxis(
         origin_m=origin,
-        direction=axis_dir,
-        up=up,
+        direction=axis.direction,
+        up=axis.up,
         chainage_offset_m=float(chainage_offset_m),
         chainage_sign=-1.0 if direction == "upstream" else 1.0,
         radius_m=radius,
+        nodes_m=axis.nodes_m,
+        tangents=axis.tangents,
+        ups=axis.ups,
+        arc_m=None if axis.arc_m is None else axis.arc_m - start_along,
     )

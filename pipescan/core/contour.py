@@ -130,6 +130,15 @@ class PolarProfile:
         a = self.angles_rad
         return np.interp(a, a[seen], self.radii_m[seen], period=2.0 * np.pi)
 
+    def area_m2(self) -> float:
+        """Enclosed area by the polar integral ``½ Σ r² Δθ`` (gaps interpolated).
+
+        Exact for a circle at any bin count, where a polygon through the bin radii falls short
+        by ``(2π/B)² / 6`` of the area (0.13 % at 72 bins).
+        """
+        r = self.filled_radii()
+        return float(0.5 * np.sum(r * r) * 2.0 * np.pi / len(r))
+
     def polygon(self) -> np.ndarray:
         """The contour polygon (B, 2), gaps interpolated (see ``filled_radii``)."""
         r = self.filled_radii()

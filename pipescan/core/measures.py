@@ -192,9 +192,11 @@ def measure_section(
         except GeometryError:
             return SectionMeasures(status=SectionStatus.NO_CONTOUR, coverage_ratio=coverage, **base)
         radii = radii_of_polygon(polygon, profile.angles_rad)
+        open_area = polygon_area(polygon)
     else:
         polygon = profile.polygon()
         radii = profile.filled_radii()
+        open_area = profile.area_m2()
 
     # A 5-bin running median keeps single noisy bins from setting D_min or D_max.
     radii_smooth = median_filter(radii, size=5, mode="wrap")
@@ -217,7 +219,6 @@ def measure_section(
     ovality, deformation = _diameter_measures(
         radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
     )
-    open_area = polygon_area(polygon)
     return SectionMeasures(
         status=status,
         coverage_ratio=coverage,

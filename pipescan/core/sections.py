@@ -90,19 +90,18 @@ def iter_section_points(
         The section's points: columns 0-1 projected on the plane perpendicular to the axis,
         column 2 the position within the section along the chainage, in [0, step), metres.
     """
-    chain_mm = axis.chainage(points_m) * 1000.0
+    chain_m, plane = axis.section_coordinates(points_m)
+    chain_mm = chain_m * 1000.0
     inside = (chain_mm >= window.start_mm) & (chain_mm < window.end_mm)
-    pts = points_m[inside]
-    chain_mm = chain_mm[inside]
+    chain_mm, plane = chain_mm[inside], plane[inside]
     index = ((chain_mm - window.start_mm) // window.step_mm).astype(np.int64)
     order = np.argsort(index, kind="stable")
-    index, pts, chain_mm = index[order], pts[order], chain_mm[order]
+    index, chain_mm, plane = index[order], chain_mm[order], plane[order]
     starts = list(window.section_starts_mm())
     bounds = np.searchsorted(index, np.arange(len(starts) + 1))
-    plane = axis.to_section_plane(pts) if len(pts) else np.empty((0, 2))
     # Distance along the axis from each section's start (for the sub-slice test).
     along_m = (chain_mm - window.start_mm - index * window.step_mm) / 1000.0
-    local = np.column_stack((plane, along_m)) if len(pts) else np.empty((0, 3))
+    local = np.column_stack((plane, along_m))
     for i, start_mm in enumerate(starts):
         yield start_mm, local[bounds[i] : bounds[i + 1]]
 
