@@ -1,0 +1,214 @@
+"""Sections and measures: accuracy against ground truth, throughput, and memory.
+
+    python benchmarks/bench_sections.py accuracy      # both contour methods, simulator, true poses
+    python benchmarks/bench_sections.py real          # the real S3DSS scan (800 mm concrete pipe)
+    python benchmarks/bench_sections.py throughput    # points/s through slicing, contour, measures
+    python benchmarks/bench_sections.py memory        # peak RSS of the section stage, 10 m vs 100 m
+    python benchmarks/bench_sections.py all
+
+Every figure is printed; nothing is asserted (the tests do that on smaller cases).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.core.axis import fit_axis
+from pipescan.core.measures import MeasureParams
+from pipescan.core.sections import measure_window, plan_windows
+from pipescan.core.simulate import get_scenario, simulate_scan
+
+ROOT = Path(__file__).resolve().parents[1]
+REAL_SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"
+MAX_RANGE_M = 5.0
+
+
+def registered_cloud_true_poses(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The scan's frames in the first frame's coordinates, with the true poses.
+
+    Returns the points (N, 3), the first and the last sensor positions.
+    """
+    T0 = np.linalg.inv(scan.T_world_sensor[0])
+    parts = []
+    for frame in scan.frames():
+        p = frame.points_sensor.astype(np.float64)
+        p = p[np.einsum("ij,ij->i", p, p) <= MAX_RANGE_M**2]
+        T = T0 @ frame.T_world_sensor
+        parts.append(p @ T[:3, :3].T + T[:3, 3])
+    last = T0 @ scan.T_world_sensor[-1]
+    return np.concatenate(parts), np.zeros(3), last[:3, 3]
+
+
+def measure_all(points, axis, nominal_m, method, step_m=0.1):
+    chain = axis.chainage(points)
+    sections = []
+    for w in plan_windows(max(0.0, chain.min()), chain.max(), step_m=step_m, window_m=2.0):
+        sections += measure_window(
+            points, axis, w, nominal_diameter_m=nominal_m, params=MeasureParams(method=method)
+        )
+    return sections
+
+
+def accuracy(seeds: list[int]) -> None:
+    print("## Accuracy against ground truth: paper scenario, true poses, 5 mm range noise")
+    print("| method | seed | ok sections | mean abs error (pp) | max abs error (pp) |"
+          " Table 1 range: mean / max (pp) | >=5 % true reported >=5 % | shadow sections ok |")
+    print("|---|---|---|---|---|---|---|---|")
+    for seed in seeds:
+        scan = simulate_scan(get_scenario("paper"), seed=seed)
+        truth = {round(t.chainage_start_m, 1): t for t in scan.true_sections()}
+        points, start, last = registered_cloud_true_poses(scan)
+        axis = fit_axis(points, start_m=start, travel_m=last - start)
+        for method in ("polar", "grid"):
+            t0 = time.perf_counter()
+            sections = measure_all(points, axis, scan.scenario.nominal_diameter_m, method)
+            elapsed = time.perf_counter() - t0
+            rows = [(s, truth.get(round(s.chainage_start_m, 1))) for s in sections]
+            rows = [(s, t) for s, t in rows if t is not None]
+            ok = [(s, t) for s, t in rows if s.is_ok]
+            err = np.array([100 * abs(s.blockage_ratio - t.blockage_ratio) for s, t in ok])
+            table1 = np.array(
+                [100 * abs(s.blockage_ratio - t.blockage_ratio) for s, t in ok
+                 if 0.025 <= t.blockage_ratio <= 0.235]
+            )
+            big = [(s, t) for s, t in ok if t.blockage_ratio >= 0.05]
+            found = sum(s.blockage_ratio >= 0.05 for s, _ in big)
+            shadow_ok = sum(1 for s, t in rows if t.in_shadow and t.coverage_ratio < 0.95 and s.is_ok)
+            shadows = sum(1 for _, t in rows if t.in_shadow and t.coverage_ratio < 0.95)
+            print(
+                f"| {method} | {seed} | {len(ok)}/{len(rows)} | {err.mean():.2f} | {err.max():.2f} |"
+                f" {table1.mean():.2f} / {table1.max():.2f} (n={len(table1)}) |"
+                f" {found}/{len(big)} | {shadow_ok} of {shadows} |"
+                f"  ({elapsed:.1f} s, {len(points) / elapsed / 1e6:.1f} M points/s)"
+            )
+
+
+def real_scan() -> None:
+    print("## Real scan: S3DSS real_459 (FARO Focus S, 800 mm concrete pipe, 16,384 points)")
+    data = np.loadtxt(REAL_SCAN)
+    points = data[:, :3]
+    axis = fit_axis(points)
+    print(f"axis direction {np.round(axis.direction, 3).tolist()}, wall radius {axis.radius_m:.4f} m")
+    for method in ("polar", "grid"):
+        sections = measure_all(points, axis, 0.8, method)
+        print(f"\n### {method}")
+        print("| chainage (m) | x (m) | status | points | coverage | blockage % | equivalent diameter (m) |")
+        print("|---|---|---|---|---|---|---|")
+        for s in sections:
+            x = float(axis.point_at(s.chainage_start_m + 0.05, 0.0, 0.0)[0])
+            deq = 2 * np.sqrt(s.open_area_m2 / np.pi) if s.open_area_m2 else float("nan")
+            b = "-" if s.blockage_ratio is None else f"{100 * s.blockage_ratio:.2f}"
+            print(f"| {s.chainage_start_m:.1f} | {x:+.2f} | {s.status.value} | {s.point_count} |"
+                  f" {s.coverage_ratio:.2f} | {b} | {deq:.4f} |")
+        ok = [s for s in sections if s.is_ok]
+        worst = max(ok, key=lambda s: s.blockage_ratio)
+        clean = [2 * np.sqrt(s.open_area_m2 / np.pi) for s in ok if s.blockage_ratio < 0.015]
+        print(f"clean ok sections: {len(clean)}, diameter {min(clean):.4f}-{max(clean):.4f} m "
+              f"(mean {np.mean(clean):.4f}); largest blockage {100 * worst.blockage_ratio:.2f} % at "
+              f"x = {float(axis.point_at(worst.chainage_start_m + 0.05, 0, 0)[0]):+.2f} m")
+
+
+def throughput() -> None:
+    print("## Throughput: slicing + contour + measures, one core, paper scenario (true poses)")
+    scan = simulate_scan(get_scenario("paper"), seed=0)
+    points, start, last = registered_cloud_true_poses(scan)
+    axis = fit_axis(points, start_m=start, travel_m=last - start)
+    recording_s = len(scan.times_s) / scan.scenario.frame_rate_hz
+    for method in ("polar", "grid"):
+        t0 = time.perf_counter()
+        sections = measure_all(points, axis, 0.5, method)
+        elapsed = time.perf_counter() - t0
+        print(f"{method}: {len(points):,} points, {len(sections)} sections in {elapsed:.2f} s: "
+              f"{len(points) / elapsed / 1e6:.1f} M points/s, real-time factor "
+              f"{recording_s / elapsed:.0f}x (recording {recording_s:.0f} s)")
+
+
+def _memory_child(travel_m: float) -> dict:
+    """Run the section stage the way the flow does (bucket per chunk, then window by window)."""
+    from pipescan.storage.workspace import read_window, write_buckets
+
+    scan = simulate_scan(get_scenario("long", travel_m=travel_m), seed=0)
+    T0 = np.linalg.inv(scan.T_world_sensor[0])
+    positions = np.einsum("ij,fjk->fik", T0, scan.T_world_sensor)[:, :3, 3]
+    # The axis from a sample of frames, as the flow's fit-axis task does.
+    sample = []
+    for i in range(0, len(scan.times_s), max(1, len(scan.times_s) // 40)):
+        f = scan.frame(i)
+        T = T0 @ f.T_world_sensor
+        p = f.points_sensor.astype(np.float64)[:5000]
+        sample.append(p @ T[:3, :3].T + T[:3, 3])
+    axis = fit_axis(np.concatenate(sample), start_m=positions[0], travel_m=positions[-1] - positions[0])
+    windows = plan_windows(0.0, travel_m + MAX_RANGE_M, step_m=0.1, window_m=2.0)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        chunk, first = [], 0
+        for f in scan.frames():
+            p = f.points_sensor.astype(np.float64)
+            p = p[np.einsum("ij,ij->i", p, p) <= MAX_RANGE_M**2]
+            T = T0 @ f.T_world_sensor
+            chunk.append(p @ T[:3, :3].T + T[:3, 3])
+            if len(chunk) == 60:
+                write_buckets(np.concatenate(chunk), axis, windows, Path(tmp), f"chunk_{first:07d}")
+                chunk, first = [], f.index + 1
+        if chunk:
+            write_buckets(np.concatenate(chunk), axis, windows, Path(tmp), f"chunk_{first:07d}")
+        n_sections = 0
+        for w in windows:
+            pts = read_window(Path(tmp), w, axis)
+            n_sections += len(measure_window(pts, axis, w, nominal_diameter_m=0.5))
+    return {
+        "travel_m": travel_m,
+        "frames": len(scan.times_s),
+        "sections": n_sections,
+        "seconds": time.perf_counter() - t0,
+        "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+    }
+
+
+def memory(lengths: list[float]) -> None:
+    print("## Memory: peak RSS of bucketing + window-by-window measuring (one process per run)")
+    results = []
+    for travel in lengths:
+        out = subprocess.run(
+            [sys.executable, __file__, "_memory_child", str(travel)],
+            capture_output=True, text=True, check=True,
+        )
+        r = json.loads(out.stdout.strip().splitlines()[-1])
+        results.append(r)
+        print(f"{r['travel_m']:.0f} m: {r['frames']} frames, {r['sections']} sections, "
+              f"{r['seconds']:.0f} s, peak RSS {r['peak_rss_mb']:.0f} MB")
+    if len(results) >= 2:
+        print(f"ratio {results[-1]['travel_m']:.0f} m / {results[0]['travel_m']:.0f} m: "
+              f"{results[-1]['peak_rss_mb'] / results[0]['peak_rss_mb']:.2f}x")
+
+
+def main() -> None:
+    if len(sys.argv) == 3 and sys.argv[1] == "_memory_child":
+        print(json.dumps(_memory_child(float(sys.argv[2]))))
+        return
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("what", choices=["accuracy", "real", "throughput", "memory", "all"])
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    parser.add_argument("--lengths", type=float, nargs="+", default=[10.0, 100.0])
+    args = parser.parse_args()
+    if args.what in ("accuracy", "all"):
+        accuracy(args.seeds)
+    if args.what in ("real", "all"):
+        real_scan()
+    if args.what in ("throughput", "all"):
+        throughput()
+    if args.what in ("memory", "all"):
+        memory(args.lengths)
+
+
+if __name__ == "__main__":
+    main()
