@@ -274,6 +274,15 @@ def _slice_centres(
     return np.asarray(s_k), np.asarray(c_k), np.asarray(r_k), np.asarray(w_k)
 
 
+def _plausible(radii: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Slices whose circle fit can be trusted: radius within 3 % of the median, and at least
+    a third of the median number of inliers."""
+    if len(radii) == 0:
+        return np.zeros(0, dtype=bool)
+    r_med, w_med = np.median(radii), np.median(weights)
+    return (np.abs(radii - r_med) <= 0.03 * r_med) & (weights >= w_med / 3.0)
+
+
 def _line_through(
     centres: np.ndarray, weights: np.ndarray, near_dir: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -422,17 +431,21 @@ def fit_axis(
     axis = straight(centroid, axis_dir)
     s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m)
     for _ in range(2):
-        if len(c_k) < 2:
+        good = _plausible(r_k, w_k)
+        if good.sum() < 2:
             break
-        point, axis_dir = _line_through(c_k, w_k, axis_dir)
+        point, axis_dir = _line_through(c_k[good], w_k[good], axis_dir)
         axis = straight(point, axis_dir)
         s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m)
 
-    # A bend or a sag: the centres leave the line.
-    if len(c_k) >= 5:
-        rel = c_k - axis.origin_m
-        off_line = rel - np.outer(rel @ axis.direction, axis.direction)
-        if np.linalg.norm(off_line, axis=1).max() > curve_tolerance_m:
+    # A bend or a sag: the centres leave the line. Slices whose circle is implausible (an end
+    # wall, a section mostly blocked) do not count, and one slice off the line is not a bend.
+    trusted = _plausible(r_k, w_k)
+    if trusted.sum() >= 5:
+        rel = c_k[trusted] - axis.origin_m
+        off_line = np.linalg.norm(rel - np.outer(rel @ axis.direction, axis.direction), axis=1)
+        if (off_line > curve_tolerance_m).sum() >= 2:
+            s_k, c_k = s_k[trusted], c_k[trusted]
             for _ in range(2):
                 nodes, tangents, ups, arc = _centreline(
                     s_k, c_k, up_hint, node_step_m, extend_m=slice_m + 1.0
@@ -447,6 +460,8 @@ def fit_axis(
                     arc_m=arc,
                 )
                 s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m / 2)
+                keep = _plausible(r_k, w_k)
+                s_k, c_k = s_k[keep], c_k[keep]
                 if len(c_k) < 5:
                     break
 

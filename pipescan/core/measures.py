@@ -51,8 +51,8 @@ class MeasureParams:
     stray_radius_m, stray_min_neighbours
         Stray-point removal (see ``remove_stray_points``).
     max_points : int
-        A denser section is thinned to this many points, drawn at random with a fixed seed:
-        the per-angle medians do not need more, and the cost stays bounded.
+        A denser section is thinned to at most this many points by an even stride: the
+        per-angle medians do not need more, and the cost stays bounded.
     grid : GridParams
         Parameters of the paper's grid method.
     """
@@ -165,11 +165,9 @@ def measure_section(
     )
     if len(raw) == 0:
         return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)
-    if len(raw) > params.max_points:
-        keep = np.random.default_rng(0).choice(len(raw), params.max_points, replace=False)
-        raw_used = raw[np.sort(keep)]
-    else:
-        raw_used = raw
+    # Points arrive frame after frame, so an even stride thins every frame alike.
+    stride = -(-len(raw) // params.max_points)
+    raw_used = raw[::stride] if stride > 1 else raw
     pts = remove_stray_points(
         raw_used, radius_m=params.stray_radius_m, min_neighbours=params.stray_min_neighbours
     )

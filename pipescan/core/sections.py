@@ -95,7 +95,9 @@ def iter_section_points(
     inside = (chain_mm >= window.start_mm) & (chain_mm < window.end_mm)
     chain_mm, plane = chain_mm[inside], plane[inside]
     index = ((chain_mm - window.start_mm) // window.step_mm).astype(np.int64)
-    order = np.argsort(index, kind="stable")
+    # A window holds far fewer than 32,768 sections: as int16, NumPy sorts by radix.
+    small = index.astype(np.int16) if len(index) and index.max() < 2**15 else index
+    order = np.argsort(small, kind="stable")
     index, chain_mm, plane = index[order], chain_mm[order], plane[order]
     starts = list(window.section_starts_mm())
     bounds = np.searchsorted(index, np.arange(len(starts) + 1))
