@@ -70,13 +70,16 @@ class PipeAxis:
     def is_curved(self) -> bool:
         return self.nodes_m is not None
 
-    def local_coordinates(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def local_coordinates(
+        self, points_m: np.ndarray, *, relative: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Distance along the centreline and section-plane coordinates of each point.
 
         Parameters
         ----------
         points_m : (N, 3) float
-            Points in the world frame, metres.
+            Points in the world frame, metres; or, with ``relative=True``, their offsets from
+            ``origin_m`` (float32 is then kept as float32: half the memory traffic).
 
         Returns
         -------
@@ -86,13 +89,21 @@ class PipeAxis:
             Coordinates in the local section plane: column 0 across (right), column 1 up, the
             centreline at the origin.
         """
-        pts = np.asarray(points_m, dtype=np.float64)
+        if relative:
+            pts = np.asarray(points_m)
+            if pts.dtype != np.float32:
+                pts = pts.astype(np.float64, copy=False)
+        else:
+            pts = np.asarray(points_m, dtype=np.float64) - self.origin_m
         if self.nodes_m is None:
-            rel = pts - self.origin_m
-            return rel @ self.direction, np.column_stack((rel @ self.right, rel @ self.up))
+            # One matrix product gives (along, across, up); the two results are views of it.
+            basis = np.column_stack((self.direction, self.right, self.up)).astype(pts.dtype)
+            local = pts @ basis
+            return local[:, 0], local[:, 1:]
         assert self.tangents is not None and self.ups is not None and self.arc_m is not None
-        _, i = cKDTree(self.nodes_m).query(pts)
-        d = pts - self.nodes_m[i]
+        nodes = self.nodes_m - self.origin_m
+        _, i = cKDTree(nodes).query(pts)
+        d = pts - nodes[i]
         t, u = self.tangents[i], self.ups[i]
         along = self.arc_m[i] + np.einsum("ij,ij->i", d, t)
         across = np.einsum("ij,ij->i", d, np.cross(u, t))
@@ -129,9 +140,12 @@ class PipeAxis:
         base = self.nodes_m[i] + (along_m - self.arc_m[i]) * t
         return base + across_m * np.cross(u, t) + up_m * u
 
-    def section_coordinates(self, points_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Chainage (N,) and section-plane coordinates (N, 2) in one pass."""
-        along, plane = self.local_coordinates(points_m)
+    def section_coordinates(
+        self, points_m: np.ndarray, *, relative: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Chainage (N,) and section-plane coordinates (N, 2) in one pass (see
+        ``local_coordinates`` for ``relative``)."""
+        along, plane = self.local_coordinates(points_m, relative=relative)
         return self.chainage_offset_m + self.chainage_sign * along, plane
 
 

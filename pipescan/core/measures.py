@@ -124,6 +124,7 @@ def measure_section(
     chainage_end_m: float,
     nominal_diameter_m: float,
     params: MeasureParams = MeasureParams(),
+    point_count: int | None = None,
 ) -> SectionMeasures:
     """Measure one section from its projected points.
 
@@ -138,6 +139,8 @@ def measure_section(
     nominal_diameter_m : float
         Design inner diameter.
     params : MeasureParams
+    point_count : int, optional
+        Points in the section before the caller thinned them (default: as given).
 
     Returns
     -------
@@ -161,7 +164,7 @@ def measure_section(
         chainage_start_m=float(chainage_start_m),
         chainage_end_m=float(chainage_end_m),
         nominal_area_m2=nominal_area,
-        point_count=len(raw),
+        point_count=len(raw) if point_count is None else point_count,
     )
     if len(raw) == 0:
         return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)

@@ -72,9 +72,14 @@ def plan_windows(
 
 
 def iter_section_points(
-    points_m: np.ndarray, axis: PipeAxis, window: ChainageWindow
-) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield ``(section_start_mm, points_2d)`` for every section of a window.
+    points_m: np.ndarray,
+    axis: PipeAxis,
+    window: ChainageWindow,
+    *,
+    max_points_per_section: int | None = None,
+    relative: bool = False,
+) -> Iterator[tuple[int, np.ndarray, int]]:
+    """Yield ``(section_start_mm, points_local, point_count)`` for every section of a window.
 
     Parameters
     ----------
@@ -82,6 +87,12 @@ def iter_section_points(
         Registered points in the world frame, metres. Points outside the window are ignored.
     axis : PipeAxis
     window : ChainageWindow
+    max_points_per_section : int, optional
+        A denser section is thinned to about this many points, at random with a fixed seed,
+        before anything else is done with them (the per-angle medians do not need more).
+    relative : bool
+        ``points_m`` are offsets from ``axis.origin_m`` (as the run's bucket files store them,
+        in float32), not world coordinates.
 
     Yields
     ------
@@ -89,23 +100,29 @@ def iter_section_points(
     points_local : (K, 3) float
         The section's points: columns 0-1 projected on the plane perpendicular to the axis,
         column 2 the position within the section along the chainage, in [0, step), metres.
+    point_count : int
+        Points in the section before any thinning.
     """
-    chain_m, plane = axis.section_coordinates(points_m)
+    chain_m, plane = axis.section_coordinates(points_m, relative=relative)
     chain_mm = chain_m * 1000.0
-    inside = (chain_mm >= window.start_mm) & (chain_mm < window.end_mm)
-    chain_mm, plane = chain_mm[inside], plane[inside]
-    index = ((chain_mm - window.start_mm) // window.step_mm).astype(np.int64)
+    inside = np.flatnonzero((chain_mm >= window.start_mm) & (chain_mm < window.end_mm))
+    n_sections = len(window.section_starts_mm())
+    index = ((chain_mm[inside] - window.start_mm) // window.step_mm).astype(np.int64)
+    counts = np.bincount(index, minlength=n_sections)
+    if max_points_per_section is not None and counts.max(initial=0) > max_points_per_section:
+        keep_share = np.minimum(1.0, max_points_per_section / np.maximum(counts, 1))
+        keep = np.random.default_rng(window.start_mm).random(len(index)) < keep_share[index]
+        inside, index = inside[keep], index[keep]
     # A window holds far fewer than 32,768 sections: as int16, NumPy sorts by radix.
-    small = index.astype(np.int16) if len(index) and index.max() < 2**15 else index
-    order = np.argsort(small, kind="stable")
-    index, chain_mm, plane = index[order], chain_mm[order], plane[order]
-    starts = list(window.section_starts_mm())
-    bounds = np.searchsorted(index, np.arange(len(starts) + 1))
+    order = np.argsort(index.astype(np.int16) if n_sections < 2**15 else index, kind="stable")
+    rows, index = inside[order], index[order]
+    local = np.empty((len(rows), 3))
+    local[:, :2] = plane[rows]
     # Distance along the axis from each section's start (for the sub-slice test).
-    along_m = (chain_mm - window.start_mm - index * window.step_mm) / 1000.0
-    local = np.column_stack((plane, along_m))
-    for i, start_mm in enumerate(starts):
-        yield start_mm, local[bounds[i] : bounds[i + 1]]
+    local[:, 2] = (chain_mm[rows] - window.start_mm - index * window.step_mm) / 1000.0
+    bounds = np.searchsorted(index, np.arange(n_sections + 1))
+    for i, start_mm in enumerate(window.section_starts_mm()):
+        yield start_mm, local[bounds[i] : bounds[i + 1]], int(counts[i])
 
 
 def measure_window(
@@ -115,6 +132,7 @@ def measure_window(
     *,
     nominal_diameter_m: float,
     params: MeasureParams = MeasureParams(),
+    relative: bool = False,
 ) -> list[SectionMeasures]:
     """Measure every section of a chainage window.
 
@@ -126,6 +144,8 @@ def measure_window(
     window : ChainageWindow
     nominal_diameter_m : float
     params : MeasureParams
+    relative : bool
+        ``points_m`` are offsets from ``axis.origin_m`` (see ``iter_section_points``).
 
     Returns
     -------
@@ -134,11 +154,14 @@ def measure_window(
     """
     return [
         measure_section(
-            pts2d,
+            local,
             chainage_start_m=start_mm / 1000.0,
             chainage_end_m=(start_mm + window.step_mm) / 1000.0,
             nominal_diameter_m=nominal_diameter_m,
             params=params,
+            point_count=count,
         )
-        for start_mm, pts2d in iter_section_points(points_m, axis, window)
+        for start_mm, local, count in iter_section_points(
+            points_m, axis, window, max_points_per_section=params.max_points, relative=relative
+        )
     ]

@@ -71,13 +71,13 @@ def write_buckets(
     return written
 
 
-def read_window(bucket_root: Path, window: ChainageWindow, axis: PipeAxis) -> np.ndarray:
-    """All registered points of one window, (N, 3) float64 world frame, metres."""
+def read_window_offsets(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
+    """All registered points of one window as float32 offsets from the axis origin, (N, 3),
+    metres: pass them on with ``relative=True``."""
     files = sorted(window_dir(bucket_root, window).glob("*.npy"))
     if not files:
-        return np.empty((0, 3))
-    offsets = np.concatenate([np.load(f) for f in files]).astype(np.float64)
-    return offsets + axis.origin_m
+        return np.empty((0, 3), dtype=np.float32)
+    return np.concatenate([np.load(f) for f in files])
 
 
 def remove_workspace(path: Path) -> None:

@@ -25,7 +25,7 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.storage.archive import open_archive
-from pipescan.storage.workspace import read_window, write_buckets
+from pipescan.storage.workspace import read_window_offsets, write_buckets
 
 log = logging.getLogger("pipescan")
 
@@ -146,9 +146,9 @@ def measure_sections(
     params: MeasureParams,
 ) -> list[SectionMeasures]:
     """Measure every section of one chainage window."""
-    points = read_window(bucket_root, window, axis)
+    points = read_window_offsets(bucket_root, window)
     sections = measure_window(
-        points, axis, window, nominal_diameter_m=nominal_diameter_m, params=params
+        points, axis, window, nominal_diameter_m=nominal_diameter_m, params=params, relative=True
     )
     log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
     return sections
