@@ -165,3 +165,13 @@ def test_blockage_grows_with_deposit_height(h1, h2):
     b_lo = measure(ring_section(10_000, deposit_m=lo, rng=rng)).blockage_ratio
     b_hi = measure(ring_section(10_000, deposit_m=hi, rng=rng)).blockage_ratio
     assert b_hi > b_lo
+
+
+def test_polygon_area_of_a_self_crossing_chain_counts_both_loops():
+    from pipescan.core.contour import polygon_area
+
+    bow_tie = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]])
+    # Shoelace gives 0 for this figure-eight; its two triangles hold 0.5 m².
+    assert polygon_area(bow_tie) == pytest.approx(0.5)
+    square = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
+    assert polygon_area(square) == pytest.approx(4.0)

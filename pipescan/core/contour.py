@@ -472,9 +472,18 @@ def grid_contour(points_2d: np.ndarray, params: GridParams = GridParams()) -> Gr
 
 
 def polygon_area(polygon: np.ndarray) -> float:
-    """Area of a simple polygon (M, 2) by the shoelace formula, m²."""
-    x, y = polygon[:, 0], polygon[:, 1]
-    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    """Area enclosed by a closed contour (M, 2), m².
+
+    A nearest-neighbour chain can cross itself where it doubles back; the shoelace formula
+    then subtracts the loops. shapely's ``make_valid`` splits such a ring into simple
+    polygons whose areas add up.
+    """
+    import shapely
+
+    ring = shapely.Polygon(polygon)
+    if not ring.is_valid:
+        ring = shapely.make_valid(ring)
+    return float(ring.area)
 
 
 def radii_of_polygon(polygon: np.ndarray, angles_rad: np.ndarray) -> np.ndarray:
