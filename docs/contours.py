@@ -14,13 +14,13 @@ from pathlib import Path
 import matplotlib
 
 matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import matplotlib.pyplot as plt
+import numpy as np
 
-from pipescan.core.axis import fit_axis  # noqa: E402
-from pipescan.core.measures import measure_section  # noqa: E402
-from pipescan.core.sections import iter_section_points, plan_windows  # noqa: E402
-from pipescan.storage.pointfiles import read_points  # noqa: E402
+from pipescan.core.axis import fit_axis
+from pipescan.core.measures import measure_section
+from pipescan.core.sections import iter_section_points, plan_windows
+from pipescan.storage.pointfiles import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"
