@@ -175,3 +175,18 @@ def test_polygon_area_of_a_self_crossing_chain_counts_both_loops():
     assert polygon_area(bow_tie) == pytest.approx(0.5)
     square = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0], [0.0, 2.0]])
     assert polygon_area(square) == pytest.approx(4.0)
+
+
+def test_obstacle_is_blockage_not_deformation():
+    rng = np.random.default_rng(21)
+    pts = ring_section(20_000, noise_m=0.002, rng=rng)
+    # A box hanging from the crown, 0.2 m wide, its underside 0.1 m below the crown.
+    inside_box = (np.abs(pts[:, 0]) < 0.1) & (pts[:, 1] > 0.15)
+    pts = pts[~inside_box]
+    underside = np.column_stack((rng.uniform(-0.1, 0.1, 3000), 0.15 + rng.normal(0, 0.002, 3000)))
+    pts = np.vstack((pts, underside))
+    m = measure(pts)
+    assert m.status == SectionStatus.OK
+    assert m.blockage_ratio > 0.03
+    assert m.deformation_ratio < 0.015
+    assert m.deposit_height_ratio < 0.01
