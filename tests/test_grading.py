@@ -12,11 +12,13 @@ from hypothesis import strategies as st
 from pipescan.core.errors import GradingError, PipescanError
 from pipescan.core.grading import (
     available_tables,
+    choose_grading,
     flag_section,
     grade_section,
     grade_sections,
     load_table,
     merge_defects,
+    pipe_class_for_material,
 )
 from pipescan.core.model import SectionMeasures, SectionStatus
 
@@ -335,3 +337,60 @@ def test_merge_regrades_ignoring_stored_grade_and_respects_thresholds(table):
 def test_nothing_flagged_gives_no_defects(table):
     assert merge_defects([section(i, blockage=0.02) for i in range(5)], table) == []
     assert merge_defects([], table) == []
+
+
+# --- choosing the table and the pipe class -----------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("material", "expected"),
+    [
+        ("concrete", "rigid"),
+        ("Vitrified clay", "rigid"),
+        ("vitrified_clay", "rigid"),
+        ("Grey cast iron", "rigid"),
+        ("PVC-U", "flexible"),
+        ("PVC-U DN300 SN8", "flexible"),  # first word
+        ("PE-HD", "flexible"),
+        ("GRP", "flexible"),
+        ("unobtainium", None),
+        ("", None),
+        (None, None),
+    ],
+)
+def test_pipe_class_for_material(material, expected):
+    assert pipe_class_for_material(material) == expected
+
+
+def test_material_classes_are_not_a_threshold_table():
+    assert "_pipe-classes" not in available_tables()
+
+
+def test_choose_grading_by_material_run_and_class_table():
+    auto = choose_grading("PVC")
+    assert (auto.table, auto.pipe_class) == ("vsa-2023", "flexible")
+    assert auto.reason == "from the material: PVC"
+    assert choose_grading("PVC", pipe_class="rigid").pipe_class == "rigid"
+    unknown = choose_grading("oak staves")
+    assert unknown.pipe_class == "rigid" and "not classified" in unknown.reason
+    assert choose_grading(None, fallback_pipe_class="flexible").reason == (
+        "assumed: no material recorded"
+    )
+    per_class = {"flexible": "utility-flexible.toml"}
+    assert choose_grading("HDPE", table_by_pipe_class=per_class).table == "utility-flexible.toml"
+    assert choose_grading("concrete", table_by_pipe_class=per_class).table == "vsa-2023"
+    with pytest.raises(GradingError, match="not a pipe class"):
+        choose_grading("PVC", pipe_class="soft")  # type: ignore[arg-type]
+    with pytest.raises(GradingError, match="not a pipe class"):
+        choose_grading("PVC", table_by_pipe_class={"bendy": "x.toml"})
+
+
+def test_material_selects_the_deformation_rule(table):
+    # 8 % deformation: class 0 in a rigid pipe (>= 7 %), class 2 in a flexible one (6-10 %).
+    s = section(0, deformation=0.08)
+    for material, grade in (("concrete", 0), ("PVC", 2)):
+        choice = choose_grading(material)
+        assert grade_section(s, load_table(choice.table), pipe_class=choice.pipe_class) == (
+            grade,
+            "BAA",
+        )

@@ -2,20 +2,33 @@
 
 from __future__ import annotations
 
+import base64
 import dataclasses
 import math
 import re
+import tempfile
 import time
 from datetime import UTC, datetime
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipescan.core.grading import grade_sections, load_table, merge_defects
 from pipescan.core.model import SectionMeasures, SectionStatus
-from pipescan.reports import ReportInput, TableCitation, build_context, render_html, render_pdf
-from pipescan.reports.charts import blockage_chart_svg
-from pipescan.reports.context import fmt_pct
+from pipescan.reports import (
+    EarlierInspection,
+    ReportInput,
+    TableCitation,
+    build_context,
+    render_html,
+    render_network_pdf,
+    render_pdf,
+)
+from pipescan.reports.charts import blockage_chart_svg, cross_section_svg
+from pipescan.reports.context import APPENDIX_ALL_MAX_SECTIONS, fmt_pct
+from pipescan.reports.network import NetworkInput, PipeInspection, summarise
+from pipescan.reports.sample import Feature, sample_input, sample_sections
 
 pypdf = pytest.importorskip("pypdf")
 
@@ -252,3 +265,310 @@ def test_a_crash_while_writing_leaves_no_pdf(tmp_path, monkeypatch, report_input
         render_pdf(report_input, out)
     assert out.read_bytes() == b"%PDF previous report"  # the old report is untouched
     assert sorted(p.name for p in tmp_path.iterdir()) == ["report.pdf"]
+
+
+# --- cross-sections, trend, compact appendix ----------------------------------------------
+
+
+def _deposit_contour(radius_m: float, deposit_m: float, n: int = 720) -> np.ndarray:
+    """A circle of ``radius_m`` cut flat ``deposit_m`` above the invert, centre at origin."""
+    theta = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    pts = radius_m * np.column_stack((np.cos(theta), np.sin(theta)))
+    pts[:, 1] = np.maximum(pts[:, 1], -radius_m + deposit_m)
+    return pts
+
+
+def test_cross_section_figure_gives_true_dimensions():
+    # DN 500 with 100 mm of deposit: clear height 400 mm, clear width 500 mm (at the centre).
+    svg = cross_section_svg(
+        _deposit_contour(0.25, 0.10), nominal_diameter_m=0.5, blockage_ratio=0.142, title="1 BBC"
+    )
+    text = plain(re.sub(r"<[^>]+>", " ", svg))
+    assert "clear height" in text and re.search(r"\b400 mm", text), text[:2000]
+    assert re.search(r"clear width\s+500 mm", text)
+    assert "nominal ⌀ 500 mm" in text
+    assert re.search(r"\b100 mm", text)  # the loss at the invert
+    assert "blockage 14.2 %" in text
+    # Without a nominal diameter: the contour alone, no lost area.
+    bare = cross_section_svg(_deposit_contour(0.25, 0.10), nominal_diameter_m=None)
+    assert "lost area" not in bare and "nominal" not in bare
+    with pytest.raises(ValueError, match=r"shape \(M, 2\)"):
+        cross_section_svg(np.zeros((2, 2)), nominal_diameter_m=0.5)
+    with pytest.raises(ValueError, match="non-finite"):
+        cross_section_svg(np.full((5, 2), np.nan), nominal_diameter_m=0.5)
+
+
+def test_one_cross_section_per_defect_at_its_peak():
+    inp = sample_input(45.0, earlier=0)
+    ctx = build_context(inp)
+    assert [f["at"] for f in ctx["figures"]] == [
+        fmt.replace(" ", "\u00a0") for fmt in ("8.60 m", "21.60 m", "41.40 m")
+    ]
+    peak = next(s for s in inp.sections if abs(s.chainage_start_m - 21.6) < 1e-6)
+    first_svg = base64.b64decode(ctx["figures"][1]["uri"].split(",")[1]).decode()
+    assert f"blockage {peak.blockage_ratio * 100:.1f} %" in first_svg
+    # A section without a stored contour says so instead of drawing nothing.
+    no_contours = dataclasses.replace(
+        inp, sections=[dataclasses.replace(s, contour_m=None) for s in inp.sections]
+    )
+    figures = build_context(no_contours)["figures"]
+    assert all(f["uri"] is None and "not stored" in f["missing"] for f in figures)
+
+
+def test_trend_compares_each_defect_with_earlier_inspections():
+    inp = make_input()
+    older = dataclasses.replace(
+        inp,
+        sections=[
+            dataclasses.replace(s, blockage_ratio=s.blockage_ratio / 2) if s.is_ok else s
+            for s in inp.sections
+        ],
+    )
+    with_history = dataclasses.replace(
+        inp,
+        history=[
+            EarlierInspection(
+                "A1", datetime(2022, 5, 13, 9, 30, tzinfo=UTC), older.sections, defect_count=1
+            ),
+            # Taken after this inspection: not "earlier", never shown.
+            EarlierInspection("Z9", datetime(2030, 1, 1, tzinfo=UTC), older.sections, 0),
+        ],
+    )
+    assert build_context(inp, chart=False)["trend"] is None
+    trend = build_context(with_history, chart=False)["trend"]
+    assert [i["inspection_id"] for i in trend["inspections"]] == ["7f3c2a", "A1"]
+    obstacle = trend["changes"][0]
+    # Peak blockage over 2.00-2.50 m: 31.0 % now, 15.5 % two years before.
+    assert (obstacle["now"], obstacle["earlier"], obstacle["change"]) == ("31.0", ["15.5"], "+15.5")
+    assert obstacle["rate"] == "+7.7"  # points per year over 2.0 years (15.5 / 2.0 = 7.75)
+    text = pdf_text(render_pdf(with_history, Path(tempfile.mkdtemp()) / "trend.pdf"))
+    assert "Trend: this inspection against earlier ones" in text
+    assert "2022-05-13" in text and "+15.5" in text
+
+
+def test_compact_appendix_for_a_long_scan():
+    sections = grade_sections(
+        sample_sections(
+            100.0,
+            features=[Feature("obstacle", 40.0, 41.0, 0.35)],
+            unmeasured=[(70.0, 71.5, SectionStatus.LOW_COVERAGE)],
+            contours=False,
+        ),
+        load_table(),
+    )
+    assert len(sections) == 1000 > APPENDIX_ALL_MAX_SECTIONS
+    inp = make_input(sections=sections)
+    ctx = build_context(inp, chart=False)
+    rows = ctx["sections"]
+    (defect,) = inp.defects
+    assert 40.0 < defect.chainage_start_m < defect.chainage_end_m < 41.0
+
+    def in_defect(start_m: float) -> bool:
+        return defect.chainage_start_m - 1e-6 <= start_m < defect.chainage_end_m - 1e-6
+
+    flagged = [r["start"] for r in rows if r["flagged"]]
+    assert flagged == [
+        f"{s.chainage_start_m:.2f}" for s in sections if in_defect(s.chainage_start_m)
+    ]
+    unmeasured = [r for r in rows if not r["ok"]]
+    assert len(unmeasured) == 1 and "(15 sections)" in unmeasured[0]["reason"]
+    assert (unmeasured[0]["start"], unmeasured[0]["end"]) == ("70.00", "71.50")
+    # One measured row per whole metre outside flagged and unmeasured stretches.
+    metre_rows = {r["start"] for r in rows if r["ok"] and not r["flagged"]}
+    assert metre_rows == {f"{m:.2f}" for m in range(100) if m not in (70, 71)}
+    assert not ctx["appendix"]["complete"]
+    assert "pipescan export sections --inspection 7f3c2a" in ctx["appendix"]["export_command"]
+    # A short scan keeps every section.
+    assert build_context(make_input(), chart=False)["appendix"]["complete"]
+
+
+@pytest.mark.slow
+def test_a_100_m_scan_renders_in_under_15_s(tmp_path):
+    inp = sample_input(100.0)
+    t0 = time.perf_counter()
+    out = render_pdf(inp, tmp_path / "long.pdf")
+    elapsed_s = time.perf_counter() - t0
+    text = pdf_text(out)
+    assert "compact listing" in text and "pipescan export sections" in text
+    assert elapsed_s < 15.0, elapsed_s
+
+
+# --- network summary ---------------------------------------------------------------------
+
+
+def _pipe(
+    asset_id: str, blockage_now: float, blockage_before: float | None, **kw
+) -> PipeInspection:
+    def sections(peak: float) -> list[SectionMeasures]:
+        out = []
+        for i in range(20):
+            b = peak if i == 7 else 0.01
+            out.append(
+                SectionMeasures(i * 0.1, (i + 1) * 0.1, NOMINAL_AREA_M2, SectionStatus.OK, 900,
+                                1.0, open_area_m2=NOMINAL_AREA_M2 * (1 - b), blockage_ratio=b)
+            )  # fmt: skip
+        return grade_sections(out, load_table())
+
+    return PipeInspection(
+        asset_id=asset_id,
+        upstream_node=asset_id.split("-")[0],
+        downstream_node=asset_id.split("-")[1],
+        nominal_diameter_m=DIAMETER_M,
+        material="concrete",
+        inspection_id=kw.get("inspection_id", 1),
+        inspected_at=datetime(2025, 6, 1, tzinfo=UTC),
+        sections=sections(blockage_now),
+        defect_count=int(blockage_now >= 0.10),
+        previous_inspection_id=0 if blockage_before is not None else None,
+        previous_inspected_at=(
+            datetime(2023, 6, 1, tzinfo=UTC) if blockage_before is not None else None
+        ),
+        previous_sections=sections(blockage_before) if blockage_before is not None else (),
+    )
+
+
+def test_network_summary_ranks_by_grade_and_by_growth(tmp_path):
+    pipes = [
+        _pipe("A1-A2", 0.25, 0.24),  # BBE class 2, grew 1 point
+        _pipe("B1-B2", 0.12, 0.02),  # class 3, grew 10 points
+        _pipe("C1-C2", 0.55, None),  # class 0, first inspection
+        _pipe("D1-D2", 0.03, 0.03),  # class 4, no growth
+    ]
+    b = summarise(pipes[1])
+    assert b.growth_ratio == pytest.approx(0.10) and b.growth_at_m == pytest.approx(0.7)
+    assert b.growth_per_year_ratio == pytest.approx(0.10 / (731 / 365.25))  # 2024 is a leap year
+    inp = NetworkInput(
+        pipes=pipes,
+        generated_at=datetime(2025, 6, 2, tzinfo=UTC),
+        software_version="0.1.0",
+        threshold_tables=[TableCitation("vsa-2023", "VSA")],
+    )
+    from pipescan.reports.network import build_network_context
+
+    ctx = build_network_context(inp)
+    assert [r["asset_id"] for r in ctx["by_grade"]] == ["C1-C2", "A1-A2", "B1-B2", "D1-D2"]
+    assert [r["asset_id"] for r in ctx["by_growth"]] == ["B1-B2", "A1-A2", "D1-D2"]
+    assert ctx["first_inspections"] == ["C1-C2"]
+    assert [g["count"] for g in ctx["grade_counts"]] == [1, 0, 1, 1, 1]
+    text = re.sub(r"\s+", " ", pdf_text(render_network_pdf(inp, tmp_path / "net.pdf")))
+    assert re.search(r"1 C1-C2 .*? 0 55\.0 0\.70", text), text[:3000]
+    assert re.search(r"1 B1-B2 .*?\+10\.0 0\.70 \+5\.0 12\.0 2\.0 3", text), text[:4000]
+    assert "Inspected for the first time (no growth figure): C1-C2" in text
+
+
+# --- from the database -------------------------------------------------------------------
+
+
+PARAMS = {
+    "threshold_table": "vsa-2023",
+    "pipe_class": "rigid",
+    "blockage_threshold_ratio": 0.10,
+    "flag_grade": 2,
+}
+
+
+def save_sample(database_url: str, inp: ReportInput, *, content_hash: str) -> int:
+    """Store a report input as an inspection (its sections, defects and parameters)."""
+    from pipescan.core.model import InspectionMeta
+    from pipescan.storage.db import connect
+    from pipescan.storage.repository import save_inspection
+
+    engine = connect(database_url)
+    try:
+        return save_inspection(
+            engine,
+            meta=InspectionMeta(
+                asset_id=inp.asset_id,
+                inspected_at=inp.inspected_at,
+                nominal_diameter_m=inp.nominal_diameter_m,
+                upstream_node=inp.upstream_node,
+                downstream_node=inp.downstream_node,
+                material=inp.material,
+            ),
+            archive_uri=inp.archive_uri,
+            content_hash=content_hash,
+            params=PARAMS,
+            software_version="0.1.0",
+            sections=inp.sections,
+            defects=inp.defects,
+            threshold_table="vsa-2023",
+            point_count=inp.point_count,
+            frame_count=inp.frame_count,
+            scanned_length_m=inp.scanned_length_m,
+        )
+    finally:
+        engine.dispose()
+
+
+@pytest.fixture(scope="module")
+def report_db(tmp_path_factory) -> tuple[str, dict[str, int]]:
+    """Two inspections of one pipe (the obstacle grew), one of another, without defects."""
+    url = f"sqlite:///{tmp_path_factory.mktemp('db') / 'pipescan.db'}"
+    now = sample_input(30.0, earlier=0, features=[Feature("obstacle", 20.0, 21.4, 0.35)],
+                       unmeasured=[(5.0, 5.5, SectionStatus.LOW_COVERAGE)])  # fmt: skip
+    before = sample_input(30.0, earlier=0, features=[Feature("obstacle", 20.0, 21.4, 0.2)],
+                          unmeasured=(), seed=5)  # fmt: skip
+    before = dataclasses.replace(before, inspected_at=datetime(2023, 3, 14, 9, 30, tzinfo=UTC))
+    quiet = sample_input(12.0, earlier=0, features=(), unmeasured=(), asset_id="MH7-MH8")
+    ids = {
+        "before": save_sample(url, before, content_hash="sha256:before"),
+        "now": save_sample(url, now, content_hash="sha256:now"),
+        "quiet": save_sample(url, quiet, content_hash="sha256:quiet"),
+    }
+    return url, ids
+
+
+def test_report_from_the_database_holds_its_figures(report_db, tmp_path):
+    from pipescan.storage.db import connect
+    from pipescan.storage.repository import get_defects, get_sections
+    from pipescan.tasks.reporting import load_report_input
+
+    url, ids = report_db
+    inp = load_report_input(url, ids["now"])
+    assert [h.inspection_id for h in inp.history] == [ids["before"]]
+    text = pdf_text(render_pdf(inp, tmp_path / "now.pdf"))
+    flat = re.sub(r"\s+", " ", text)
+    engine = connect(url)
+    defects, sections = get_defects(engine, ids["now"]), get_sections(engine, ids["now"])
+    engine.dispose()
+    assert len(defects) == 1
+    (d,) = defects
+    peak = max((s for s in sections if s.is_ok), key=lambda s: s.blockage_ratio)
+    assert "MH1042-MH1043" in text
+    # The flagged span and its peak, as stored, in the defects table.
+    assert f"{d.chainage_start_m:.2f} {d.chainage_end_m:.2f}" in flat
+    assert f"{d.peak_chainage_m:.2f} blockage {d.peak_value * 100:.1f}" in flat
+    assert (
+        f"Largest blockage: {peak.blockage_ratio * 100:.1f} % at {peak.chainage_start_m:.2f} m"
+        in flat
+    )
+    assert f"Defect 1, {d.code}" in flat  # its cross-section figure
+    assert "Trend: this inspection against earlier ones" in text and "2023-03-14" in text
+    assert "5.00–5.50 m" in text  # the unmeasured stretch, by chainage
+    # The quiet pipe: no defects, no trend page.
+    quiet = pdf_text(render_pdf(load_report_input(url, ids["quiet"]), tmp_path / "quiet.pdf"))
+    assert "No defects" in quiet and "Trend:" not in quiet and "MH7-MH8" in quiet
+
+
+def test_network_report_from_the_database(report_db, tmp_path):
+    from pipescan.storage.db import StorageError
+    from pipescan.tasks.reporting import render_network_report
+
+    url, ids = report_db
+    out = render_network_report(url, tmp_path / "net.pdf")
+    flat = re.sub(r"\s+", " ", pdf_text(out))
+    # One line per pipe, the latest inspection of each; worst first.
+    assert re.search(r"1 MH1042-MH1043 .*? 2 MH7-MH8", flat), flat[:2000]
+    assert "Inspected for the first time (no growth figure): MH7-MH8" in flat
+    assert re.search(r"1 MH1042-MH1043 MH1042 → MH1043 2025-03-14 2023-03-14 \+\d", flat)
+    # Filters: since a date after the first pipe's inspections; an explicit id list.
+    only = pdf_text(
+        render_network_report(url, tmp_path / "one.pdf", inspection_ids=[ids["before"]])
+    )
+    assert "MH7-MH8" not in only and "1 pipe inspected 2023-03-14" in plain(only)
+    later = pdf_text(
+        render_network_report(url, tmp_path / "later.pdf", since=datetime(2025, 3, 15, tzinfo=UTC))
+    )
+    assert "MH1042-MH1043" not in later and "MH7-MH8" not in later  # both from 2025-03-14
+    with pytest.raises(StorageError, match="no inspection with id 999"):
+        render_network_report(url, tmp_path / "bad.pdf", inspection_ids=[999])

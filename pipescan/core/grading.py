@@ -35,13 +35,16 @@ __all__ = [
     "DEFAULT_TABLE",
     "GRADEABLE_MEASURES",
     "GradeRule",
+    "GradingChoice",
     "ThresholdTable",
     "available_tables",
+    "choose_grading",
     "flag_section",
     "grade_section",
     "grade_sections",
     "load_table",
     "merge_defects",
+    "pipe_class_for_material",
 ]
 
 PipeClass = Literal["rigid", "flexible"]
@@ -142,6 +145,9 @@ def _tables_dir() -> Any:
 def available_tables() -> list[str]:
     """Names of the threshold tables shipped with pipescan, sorted.
 
+    Files whose names start with ``_`` in the tables folder are other grading data (the
+    material classes), not threshold tables.
+
     Returns
     -------
     list of str
@@ -150,7 +156,7 @@ def available_tables() -> list[str]:
     return sorted(
         entry.name.removesuffix(".toml")
         for entry in _tables_dir().iterdir()
-        if entry.name.endswith(".toml")
+        if entry.name.endswith(".toml") and not entry.name.startswith("_")
     )
 
 
@@ -512,3 +518,140 @@ def merge_defects(
             )
         )
     return defects
+
+
+# --- choosing the table and the pipe class ---------------------------------------------------
+
+_MATERIALS_FILE = "_pipe-classes.toml"
+
+
+@dataclass(frozen=True)
+class GradingChoice:
+    """Which threshold table and which pipe class grade one inspection, and why.
+
+    Attributes
+    ----------
+    table
+        Name (or path) of the threshold table, for :func:`load_table`.
+    pipe_class
+        ``"rigid"`` or ``"flexible"``: selects the table's BAA deformation rule.
+    reason
+        Why that pipe class, in words for the report, e.g.
+        ``"from the material: PVC-U"``.
+    """
+
+    table: str
+    pipe_class: PipeClass
+    reason: str
+
+
+def _normalise_material(material: str) -> str:
+    return " ".join(material.lower().replace("_", " ").replace("-", " ").split())
+
+
+def _material_classes() -> dict[str, PipeClass]:
+    text = _tables_dir().joinpath(_MATERIALS_FILE).read_text(encoding="utf-8")
+    data = tomllib.loads(text)
+    classes: dict[str, PipeClass] = {}
+    for pipe_class in _PIPE_CLASSES:
+        for material in data.get(pipe_class, {}).get("materials", []):
+            classes[_normalise_material(material)] = pipe_class  # type: ignore[assignment]
+    return classes
+
+
+def pipe_class_for_material(material: str | None) -> PipeClass | None:
+    """The pipe class (rigid or flexible) of a pipe material, or None when it is not known.
+
+    The classes are data (``tables/_pipe-classes.toml``). Matching ignores case, hyphens and
+    underscores, and tries the whole name first, then its first word (``"PVC-U"`` matches
+    ``"pvc u"``, then ``"pvc"``).
+
+    Parameters
+    ----------
+    material
+        As recorded in ``inspection.toml`` (``material = "vitrified clay"``), or None.
+
+    Examples
+    --------
+    >>> pipe_class_for_material("Vitrified clay"), pipe_class_for_material("PE-HD")
+    ('rigid', 'flexible')
+    >>> pipe_class_for_material("unobtainium") is None
+    True
+    """
+    if material is None or not material.strip():
+        return None
+    classes = _material_classes()
+    name = _normalise_material(material)
+    if name in classes:
+        return classes[name]
+    return classes.get(name.split(" ")[0])
+
+
+def choose_grading(
+    material: str | None,
+    *,
+    pipe_class: Literal["rigid", "flexible", "auto"] = "auto",
+    table: str = DEFAULT_TABLE,
+    table_by_pipe_class: dict[str, str] | None = None,
+    fallback_pipe_class: PipeClass = "rigid",
+) -> GradingChoice:
+    """Choose the threshold table and pipe class for one inspection.
+
+    Parameters
+    ----------
+    material
+        The pipe's material, as recorded (may be None).
+    pipe_class
+        ``"rigid"`` or ``"flexible"`` to set it for the run; ``"auto"`` to take it from the
+        material (:func:`pipe_class_for_material`), falling back to ``fallback_pipe_class``
+        when the material is missing or unknown.
+    table
+        The table for the run (a shipped name or a TOML path).
+    table_by_pipe_class
+        Optional per-class tables, e.g. ``{"flexible": "my-utility-flexible.toml"}``; a class
+        listed here overrides ``table``.
+    fallback_pipe_class
+        The class assumed for an unknown material under ``"auto"``.
+
+    Returns
+    -------
+    GradingChoice
+
+    Raises
+    ------
+    GradingError
+        If ``pipe_class`` or a key of ``table_by_pipe_class`` is not a pipe class.
+
+    Examples
+    --------
+    >>> choose_grading("PVC").pipe_class
+    'flexible'
+    >>> choose_grading("PVC", pipe_class="rigid").reason
+    'set for the run'
+    """
+    if pipe_class not in (*_PIPE_CLASSES, "auto"):
+        raise GradingError(
+            f"{pipe_class!r} is not a pipe class",
+            field="pipe_class",
+            hint='use "rigid", "flexible" or "auto" (from the material)',
+        )
+    for key in table_by_pipe_class or {}:
+        if key not in _PIPE_CLASSES:
+            raise GradingError(
+                f"{key!r} is not a pipe class",
+                field="table_by_pipe_class",
+                hint='map "rigid" and/or "flexible" to table names',
+            )
+    chosen: PipeClass
+    if pipe_class != "auto":
+        chosen, reason = pipe_class, "set for the run"  # type: ignore[assignment]
+    else:
+        from_material = pipe_class_for_material(material)
+        if from_material is not None:
+            chosen, reason = from_material, f"from the material: {material}"
+        elif material is None or not material.strip():
+            chosen, reason = fallback_pipe_class, "assumed: no material recorded"
+        else:
+            chosen, reason = fallback_pipe_class, f"assumed: material {material!r} not classified"
+    table_name = (table_by_pipe_class or {}).get(chosen, table)
+    return GradingChoice(table=table_name, pipe_class=chosen, reason=reason)

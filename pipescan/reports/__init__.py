@@ -1,10 +1,29 @@
-"""Per-inspection PDF condition reports: context, charts, Jinja2 templates, WeasyPrint.
+"""PDF condition reports: per inspection and per network run. Context, charts, Jinja2
+templates, WeasyPrint.
 
-Imports only the pure core (and Jinja2, WeasyPrint, matplotlib); the caller gathers a
-:class:`ReportInput` from the database.
+Imports only the pure core (and Jinja2, WeasyPrint, matplotlib, shapely); the caller gathers
+a :class:`ReportInput` (or a :class:`NetworkInput`) from the database.
 """
 
-from pipescan.reports.context import ReportInput, TableCitation, build_context
-from pipescan.reports.render import render_html, render_pdf
+from pipescan.reports.context import EarlierInspection, ReportInput, TableCitation, build_context
+from pipescan.reports.network import NetworkInput, PipeInspection, build_network_context
+from pipescan.reports.render import (
+    render_html,
+    render_network_html,
+    render_network_pdf,
+    render_pdf,
+)
 
-__all__ = ["ReportInput", "TableCitation", "build_context", "render_html", "render_pdf"]
+__all__ = [
+    "EarlierInspection",
+    "NetworkInput",
+    "PipeInspection",
+    "ReportInput",
+    "TableCitation",
+    "build_context",
+    "build_network_context",
+    "render_html",
+    "render_network_html",
+    "render_network_pdf",
+    "render_pdf",
+]

@@ -1,4 +1,4 @@
-"""Report figures: blockage along the pipe, as vector SVG.
+"""Report figures as vector SVG: blockage along the pipe, a defect's cross-section, the trend.
 
 Figures are built on a bare :class:`matplotlib.figure.Figure` (no pyplot), so no global backend
 or figure registry is touched and reports can be drawn from several threads; saving to SVG uses
@@ -13,13 +13,16 @@ from collections.abc import Sequence
 from typing import Any
 
 import matplotlib as mpl
+import numpy as np
+import shapely
 from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
-from matplotlib.patches import Patch
+from matplotlib.patches import Circle, Patch
+from shapely.geometry import LineString, Point
 
 from pipescan.core.model import Defect, SectionMeasures
 
-__all__ = ["blockage_chart_svg"]
+__all__ = ["blockage_chart_svg", "cross_section_svg", "trend_chart_svg"]
 
 _ADJACENT_TOL_M = 1e-6
 _COLOUR_MEASURED = "#3b6ea5"
@@ -62,19 +65,26 @@ def _runs(sections: Sequence[SectionMeasures], keep: Sequence[bool]) -> list[tup
     return [(a, b) for a, b in runs]
 
 
-def _steps(sections: Sequence[SectionMeasures]) -> tuple[list[float], list[float]]:
-    """Coverage % per section and the step edges, with NaN steps over chainage gaps."""
+def _steps(
+    sections: Sequence[SectionMeasures], values: Sequence[float] | None = None
+) -> tuple[list[float], list[float]]:
+    """Step heights and edges over chainage-sorted sections, with NaN steps over chainage gaps.
+
+    ``values`` are the heights, one per section (coverage % when not given).
+    """
     if not sections:
         return [], [0.0]
-    values: list[float] = []
+    if values is None:
+        values = [s.coverage_ratio * 100.0 for s in sections]
+    heights: list[float] = []
     edges = [sections[0].chainage_start_m]
-    for s in sections:
+    for s, value in zip(sections, values, strict=True):
         if abs(s.chainage_start_m - edges[-1]) > _ADJACENT_TOL_M:
-            values.append(math.nan)  # a gap: matplotlib leaves NaN steps undrawn
+            heights.append(math.nan)  # a gap: matplotlib leaves NaN steps undrawn
             edges.append(s.chainage_start_m)
-        values.append(s.coverage_ratio * 100.0)
+        heights.append(value)
         edges.append(s.chainage_end_m)
-    return values, edges
+    return heights, edges
 
 
 def blockage_chart_svg(
@@ -138,7 +148,8 @@ def blockage_chart_svg(
             ax.text(
                 0.5 * (d.chainage_start_m + d.chainage_end_m),
                 y_top,
-                f"{number} {d.code}".strip(),
+                # With many defects the codes would run into each other: numbers only.
+                f"{number} {d.code}".strip() if len(defects) <= 8 else str(number),
                 ha="center",
                 va="top",
                 color=_COLOUR_THRESHOLD,
@@ -172,15 +183,24 @@ def blockage_chart_svg(
                     zorder=4,
                 )
 
-        ax.bar(
-            [s.chainage_start_m for s in bars],
-            values_pct,
-            width=[s.chainage_end_m - s.chainage_start_m for s in bars],
-            align="edge",
-            color=[_COLOUR_FLAGGED if in_defect(s) else _COLOUR_MEASURED for s in bars],
-            linewidth=0,
-            zorder=2,
-        )
+        # Bars as two filled step outlines (one per colour), not one patch per section: a
+        # 100 m scan has 1000 sections, and 1000 patches make the SVG slow to draw and to lay
+        # out in the PDF. A NaN step is not drawn, so unmeasured sections stay empty.
+        flagged = [in_defect(s) for s in ordered]
+        for colour, keep in (
+            (_COLOUR_MEASURED, [m and not f for m, f in zip(measured, flagged, strict=True)]),
+            (_COLOUR_FLAGGED, [m and f for m, f in zip(measured, flagged, strict=True)]),
+        ):
+            if not any(keep):
+                continue
+            heights, edges_m = _steps(
+                ordered,
+                [
+                    s.blockage_ratio * 100.0 if k else math.nan  # type: ignore[operator]
+                    for s, k in zip(ordered, keep, strict=True)
+                ],
+            )
+            ax.stairs(heights, edges_m, fill=True, color=colour, lw=0, baseline=0.0, zorder=2)
         ax.axhline(0.0, color="#333333", lw=0.6, zorder=3)
         ax.axhline(threshold_pct, color=_COLOUR_THRESHOLD, lw=1.0, ls="--", zorder=3)
         ax.set_ylabel("blockage (%)")
@@ -223,3 +243,331 @@ def blockage_chart_svg(
         buffer = io.StringIO()
         fig.savefig(buffer, format="svg", metadata={"Date": None})
     return buffer.getvalue()
+
+
+def _save_svg(fig: Figure) -> str:
+    buffer = io.StringIO()
+    fig.savefig(buffer, format="svg", metadata={"Date": None})
+    return buffer.getvalue()
+
+
+def _polygons(geometry: Any) -> list[shapely.Polygon]:
+    """The polygons of a shapely geometry (a polygon, a multipolygon or a collection)."""
+    if geometry.is_empty:
+        return []
+    if isinstance(geometry, shapely.Polygon):
+        return [geometry]
+    return [g for part in getattr(geometry, "geoms", []) for g in _polygons(part)]
+
+
+def _chord_mm(
+    polygon: shapely.Polygon, start: tuple[float, float], end: tuple[float, float]
+) -> tuple[float, float] | None:
+    """The piece of the line start-end inside ``polygon`` that holds the centre (or the
+    longest piece if none does), as (from, to) positions along that line's varying axis."""
+    pieces = [
+        g
+        for g in [polygon.intersection(LineString([start, end]))]
+        for g in (getattr(g, "geoms", None) or [g])
+        if isinstance(g, LineString) and not g.is_empty
+    ]
+    if not pieces:
+        return None
+    centre = Point(0.0, 0.0)
+    piece = next(
+        (p for p in pieces if p.distance(centre) < 1e-6), max(pieces, key=lambda p: p.length)
+    )
+    axis = 0 if start[1] == end[1] else 1
+    values = sorted(c[axis] for c in piece.coords)
+    return values[0], values[-1]
+
+
+def cross_section_svg(
+    contour_m: np.ndarray,
+    *,
+    nominal_diameter_m: float | None,
+    blockage_ratio: float | None = None,
+    title: str = "",
+    width_in: float = 3.3,
+    height_in: float = 3.1,
+) -> str:
+    """One section's measured contour against the nominal circle, to scale, as SVG.
+
+    The open area inside the measured contour is pale blue; the part of the nominal circle
+    that is not open (lost to deposits, obstacles or deformation) is shaded red. Dimension
+    lines give the nominal diameter, the clear height and width through the pipe centre, and
+    the loss at the invert and the crown when there is one. Both axes are in millimetres at
+    the same scale. The figure has no legend: the report gives one key for all of them
+    (measured contour: solid blue; nominal circle: dashed; lost area: red hatching).
+
+    Parameters
+    ----------
+    contour_m
+        The section's inner contour, shape (M, 2), M >= 3, in metres, in the section plane
+        with the pipe centre at the origin: first column across (right), second up.
+    nominal_diameter_m
+        Design inner diameter; None draws the contour alone (no nominal circle, no loss).
+    blockage_ratio
+        The section's stored blockage (a fraction), written in the top right corner.
+    title
+        Drawn above the figure.
+
+    Returns
+    -------
+    str
+        A standalone SVG document.
+
+    Raises
+    ------
+    ValueError
+        If ``contour_m`` is not an (M, 2) array of finite numbers with M >= 3.
+    """
+    contour = np.asarray(contour_m, dtype=np.float64)
+    if contour.ndim != 2 or contour.shape[1] != 2 or len(contour) < 3:
+        raise ValueError(f"contour_m must have shape (M, 2) with M >= 3, not {contour.shape}")
+    if not np.isfinite(contour).all():
+        raise ValueError("contour_m holds non-finite values")
+    contour_mm = contour * 1000.0
+    polygon = shapely.Polygon(contour_mm)
+    if not polygon.is_valid:
+        parts = _polygons(shapely.make_valid(polygon))
+        polygon = max(parts, key=lambda p: p.area) if parts else polygon
+    radius_mm = nominal_diameter_m * 500.0 if _finite(nominal_diameter_m) else None
+    extent_mm = max(float(np.abs(contour_mm).max()), radius_mm or 0.0)
+
+    with mpl.rc_context(_STYLE):  # type: ignore[arg-type]
+        # Fixed margins, not constrained layout: the figures are all alike, and measuring the
+        # layout of each one doubled its drawing time.
+        fig = Figure(figsize=(width_in, height_in))
+        ax = fig.add_axes((0.19, 0.12, 0.78, 0.8))
+        ax.set_aspect("equal")
+        # Outlines are simplified to 0.3 mm (far below what the printed figure resolves): the
+        # PDF renderer parses every vertex, and a report draws one figure per defect.
+        outline = polygon.simplify(_DRAW_TOLERANCE_MM)
+        ax.fill(*outline.exterior.xy, color="#dce9f5", lw=0, zorder=1)
+        if radius_mm is not None:
+            circle = Point(0.0, 0.0).buffer(radius_mm, quad_segs=64)
+            # The measured contour wanders a millimetre or two either side of a sound wall,
+            # which cuts the circle's difference into a hundred slivers. They are noise, not
+            # lost area: an opening (erode, then dilate) removes anything thinner than
+            # 2 * _SLIVER_MM, and specks under _MIN_LOST_MM2 are dropped.
+            lost_area = (
+                circle.difference(polygon)
+                .buffer(-_SLIVER_MM, quad_segs=2)
+                .buffer(_SLIVER_MM, quad_segs=2)
+                .simplify(_DRAW_TOLERANCE_MM)
+            )
+            for lost in (p for p in _polygons(lost_area) if p.area >= _MIN_LOST_MM2):
+                ax.fill(
+                    *lost.exterior.xy,
+                    facecolor="#f3c4bd",
+                    edgecolor=_COLOUR_FLAGGED,
+                    hatch="////",
+                    lw=0,
+                    zorder=2,
+                )
+            ax.add_patch(
+                Circle((0.0, 0.0), radius_mm, fill=False, ec="#333333", lw=0.9, ls=(0, (4, 2)))
+            )
+        ax.plot(*outline.exterior.xy, color=_COLOUR_MEASURED, lw=1.4, zorder=4)
+
+        arrow = {
+            "arrowstyle": "<|-|>",
+            "color": "#222222",
+            "lw": 0.7,
+            "shrinkA": 0,
+            "shrinkB": 0,
+            "mutation_scale": 6,
+        }
+        label_box = {"facecolor": "white", "edgecolor": "none", "pad": 0.6, "alpha": 0.85}
+        far = 2.0 * extent_mm
+        height = _chord_mm(polygon, (0.0, -far), (0.0, far))
+        if height is not None:
+            low, high = height
+            ax.annotate("", (0.0, low), (0.0, high), arrowprops=arrow, zorder=5)
+            ax.text(
+                0.03 * extent_mm,
+                0.5 * (low + high) + 0.2 * extent_mm,
+                f"clear height\n{high - low:.0f} mm",
+                fontsize=6.5,
+                ha="left",
+                va="center",
+                bbox=label_box,
+                zorder=6,
+            )
+            if radius_mm is not None:
+                for a, b in ((-radius_mm, low), (high, radius_mm)):
+                    if b - a > 0.02 * radius_mm:
+                        ax.annotate(
+                            "",
+                            (0.0, a),
+                            (0.0, b),
+                            arrowprops={**arrow, "color": _COLOUR_FLAGGED},
+                            zorder=5,
+                        )
+                        ax.text(
+                            -4.0,
+                            0.5 * (a + b),
+                            f"{b - a:.0f} mm",
+                            color=_COLOUR_THRESHOLD,
+                            fontsize=6.5,
+                            ha="right",
+                            va="center",
+                            bbox=label_box,
+                            zorder=6,
+                        )
+        width = _chord_mm(polygon, (-far, 0.0), (far, 0.0))
+        if width is not None:
+            left, right = width
+            ax.annotate("", (left, 0.0), (right, 0.0), arrowprops=arrow, zorder=5)
+            # Below the line and left of the centre: the clear height's label sits above, right.
+            ax.text(
+                left + 0.06 * extent_mm,
+                -0.06 * extent_mm,
+                f"clear width\n{right - left:.0f} mm",
+                fontsize=6.5,
+                ha="left",
+                va="top",
+                bbox=label_box,
+                zorder=6,
+            )
+        if radius_mm is not None:
+            y_dim = radius_mm * 1.12
+            ax.annotate("", (-radius_mm, y_dim), (radius_mm, y_dim), arrowprops=arrow, zorder=5)
+            for x in (-radius_mm, radius_mm):
+                ax.plot([x, x], [0.0, y_dim * 1.03], color="#999999", lw=0.4, zorder=0)
+            ax.text(
+                0.0,
+                y_dim,
+                f"nominal \u2300 {2 * radius_mm:.0f} mm",
+                fontsize=6.5,
+                ha="center",
+                va="bottom",
+                zorder=6,
+            )
+        limit = extent_mm * 1.22
+        ax.set_xlim(-limit, limit)
+        ax.set_ylim(-limit, limit)
+        ax.set_xlabel("across (mm)")
+        ax.set_ylabel("up (mm)")
+        ax.tick_params(labelsize=6.5)
+        ax.grid(color="#e4e4e4", lw=0.4, zorder=0)
+        if title:
+            # Figure text, not an axes title: placing an axes title measures every artist
+            # above the axes (here the dimension lines), which took most of the drawing time.
+            fig.text(
+                0.02, 0.985, title, fontsize=8, fontweight="bold", color=_COLOUR_THRESHOLD,
+                ha="left", va="top",
+            )  # fmt: skip
+        if _finite(blockage_ratio):
+            fig.text(
+                0.98, 0.985, f"blockage {blockage_ratio * 100:.1f} %", fontsize=6.5,
+                color=_COLOUR_THRESHOLD, ha="right", va="top",
+            )  # fmt: skip
+        # No legend in the figure: the report gives one key for all of them.
+        return _save_svg(fig)
+
+
+_DRAW_TOLERANCE_MM = 0.3
+_SLIVER_MM = 1.5
+_MIN_LOST_MM2 = 50.0
+_TREND_COLOURS = ("#e08a2c", "#8a6bb8", "#6a9a58", "#b0b0b0")
+
+
+def _profile_xy(sections: Sequence[SectionMeasures]) -> tuple[list[float], list[float]]:
+    """Measured blockage % at each section's middle, with NaN (a break in the line) wherever
+    a section is not measured or the chainage has a gap."""
+    xs: list[float] = []
+    ys: list[float] = []
+    previous_end = None
+    for s in sorted(sections, key=lambda s: s.chainage_start_m):
+        if previous_end is not None and abs(s.chainage_start_m - previous_end) > _ADJACENT_TOL_M:
+            xs.append(math.nan)
+            ys.append(math.nan)
+        xs.append(0.5 * (s.chainage_start_m + s.chainage_end_m))
+        measured = s.is_ok and _finite(s.blockage_ratio)
+        ys.append(s.blockage_ratio * 100.0 if measured else math.nan)  # type: ignore[operator]
+        previous_end = s.chainage_end_m
+    return xs, ys
+
+
+def trend_chart_svg(
+    sections: Sequence[SectionMeasures],
+    earlier: Sequence[tuple[str, Sequence[SectionMeasures]]],
+    defects: Sequence[Defect],
+    *,
+    label: str,
+    blockage_threshold_ratio: float,
+    width_in: float = 6.7,
+    height_in: float = 3.0,
+) -> str:
+    """Blockage by chainage in this inspection and earlier ones, as an SVG document.
+
+    Each inspection is a line through its measured sections' middles; where a section was
+    not measured the line breaks (no figure, never zero). This inspection's defects are shaded.
+
+    Parameters
+    ----------
+    sections
+        This inspection's sections.
+    earlier
+        ``(label, sections)`` of earlier inspections, most recent first.
+    defects
+        This inspection's defects (shaded spans).
+    label
+        Legend label of this inspection.
+    blockage_threshold_ratio
+        Flag threshold (a fraction), drawn as a dashed line.
+    """
+    threshold_pct = blockage_threshold_ratio * 100.0
+    with mpl.rc_context(_STYLE):  # type: ignore[arg-type]
+        fig = Figure(figsize=(width_in, height_in), layout="constrained")
+        ax = fig.subplots()
+        for d in defects:
+            ax.axvspan(
+                d.chainage_start_m, d.chainage_end_m, color=_COLOUR_FLAG_SPAN, lw=0, zorder=0
+            )
+        values: list[float] = [threshold_pct * 1.5]
+        lows: list[float] = [0.0]
+        for number, (text, earlier_sections) in reversed(list(enumerate(earlier))):
+            xs, ys = _profile_xy(earlier_sections)
+            ax.plot(
+                xs,
+                ys,
+                color=_TREND_COLOURS[number % len(_TREND_COLOURS)],
+                lw=0.9,
+                label=text,
+                zorder=2 + (len(earlier) - number) * 0.1,
+            )
+            values += [y for y in ys if math.isfinite(y)]
+        xs, ys = _profile_xy(sections)
+        ax.plot(xs, ys, color=_COLOUR_MEASURED, lw=1.6, label=label, zorder=3)
+        finite = [y for y in ys if math.isfinite(y)]
+        values += finite
+        lows += [min(finite, default=0.0)]
+        all_sections = [*sections, *(s for _, ss in earlier for s in ss)]
+        ax.set_xlim(
+            min((s.chainage_start_m for s in all_sections), default=0.0),
+            max((s.chainage_end_m for s in all_sections), default=1.0),
+        )
+        ax.set_ylim(min(lows) * 1.15 - 0.5, max(values) * 1.12)
+        ax.axhline(0.0, color="#333333", lw=0.6, zorder=1)
+        ax.axhline(threshold_pct, color=_COLOUR_THRESHOLD, lw=1.0, ls="--", zorder=1)
+        ax.set_ylabel("blockage (%)")
+        ax.set_xlabel("chainage from upstream node (m)")
+        ax.grid(axis="y", color="#dddddd", lw=0.5, zorder=0)
+        handles, _ = ax.get_legend_handles_labels()
+        # This inspection first, then the earlier ones newest first.
+        handles = [handles[-1], *reversed(handles[:-1])]
+        handles += [
+            Patch(color=_COLOUR_FLAG_SPAN, label="defect of this inspection"),
+            Line2D(
+                [],
+                [],
+                color=_COLOUR_THRESHOLD,
+                ls="--",
+                label=f"flag threshold {threshold_pct:g} %",
+            ),
+        ]
+        fig.legend(handles=handles, loc="outside upper center", ncols=3, frameon=False, fontsize=7)
+        return _save_svg(fig)

@@ -15,11 +15,13 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, TypeGuard
 
-from pipescan.core.grading import ThresholdTable
+from pipescan.core.grading import ThresholdTable, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 
 __all__ = [
+    "APPENDIX_ALL_MAX_SECTIONS",
     "NOT_MEASURED",
+    "EarlierInspection",
     "ReportInput",
     "TableCitation",
     "build_context",
@@ -29,6 +31,13 @@ __all__ = [
 NOT_MEASURED = "not measured"
 NOT_RECORDED = "not recorded"
 WORST_SECTIONS = 10
+#: Up to this many sections the appendix lists every one; above it, a compact listing
+#: (flagged sections, unmeasured spans, one measured section per metre).
+APPENDIX_ALL_MAX_SECTIONS = 150
+#: Chainage interval of the measured sections the compact appendix keeps, in metres.
+APPENDIX_SAMPLE_EVERY_M = 1.0
+#: Earlier inspections drawn on the trend page (the most recent ones).
+TREND_MAX_EARLIER = 4
 # Spans listed per unmeasured reason in the summary before "and N more".
 MAX_LISTED_SPANS = 6
 _ADJACENT_TOL_M = 1e-6
@@ -66,6 +75,26 @@ class TableCitation:
 
     name: str
     source: str
+
+
+@dataclass(frozen=True)
+class EarlierInspection:
+    """An earlier inspection of the same asset, for the trend page.
+
+    Attributes
+    ----------
+    inspection_id, inspected_at
+        Its database id and date.
+    sections
+        Its sections (contours not needed), any order.
+    defect_count
+        How many defects it had (None when not known).
+    """
+
+    inspection_id: str | int
+    inspected_at: datetime
+    sections: Sequence[SectionMeasures]
+    defect_count: int | None = None
 
 
 @dataclass(frozen=True)
@@ -108,6 +137,11 @@ class ReportInput:
         Condition class at or below which a section is flagged (default 2).
     pipe_class
         ``"rigid"`` or ``"flexible"``: which BAA rule graded deformation.
+    pipe_class_reason
+        Why that class (e.g. ``"from the material (PVC: flexible)"``); empty when not known.
+    history
+        Earlier inspections of the same asset, any order; a trend page is added when there
+        is at least one.
     """
 
     asset_id: str
@@ -131,6 +165,8 @@ class ReportInput:
     generated_at: datetime
     flag_grade: int = 2
     pipe_class: str = "rigid"
+    pipe_class_reason: str = ""
+    history: Sequence[EarlierInspection] = ()
 
 
 # --- formatting -----------------------------------------------------------------------
@@ -161,6 +197,13 @@ def fmt_m(value_m: float | None, digits: int = 2, *, unit: bool = True) -> str:
 def fmt_span(start_m: float, end_m: float) -> str:
     """A chainage interval, e.g. ``"4.00–4.60 m"``."""
     return f"{start_m:.2f}–{end_m:.2f}\u00a0m"
+
+
+def _fmt_share(ratio: float | None) -> str:
+    """A share in whole per cent, but "<1 %" rather than "0 %" for a small non-zero share."""
+    if _finite(ratio) and 0.0 < ratio < 0.005:
+        return "<1\u00a0%"
+    return fmt_pct(ratio, 0)
 
 
 def fmt_grade(grade: int | None) -> str:
@@ -264,6 +307,259 @@ def _registration_rows(inp: ReportInput) -> list[tuple[str, str]]:
     return rows
 
 
+def _pipe_class_note(inp: ReportInput) -> str:
+    """A caution when the material's usual class differs from the class graded with."""
+    usual = pipe_class_for_material(inp.material)
+    if usual is None or usual == inp.pipe_class:
+        return ""
+    return (
+        f"{inp.material} pipes are usually {usual}; this inspection was graded as a "
+        f"{inp.pipe_class} pipe, so deformation (BAA) was judged on the {inp.pipe_class} thresholds"
+    )
+
+
+def _svg_uri(svg: str) -> str:
+    return "data:image/svg+xml;base64," + base64.b64encode(svg.encode()).decode("ascii")
+
+
+def _unmeasured_run_row(run: Sequence[SectionMeasures]) -> dict[str, Any]:
+    """One appendix row for touching unmeasured sections of one status."""
+    first, last = run[0], run[-1]
+    status = STATUS_LABELS.get(first.status, str(first.status))
+    coverages = [s.coverage_ratio for s in run]
+    coverage = (
+        fmt_pct(coverages[0], 0, unit=False)
+        if len(run) == 1
+        else f"{fmt_pct(min(coverages), 0, unit=False)}–{fmt_pct(max(coverages), 0, unit=False)}"
+    )
+    count = f" ({len(run)} sections)" if len(run) > 1 else ""
+    return {
+        "start": fmt_m(first.chainage_start_m, unit=False),
+        "end": fmt_m(last.chainage_end_m, unit=False),
+        "coverage": coverage,
+        "points": fmt_int(sum(s.point_count for s in run)),
+        "status": status,
+        "ok": False,
+        "flagged": False,
+        "reason": f"{NOT_MEASURED}: {status}{count}",
+    }
+
+
+def _appendix(
+    sections: Sequence[SectionMeasures], defects: Sequence[Defect]
+) -> tuple[list[dict[str, Any]], bool]:
+    """The appendix rows, and whether the listing is complete.
+
+    Up to :data:`APPENDIX_ALL_MAX_SECTIONS` sections, every section is a row. Beyond that,
+    laying out a row per section makes the PDF slow to render and long to read, so the rows
+    are: every flagged section, one row per span of touching unmeasured sections of one
+    status, and the measured section starting on each whole metre
+    (:data:`APPENDIX_SAMPLE_EVERY_M`). The CSV export holds every section.
+    """
+    if len(sections) <= APPENDIX_ALL_MAX_SECTIONS:
+        return [_section_row(s, _is_flagged_at(defects, s)) for s in sections], True
+    rows: list[dict[str, Any]] = []
+    run: list[SectionMeasures] = []
+    previous: SectionMeasures | None = None
+    for s in sections:
+        touching = (
+            previous is not None
+            and abs(s.chainage_start_m - previous.chainage_end_m) <= _ADJACENT_TOL_M
+        )
+        if run and (s.is_ok or s.status != run[0].status or not touching):
+            rows.append(_unmeasured_run_row(run))
+            run = []
+        previous = s
+        if not s.is_ok:
+            run.append(s)
+            continue
+        flagged = _is_flagged_at(defects, s)
+        in_metres = s.chainage_start_m / APPENDIX_SAMPLE_EVERY_M
+        on_metre = abs(in_metres - round(in_metres)) <= _ADJACENT_TOL_M
+        if flagged or on_metre:
+            rows.append(_section_row(s, flagged))
+    if run:
+        rows.append(_unmeasured_run_row(run))
+    return rows, False
+
+
+def _section_at(sections: Sequence[SectionMeasures], chainage_m: float) -> SectionMeasures | None:
+    return next(
+        (
+            s
+            for s in sections
+            if s.chainage_start_m - _ADJACENT_TOL_M
+            <= chainage_m
+            < s.chainage_end_m - _ADJACENT_TOL_M
+        ),
+        None,
+    )
+
+
+def _defect_figures(
+    inp: ReportInput, sections: Sequence[SectionMeasures], defects: Sequence[Defect]
+) -> list[dict[str, Any]]:
+    """A cross-section figure at each defect's peak (an SVG data URI, or why there is none)."""
+    from pipescan.reports.charts import cross_section_svg
+
+    figures = []
+    for number, d in enumerate(defects, start=1):
+        s = _section_at(sections, d.peak_chainage_m)
+        figure: dict[str, Any] = {
+            "number": number,
+            "code": d.code or "—",
+            "code_label": CODE_LABELS.get(d.code, ""),
+            "at": fmt_m(d.peak_chainage_m),
+            "measure": MEASURE_LABELS.get(d.measure, d.measure),
+            "value": fmt_pct(d.peak_value),
+            "grade": fmt_grade(d.grade),
+            "uri": None,
+            "missing": "",
+        }
+        if s is None or s.contour_m is None or len(s.contour_m) < 3:
+            figure["missing"] = "the contour of this section was not stored"
+        else:
+            figure["blockage"] = fmt_pct(s.blockage_ratio)
+            figure["open_area"] = (
+                f"{s.open_area_m2:.4f}\u00a0m²" if _finite(s.open_area_m2) else NOT_MEASURED
+            )
+            figure["uri"] = _svg_uri(
+                cross_section_svg(
+                    s.contour_m,
+                    nominal_diameter_m=inp.nominal_diameter_m,
+                    blockage_ratio=s.blockage_ratio,
+                    title=f"{number} {d.code} at {d.peak_chainage_m:.2f} m",
+                )
+            )
+        figures.append(figure)
+    return figures
+
+
+def _peak_blockage_in(
+    sections: Sequence[SectionMeasures], start_m: float, end_m: float
+) -> tuple[float | None, bool]:
+    """Largest measured blockage over sections whose middle lies in ``[start_m, end_m)``,
+    and whether any section there was not measured."""
+    inside = [
+        s for s in sections if start_m <= 0.5 * (s.chainage_start_m + s.chainage_end_m) < end_m
+    ]
+    values = [s.blockage_ratio for s in inside if s.is_ok and _finite(s.blockage_ratio)]
+    return (max(values) if values else None), any(not s.is_ok for s in inside)
+
+
+def _years_between(later: datetime, earlier: datetime) -> float:
+    return (later - earlier).total_seconds() / (365.25 * 86400.0)
+
+
+def _inspection_summary_row(
+    inspection_id: str | int,
+    inspected_at: datetime,
+    sections: Sequence[SectionMeasures],
+    defect_count: int | None,
+    *,
+    current: bool,
+) -> dict[str, Any]:
+    ok = [s for s in sections if s.is_ok and _finite(s.blockage_ratio)]
+    total_m = sum(_length_m(s) for s in sections)
+    ok_m = sum(_length_m(s) for s in sections if s.is_ok)
+    peak = max(ok, key=lambda s: s.blockage_ratio or 0.0, default=None)
+    grades = [s.grade for s in sections if s.is_ok and s.grade is not None]
+    return {
+        "inspection_id": str(inspection_id),
+        "inspected_at": fmt_datetime(inspected_at),
+        "current": current,
+        "measured": f"{fmt_m(ok_m, 1)} ({fmt_pct(ok_m / total_m if total_m else None, 0)})",
+        "max_blockage": fmt_pct(peak.blockage_ratio) if peak else NOT_MEASURED,
+        "max_blockage_at": fmt_m(peak.chainage_start_m) if peak else "",
+        "defects": str(defect_count) if defect_count is not None else NOT_RECORDED,
+        "worst_grade": str(min(grades)) if grades else "not graded",
+    }
+
+
+def _trend(
+    inp: ReportInput,
+    sections: Sequence[SectionMeasures],
+    defects: Sequence[Defect],
+    *,
+    chart: bool,
+) -> dict[str, Any] | None:
+    """The trend page: earlier inspections of the asset against this one, by chainage."""
+    earlier = sorted(
+        (h for h in inp.history if h.inspected_at <= inp.inspected_at),
+        key=lambda h: h.inspected_at,
+        reverse=True,
+    )
+    if not earlier:
+        return None
+    shown = earlier[:TREND_MAX_EARLIER]
+    inspections = [
+        _inspection_summary_row(
+            inp.inspection_id, inp.inspected_at, sections, len(defects), current=True
+        )
+    ] + [
+        _inspection_summary_row(
+            h.inspection_id, h.inspected_at, h.sections, h.defect_count, current=False
+        )
+        for h in earlier
+    ]
+    # Each defect of this inspection, and the largest blockage over its span in each earlier
+    # inspection: comparing spans, not single sections, tolerates the few centimetres by which
+    # two scans' chainages can disagree.
+    columns = shown[:3]
+    changes = []
+    for number, d in enumerate(defects, start=1):
+        now, _ = _peak_blockage_in(sections, d.chainage_start_m, d.chainage_end_m)
+        cells = []
+        for h in columns:
+            value, partly = _peak_blockage_in(h.sections, d.chainage_start_m, d.chainage_end_m)
+            text = fmt_pct(value, unit=False) if value is not None else NOT_MEASURED
+            if value is not None and partly:
+                text += "*"
+            cells.append(text)
+        previous, _ = _peak_blockage_in(shown[0].sections, d.chainage_start_m, d.chainage_end_m)
+        years = _years_between(inp.inspected_at, shown[0].inspected_at)
+        if _finite(now) and _finite(previous):
+            change = now - previous
+            change_text = f"{change * 100.0:+.1f}"
+            rate_text = f"{change * 100.0 / years:+.1f}" if years > 0.05 else "–"
+        else:
+            change_text = rate_text = NOT_MEASURED
+        changes.append(
+            {
+                "number": number,
+                "code": d.code or "—",
+                "span": f"{d.chainage_start_m:.2f}–{d.chainage_end_m:.2f}",
+                "now": fmt_pct(now, unit=False),
+                "earlier": cells,
+                "change": change_text,
+                "rate": rate_text,
+            }
+        )
+    chart_uri = None
+    if chart:
+        from pipescan.reports.charts import trend_chart_svg
+
+        chart_uri = _svg_uri(
+            trend_chart_svg(
+                sections,
+                [(fmt_datetime(h.inspected_at)[:10], h.sections) for h in shown],
+                defects,
+                label=f"{fmt_datetime(inp.inspected_at)[:10]} (this inspection)",
+                blockage_threshold_ratio=inp.blockage_threshold_ratio,
+            )
+        )
+    return {
+        "inspections": inspections,
+        "columns": [fmt_datetime(h.inspected_at)[:10] for h in columns],
+        "previous_date": fmt_datetime(shown[0].inspected_at)[:10],
+        "changes": changes,
+        "chart_uri": chart_uri,
+        "shown_count": len(shown),
+        "earlier_count": len(earlier),
+        "any_partly": any("*" in c for row in changes for c in row["earlier"]),
+    }
+
+
 # --- the context --------------------------------------------------------------------------
 
 
@@ -275,8 +571,8 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
     inp
         The report's inputs.
     chart
-        Draw the blockage chart (a matplotlib SVG, as a data URI). Tests of the context
-        alone may skip it.
+        Draw the figures (matplotlib SVGs, as data URIs): the blockage chart, the defects'
+        cross-sections and the trend chart. Tests of the context alone may skip them.
 
     Returns
     -------
@@ -284,7 +580,9 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         Keys used by ``templates/inspection.html.j2``: ``asset`` (cover facts), ``summary``
         (figures), ``grades`` (counts by class), ``unmeasured`` (metres by reason, with
         spans), ``worst`` (the worst ``ok`` sections by blockage), ``defects`` (rows),
-        ``sections`` (appendix rows), ``chart_uri`` and ``table``.
+        ``figures`` (a cross-section at each defect's peak), ``trend`` (None without earlier
+        inspections), ``sections`` (appendix rows) with ``appendix`` (whether the listing is
+        complete, and the export command), ``chart_uri`` and ``table``.
     """
     sections = sorted(inp.sections, key=lambda s: s.chainage_start_m)
     defects = sorted(inp.defects, key=lambda d: d.chainage_start_m)
@@ -308,6 +606,8 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "material": _text(inp.material),
         "pipe_shape": _text(inp.pipe_shape),
         "pipe_class": inp.pipe_class,
+        "pipe_class_reason": inp.pipe_class_reason,
+        "pipe_class_note": _pipe_class_note(inp),
         "scanned_length": fmt_m(inp.scanned_length_m),
         "point_count": fmt_int(inp.point_count),
         "registration": _registration_rows(inp),
@@ -328,9 +628,8 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
                 "label": {0: "worst", 4: "best"}.get(grade, ""),
                 "count": len(members),
                 "length": fmt_m(sum(_length_m(s) for s in members), 1),
-                "share": fmt_pct(
-                    sum(_length_m(s) for s in members) / total_length_m if total_length_m else None,
-                    0,
+                "share": _fmt_share(
+                    sum(_length_m(s) for s in members) / total_length_m if total_length_m else None
                 ),
                 "flag": grade <= inp.flag_grade,
             }
@@ -423,10 +722,12 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         # Imported here so that building a context without a chart needs no matplotlib.
         from pipescan.reports.charts import blockage_chart_svg
 
-        svg = blockage_chart_svg(
-            sections, defects, blockage_threshold_ratio=inp.blockage_threshold_ratio
+        chart_uri = _svg_uri(
+            blockage_chart_svg(
+                sections, defects, blockage_threshold_ratio=inp.blockage_threshold_ratio
+            )
         )
-        chart_uri = "data:image/svg+xml;base64," + base64.b64encode(svg.encode()).decode("ascii")
+    appendix_rows, appendix_complete = _appendix(sections, defects)
 
     return {
         "title": f"Pipe condition report {inp.asset_id}",
@@ -437,7 +738,18 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "unmeasured": unmeasured,
         "worst": worst,
         "defects": defect_rows,
-        "sections": [_section_row(s, _is_flagged_at(defects, s)) for s in sections],
+        "sections": appendix_rows,
+        "appendix": {
+            "complete": appendix_complete,
+            "row_count": len(appendix_rows),
+            "section_count": len(sections),
+            "every_m": fmt_m(APPENDIX_SAMPLE_EVERY_M, 0),
+            "export_command": (
+                f"pipescan export sections --inspection {inp.inspection_id} -o sections.csv"
+            ),
+        },
+        "figures": _defect_figures(inp, sections, defects) if chart else [],
+        "trend": _trend(inp, sections, defects, chart=chart),
         "chart_uri": chart_uri,
         "not_measured": NOT_MEASURED,
     }

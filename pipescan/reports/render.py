@@ -1,4 +1,4 @@
-"""Render a per-inspection report: Jinja2 to HTML, WeasyPrint to PDF."""
+"""Render reports: Jinja2 to HTML, WeasyPrint to PDF (per inspection, and network summary)."""
 
 from __future__ import annotations
 
@@ -11,10 +11,19 @@ from pathlib import Path
 from jinja2 import Environment, PackageLoader, StrictUndefined
 
 from pipescan.reports.context import ReportInput, build_context
+from pipescan.reports.network import NetworkInput, build_network_context
 
-__all__ = ["TEMPLATE", "render_html", "render_pdf"]
+__all__ = [
+    "NETWORK_TEMPLATE",
+    "TEMPLATE",
+    "render_html",
+    "render_network_html",
+    "render_network_pdf",
+    "render_pdf",
+]
 
 TEMPLATE = "inspection.html.j2"
+NETWORK_TEMPLATE = "network.html.j2"
 
 
 @cache
@@ -47,6 +56,11 @@ def render_html(inp: ReportInput) -> str:
     return _environment().get_template(TEMPLATE).render(**build_context(inp))
 
 
+def render_network_html(inp: NetworkInput) -> str:
+    """The network summary as one self-contained HTML document."""
+    return _environment().get_template(NETWORK_TEMPLATE).render(**build_network_context(inp))
+
+
 def render_pdf(inp: ReportInput, out_path: Path | str) -> Path:
     """Render the report to an A4 PDF at ``out_path``.
 
@@ -65,12 +79,20 @@ def render_pdf(inp: ReportInput, out_path: Path | str) -> Path:
     Path
         ``out_path``.
     """
+    return _write_pdf(render_html(inp), Path(out_path))
+
+
+def render_network_pdf(inp: NetworkInput, out_path: Path | str) -> Path:
+    """Render the network summary to an A4 landscape PDF at ``out_path`` (written atomically,
+    as :func:`render_pdf`)."""
+    return _write_pdf(render_network_html(inp), Path(out_path))
+
+
+def _write_pdf(html: str, out_path: Path) -> Path:
     # WeasyPrint loads Pango at import; keep it out of HTML-only use.
     from weasyprint import HTML
 
-    out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    html = render_html(inp)
     fd, tmp_name = tempfile.mkstemp(
         prefix=f".{out_path.name}.", suffix=".part", dir=out_path.parent
     )

@@ -7,31 +7,66 @@ from pathlib import Path
 
 from prefect import task
 
+import pipescan
 from pipescan.core.grading import load_table
-from pipescan.reports.context import ReportInput, TableCitation
-from pipescan.reports.render import render_pdf
+from pipescan.reports.context import (
+    EarlierInspection,
+    ReportInput,
+    TableCitation,
+    build_context,
+    fmt_datetime,
+)
+from pipescan.reports.network import NetworkInput, PipeInspection, build_network_context
+from pipescan.reports.render import render_network_pdf, render_pdf
 from pipescan.storage.db import connect
+from pipescan.storage.report_queries import (
+    defect_counts,
+    earlier_inspections,
+    network_inspections,
+    previous_inspections,
+    section_profiles,
+)
 from pipescan.storage.repository import get_defects, get_inspection, get_sections
 
+__all__ = [
+    "load_network_input",
+    "load_report_input",
+    "network_message",
+    "render_network_report",
+    "render_network_report_task",
+    "render_report",
+    "report_message",
+]
+
 _IO_RETRIES = {"retries": 2, "retry_delay_seconds": [1, 5]}
+#: Earlier inspections of the asset loaded for the trend page.
+TREND_HISTORY = 4
+
+
+def _citation(table_name: str) -> TableCitation:
+    try:
+        table = load_table(table_name)
+        return TableCitation(name=table.name, source=table.source)
+    except Exception:  # a table removed since the run: still report, naming it
+        return TableCitation(name=table_name, source="(table no longer installed)")
 
 
 def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
-    """Gather one inspection's report input from the database."""
+    """Gather one inspection's report input from the database, with the asset's earlier
+    inspections (up to :data:`TREND_HISTORY`) for the trend page."""
     engine = connect(database_url)
     try:
         rec = get_inspection(engine, inspection_id)
         sections = get_sections(engine, inspection_id)
         defects = get_defects(engine, inspection_id)
+        earlier = earlier_inspections(engine, inspection_id, limit=TREND_HISTORY)
+        ids = [e.id for e in earlier]
+        profiles = section_profiles(engine, ids)
+        counts = defect_counts(engine, ids)
     finally:
         engine.dispose()
     params = rec.params or {}
     table_name = rec.threshold_table or params.get("threshold_table", "vsa-2023")
-    try:
-        table = load_table(table_name)
-        citation = TableCitation(name=table.name, source=table.source)
-    except Exception:  # a table removed since the run: still report, naming it
-        citation = TableCitation(name=table_name, source="(table no longer installed)")
     return ReportInput(
         asset_id=rec.asset_id,
         upstream_node=rec.upstream_node,
@@ -43,7 +78,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         inspection_id=rec.id,
         archive_uri=rec.archive_uri,
         software_version=rec.software_version,
-        threshold_table=citation,
+        threshold_table=_citation(table_name),
         blockage_threshold_ratio=params.get("blockage_threshold_ratio", 0.10),
         point_count=rec.point_count,
         frame_count=rec.frame_count,
@@ -54,6 +89,65 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         generated_at=datetime.now(UTC),
         flag_grade=params.get("flag_grade", 2),
         pipe_class=params.get("pipe_class", "rigid"),
+        pipe_class_reason=params.get("pipe_class_reason", "set for the run"),
+        history=[
+            EarlierInspection(
+                inspection_id=e.id,
+                inspected_at=e.inspected_at,
+                sections=profiles[e.id],
+                defect_count=counts[e.id],
+            )
+            for e in earlier
+        ],
+    )
+
+
+def load_network_input(
+    database_url: str,
+    *,
+    since: datetime | None = None,
+    inspection_ids: list[int] | None = None,
+) -> NetworkInput:
+    """Gather a network summary's input: the latest selected inspection of each asset, with
+    the asset's previous inspection for growth."""
+    engine = connect(database_url)
+    try:
+        records = network_inspections(engine, since=since, inspection_ids=inspection_ids)
+        previous = previous_inspections(engine, records)
+        ids = [r.id for r in records] + [p.id for p in previous.values()]
+        profiles = section_profiles(engine, ids)
+        counts = defect_counts(engine, [r.id for r in records])
+    finally:
+        engine.dispose()
+    pipes = []
+    for r in records:
+        before = previous.get(r.id)
+        pipes.append(
+            PipeInspection(
+                asset_id=r.asset_id,
+                upstream_node=r.upstream_node,
+                downstream_node=r.downstream_node,
+                nominal_diameter_m=r.nominal_diameter_m,
+                material=r.material,
+                inspection_id=r.id,
+                inspected_at=r.inspected_at,
+                sections=profiles[r.id],
+                defect_count=counts[r.id],
+                previous_inspection_id=before.id if before else None,
+                previous_inspected_at=before.inspected_at if before else None,
+                previous_sections=profiles[before.id] if before else (),
+            )
+        )
+    first = records[0].params if records else {}
+    table_names = sorted({r.threshold_table or "vsa-2023" for r in records})
+    return NetworkInput(
+        pipes=pipes,
+        generated_at=datetime.now(UTC),
+        software_version=pipescan.__version__,
+        blockage_threshold_ratio=first.get("blockage_threshold_ratio", 0.10),
+        flag_grade=first.get("flag_grade", 2),
+        threshold_tables=[_citation(name) for name in table_names],
+        since=since,
     )
 
 
@@ -61,3 +155,100 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
 def render_report(database_url: str, inspection_id: int, out_path: Path) -> Path:
     """Render one inspection's PDF condition report from the database."""
     return render_pdf(load_report_input(database_url, inspection_id), out_path)
+
+
+def render_network_report(
+    database_url: str,
+    out_path: Path,
+    *,
+    since: datetime | None = None,
+    inspection_ids: list[int] | None = None,
+) -> Path:
+    """Render the network summary PDF of a set of inspections.
+
+    Parameters
+    ----------
+    database_url
+        The pipescan database.
+    out_path
+        Where to write the PDF (written atomically; its folder is created).
+    since
+        Only inspections taken at or after this time.
+    inspection_ids
+        Only these inspections (e.g. those of one network run); with neither filter, the
+        latest inspection of every asset.
+
+    Returns
+    -------
+    Path
+        ``out_path``.
+
+    Raises
+    ------
+    StorageError
+        If an id in ``inspection_ids`` is not stored.
+    """
+    inp = load_network_input(database_url, since=since, inspection_ids=inspection_ids)
+    return render_network_pdf(inp, out_path)
+
+
+#: :func:`render_network_report` as a Prefect task, for flows that want it retried and logged.
+render_network_report_task = task(name="render-network-report", **_IO_RETRIES)(
+    render_network_report
+)
+
+
+def report_message(inp: ReportInput) -> tuple[str, str]:
+    """Subject and text of the e-mail that carries an inspection report."""
+    ctx = build_context(inp, chart=False)
+    summary = ctx["summary"]
+    date = fmt_datetime(inp.inspected_at)[:10]
+    count = summary["defect_count"]
+    verdict = f"{count} defect{'s' if count != 1 else ''}" if count else "no defects"
+    subject = f"Pipe condition report {inp.asset_id} ({date}): {verdict}"
+    if count:
+        subject += f", worst class {summary['worst_grade']}"
+    lines = [
+        f"Pipe condition report of {inp.asset_id}, inspected {fmt_datetime(inp.inspected_at)}.",
+        "",
+        f"Defects: {verdict}"
+        + (f", {summary['flagged_length']} of pipe flagged" if count else "")
+        + f" ({summary['flag_rule']}).",
+        f"Worst condition class: {summary['worst_grade']}.",
+        f"Largest blockage: {summary['max_blockage']}"
+        + (
+            f" at {summary['max_blockage_at']}."
+            if summary["max_blockage_at"] != "not measured"
+            else "."
+        ),
+        f"Measured: {summary['measured_length']} ({summary['measured_share']});"
+        f" not measured: {summary['unmeasured_length']}.",
+        "",
+        "The full report is attached. pipescan inspection id: " + str(inp.inspection_id) + ".",
+    ]
+    return subject, "\n".join(line.replace("\u00a0", " ") for line in lines) + "\n"
+
+
+def network_message(inp: NetworkInput) -> tuple[str, str]:
+    """Subject and text of the e-mail that carries a network summary."""
+    ctx = build_network_context(inp)
+    totals = ctx["totals"]
+    subject = (
+        f"Network condition summary: {totals['pipes']} pipes, "
+        f"{totals['flagged_pipes']} with sections of class {inp.flag_grade} or worse"
+    )
+    lines = [
+        f"{totals['pipes']} pipes inspected {totals['first_date']} to {totals['last_date']}.",
+        f"Defects: {totals['defects']}. Pipes flagged: {totals['flagged_pipes']}.",
+        "",
+        "Worst five pipes:",
+        *(
+            f"  {r['rank']}. {r['asset_id']}: class {r['worst_grade']}, largest blockage "
+            f"{r['max_blockage']}{'' if r['max_blockage'] == 'not measured' else ' %'}, "
+            f"{r['defects']} defects"
+            for r in ctx["by_grade"][:5]
+        ),
+        "",
+        "The full summary is attached.",
+    ]
+    return subject, "\n".join(line.replace("\u00a0", " ") for line in lines) + "\n"
