@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 
 import numpy as np
@@ -10,32 +11,27 @@ from scipy.spatial.transform import Rotation
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.registration import (
+    REGISTRATION_ENGINES,
     RegistrationParams,
     Trajectory,
     chain_trajectories,
     kabsch,
     plan_chunks,
     register_frames,
+    registration_summary,
+    trajectory_errors,
 )
 from pipescan.core.simulate import get_scenario, simulate_scan
 
 
 def _errors(scan, trajectory: Trajectory) -> dict[str, float]:
     """Pose errors against the truth, split along/across the pipe axis and roll/pitch-yaw."""
-    truth = np.einsum("ij,fjk->fik", np.linalg.inv(scan.T_world_sensor[0]), scan.T_world_sensor)
-    est = trajectory.T_world_frame
-    axis = truth[-1, :3, 3] / np.linalg.norm(truth[-1, :3, 3])
-    err = est[:, :3, 3] - truth[:, :3, 3]
-    along = err @ axis
-    across = np.linalg.norm(err - np.outer(along, axis), axis=1)
-    rotvec = Rotation.from_matrix(est[:, :3, :3] @ truth[:, :3, :3].transpose(0, 2, 1)).as_rotvec()
-    roll = rotvec @ axis
-    tilt = np.linalg.norm(rotvec - np.outer(roll, axis), axis=1)
+    e = trajectory_errors(trajectory.T_world_frame, scan.T_world_sensor)
     return {
-        "across_rms_m": float(np.sqrt(np.mean(across**2))),
-        "along_final_m": float(abs(along[-1])),
-        "tilt_rms_deg": float(np.degrees(np.sqrt(np.mean(tilt**2)))),
-        "odometer_final_m": float(abs(scan.odometer_m[-1] - np.linalg.norm(truth[-1, :3, 3]))),
+        "across_rms_m": e.across_rms_m,
+        "along_final_m": abs(e.along_final_m),
+        "tilt_rms_deg": e.tilt_rms_deg,
+        "odometer_final_m": float(abs(scan.odometer_m[-1] - scan.true_travel_m[-1])),
     }
 
 
@@ -54,12 +50,48 @@ def clean_scan():
     return simulate_scan(get_scenario("clean", travel_m=1.5, points_per_s=300_000), seed=4)
 
 
-def test_point_to_plane_meets_accuracy_targets(paper_scan):
-    e = _errors(paper_scan, register_frames(_frames(paper_scan)))
-    assert e["across_rms_m"] < 0.005
-    assert e["tilt_rms_deg"] < 0.2
+@pytest.fixture(scope="module")
+def paper_frames(paper_scan):
+    return list(_frames(paper_scan))
+
+
+def test_default_meets_accuracy_targets(paper_scan, paper_frames):
+    traj = register_frames(iter(paper_frames))
+    e = _errors(paper_scan, traj)
+    assert e["across_rms_m"] < 0.002
+    assert e["tilt_rms_deg"] < 0.05
     # With features in view, better than the odometer (2 % scale error).
-    assert e["along_final_m"] < 0.5 * e["odometer_final_m"]
+    assert e["along_final_m"] < 0.25 * e["odometer_final_m"]
+    assert traj.along_axis_prior == "odometer"
+    assert all(q.fitness > 0.9 and q.rmse_m < 0.01 for q in traj.quality)
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        RegistrationParams(method="point_to_plane"),
+        RegistrationParams(method="point_to_plane", engine="open3d"),
+        RegistrationParams(method="point_to_plane", engine="open3d_tensor"),
+    ],
+    ids=lambda p: p.label,
+)
+def test_every_engine_meets_the_targets(paper_scan, paper_frames, params):
+    # A shorter stretch keeps the slower engines quick; the targets are the issue's.
+    frames = paper_frames[:60]
+    traj = register_frames(iter(frames), params)
+    e = trajectory_errors(traj.T_world_frame, paper_scan.T_world_sensor[:60])
+    assert e.across_rms_m < 0.005
+    assert e.tilt_rms_deg < 0.2
+
+
+def test_without_odometer_it_registers_where_there_are_features(paper_scan, paper_frames):
+    # The end wall and the defects are in view: the geometry fixes the axis on its own.
+    frames = [(i, p, None) for i, p, _ in paper_frames[:60]]
+    traj = register_frames(iter(frames))
+    e = trajectory_errors(traj.T_world_frame, paper_scan.T_world_sensor[:60])
+    assert abs(e.along_final_m) < 0.01
+    assert traj.along_axis_prior == "constant_velocity"
+    assert "warning" not in registration_summary(traj, RegistrationParams())
 
 
 def test_featureless_pipe_is_held_to_the_odometer(clean_scan):
@@ -73,10 +105,25 @@ def test_featureless_pipe_is_held_to_the_odometer(clean_scan):
     free = _errors(
         clean_scan,
         register_frames(
-            _frames(clean_scan), RegistrationParams(max_range_m=1.8, degeneracy_ratio=0.0)
+            _frames(clean_scan),
+            RegistrationParams(max_range_m=1.8, degeneracy_ratio=0.0, axial_feature_ratio=0.0),
         ),
     )
     assert free["along_final_m"] > 3 * held["along_final_m"]
+
+
+def test_featureless_pipe_without_odometer_says_where_it_could_not(clean_scan):
+    frames = [(f.index, f.points_sensor, None) for f in clean_scan.frames()][:30]
+    params = RegistrationParams(max_range_m=1.8)
+    traj = register_frames(iter(frames), params)
+    assert traj.along_axis_prior == "constant_velocity"
+    assert sum(q.degenerate for q in traj.quality) >= 25
+    summary = registration_summary(traj, params)
+    assert "not measured" in summary["warning"]
+    assert summary["unconstrained_spans"][0]["first_frame"] <= 2
+    assert summary["unconstrained_spans"][-1]["last_frame"] == 29
+    # Chained chunks keep saying so.
+    assert chain_trajectories([traj]).along_axis_prior == "constant_velocity"
 
 
 def test_paper_point_to_point_runs_and_reports_quality(clean_scan):
@@ -86,8 +133,8 @@ def test_paper_point_to_point_runs_and_reports_quality(clean_scan):
     assert np.isfinite(traj.T_world_frame).all()
 
 
-def test_chunks_chain_into_the_same_trajectory(paper_scan):
-    frames = list(_frames(paper_scan))
+def test_chunks_chain_into_the_same_trajectory(paper_scan, paper_frames):
+    frames = paper_frames
     chunks = plan_chunks(len(frames), 25)
     assert chunks[0][0] == 0 and chunks[-1][1] == len(frames) - 1
     assert all(a[1] == b[0] for a, b in itertools.pairwise(chunks))
@@ -95,8 +142,8 @@ def test_chunks_chain_into_the_same_trajectory(paper_scan):
     chained = chain_trajectories(parts)
     assert chained.frame_indices == tuple(range(len(frames)))
     e = _errors(paper_scan, chained)
-    assert e["across_rms_m"] < 0.006
-    assert e["tilt_rms_deg"] < 0.25
+    assert e["across_rms_m"] < 0.005
+    assert e["tilt_rms_deg"] < 0.2
 
 
 def test_kabsch_recovers_a_rigid_motion_and_never_reflects():
@@ -116,3 +163,30 @@ def test_kabsch_recovers_a_rigid_motion_and_never_reflects():
 def test_empty_frame_is_a_clear_error():
     with pytest.raises(RegistrationError, match="frame 7"):
         register_frames(iter([(7, np.zeros((10, 3)), 0.0)]))
+
+
+def test_bad_parameters_are_clear_errors():
+    with pytest.raises(ValueError, match="engine"):
+        RegistrationParams(engine="pcl")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="gicp"):
+        RegistrationParams(method="gicp", engine="open3d")
+    with pytest.raises(ValueError, match="voxel_m"):
+        RegistrationParams(voxel_m=0.0)
+    assert set(REGISTRATION_ENGINES) == {"small_gicp", "open3d", "open3d_tensor"}
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        register_frames(iter([(0, np.zeros((100, 2)), 0.0)]))
+
+
+def test_trajectory_errors_split_along_and_across():
+    true = np.repeat(np.eye(4)[None], 3, axis=0)
+    true[:, 0, 3] = [0.0, 1.0, 2.0]
+    est = true.copy()
+    est[:, 0, 3] += [0.0, 0.01, 0.02]  # along
+    est[:, 1, 3] += [0.0, 0.003, 0.004]  # across
+    est[2, :3, :3] = Rotation.from_euler("xz", [0.5, 0.1], degrees=True).as_matrix()
+    e = trajectory_errors(est, true)
+    assert e.along_final_m == pytest.approx(0.02)
+    assert e.across_rms_m == pytest.approx(np.sqrt((0.003**2 + 0.004**2) / 3))
+    assert e.roll_rms_deg == pytest.approx(0.5 / np.sqrt(3), rel=1e-3)
+    assert e.tilt_rms_deg == pytest.approx(0.1 / np.sqrt(3), rel=1e-2)
+    dataclasses.asdict(e)

@@ -1,0 +1,491 @@
+"""Registration: engines side by side, sections with estimated poses, parallel chunks, memory.
+
+    python benchmarks/bench_registration.py engines     # accuracy and speed of every engine
+    python benchmarks/bench_registration.py sections    # defect chainages, blockage est vs true
+    python benchmarks/bench_registration.py parallel    # register_chunk in 1 vs 2 threads/procs
+    python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
+    python benchmarks/bench_registration.py all
+
+Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
+`paper` (0.5 m pipe, 5 mm range noise, 1° attitude jitter, 2 % odometer scale error, full
+452,000 points/s at 10 Hz) and `clean` with registration's range cut to 1.8 m, so that nothing
+along the axis (not even the end wall) is in view. Speed is registration alone (frames are
+generated before the clock starts) on whatever CPU this runs on; on a shared machine, compare
+the rows of one run (ratios), not runs. Every figure is printed; nothing is asserted (the tests
+do that on smaller cases).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from concurrent.futures import ProcessPoolExecutor, ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.core.registration import (
+    RegistrationParams,
+    Trajectory,
+    chain_trajectories,
+    plan_chunks,
+    register_frames,
+    registration_summary,
+    trajectory_errors,
+)
+from pipescan.core.simulate import get_scenario, simulate_scan
+
+FRAME_RATE_HZ = 10.0
+SECTION_RANGE_M = 5.0  # the flow's max_section_range_m
+
+ENGINES: dict[str, RegistrationParams | str] = {
+    "small_gicp gicp (default)": RegistrationParams(),
+    "small_gicp gicp, source 3 cm": RegistrationParams(source_voxel_m=None),
+    "small_gicp point_to_plane": RegistrationParams(method="point_to_plane"),
+    "open3d point_to_plane": RegistrationParams(method="point_to_plane", engine="open3d"),
+    "open3d_tensor point_to_plane": RegistrationParams(
+        method="point_to_plane", engine="open3d_tensor"
+    ),
+    "paper point_to_point (Kabsch)": RegistrationParams(method="point_to_point"),
+    "kiss-icp 1.3 (own odometry)": "kiss",
+}
+
+
+def _frames_in_memory(scan, *, odometer: bool = True) -> list[tuple[int, np.ndarray, float | None]]:
+    return [(f.index, f.points_sensor, f.odometer_m if odometer else None) for f in scan.frames()]
+
+
+def _kiss_trajectory(frames, max_range_m: float) -> Trajectory:
+    """KISS-ICP's own pipeline (constant-velocity prior, no odometer, no degeneracy guard)."""
+    from kiss_icp.config.config import (
+        AdaptiveThresholdConfig,
+        DataConfig,
+        MappingConfig,
+        RegistrationConfig,
+    )
+    from kiss_icp.config.parser import KISSConfig
+    from kiss_icp.kiss_icp import KissICP
+
+    config = KISSConfig(
+        data=DataConfig(max_range=max_range_m, min_range=0.0, deskew=False),
+        mapping=MappingConfig(voxel_size=0.03, max_points_per_voxel=20),
+        registration=RegistrationConfig(max_num_threads=1),
+        adaptive_threshold=AdaptiveThresholdConfig(initial_threshold=0.1, min_motion_th=0.005),
+    )
+    odometry = KissICP(config)
+    poses = []
+    for _, points, _ in frames:
+        odometry.register_frame(points.astype(np.float64), np.zeros(len(points)))
+        poses.append(odometry.last_pose.copy())
+    return Trajectory(np.asarray(poses), (), tuple(i for i, _, _ in frames), "constant_velocity")
+
+
+def _run(frames, engine: RegistrationParams | str, max_range_m: float):
+    started = time.perf_counter()
+    if engine == "kiss":
+        trajectory = _kiss_trajectory(frames, max_range_m)
+    else:
+        assert isinstance(engine, RegistrationParams)
+        params = dataclasses.replace(engine, max_range_m=max_range_m)
+        trajectory = register_frames(iter(frames), params)
+    return trajectory, time.perf_counter() - started
+
+
+def _row(name, scan, trajectory, seconds) -> str:
+    e = trajectory_errors(trajectory.T_world_frame, scan.T_world_sensor)
+    n = len(trajectory.frame_indices)
+    odometer_m = abs(scan.odometer_m[-1] - scan.true_travel_m[-1])
+    degenerate = sum(q.degenerate for q in trajectory.quality) if trajectory.quality else "-"
+    fps = n / seconds
+    return (
+        f"| {name:30s} | {fps:6.0f} | {fps / FRAME_RATE_HZ:5.1f}× | {e.tilt_rms_deg:6.3f} | "
+        f"{e.roll_rms_deg:5.2f} | {e.across_rms_m * 1e3:6.2f} | "
+        f"{abs(e.along_final_m) * 1e3:8.1f} | "
+        f"{e.along_max_m * 1e3:8.1f} | {odometer_m * 1e3:6.1f} | {degenerate!s:>5} |"
+    )
+
+
+HEADER = (
+    "| engine                         | fr/s   | RT    | tilt°  | roll° | across | along end | "
+    "along max | odo end | degen |\n"
+    "|--------------------------------|-------:|------:|-------:|------:|-------:|---------:|"
+    "---------:|-------:|------:|"
+)
+
+
+def bench_engines(args) -> None:
+    cases = [
+        ("paper", dict(travel_m=args.travel_m), 6.0, True),
+        (
+            "clean, range cut to 1.8 m (featureless)",
+            dict(travel_m=min(args.travel_m, 3.0)),
+            1.8,
+            True,
+        ),
+        ("paper, no odometer", dict(travel_m=args.travel_m), 6.0, False),
+    ]
+    print(
+        "Errors against the simulator's true poses. tilt = pitch/yaw RMS (deg), roll = roll "
+        "about the axis RMS (deg), across = across-axis RMS (mm), along end/max = along-axis "
+        "error at the end / largest (mm), odo end = the odometer's own error at the end (mm), "
+        "degen = frames held to the prior along the axis. RT = real-time factor (recorded at "
+        f"{FRAME_RATE_HZ:.0f} Hz / registration time); one thread per engine.\n"
+    )
+    print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
+    for label, overrides, max_range_m, odometer in cases:
+        name = "clean" if label.startswith("clean") else "paper"
+        scan = simulate_scan(get_scenario(name, **overrides), seed=args.seed)
+        frames = _frames_in_memory(scan, odometer=odometer)
+        points = np.mean([len(f[1]) for f in frames])
+        print(
+            f"### {label}: {len(frames)} frames, {points:.0f} points/frame, "
+            f"{scan.true_travel_m[-1]:.2f} m\n"
+        )
+        print(HEADER)
+        engines = ENGINES if odometer else {k: ENGINES[k] for k in list(ENGINES)[:1]}
+        for engine_name, engine in engines.items():
+            if engine == "kiss" and args.no_kiss:
+                continue
+            trajectory, seconds = _run(frames, engine, max_range_m)
+            print(_row(engine_name, scan, trajectory, seconds), flush=True)
+            if not odometer and isinstance(engine, RegistrationParams):
+                summary = registration_summary(trajectory, engine)
+                print(f"\nstored summary: {summary.get('warning', 'no warning')}")
+                for span in summary["unconstrained_spans"]:
+                    print(f"  unconstrained: {span}")
+        print()
+
+
+# --------------------------------------------------------------------------- sections
+
+
+def _cloud(frames, poses) -> np.ndarray:
+    parts = []
+    for (_, points, _), T in zip(frames, poses, strict=True):
+        p = points.astype(np.float64)
+        p = p[np.einsum("ij,ij->i", p, p) <= SECTION_RANGE_M**2]
+        parts.append(p @ T[:3, :3].T + T[:3, 3])
+    return np.concatenate(parts)
+
+
+def _measure(frames, poses):
+    from pipescan.core.axis import fit_axis
+    from pipescan.core.sections import measure_window, plan_windows
+
+    points = _cloud(frames, poses)
+    axis = fit_axis(points, start_m=poses[0][:3, 3], travel_m=poses[-1][:3, 3] - poses[0][:3, 3])
+    chain = axis.chainage(points)
+    sections = {}
+    for w in plan_windows(max(0.0, chain.min()), chain.max(), step_m=0.1, window_m=2.0):
+        inside = (chain >= w.start_m) & (chain < w.end_m)
+        for s in measure_window(points[inside], axis, w, nominal_diameter_m=0.5):
+            sections[round(s.chainage_start_m, 3)] = s
+    return axis, sections
+
+
+def bench_sections(args) -> None:
+    scan = simulate_scan(get_scenario("paper", travel_m=args.travel_m), seed=args.seed)
+    frames = _frames_in_memory(scan)
+    true_poses = np.einsum(
+        "ij,fjk->fik", np.linalg.inv(scan.T_world_sensor[0]), scan.T_world_sensor
+    )
+    s = scan.scenario
+    defects = [("deformation", d) for d in s.deformations]
+    defects += [("obstacle", b) for b in s.obstacles] + [("deposit", f) for f in s.deposits]
+    for label, params in (
+        ("small_gicp gicp (default)", RegistrationParams()),
+        ("open3d point_to_plane", RegistrationParams(method="point_to_plane", engine="open3d")),
+        ("paper point_to_point", RegistrationParams(method="point_to_point")),
+    ):
+        trajectory, seconds = _run(frames, params, params.max_range_m)
+        est = trajectory.T_world_frame
+        axis_est, sec_est = _measure(frames, est)
+        _, sec_true = _measure(frames, true_poses)
+        print(f"### {label} ({seconds:.1f} s)\n")
+        # Where the pipeline puts each defect's ends: the true point on the invert at the
+        # defect's start and end, seen from every frame 0.5-5 m before it, mapped through that
+        # frame's estimated pose and the axis fitted on the estimated cloud.
+        T_pipe_world0 = np.linalg.inv(scan.T_world_pipe) @ scan.T_world_sensor[0]
+        print("| defect | true start-end (m) | located start-end (m) | worst error (m) |")
+        print("|---|---|---|---|")
+        for name, d in defects:
+            located = []
+            for x in (d.start_m, d.end_m):
+                p_pipe = np.array([x, 0.0, -s.radius_m, 1.0])
+                p_world0 = np.linalg.inv(T_pipe_world0) @ p_pipe
+                seen = (scan.true_travel_m > x - 5.0) & (scan.true_travel_m < x - 0.5)
+                ch = []
+                for k in np.flatnonzero(seen):
+                    p_sensor = np.linalg.inv(true_poses[k]) @ p_world0
+                    ch.append(axis_est.chainage((est[k] @ p_sensor)[None, :3])[0])
+                located.append(float(np.mean(ch)) if ch else float("nan"))
+            worst = max(abs(located[0] - d.start_m), abs(located[1] - d.end_m))
+            print(
+                f"| {name} | {d.start_m:.2f}-{d.end_m:.2f} | {located[0]:.3f}-{located[1]:.3f} "
+                f"| {worst:.3f} |"
+            )
+        both = [
+            (c, sec_est[c], sec_true[c])
+            for c in sorted(sec_est)
+            if c in sec_true and sec_est[c].is_ok and sec_true[c].is_ok
+        ]
+        if not both:
+            print("\nno section is ok with both the estimated and the true poses\n")
+            continue
+        diffs = np.array([abs(a.blockage_ratio - b.blockage_ratio) for _, a, b in both])
+        truth = {round(t.chainage_start_m, 3): t for t in scan.true_sections()}
+        print(
+            f"\nblockage, estimated vs true poses, {len(both)} sections ok in both: "
+            f"max |Δ| {diffs.max() * 100:.2f} pp, mean {diffs.mean() * 100:.2f} pp, "
+            f"{int((diffs > 0.005).sum())} above 0.5 pp"
+        )
+        print("largest differences (pp; simulator truth beside them):")
+        for i in np.argsort(diffs)[::-1][:6]:
+            c, a, b = both[i]
+            t = truth[c].blockage_ratio if c in truth else float("nan")
+            print(
+                f"  {c:5.1f} m: est poses {a.blockage_ratio * 100:5.2f}  true poses "
+                f"{b.blockage_ratio * 100:5.2f}  truth {t * 100:5.2f}"
+            )
+        print()
+
+
+# --------------------------------------------------------------------------- parallel
+
+
+def _register_chunk_in_worker(root: str, first: int, last: int, params: RegistrationParams):
+    """The flow's register-chunk task body (``register_chunk.fn``): open, stream, register."""
+    from pipescan.storage.archive import open_archive
+    from pipescan.tasks.inspection import StagedArchive, register_chunk
+
+    with open_archive(root) as arc:
+        staged = StagedArchive(
+            arc.name, Path(root), arc.meta, arc.content_hash, arc.frame_count, None
+        )
+    return register_chunk.fn(staged, first, last, params)
+
+
+def _warm(_: int) -> int:
+    import pipescan.tasks.inspection  # noqa: F401  (the imports a worker pays once)
+
+    return os.getpid()
+
+
+def _cpu_s() -> float:
+    own = resource.getrusage(resource.RUSAGE_SELF)
+    kids = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+
+def _gil_table() -> None:
+    """Whether each heavy call lets a second Python thread run: CPU time per wall second of
+    two threads against one (about 2× when the GIL is released and two cores are free)."""
+    import threading
+
+    import open3d as o3d
+    import small_gicp
+
+    rng = np.random.default_rng(0)
+    target = rng.normal(size=(40_000, 3))
+    source = target[:5_000] + 0.001
+    cloud = small_gicp.PointCloud(target)
+    tree = small_gicp.KdTree(cloud)
+    small_gicp.estimate_normals_covariances(cloud, tree, 12)
+    src = small_gicp.PointCloud(source)
+    small_gicp.estimate_covariances(src, small_gicp.KdTree(src), 12)
+    o3d_target = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(target))
+    o3d_target.estimate_normals()
+    o3d_source = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(source))
+    reg = o3d.pipelines.registration
+
+    def sg():
+        for _ in range(20):
+            small_gicp.align(cloud, src, tree, registration_type="GICP", max_iterations=10)
+
+    def o3d_icp():
+        for _ in range(10):
+            reg.registration_icp(
+                o3d_source, o3d_target, 0.5, np.eye(4),
+                reg.TransformationEstimationPointToPlane(),
+                reg.ICPConvergenceCriteria(max_iteration=10),
+            )  # fmt: skip
+
+    def o3d_voxel():
+        for _ in range(60):
+            o3d_target.voxel_down_sample(0.1)
+
+    print("| call | CPU/wall, 1 thread | CPU/wall, 2 threads | GIL released |")
+    print("|---|---:|---:|---|")
+    for name, fn in (
+        ("small_gicp.align (GICP)", sg),
+        ("open3d registration_icp", o3d_icp),
+        ("open3d voxel_down_sample", o3d_voxel),
+    ):
+        ratios = []
+        for n_threads in (1, 2):
+            threads = [threading.Thread(target=fn) for _ in range(n_threads)]
+            wall, cpu = time.perf_counter(), time.process_time()
+            for t in threads:
+                t.start()
+            for t in threads:
+                t.join()
+            ratios.append((time.process_time() - cpu) / (time.perf_counter() - wall))
+        released = "yes" if ratios[1] > 1.4 * ratios[0] else "no"
+        print(f"| {name} | {ratios[0]:.2f} | {ratios[1]:.2f} | {released} |")
+
+
+def bench_parallel(args) -> None:
+    from pipescan.storage.simulated import write_simulated_archive
+
+    print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
+    _gil_table()
+    scan = simulate_scan(get_scenario("paper", travel_m=args.travel_m), seed=args.seed)
+    params = RegistrationParams()
+    with tempfile.TemporaryDirectory() as tmp:
+        root = str(write_simulated_archive(scan, Path(tmp) / "scan"))
+        n = len(scan.times_s)
+        chunks = plan_chunks(n, (n + 1) // 2 + 1)
+        _warm(0)
+        rows = {}
+        wall, cpu = time.perf_counter(), _cpu_s()
+        serial = [_register_chunk_in_worker(root, a, b, params) for a, b in chunks]
+        rows["1 worker (serial)"] = (time.perf_counter() - wall, _cpu_s() - cpu)
+        wall, cpu = time.perf_counter(), _cpu_s()
+        one_two = [
+            _register_chunk_in_worker(root, a, b, dataclasses.replace(params, num_threads=2))
+            for a, b in chunks
+        ]
+        rows["1 worker, small_gicp num_threads=2"] = (time.perf_counter() - wall, _cpu_s() - cpu)
+        with ThreadPoolExecutor(2) as pool:
+            wall, cpu = time.perf_counter(), _cpu_s()
+            threaded = list(pool.map(lambda c: _register_chunk_in_worker(root, *c, params), chunks))
+            rows["2 threads"] = (time.perf_counter() - wall, _cpu_s() - cpu)
+        cpu = _cpu_s()
+        with ProcessPoolExecutor(2) as pool:
+            started = time.perf_counter()
+            list(pool.map(_warm, range(2)))
+            warm = time.perf_counter() - started
+            wall = time.perf_counter()
+            futures = [
+                pool.submit(_register_chunk_in_worker, root, a, b, params) for a, b in chunks
+            ]
+            processed = [f.result() for f in futures]
+            wall = time.perf_counter() - wall
+        rows["2 processes"] = (wall, _cpu_s() - cpu)  # CPU includes the pool's start-up
+        print(f"\n{n} frames of the paper scan from an archive, chunks {chunks}\n")
+        print("| workers | wall time (s) | speed-up | frames/s | real-time factor | cores used |")
+        print("|---|---:|---:|---:|---:|---:|")
+        base = rows["1 worker (serial)"][0]
+        for name, (t, c) in rows.items():
+            print(
+                f"| {name} | {t:.2f} | {base / t:.2f}× | {n / t:.0f} | "
+                f"{n / t / FRAME_RATE_HZ:.1f}× | {c / t:.2f} |"
+            )
+        print(f"\n(process pool start-up and imports, paid once per flow run: {warm:.1f} s)")
+        whole = register_frames((f.index, f.points_sensor, f.odometer_m) for f in scan.frames())
+        parts_by = (
+            ("serial", serial), ("num_threads=2", one_two), ("threads", threaded),
+            ("processes", processed),
+        )  # fmt: skip
+        for name, parts in parts_by:
+            e = trajectory_errors(chain_trajectories(parts).T_world_frame, scan.T_world_sensor)
+            print(
+                f"chained {name}: tilt {e.tilt_rms_deg:.3f}°, "
+                f"across {e.across_rms_m * 1e3:.2f} mm, along end {e.along_final_m * 1e3:+.1f} mm"
+            )
+        e = trajectory_errors(whole.T_world_frame, scan.T_world_sensor)
+        print(
+            f"one chunk: tilt {e.tilt_rms_deg:.3f}°, across {e.across_rms_m * 1e3:.2f} mm, "
+            f"along end {e.along_final_m * 1e3:+.1f} mm"
+        )
+
+
+# --------------------------------------------------------------------------- memory
+
+
+def _rss_mib() -> float:
+    with open("/proc/self/statm") as f:
+        return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def _memory_child(frames: int) -> None:
+    import threading
+
+    speed = get_scenario("paper").speed_m_s
+    scan = simulate_scan(get_scenario("paper", travel_m=frames * speed / FRAME_RATE_HZ), seed=1)
+    # Warm up the imports and the first allocations, then sample the resident set while
+    # registering (the peak of ru_maxrss is the imports', not registration's).
+    register_frames(
+        (f.index, f.points_sensor, f.odometer_m) for f in (scan.frame(0), scan.frame(1))
+    )
+    baseline = _rss_mib()
+    peak = [baseline]
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            peak[0] = max(peak[0], _rss_mib())
+            time.sleep(0.005)
+
+    sampler = threading.Thread(target=sample)
+    sampler.start()
+    trajectory = register_frames((f.index, f.points_sensor, f.odometer_m) for f in scan.frames())
+    done.set()
+    sampler.join()
+    print(len(trajectory.frame_indices), f"{baseline:.1f}", f"{peak[0]:.1f}")
+
+
+def bench_memory(args) -> None:
+    print("| frames | RSS before (MiB) | peak RSS while registering (MiB) | growth (MiB) |")
+    print("|---:|---:|---:|---:|")
+    for frames in args.frames:
+        out = subprocess.run(
+            [sys.executable, __file__, "memory-child", "--frames", str(frames)],
+            check=True,
+            capture_output=True,
+            text=True,
+        ).stdout.split()
+        n, before, after = int(out[-3]), float(out[-2]), float(out[-1])
+        print(f"| {n} | {before:.0f} | {after:.0f} | {after - before:.0f} |")
+    print(
+        "\nFrames are streamed from the simulator one at a time; what is kept is the local map "
+        "(8 keyframes), the keyframe being grouped and the poses (128 bytes a frame). RSS is "
+        "sampled every 5 ms."
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
+    parser.add_argument(
+        "what", choices=["engines", "sections", "parallel", "memory", "all", "memory-child"]
+    )
+    parser.add_argument("--travel-m", type=float, default=4.5, help="length of the paper scan")
+    parser.add_argument("--frames", type=int, nargs="+", default=[100, 400], help="memory runs")
+    parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--no-kiss", action="store_true", help="leave kiss-icp out")
+    args = parser.parse_args()
+    if args.what == "memory-child":
+        _memory_child(args.frames[0])
+        return
+    steps = {
+        "engines": bench_engines,
+        "sections": bench_sections,
+        "parallel": bench_parallel,
+        "memory": bench_memory,
+    }
+    for name, step in steps.items():
+        if args.what in (name, "all"):
+            print(f"\n## {name}\n", flush=True)
+            step(args)
+
+
+if __name__ == "__main__":
+    main()
