@@ -8,7 +8,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Literal
 
-from pydantic import Field
+from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -26,16 +26,44 @@ class Settings(BaseSettings):
     )
     reports_dir: Path = Field(Path("reports"), description="where reports are written by default")
     contour_method: Literal["polar", "grid"] = "polar"
-    registration_method: Literal["point_to_plane", "point_to_point"] = "point_to_plane"
+    registration_method: Literal["gicp", "point_to_plane", "point_to_point"] = Field(
+        "gicp", description="gicp (default), point_to_plane, or the paper's point_to_point"
+    )
+    registration_engine: Literal["small_gicp", "open3d", "open3d_tensor"] = Field(
+        "small_gicp", description="the library that runs the ICP (docs/registration.md)"
+    )
     step_m: float = Field(0.1, gt=0, description="section length along the chainage")
     window_m: float = Field(2.0, gt=0, description="chainage window processed per task")
     chunk_frames: int = Field(60, ge=2, description="frames registered per task")
     workers: int = Field(2, ge=1, description="parallel task workers")
     task_runner: Literal["threads", "processes"] = "threads"
     threshold_table: str = "vsa-2023"
-    pipe_class: Literal["rigid", "flexible"] = "rigid"
+    pipe_class: Literal["auto", "rigid", "flexible"] = Field(
+        "auto", description="BAA deformation rule: from the archive's material, or set for a run"
+    )
     blockage_threshold_ratio: float = Field(0.10, ge=0, le=1)
     flag_grade: int = Field(2, ge=0, le=4)
+    dask_address: str | None = Field(
+        None, description="Dask scheduler (tcp://host:8786) that runs the tasks; none: local pool"
+    )
+    network_concurrency: int = Field(
+        2, ge=1, description="archives a network run processes at the same time"
+    )
+    # --- report delivery (docs/reports.md) ---
+    reports_location: str | None = Field(
+        None,
+        description="where delivered reports are written: a directory or an fsspec URL "
+        "(s3://bucket/reports); default: reports_dir",
+    )
+    recipients_file: Path | None = Field(
+        None, description="TOML file: asset id or glob pattern -> addresses, and network = [...]"
+    )
+    smtp_host: str | None = Field(None, description="SMTP server; unset disables e-mail")
+    smtp_port: int = Field(25, ge=1, le=65535)
+    smtp_sender: str = Field("pipescan@localhost", description="From: address of report e-mails")
+    smtp_username: str | None = None
+    smtp_password: SecretStr | None = None
+    smtp_security: Literal["none", "starttls", "ssl"] = "none"
 
 
 def get_settings() -> Settings:

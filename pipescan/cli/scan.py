@@ -52,7 +52,9 @@ def _inspection_params(contour: str | None, registration: str | None):
 
     s = _settings()
     return InspectionParams(
-        registration=RegistrationParams(method=registration or s.registration_method),
+        registration=RegistrationParams(
+            method=registration or s.registration_method, engine=s.registration_engine
+        ),
         measure=MeasureParams(method=contour or s.contour_method),
         step_m=s.step_m,
         window_m=s.window_m,
@@ -101,9 +103,12 @@ def _print_summary(summary) -> None:
     if reg.get("frames"):
         typer.echo(
             f"  registration: {reg['engine']}, mean fitness {reg['mean_fitness']:.2f}, "
-            f"RMSE {1000 * reg['mean_rmse_m']:.1f} mm; {reg['degenerate_frames']} frames had "
-            "a direction the geometry could not fix, held to the prior (odometer, attitude)"
+            f"RMSE {1000 * reg['mean_rmse_m']:.1f} mm; along the axis, "
+            f"{reg['degenerate_frames']} of {reg['frames']} frames held to the "
+            f"{reg.get('along_axis_prior', 'odometer').replace('_', ' ')} (smooth pipe)"
         )
+        if reg.get("warning"):
+            typer.secho(f"  warning: {reg['warning']}", fg=typer.colors.YELLOW)
     if summary.report_path:
         typer.echo(f"  report: {summary.report_path}")
     typer.echo(f"  done in {summary.wall_time_s:.1f} s")
@@ -119,7 +124,8 @@ def inspect(
     ] = False,
     contour: Annotated[str | None, typer.Option(help="Contour method: polar or grid.")] = None,
     registration: Annotated[
-        str | None, typer.Option(help="point_to_plane or point_to_point (the paper's).")
+        str | None,
+        typer.Option(help="gicp (default), point_to_plane, or the paper's point_to_point."),
     ] = None,
 ) -> None:
     """Process one scan archive: register, measure, grade, store (and report)."""

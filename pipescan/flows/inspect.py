@@ -15,7 +15,12 @@ from prefect import flow
 
 import pipescan
 from pipescan.core.measures import MeasureParams
-from pipescan.core.registration import RegistrationParams, chain_trajectories, plan_chunks
+from pipescan.core.registration import (
+    RegistrationParams,
+    chain_trajectories,
+    plan_chunks,
+    registration_summary,
+)
 from pipescan.core.sections import plan_windows
 from pipescan.storage.workspace import remove_workspace
 from pipescan.tasks.inspection import (
@@ -42,7 +47,7 @@ class InspectionParams:
     chunk_frames: int = 60
     max_section_range_m: float = 5.0
     threshold_table: str = "vsa-2023"
-    pipe_class: str = "rigid"
+    pipe_class: str = "auto"
     blockage_threshold_ratio: float = 0.10
     flag_grade: int = 2
 
@@ -75,21 +80,6 @@ class InspectionSummary:
     registration: dict
     report_path: str | None
     wall_time_s: float
-
-
-def _registration_summary(trajectory, params: RegistrationParams) -> dict:
-    if trajectory is None:
-        return {"engine": "none (registered cloud)", "frames": 0}
-    q = trajectory.quality[1:] or trajectory.quality
-    return {
-        "engine": f"open3d {params.method}"
-        if params.method == "point_to_plane"
-        else "paper point_to_point (Kabsch)",
-        "frames": len(trajectory.quality),
-        "mean_fitness": sum(x.fitness for x in q) / len(q),
-        "mean_rmse_m": sum(x.rmse_m for x in q) / len(q),
-        "degenerate_frames": sum(x.degenerate for x in q),
-    }
 
 
 @flow(name="inspect-archive")
@@ -157,14 +147,20 @@ def inspect_archive(
             for w in windows
         ]
         sections = [s for f in window_futures for s in f.result()]
-        graded, defects = grade(
+        grading = grade(
             sections,
             params.threshold_table,
+            material=meta.material,
             pipe_class=params.pipe_class,
             blockage_threshold_ratio=params.blockage_threshold_ratio,
             flag_grade=params.flag_grade,
         )
-        registration = _registration_summary(trajectory, params.registration)
+        graded, defects = grading.sections, grading.defects
+        registration = (
+            registration_summary(trajectory, params.registration)
+            if trajectory is not None
+            else {"engine": "none (registered cloud)", "frames": 0}
+        )
         ok = [s for s in graded if s.is_ok]
         scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
         inspection_id = save_results(
@@ -172,7 +168,9 @@ def inspect_archive(
             meta=meta,
             archive_uri=str(archive),
             content_hash=staged.content_hash,
-            params=params.figure_params(),
+            # The resolved pipe class, not "auto", is what graded these figures.
+            params=params.figure_params()
+            | {"pipe_class": grading.pipe_class, "pipe_class_reason": grading.pipe_class_reason},
             software_version=pipescan.__version__,
             sections=graded,
             defects=defects,

@@ -14,7 +14,7 @@ import numpy as np
 from prefect import task
 
 from pipescan.core.axis import PipeAxis, fit_axis
-from pipescan.core.grading import grade_sections, load_table, merge_defects
+from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
 from pipescan.core.registration import (
@@ -62,14 +62,24 @@ def _odometer(meta: InspectionMeta, i: int) -> float | None:
 def register_chunk(
     staged: StagedArchive, first: int, last: int, params: RegistrationParams
 ) -> Trajectory:
-    """Register frames ``first..last`` (inclusive) relative to frame ``first``."""
+    """Register frames ``first..last`` (inclusive) relative to frame ``first``.
+
+    Frames stream from the archive one at a time; only the local map stays in memory.
+    """
     with open_archive(staged.root) as arc:
         frames = (
             (i, pts, _odometer(staged.meta, i))
             for i, pts in arc.iter_frames(range(first, last + 1))
         )
         trajectory = register_frames(frames, params)
-    log.info("registered frames %d-%d of %d", first, last, staged.frame_count)
+    held = sum(q.degenerate for q in trajectory.quality)
+    log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
+    if held and trajectory.along_axis_prior != "odometer":
+        log.warning(
+            "frames %d-%d: %d frame(s) without odometer and without geometry along the axis; "
+            "their chainage is extrapolated, not measured",
+            first, last, held,
+        )  # fmt: skip
     return trajectory
 
 
@@ -154,23 +164,37 @@ def measure_sections(
     return sections
 
 
+@dataclass(frozen=True)
+class GradeResult:
+    """Graded sections, their defects, and which table and pipe class graded them, and why."""
+
+    sections: list[SectionMeasures]
+    defects: list[Defect]
+    table: str
+    pipe_class: str
+    pipe_class_reason: str
+
+
 @task(name="grade")
 def grade(
     sections: list[SectionMeasures],
     table_name: str,
     *,
+    material: str | None,
     pipe_class: str,
     blockage_threshold_ratio: float,
     flag_grade: int,
-) -> tuple[list[SectionMeasures], list[Defect]]:
-    """Grade sections under a threshold table and merge flagged ones into defects."""
-    table = load_table(table_name)
-    graded = grade_sections(sections, table, pipe_class=pipe_class)
+) -> GradeResult:
+    """Grade sections and merge flagged ones into defects. ``pipe_class="auto"`` takes the pipe
+    class (rigid or flexible: the BAA deformation rule) from the archive's material."""
+    choice = choose_grading(material, pipe_class=pipe_class, table=table_name)
+    table = load_table(choice.table)
+    graded = grade_sections(sections, table, pipe_class=choice.pipe_class)
     defects = merge_defects(
         graded,
         table,
         blockage_threshold_ratio=blockage_threshold_ratio,
         flag_grade=flag_grade,
-        pipe_class=pipe_class,
+        pipe_class=choice.pipe_class,
     )
-    return graded, defects
+    return GradeResult(graded, defects, choice.table, choice.pipe_class, choice.reason)
