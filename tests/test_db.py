@@ -1,17 +1,17 @@
 """The database: migrations, engine setup, and the repository's save/get round trips.
 
-Every test uses a fresh SQLite file under tmp_path, migrated by ``connect``.
+Tests that take ``db_url`` or ``engine`` (tests/conftest.py) run twice: on a new SQLite file
+and on a new database of a real PostgreSQL server. Tests of SQLite's own set-up (WAL, busy
+timeout, migrate on first use, file locking across processes) take ``sqlite_url``.
 """
 
 from __future__ import annotations
 
 import math
 import multiprocessing
-import os
 import sqlite3
 import threading
 import time
-from collections.abc import Iterator
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta, timezone
 from pathlib import Path
@@ -26,6 +26,7 @@ from alembic.script import ScriptDirectory
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage import db, repository
 from pipescan.storage.models import Base
+from tests.conftest import is_sqlite
 
 TABLES = {"assets", "inspections", "sections", "defects", "frame_quality"}
 NOMINAL_DIAMETER_M = 0.6
@@ -140,14 +141,20 @@ def count_rows(engine: sa.Engine, table: str) -> int:
         return connection.exec_driver_sql(f"SELECT count(*) FROM {table}").scalar_one()
 
 
-@pytest.fixture
-def db_url(tmp_path: Path) -> str:
-    return f"sqlite:///{tmp_path / 'pipescan.db'}"
+def summary_columns(engine: sa.Engine) -> list[tuple[object, ...]]:
+    with engine.connect() as connection:
+        return [
+            tuple(row)
+            for row in connection.exec_driver_sql(
+                "SELECT id, measured_section_count, mean_blockage_ratio, peak_blockage_ratio,"
+                " peak_chainage_start_mm FROM inspections ORDER BY id"
+            )
+        ]
 
 
 @pytest.fixture
-def engine(db_url: str):
-    engine = db.connect(db_url)
+def sqlite_engine(sqlite_url: str):
+    engine = db.connect(sqlite_url)
     yield engine
     engine.dispose()
 
@@ -161,8 +168,14 @@ def test_one_head_in_a_date_prefixed_file() -> None:
     assert len(scripts.get_heads()) == 1
     assert scripts.get_heads()[0] == db.head_revision()
     files = sorted(p.name for p in (db.MIGRATIONS_DIR / "versions").glob("2*.py"))
-    assert files == ["2026_11_23_0001_initial_schema.py"]
+    assert files == [
+        "2026_11_23_0001_initial_schema.py",
+        "2026_11_23_1620_inspection_blockage_summary.py",
+    ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
+    # One line of revisions, oldest file first.
+    chain = [r.revision for r in scripts.walk_revisions()][::-1]
+    assert [scripts.get_revision(r).path.rsplit("/", 1)[-1] for r in chain] == files
 
 
 def test_migration_matches_models(engine: sa.Engine) -> None:
@@ -196,15 +209,35 @@ def test_connect_migrates_a_new_file_and_creates_its_folder(tmp_path: Path) -> N
         engine.dispose()
 
 
-def test_connect_migrates_an_outdated_sqlite_file(db_url: str) -> None:
-    engine = db.create_engine_for(db_url)
+def test_connect_migrates_an_outdated_sqlite_file(sqlite_url: str) -> None:
+    engine = db.create_engine_for(sqlite_url)
     db.upgrade(engine)
     db.downgrade(engine, "base")
     assert db.current_revision(engine) is None
     engine.dispose()
-    engine = db.connect(db_url)
+    engine = db.connect(sqlite_url)
     assert db.current_revision(engine) == db.head_revision()
     engine.dispose()
+
+
+def test_connect_on_an_outdated_database(db_url: str) -> None:
+    # At the first revision: SQLite is brought to head on first use, PostgreSQL is left to
+    # the operator and refused until then.
+    first = ScriptDirectory.from_config(db.alembic_config()).get_base()
+    assert first is not None and first != db.head_revision()
+    db.upgrade(db_url, first)
+    if is_sqlite(db_url):
+        engine = db.connect(db_url)
+        assert db.current_revision(engine) == db.head_revision()
+        engine.dispose()
+        return
+    with pytest.raises(db.StorageError, match=rf"{first}.*pipescan db upgrade"):
+        db.connect(db_url)
+    engine = db.create_engine_for(db_url)
+    try:
+        assert db.current_revision(engine) == first  # nothing was migrated
+    finally:
+        engine.dispose()
 
 
 def test_connect_refuses_a_revision_it_does_not_know(engine: sa.Engine, db_url: str) -> None:
@@ -214,15 +247,19 @@ def test_connect_refuses_a_revision_it_does_not_know(engine: sa.Engine, db_url: 
         db.connect(db_url)
 
 
-def test_connect_refuses_an_outdated_non_sqlite_database(
-    engine: sa.Engine, monkeypatch: pytest.MonkeyPatch
-) -> None:
-    # Stand in for PostgreSQL: same check, but the dialect is not SQLite.
-    db.downgrade(engine, "base")
-    monkeypatch.setattr(engine.dialect, "name", "postgresql")
-    with pytest.raises(db.StorageError, match=r"none.*pipescan db upgrade"):
-        db._ensure_at_head(engine)
-    assert db.current_revision(engine) is None  # nothing was migrated
+def test_connect_refuses_an_empty_postgres_database(postgres_url: str) -> None:
+    with pytest.raises(db.StorageError, match=r"none \(empty database\).*pipescan db upgrade"):
+        db.connect(postgres_url)
+    db.upgrade(postgres_url)
+    db.connect(postgres_url).dispose()
+
+
+def test_unreachable_server_is_a_storage_error() -> None:
+    from tests.pg_cluster import free_port
+
+    url = f"postgresql+psycopg://nobody@127.0.0.1:{free_port()}/nothing?connect_timeout=2"
+    with pytest.raises(db.StorageError, match=r"(?s)cannot open database.*server is running"):
+        db.connect(url)
 
 
 def test_upgrade_downgrade_upgrade_with_data(engine: sa.Engine) -> None:
@@ -240,9 +277,42 @@ def test_upgrade_downgrade_upgrade_with_data(engine: sa.Engine) -> None:
     assert repository.get_sections(engine, second) == make_sections()
     # Ids are never reused: the sqlite_sequence restarts only with the table.
     assert second >= first
-    # Foreign keys are back on after the migration switched them off.
-    with engine.connect() as connection:
-        assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar_one() == 1
+    if engine.dialect.name == "sqlite":
+        # Foreign keys are back on after the migration switched them off.
+        with engine.connect() as connection:
+            assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar_one() == 1
+
+
+def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
+    # Down one step and up again: the summary columns are dropped, then filled in from the
+    # sections by the migration, to exactly what save_inspection wrote.
+    measured = save(engine)
+    unmeasured = save(
+        engine, content_hash="sha256:none", sections=[make_sections()[-1]], defects=[]
+    )
+    written = summary_columns(engine)
+    assert written[0][:2] == (measured, 4)
+    assert written[1] == (unmeasured, 0, None, None, None)
+    # Peak: the first section, the one with the smallest contour (radius 0.3 - 0.01 * 3).
+    assert written[0][3] == pytest.approx(1 - (0.27 / 0.3) ** 2)
+    assert written[0][4] == 300
+
+    db.downgrade(engine, "-1")
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
+    assert "peak_blockage_ratio" not in columns
+    assert count_rows(engine, "sections") == 6
+    db.upgrade(engine)
+    migrated = summary_columns(engine)
+    assert [r[:2] for r in migrated] == [r[:2] for r in written]
+    assert migrated[0][2] == pytest.approx(written[0][2], rel=1e-12)
+    assert migrated[0][3:] == written[0][3:]
+    assert migrated[1] == written[1]
+    # SQLite's AUTOINCREMENT survived the table copy: replacing the newest inspection does
+    # not hand its id to the replacement.
+    replacement = save(
+        engine, content_hash="sha256:none", sections=[make_sections()[-1]], defects=[]
+    )
+    assert replacement > unmeasured
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:
@@ -255,14 +325,14 @@ def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:
 # Engine setup
 
 
-def test_sqlite_pragmas(engine: sa.Engine, db_url: str) -> None:
-    with engine.connect() as connection:
+def test_sqlite_pragmas(sqlite_engine: sa.Engine, sqlite_url: str) -> None:
+    with sqlite_engine.connect() as connection:
         assert connection.exec_driver_sql("PRAGMA journal_mode").scalar_one() == "wal"
         assert connection.exec_driver_sql("PRAGMA foreign_keys").scalar_one() == 1
         busy_ms = connection.exec_driver_sql("PRAGMA busy_timeout").scalar_one()
         assert busy_ms == db.SQLITE_BUSY_TIMEOUT_S * 1000
     # WAL is a property of the file: a plain sqlite3 connection sees it too.
-    raw = sqlite3.connect(db_url.removeprefix("sqlite:///"))
+    raw = sqlite3.connect(sqlite_url.removeprefix("sqlite:///"))
     try:
         assert raw.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
     finally:
@@ -434,6 +504,80 @@ def test_a_section_the_database_refuses_leaves_the_previous_save(
     assert repository.get_sections(engine, first) == make_sections()
 
 
+def item(**changes: object) -> repository.InspectionToSave:
+    arguments: dict[str, object] = {
+        "meta": make_meta(),
+        "archive_uri": "/scans/run1.zip",
+        "content_hash": "sha256:aaaa",
+        "params": PARAMS,
+        "software_version": "0.1.0",
+        "sections": make_sections(),
+        "defects": DEFECTS,
+        "frame_quality": FRAME_QUALITY,
+    }
+    arguments.update(changes)
+    return repository.InspectionToSave(**arguments)  # type: ignore[arg-type]
+
+
+def test_save_inspections_in_one_transaction(engine: sa.Engine) -> None:
+    replaced = save(engine, content_hash="sha256:b")
+    batch = [
+        item(content_hash="sha256:a", sections=make_sections(3)),
+        item(meta=make_meta("OTHER", material=None), content_hash="sha256:o"),
+        item(content_hash="sha256:b", sections=make_sections(2), defects=[]),  # replaces
+        item(meta=make_meta("OTHER", material="PVC", upstream_node=None), content_hash="x"),
+    ]
+    ids = repository.save_inspections(engine, batch)
+    assert len(set(ids)) == 4
+    assert replaced not in ids
+    # Each id holds its own item's rows.
+    for inspection_id, it in zip(ids, batch, strict=True):
+        record = repository.get_inspection(engine, inspection_id)
+        assert (record.asset_id, record.content_hash) == (it.meta.asset_id, it.content_hash)
+        assert repository.get_sections(engine, inspection_id) == list(it.sections)
+        assert len(repository.get_defects(engine, inspection_id)) == len(it.defects)
+        assert record.measured_section_count == sum(
+            1 for x in it.sections if x.status is SectionStatus.OK
+        )
+    assert count_rows(engine, "inspections") == 4
+    assert count_rows(engine, "sections") == 3 + 5 + 2 + 5
+    # Asset attributes merge in order, as consecutive saves would.
+    other = {a.asset_id: a for a in repository.list_assets(engine)}["OTHER"]
+    assert (other.upstream_node, other.material) == ("MH1042", "PVC")
+    assert repository.save_inspections(engine, []) == []
+
+
+def test_a_repeated_item_in_a_batch_is_saved_once(engine: sa.Engine) -> None:
+    ids = repository.save_inspections(
+        engine, [item(sections=make_sections(2)), item(sections=make_sections(4))]
+    )
+    assert ids[0] == ids[1]  # the later replaced the earlier
+    assert repository.get_sections(engine, ids[0]) == make_sections(4)
+    assert count_rows(engine, "inspections") == 1
+
+
+def test_a_failing_batch_writes_nothing(engine: sa.Engine, monkeypatch: pytest.MonkeyPatch) -> None:
+    first = save(engine)
+    # Validation: the bad item is found before anything is written.
+    bad = item(content_hash="new", sections=[replace(make_sections(1)[0], coverage_ratio=2.0)])
+    with pytest.raises(db.StorageError, match="coverage_ratio"):
+        repository.save_inspections(engine, [item(content_hash="sha256:c"), bad])
+    # The database: a CHECK fails in the middle of the batch.
+    original = repository._section_row
+
+    def bad_coverage(section: SectionMeasures) -> dict[str, object]:
+        row = original(section)
+        return {**row, "coverage_ratio": 1.5} if row["chainage_start_mm"] == 300 else row
+
+    monkeypatch.setattr(repository, "_section_row", bad_coverage)
+    with pytest.raises(db.StorageError, match="coverage_range"):
+        repository.save_inspections(
+            engine, [item(content_hash="sha256:d", sections=make_sections(2)), item()]
+        )
+    assert [r.id for r in repository.list_inspections(engine)] == [first]
+    assert count_rows(engine, "sections") == 5
+
+
 @pytest.mark.parametrize(
     ("sections", "match"),
     [
@@ -536,9 +680,12 @@ def test_missing_inspection_is_named(engine: sa.Engine) -> None:
 # Concurrency
 
 
-def test_a_writer_waits_for_the_lock_instead_of_failing(engine: sa.Engine, db_url: str) -> None:
+def test_a_writer_waits_for_the_lock_instead_of_failing(
+    sqlite_engine: sa.Engine, sqlite_url: str
+) -> None:
+    engine = sqlite_engine
     # Another process holds the write lock for 0.5 s.
-    blocker = sqlite3.connect(db_url.removeprefix("sqlite:///"), isolation_level=None)
+    blocker = sqlite3.connect(sqlite_url.removeprefix("sqlite:///"), isolation_level=None)
     blocker.execute("BEGIN IMMEDIATE")
     outcome: dict[str, object] = {}
 
@@ -579,8 +726,10 @@ def _save_many(url: str, worker: int, count: int) -> list[int]:
 
 
 def test_concurrent_writers_in_threads(db_url: str) -> None:
-    # Separate engines, so separate SQLite connections, as in separate workers; the first
+    # Separate engines, so separate connections, as in separate workers; on SQLite the first
     # connects race to create and migrate the file too.
+    if not is_sqlite(db_url):
+        db.upgrade(db_url)
     results: dict[int, list[int]] = {}
     errors: list[BaseException] = []
 
@@ -604,11 +753,11 @@ def test_concurrent_writers_in_threads(db_url: str) -> None:
     engine.dispose()
 
 
-def test_concurrent_writers_in_processes(db_url: str) -> None:
+def test_concurrent_writers_in_processes(sqlite_url: str) -> None:
     context = multiprocessing.get_context("spawn")
     with context.Pool(2) as pool:
-        results = pool.starmap(_save_many, [(db_url, 0, 5), (db_url, 1, 5)])
-    engine = db.connect(db_url)
+        results = pool.starmap(_save_many, [(sqlite_url, 0, 5), (sqlite_url, 1, 5)])
+    engine = db.connect(sqlite_url)
     assert len({i for ids in results for i in ids}) == 10
     assert count_rows(engine, "inspections") == 10
     assert {a.asset_id: a.inspection_count for a in repository.list_assets(engine)} == {
@@ -618,60 +767,13 @@ def test_concurrent_writers_in_processes(db_url: str) -> None:
     engine.dispose()
 
 
-# ---------------------------------------------------------------------------------------------
-# PostgreSQL (a real server; skipped unless PIPESCAN_TEST_POSTGRES_URL names a database whose
-# pipescan tables these tests may drop, e.g.
-# postgresql+psycopg://postgres@/pipescan_test?host=/tmp/pg&port=5432)
-
-
-@pytest.fixture
-def pg_url() -> Iterator[str]:
-    url = os.environ.get("PIPESCAN_TEST_POSTGRES_URL")
-    if not url:
-        pytest.skip("PIPESCAN_TEST_POSTGRES_URL is not set")
-    pytest.importorskip("psycopg")
-    db.downgrade(url, "base")
-    yield url
-    db.downgrade(url, "base")
-
-
-def test_postgres_needs_an_explicit_upgrade(pg_url: str) -> None:
-    with pytest.raises(db.StorageError, match="pipescan db upgrade"):
-        db.connect(pg_url)
-    db.upgrade(pg_url)
-    engine = db.connect(pg_url)
-    try:
-        with engine.connect() as connection:
-            context = MigrationContext.configure(connection, opts={"compare_type": True})
-            assert compare_metadata(context, Base.metadata) == []
-    finally:
-        engine.dispose()
-
-
-def test_postgres_round_trip_replace_and_export(pg_url: str) -> None:
-    db.upgrade(pg_url)
-    engine = db.connect(pg_url)
-    try:
-        first = save(engine)
-        second = save(engine)  # same archive and params: replaces
-        assert [r.id for r in repository.list_inspections(engine)] == [second] != [first]
-        record = repository.get_inspection(engine, second)
-        assert record.inspected_at == datetime(2026, 3, 4, 7, 30, tzinfo=UTC)
-        assert record.params == PARAMS
-        assert repository.get_sections(engine, second) == make_sections()
-        assert repository.get_defects(engine, second) == [DEFECTS[1], DEFECTS[0]]
-        assert repository.get_frame_quality(engine, second) == FRAME_QUALITY
-        assert repository.list_assets(engine)[0].last_inspected_at == record.inspected_at
-    finally:
-        engine.dispose()
-
-
-def test_postgres_concurrent_writers_of_one_asset(pg_url: str) -> None:
-    db.upgrade(pg_url)
+def test_concurrent_writers_of_one_asset(db_url: str) -> None:
+    if not is_sqlite(db_url):
+        db.upgrade(db_url)
     errors: list[BaseException] = []
 
     def run(worker: int) -> None:
-        engine = db.connect(pg_url)
+        engine = db.connect(db_url)
         try:
             for i in range(5):
                 # Every worker saves the same new asset, and the same archive twice over.
@@ -687,10 +789,44 @@ def test_postgres_concurrent_writers_of_one_asset(pg_url: str) -> None:
     for thread in threads:
         thread.join(timeout=60)
     assert errors == []
-    engine = db.connect(pg_url)
+    engine = db.connect(db_url)
     try:
         assert count_rows(engine, "assets") == 1
         assert count_rows(engine, "inspections") == 5
         assert count_rows(engine, "sections") == 5 * 20
+    finally:
+        engine.dispose()
+
+
+# ---------------------------------------------------------------------------------------------
+# PostgreSQL specifics
+
+
+def test_postgres_sections_are_copied_and_typed(
+    postgres_url: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    db.upgrade(postgres_url)
+    engine = db.connect(postgres_url)
+    calls: list[int] = []
+    original = repository._copy_sections
+
+    def counting(connection: sa.Connection, owned: list) -> None:
+        calls.append(sum(len(rows) for _, rows in owned))
+        original(connection, owned)
+
+    monkeypatch.setattr(repository, "_copy_sections", counting)
+    try:
+        inspection_id = save(engine)
+        assert calls == [5]  # the bulk path, not row-by-row INSERTs
+        assert repository.get_sections(engine, inspection_id) == make_sections()
+        with engine.connect() as connection:
+            types = dict(
+                connection.exec_driver_sql(
+                    "SELECT column_name, data_type FROM information_schema.columns "
+                    "WHERE table_name = 'inspections' AND table_schema = current_schema()"
+                ).all()
+            )
+        assert types["inspected_at"] == "timestamp with time zone"
+        assert types["params_json"] == "json"
     finally:
         engine.dispose()

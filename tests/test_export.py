@@ -1,4 +1,5 @@
-"""CSV and JSON Lines exports of stored sections and defects."""
+"""CSV and JSON Lines exports of stored sections and defects, on SQLite and PostgreSQL
+(the ``engine`` fixture of tests/conftest.py)."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ import json
 import math
 import sqlite3
 from datetime import UTC, datetime
-from pathlib import Path
 from typing import Any, ClassVar
 
 import pytest
@@ -74,21 +74,18 @@ def _save(engine: sa.Engine, asset_id: str, year: int, content_hash: str) -> int
     )
 
 
-@pytest.fixture
-def engine(tmp_path: Path):
-    engine = db.connect(f"sqlite:///{tmp_path / 'pipescan.db'}")
-    yield engine
-    engine.dispose()
-
-
-@pytest.fixture
-def ids(engine: sa.Engine) -> dict[str, int]:
+def _save_three(engine: sa.Engine) -> dict[str, int]:
     # Saved out of order, to check the export's ordering.
     return {
         "B-2025": _save(engine, "B", 2025, "h3"),
         "A-2025": _save(engine, "A", 2025, "h2"),
         "A-2024": _save(engine, "A", 2024, "h1"),
     }
+
+
+@pytest.fixture
+def ids(engine: sa.Engine) -> dict[str, int]:
+    return _save_three(engine)
 
 
 def test_section_columns_are_the_design_names() -> None:
@@ -194,6 +191,43 @@ def test_sections_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
     assert unmeasured["status"] == "low_coverage"
 
 
+def test_defects_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
+    out = io.StringIO()
+    assert export.export_defects_jsonl(engine, out, asset_id="A") == 2
+    first, second = (json.loads(line) for line in out.getvalue().splitlines())
+    assert tuple(first) == export.DEFECT_CSV_COLUMNS
+    assert (first["inspection_id"], second["inspection_id"]) == (ids["A-2024"], ids["A-2025"])
+    assert first == {
+        "asset_id": "A",
+        "inspection_id": ids["A-2024"],
+        "inspected_at": "2024-05-17T09:30:00+00:00",
+        "code": "BBC",
+        "measure": "deposit_height_ratio",
+        "chainage_start_m": 12.3,
+        "chainage_end_m": 12.4,
+        "peak_chainage_m": 12.3,
+        "peak_value": 0.1,
+        "peak_blockage_ratio": None,  # unknown, not 0
+        "grade": 3,
+    }
+
+
+def test_cli_export_to_files(engine: sa.Engine, db_url: str, ids: dict[str, int], tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from pipescan.cli import app
+
+    for what, fmt, rows in (("sections", "csv", 6), ("defects", "jsonl", 3)):
+        target = tmp_path / f"{what}.{fmt}"
+        result = CliRunner().invoke(
+            app, ["export", what, "--format", fmt, "-o", str(target), "--db", db_url]
+        )
+        assert result.exit_code == 0, result.output
+        lines = target.read_text().splitlines()
+        assert len(lines) == rows + (fmt == "csv")
+        assert f"wrote {rows} rows to {target}" in result.output
+
+
 class _CountingCursor(sqlite3.Cursor):
     fetch_sizes: ClassVar[list[int]] = []
     fetchall_calls: ClassVar[int] = 0
@@ -213,14 +247,13 @@ class _CountingConnection(sqlite3.Connection):
         return super().cursor(factory)
 
 
-def test_export_streams_in_batches(
-    tmp_path: Path, ids: dict[str, int], monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_export_streams_in_batches(sqlite_url: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    engine = db.connect(sqlite_url)
+    _save_three(engine)
+    engine.dispose()
     # An engine whose driver cursors count what is fetched: with batches of 2 rows, the 6
     # rows arrive in several fetches of at most 2, never in one fetchall.
-    counting = sa.create_engine(
-        f"sqlite:///{tmp_path / 'pipescan.db'}", connect_args={"factory": _CountingConnection}
-    )
+    counting = sa.create_engine(sqlite_url, connect_args={"factory": _CountingConnection})
     monkeypatch.setattr(export, "_BATCH_ROWS", 2)
     _CountingCursor.fetch_sizes.clear()
     _CountingCursor.fetchall_calls = 0

@@ -35,15 +35,19 @@ def export_sections(
 def export_defects(
     asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
     inspection: Annotated[int | None, typer.Option(help="Only this inspection id.")] = None,
+    fmt: Annotated[
+        ExportFormat, typer.Option("--format", help="Output format.")
+    ] = ExportFormat.csv,
     output: Annotated[
         Path | None, typer.Option("-o", "--output", help="File (default stdout).")
     ] = None,
     db: DbOption = None,
 ) -> None:
-    """One row per merged defect (CSV)."""
+    """One row per merged defect."""
     from pipescan.storage import export
 
-    _export(export.export_defects_csv, asset, inspection, output, db)
+    fn = export.export_defects_csv if fmt == ExportFormat.csv else export.export_defects_jsonl
+    _export(fn, asset, inspection, output, db)
 
 
 def _export(fn, asset, inspection, output, db) -> None:
@@ -69,7 +73,15 @@ def assets(db: DbOption = None) -> None:
     from pipescan.storage.db import connect
     from pipescan.storage.repository import list_assets
 
-    rows = list_assets(connect(_db_url(db)))
+    try:
+        engine = connect(_db_url(db))
+        try:
+            rows = list_assets(engine)
+        finally:
+            engine.dispose()
+    except PipescanError as exc:
+        _fail(exc)
+        return
     if not rows:
         typer.echo("no assets yet: run `pipescan inspect ARCHIVE` first")
     for a in rows:
@@ -77,7 +89,8 @@ def assets(db: DbOption = None) -> None:
         size = f"DN {1000 * a.nominal_diameter_m:.0f}" if a.nominal_diameter_m else "DN ?"
         typer.echo(
             f"{a.asset_id:24} {a.upstream_node or '-':>10} -> {a.downstream_node or '-':10} "
-            f"{size:8} {a.inspection_count} inspections, last {last}"
+            f"{size:8} {a.pipe_shape:10} {a.material or '-':10} "
+            f"{a.inspection_count} inspections, last {last}"
         )
 
 
@@ -86,24 +99,71 @@ def inspections(
     asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
     db: DbOption = None,
 ) -> None:
-    """List stored inspections."""
+    """List stored inspections, with their measured sections and blockage."""
     from pipescan.storage.db import connect
     from pipescan.storage.repository import list_inspections
 
-    rows = list_inspections(connect(_db_url(db)), asset_id=asset)
+    try:
+        engine = connect(_db_url(db))
+        try:
+            rows = list_inspections(engine, asset_id=asset)
+        finally:
+            engine.dispose()
+    except PipescanError as exc:
+        _fail(exc)
+        return
     if not rows:
         typer.echo("no inspections yet")
     for r in rows:
+        peak = "-" if r.peak_blockage_ratio is None else f"{100 * r.peak_blockage_ratio:.1f} %"
         typer.echo(
             f"{r.id:6}  {r.asset_id:24} {r.inspected_at.isoformat():26} "
-            f"{r.section_count:5} sections  {r.status:10} {r.archive_uri}"
+            f"{r.measured_section_count:5}/{r.section_count:<5} measured  peak {peak:>7}  "
+            f"{r.status:10} {r.archive_uri}"
         )
 
 
 @db_app.command("upgrade")
-def db_upgrade(db: DbOption = None, revision: str = "head") -> None:
+def db_upgrade(
+    db: DbOption = None,
+    revision: Annotated[
+        str, typer.Option(help="Target revision: head, a revision id, or a step such as +1.")
+    ] = "head",
+) -> None:
     """Migrate the database schema (SQLite files are migrated automatically on first use)."""
-    from pipescan.storage.db import upgrade
+    from pipescan.storage.db import create_engine_for, current_revision, upgrade
 
-    upgrade(_db_url(db), revision)
-    typer.echo(f"database at {revision}")
+    try:
+        engine = create_engine_for(_db_url(db))
+        try:
+            before = current_revision(engine)
+            upgrade(engine, revision)
+            after = current_revision(engine)
+        finally:
+            engine.dispose()
+    except PipescanError as exc:
+        _fail(exc)
+        return
+    if before == after:
+        typer.echo(f"database already at revision {after}")
+    else:
+        typer.echo(f"database migrated from {before or 'empty'} to revision {after}")
+
+
+@db_app.command("current")
+def db_current(db: DbOption = None) -> None:
+    """Show the database's schema revision and the newest one this pipescan knows."""
+    from pipescan.storage.db import create_engine_for, current_revision, head_revision
+
+    try:
+        engine = create_engine_for(_db_url(db))
+        try:
+            current = current_revision(engine)
+        finally:
+            engine.dispose()
+    except PipescanError as exc:
+        _fail(exc)
+        return
+    head = head_revision()
+    state = "up to date" if current == head else "run `pipescan db upgrade`"
+    typer.echo(f"revision {current or 'none (empty database)'}; newest {head}: {state}")

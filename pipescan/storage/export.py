@@ -23,6 +23,7 @@ __all__ = [
     "DEFECT_CSV_COLUMNS",
     "SECTION_CSV_COLUMNS",
     "export_defects_csv",
+    "export_defects_jsonl",
     "export_sections_csv",
     "export_sections_jsonl",
 ]
@@ -284,6 +285,36 @@ def export_sections_jsonl(
         obj["inspected_at"] = record["inspected_at"].isoformat()
         for name in _MEASURE_COLUMNS:
             obj[name] = _json_number(record[name])
+        out.write(json.dumps(obj, ensure_ascii=False, allow_nan=False))
+        out.write("\n")
+        count += 1
+    return count
+
+
+def export_defects_jsonl(
+    engine: Engine,
+    out: TextIO,
+    *,
+    asset_id: str | None = None,
+    inspection_id: int | None = None,
+) -> int:
+    """Write stored defects as JSON Lines: one object per line, keys
+    :data:`DEFECT_CSV_COLUMNS`.
+
+    Numbers are written at full precision, unknown figures (``peak_blockage_ratio``,
+    ``grade``) as ``null``, ``inspected_at`` as ISO 8601 UTC text. Selection and order are
+    those of :func:`export_defects_csv`.
+
+    Returns
+    -------
+    int
+        The number of lines written.
+    """
+    count = 0
+    for record in _defect_rows(engine, asset_id, inspection_id):
+        obj = {name: record[name] for name in DEFECT_CSV_COLUMNS}
+        obj["inspected_at"] = record["inspected_at"].isoformat()
+        obj["peak_blockage_ratio"] = _json_number(record["peak_blockage_ratio"])
         out.write(json.dumps(obj, ensure_ascii=False, allow_nan=False))
         out.write("\n")
         count += 1

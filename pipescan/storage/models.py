@@ -13,8 +13,8 @@ Two representation choices matter to anyone querying the tables directly:
   SQLite, which has no such type, they are naive UTC and made aware again on reading
   (:class:`UTCDateTime`).
 
-The first migration (``pipescan/migrations/versions``) must stay identical to these models; a
-test compares them with Alembic's autogenerate.
+The migrations (``pipescan/migrations/versions``) must build exactly these models; a test
+compares the migrated schema with them through Alembic's autogenerate.
 """
 
 from __future__ import annotations
@@ -141,6 +141,14 @@ class Inspection(Base):
     scanned_length_m: Mapped[float] = mapped_column(sa.Float())
     registration_json: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
     threshold_table: Mapped[str] = mapped_column(sa.String())
+    # Blockage summary of the inspection's *measured* sections (status ok, blockage known),
+    # written with the sections, so that network-wide rankings (``trends.worst_assets``) read
+    # one row per inspection instead of every section. NULL when no section was measured.
+    measured_section_count: Mapped[int] = mapped_column(sa.Integer(), server_default="0")
+    mean_blockage_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    peak_blockage_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    # Start of the section with the peak (the first one on a tie), in whole millimetres.
+    peak_chainage_start_mm: Mapped[int | None] = mapped_column(sa.Integer())
 
     asset: Mapped[Asset] = relationship(back_populates="inspections")
     sections: Mapped[list[Section]] = relationship(

@@ -13,7 +13,8 @@ import enum
 import hashlib
 import json
 import math
-from collections.abc import Mapping, Sequence
+import operator
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, date, datetime
 from pathlib import PurePath
@@ -33,12 +34,15 @@ from pipescan.storage.models import (
     FrameQualityRow,
     Inspection,
     Section,
+    utc_now,
 )
 
 __all__ = [
     "AssetRecord",
     "InspectionRecord",
+    "InspectionToSave",
     "TrendPoint",
+    "blockage_summary",
     "canonical_params_json",
     "get_defects",
     "get_frame_quality",
@@ -52,6 +56,7 @@ __all__ = [
     "mm_to_m",
     "params_hash",
     "save_inspection",
+    "save_inspections",
 ]
 
 
@@ -63,6 +68,10 @@ class InspectionRecord:
     None for a non-circular pipe whose metadata gives none. ``params`` are the
     processing parameters as hashed into ``params_hash``; ``registration`` is the registration
     summary (empty when none was saved).
+
+    The blockage summary covers the *measured* sections only (status ``ok`` with a blockage
+    ratio): how many there are, their mean and peak ``blockage_ratio`` and the start chainage
+    of the (first) peak section. The three figures are None when no section was measured.
     """
 
     id: int
@@ -86,6 +95,10 @@ class InspectionRecord:
     pipe_shape: str
     material: str | None
     section_count: int
+    measured_section_count: int = 0
+    mean_blockage_ratio: float | None = None
+    peak_blockage_ratio: float | None = None
+    peak_chainage_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -215,45 +228,75 @@ def _contour_from_json(text: str | None) -> np.ndarray | None:
     return np.asarray(json.loads(text), dtype=np.float64).reshape(-1, 2) / 1000.0
 
 
+def _section_where(section: SectionMeasures) -> str:
+    return f"section at chainage {section.chainage_start_m:.3f} m"
+
+
+# Status members and their plain string values alike map to the plain string.
+_STATUS_VALUES: dict[str, str] = {status: status.value for status in SectionStatus}
+_OK = SectionStatus.OK.value
+_isfinite = math.isfinite
+
+
 def _section_row(section: SectionMeasures) -> dict[str, Any]:
-    where = f"section at chainage {section.chainage_start_m:.3f} m"
-    start_mm = m_to_mm(section.chainage_start_m)
-    end_mm = m_to_mm(section.chainage_end_m)
+    # Called for every section of every save, so written for speed: conversions inline, and
+    # error messages formatted only on error.
+    start_mm = round(section.chainage_start_m * 1000.0)
+    end_mm = round(section.chainage_end_m * 1000.0)
     if end_mm <= start_mm:
         raise StorageError(
-            f"{where}: chainage_end_m {section.chainage_end_m} is not after chainage_start_m "
-            "(to the millimetre)",
+            f"{_section_where(section)}: chainage_end_m {section.chainage_end_m} is not after "
+            "chainage_start_m (to the millimetre)",
             field="chainage_end_m",
         )
-    try:
-        status = SectionStatus(section.status).value
-    except ValueError as exc:
+    status = _STATUS_VALUES.get(section.status)
+    if status is None:
         raise StorageError(
-            f"{where}: unknown status {section.status!r}",
+            f"{_section_where(section)}: unknown status {section.status!r}",
             field="status",
             hint=f"use one of {', '.join(s.value for s in SectionStatus)}",
-        ) from exc
-    coverage_ratio = _require_finite(section.coverage_ratio, "coverage_ratio", where)
-    if not 0.0 <= coverage_ratio <= 1.0:
+        )
+    coverage_ratio = float(section.coverage_ratio)
+    if not 0.0 <= coverage_ratio <= 1.0:  # also refuses NaN
         raise StorageError(
-            f"{where}: coverage_ratio {coverage_ratio} is outside [0, 1]", field="coverage_ratio"
+            f"{_section_where(section)}: coverage_ratio {coverage_ratio} is outside [0, 1]",
+            field="coverage_ratio",
         )
     if section.point_count < 0:
-        raise StorageError(f"{where}: point_count {section.point_count} < 0", field="point_count")
+        raise StorageError(
+            f"{_section_where(section)}: point_count {section.point_count} < 0",
+            field="point_count",
+        )
+    # NaN means "not computed" upstream: stored as NULL, never as a number.
+    open_area, nominal_area, blockage, ovality, deformation, deposit = (
+        None if v is None or not _isfinite(f := float(v)) else f
+        for v in (
+            section.open_area_m2,
+            section.nominal_area_m2,
+            section.blockage_ratio,
+            section.ovality_ratio,
+            section.deformation_ratio,
+            section.deposit_height_ratio,
+        )
+    )
     return {
         "chainage_start_mm": start_mm,
         "chainage_end_mm": end_mm,
-        "open_area_m2": _finite_or_none(section.open_area_m2),
-        "nominal_area_m2": _finite_or_none(section.nominal_area_m2),
-        "blockage_ratio": _finite_or_none(section.blockage_ratio),
-        "ovality_ratio": _finite_or_none(section.ovality_ratio),
-        "deformation_ratio": _finite_or_none(section.deformation_ratio),
-        "deposit_height_ratio": _finite_or_none(section.deposit_height_ratio),
+        "open_area_m2": open_area,
+        "nominal_area_m2": nominal_area,
+        "blockage_ratio": blockage,
+        "ovality_ratio": ovality,
+        "deformation_ratio": deformation,
+        "deposit_height_ratio": deposit,
         "coverage_ratio": coverage_ratio,
         "point_count": int(section.point_count),
         "status": status,
         "grade": None if section.grade is None else int(section.grade),
-        "contour_json": _contour_to_json(section.contour_m, where),
+        "contour_json": (
+            None
+            if section.contour_m is None
+            else _contour_to_json(section.contour_m, _section_where(section))
+        ),
     }
 
 
@@ -336,6 +379,14 @@ def _inspection_record(
         pipe_shape=asset.pipe_shape,
         material=asset.material,
         section_count=section_count,
+        measured_section_count=inspection.measured_section_count,
+        mean_blockage_ratio=inspection.mean_blockage_ratio,
+        peak_blockage_ratio=inspection.peak_blockage_ratio,
+        peak_chainage_m=(
+            None
+            if inspection.peak_chainage_start_mm is None
+            else mm_to_m(inspection.peak_chainage_start_mm)
+        ),
     )
 
 
@@ -343,61 +394,184 @@ def _inspection_record(
 # Writing
 
 
-def _upsert_asset(session: Session, meta: InspectionMeta) -> None:
-    values = {
-        "asset_id": meta.asset_id,
-        "upstream_node": meta.upstream_node,
-        "downstream_node": meta.downstream_node,
-        "nominal_diameter_m": _finite_or_none(meta.nominal_diameter_m),
-        "pipe_shape": meta.pipe_shape,
-        "material": meta.material,
-    }
+def _asset_values(metas: Iterable[InspectionMeta]) -> list[dict[str, Any]]:
+    # One row per asset, by asset id; a later meta's known values override an earlier one's,
+    # its unknown (None) values do not, as consecutive saves would have it.
+    merged: dict[str, dict[str, Any]] = {}
+    for meta in metas:
+        values = {
+            "asset_id": meta.asset_id,
+            "upstream_node": meta.upstream_node,
+            "downstream_node": meta.downstream_node,
+            "nominal_diameter_m": _finite_or_none(meta.nominal_diameter_m),
+            "pipe_shape": meta.pipe_shape,
+            "material": meta.material,
+        }
+        known = merged.setdefault(meta.asset_id, values)
+        known.update((k, v) for k, v in values.items() if v is not None)
+    return [merged[a] for a in sorted(merged)]
+
+
+def _upsert_assets(session: Session, metas: Iterable[InspectionMeta]) -> None:
+    rows = _asset_values(metas)
     dialect = session.get_bind().dialect.name
     if dialect in ("sqlite", "postgresql"):
         insert = sqlite.insert if dialect == "sqlite" else postgresql.insert
-        statement = insert(Asset).values(**values)
-        new = statement.excluded
-        # One atomic statement: on PostgreSQL it also locks the asset's row until commit, so
-        # concurrent saves of one asset run their delete-then-insert one after the other.
-        statement = statement.on_conflict_do_update(
-            index_elements=[Asset.asset_id],
-            set_={
-                "upstream_node": sa.func.coalesce(new.upstream_node, Asset.upstream_node),
-                "downstream_node": sa.func.coalesce(new.downstream_node, Asset.downstream_node),
-                "nominal_diameter_m": sa.func.coalesce(
-                    new.nominal_diameter_m, Asset.nominal_diameter_m
-                ),
-                "pipe_shape": new.pipe_shape,
-                "material": sa.func.coalesce(new.material, Asset.material),
-            },
-        )
-        session.execute(statement)
+        # Atomic statements, in asset id order: on PostgreSQL they also lock the assets' rows
+        # until commit, so concurrent saves of one asset run their delete-then-insert one
+        # after the other, and two batches lock shared assets in the same order (no deadlock).
+        for chunk in _chunks(rows, 500):
+            statement = insert(Asset).values(chunk)
+            new = statement.excluded
+            statement = statement.on_conflict_do_update(
+                index_elements=[Asset.asset_id],
+                set_={
+                    "upstream_node": sa.func.coalesce(new.upstream_node, Asset.upstream_node),
+                    "downstream_node": sa.func.coalesce(new.downstream_node, Asset.downstream_node),
+                    "nominal_diameter_m": sa.func.coalesce(
+                        new.nominal_diameter_m, Asset.nominal_diameter_m
+                    ),
+                    "pipe_shape": new.pipe_shape,
+                    "material": sa.func.coalesce(new.material, Asset.material),
+                },
+            )
+            session.execute(statement)
         return
-    asset = session.get(Asset, meta.asset_id, with_for_update=True)
-    if asset is None:
-        session.add(Asset(**values))
-        session.flush()
+    for values in rows:
+        asset = session.get(Asset, values["asset_id"], with_for_update=True)
+        if asset is None:
+            session.add(Asset(**values))
+            session.flush()
+            continue
+        for name, value in values.items():
+            if value is not None:
+                setattr(asset, name, value)
+    session.flush()
+
+
+def _chunks(items: Sequence[Any], size: int) -> Iterable[Sequence[Any]]:
+    for start in range(0, len(items), size):
+        yield items[start : start + size]
+
+
+# Section columns in the order of _section_row, with their PostgreSQL types for binary COPY.
+_SECTION_COPY_TYPES: dict[str, str] = {
+    "inspection_id": "int4",
+    "chainage_start_mm": "int4",
+    "chainage_end_mm": "int4",
+    "open_area_m2": "float8",
+    "nominal_area_m2": "float8",
+    "blockage_ratio": "float8",
+    "ovality_ratio": "float8",
+    "deformation_ratio": "float8",
+    "deposit_height_ratio": "float8",
+    "coverage_ratio": "float8",
+    "point_count": "int4",
+    "status": "varchar",
+    "grade": "int4",
+    "contour_json": "text",
+}
+
+
+def blockage_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """The blockage summary of an inspection's section rows (as written to ``sections``).
+
+    Only measured sections count: status ``ok`` with a blockage ratio. NULL blockage is never
+    read as 0.
+
+    Returns
+    -------
+    dict
+        ``measured_section_count``, ``mean_blockage_ratio``, ``peak_blockage_ratio`` and
+        ``peak_chainage_start_mm`` (the first section at the peak), the last three None when
+        no section was measured.
+    """
+    measured = [
+        (r["blockage_ratio"], r["chainage_start_mm"])
+        for r in rows
+        if r["status"] == _OK and r["blockage_ratio"] is not None
+    ]
+    if not measured:
+        return {
+            "measured_section_count": 0,
+            "mean_blockage_ratio": None,
+            "peak_blockage_ratio": None,
+            "peak_chainage_start_mm": None,
+        }
+    peak_ratio, peak_mm = max(measured, key=lambda m: (m[0], -m[1]))
+    return {
+        "measured_section_count": len(measured),
+        "mean_blockage_ratio": math.fsum(m[0] for m in measured) / len(measured),
+        "peak_blockage_ratio": peak_ratio,
+        "peak_chainage_start_mm": peak_mm,
+    }
+
+
+# Rows to insert, each with the id of the inspection it belongs to.
+_Owned = list[tuple[int, list[dict[str, Any]]]]
+
+
+def _insert_sections(session: Session, owned: _Owned) -> None:
+    if not any(rows for _, rows in owned):
         return
-    for name, value in values.items():
-        if value is not None:
-            setattr(asset, name, value)
-
-
-def _insert_sections(session: Session, inspection_id: int, rows: list[dict[str, Any]]) -> None:
-    if rows:
-        session.execute(sa.insert(Section), [{"inspection_id": inspection_id, **r} for r in rows])
-
-
-def _insert_defects(session: Session, inspection_id: int, rows: list[dict[str, Any]]) -> None:
-    if rows:
-        session.execute(sa.insert(DefectRow), [{"inspection_id": inspection_id, **r} for r in rows])
-
-
-def _insert_frame_quality(session: Session, inspection_id: int, rows: list[dict[str, Any]]) -> None:
-    if rows:
-        session.execute(
-            sa.insert(FrameQualityRow), [{"inspection_id": inspection_id, **r} for r in rows]
+    connection = session.connection()
+    if connection.dialect.name == "postgresql" and connection.dialect.driver == "psycopg":
+        _copy_sections(connection, owned)
+        return
+    if connection.dialect.name == "sqlite":
+        # The driver's executemany over plain tuples: three times the rows per second of
+        # SQLAlchemy's per-row parameter processing, which these plain types do not need.
+        names = list(_SECTION_COPY_TYPES)
+        values = operator.itemgetter(*names[1:])
+        connection.exec_driver_sql(
+            f"INSERT INTO sections ({', '.join(names)}) VALUES ({', '.join('?' * len(names))})",
+            [(inspection_id, *values(r)) for inspection_id, rows in owned for r in rows],
         )
+        return
+    # Core's executemany on the session's connection: one statement for every row. (The ORM's
+    # bulk insert would split the rows into a statement per run of rows with the same NULLs.)
+    connection.execute(
+        sa.insert(Section),
+        [{"inspection_id": inspection_id, **r} for inspection_id, rows in owned for r in rows],
+    )
+
+
+def _copy_sections(connection: sa.Connection, owned: _Owned) -> None:
+    # PostgreSQL's binary COPY, on the session's own connection and so inside its transaction,
+    # one for the whole batch: four to five times the rows per second of a batched INSERT.
+    import psycopg
+
+    driver_connection = connection.connection.driver_connection
+    names = list(_SECTION_COPY_TYPES)
+    columns = ", ".join(names)
+    try:
+        with (
+            driver_connection.cursor() as cursor,  # type: ignore[union-attr]
+            cursor.copy(f"COPY sections ({columns}) FROM STDIN (FORMAT BINARY)") as copy,
+        ):
+            copy.set_types(list(_SECTION_COPY_TYPES.values()))
+            values = operator.itemgetter(*names[1:])
+            for inspection_id, rows in owned:
+                for row in rows:
+                    copy.write_row((inspection_id, *values(row)))
+    except psycopg.Error as exc:
+        ids = sorted({inspection_id for inspection_id, _ in owned})
+        raise StorageError(
+            f"PostgreSQL refused the sections of inspection(s) {', '.join(map(str, ids))}: {exc}",
+            hint="nothing was written",
+        ) from exc
+
+
+def _insert_defects(session: Session, owned: _Owned) -> None:
+    rows = [{"inspection_id": i, **r} for i, defect_rows in owned for r in defect_rows]
+    if rows:
+        session.connection().execute(sa.insert(DefectRow), rows)
+
+
+def _insert_frame_quality(session: Session, owned: _Owned) -> None:
+    rows = [{"inspection_id": i, **r} for i, quality_rows in owned for r in quality_rows]
+    if rows:
+        session.connection().execute(sa.insert(FrameQualityRow), rows)
 
 
 def _check_unique(keys: list[int], what: str, unit: str) -> None:
@@ -475,60 +649,172 @@ def save_inspection(
         unknown status, parameters without a JSON form) or the database refuses the write;
         nothing is written then.
     """
+    item = InspectionToSave(
+        meta=meta,
+        archive_uri=archive_uri,
+        content_hash=content_hash,
+        params=params,
+        software_version=software_version,
+        sections=sections,
+        defects=defects,
+        frame_quality=frame_quality,
+        registration=registration,
+        status=status,
+        threshold_table=threshold_table,
+        point_count=point_count,
+        frame_count=frame_count,
+        scanned_length_m=scanned_length_m,
+    )
+    return save_inspections(engine, [item])[0]
+
+
+@dataclass(frozen=True)
+class InspectionToSave:
+    """One inspection to store: the arguments of :func:`save_inspection`, as one value."""
+
+    meta: InspectionMeta
+    archive_uri: str
+    content_hash: str
+    params: Mapping[str, Any]
+    software_version: str
+    sections: Sequence[SectionMeasures]
+    defects: Sequence[Defect]
+    frame_quality: Sequence[FrameQuality] = ()
+    registration: Mapping[str, Any] | None = None
+    status: str = "ok"
+    threshold_table: str = ""
+    point_count: int = 0
+    frame_count: int = 0
+    scanned_length_m: float = 0.0
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    # An inspection validated and converted to rows, ready to write.
+    where: str
+    meta: InspectionMeta
+    identity: dict[str, str]
+    values: dict[str, Any]
+    section_rows: list[dict[str, Any]]
+    defect_rows: list[dict[str, Any]]
+    quality_rows: list[dict[str, Any]]
+
+
+def _prepare(item: InspectionToSave) -> _Prepared:
+    meta = item.meta
     inspected_at = meta.inspected_at
     if inspected_at.tzinfo is None or inspected_at.utcoffset() is None:
         # inspection.toml without an offset (or a bare date) gives a naive datetime: UTC is
         # the only reading that does not depend on the machine that processed the scan.
         inspected_at = inspected_at.replace(tzinfo=UTC)
-    where = f"inspection of asset {meta.asset_id} from {archive_uri}"
-    canonical = canonical_params_json(params)
+    where = f"inspection of asset {meta.asset_id} from {item.archive_uri}"
+    canonical = canonical_params_json(item.params)
     registration_json = (
-        None if registration is None else json.loads(canonical_params_json(registration))
+        None if item.registration is None else json.loads(canonical_params_json(item.registration))
     )
-    # Validate and convert everything before touching the database.
-    section_rows = [_section_row(s) for s in sections]
+    section_rows = [_section_row(s) for s in item.sections]
     _check_unique([r["chainage_start_mm"] for r in section_rows], "sections", " mm of chainage")
-    defect_rows = [_defect_row(d) for d in defects]
-    quality_rows = [_frame_quality_row(q) for q in frame_quality]
+    defect_rows = [_defect_row(d) for d in item.defects]
+    quality_rows = [_frame_quality_row(q) for q in item.frame_quality]
     _check_unique([r["frame_index"] for r in quality_rows], "frame quality rows", " (frame)")
-
-    identity = {
-        "asset_id": meta.asset_id,
-        "content_hash": content_hash,
-        "params_hash": hashlib.sha256(canonical.encode("utf-8")).hexdigest(),
+    values = {
+        "inspected_at": inspected_at,
+        "archive_uri": item.archive_uri,
+        "params_json": json.loads(canonical),
+        "software_version": item.software_version,
+        "status": item.status,
+        "point_count": int(item.point_count),
+        "frame_count": int(item.frame_count),
+        "scanned_length_m": _require_finite(item.scanned_length_m, "scanned_length_m", where),
+        "registration_json": registration_json,
+        "threshold_table": item.threshold_table,
+        **blockage_summary(section_rows),
     }
+    return _Prepared(
+        where=where,
+        meta=meta,
+        identity={
+            "asset_id": meta.asset_id,
+            "content_hash": item.content_hash,
+            "params_hash": hashlib.sha256(canonical.encode("utf-8")).hexdigest(),
+        },
+        values=values,
+        section_rows=section_rows,
+        defect_rows=defect_rows,
+        quality_rows=quality_rows,
+    )
+
+
+def _write(session: Session, prepared: Sequence[_Prepared]) -> list[int]:
+    # Set-based, whatever the batch's size: one upsert of the assets, one delete of the
+    # inspections being replaced, one insert of the inspections, then one bulk insert each of
+    # sections, defects and frame quality. A handful of round trips per batch, not per row.
+    _upsert_assets(session, (p.meta for p in prepared))
+    # A later item with the same identity replaces an earlier one of the batch.
+    last = {tuple(p.identity.values()): index for index, p in enumerate(prepared)}
+    kept = sorted(last.values())
+    keys = sa.tuple_(Inspection.asset_id, Inspection.content_hash, Inspection.params_hash)
+    for chunk in _chunks(list(last), 300):
+        session.execute(
+            sa.delete(Inspection).where(keys.in_(chunk)),
+            execution_options={"synchronize_session": False},
+        )
+    now = utc_now()
+    inserted = session.connection().execute(
+        sa.insert(Inspection).returning(Inspection.id, sort_by_parameter_order=True),
+        [{**prepared[k].identity, **prepared[k].values, "created_at": now} for k in kept],
+    )
+    new_ids = dict(zip(kept, inserted.scalars().all(), strict=True))
+    _insert_sections(session, [(new_ids[k], prepared[k].section_rows) for k in kept])
+    _insert_defects(session, [(new_ids[k], prepared[k].defect_rows) for k in kept])
+    _insert_frame_quality(session, [(new_ids[k], prepared[k].quality_rows) for k in kept])
+    return [new_ids[last[tuple(p.identity.values())]] for p in prepared]
+
+
+def save_inspections(engine: Engine, inspections: Iterable[InspectionToSave]) -> list[int]:
+    """Store several processed inspections in one transaction: a bulk import.
+
+    Each is saved as by :func:`save_inspection` (replacing an earlier save of the same
+    archive and parameters; a later item of the batch replaces an earlier one the same way),
+    but they all commit together, or not at all. On PostgreSQL one commit for many inspections
+    saves a disk flush per inspection; choose batches that are cheap to redo (a few hundred
+    inspections).
+
+    Parameters
+    ----------
+    engine
+        From ``pipescan.storage.db.connect``.
+    inspections
+        What to store, in order.
+
+    Returns
+    -------
+    list of int
+        The new inspections' ids, in order.
+
+    Raises
+    ------
+    StorageError
+        As :func:`save_inspection`, naming the inspection at fault; nothing is written then.
+        Every inspection is validated before anything is written.
+    """
+    # Validate and convert everything before touching the database.
+    prepared = [_prepare(item) for item in inspections]
+    if not prepared:
+        return []
+    what = (
+        f"the {prepared[0].where}"
+        if len(prepared) == 1
+        else f"a batch of {len(prepared)} inspections, from the {prepared[0].where} on"
+    )
     try:
         with session_scope(engine, write=True) as session:
-            _upsert_asset(session, meta)
-            session.execute(
-                sa.delete(Inspection).filter_by(**identity),
-                execution_options={"synchronize_session": False},
-            )
-            inspection = Inspection(
-                **identity,
-                inspected_at=inspected_at,
-                archive_uri=archive_uri,
-                params_json=json.loads(canonical),
-                software_version=software_version,
-                status=status,
-                point_count=int(point_count),
-                frame_count=int(frame_count),
-                scanned_length_m=_require_finite(scanned_length_m, "scanned_length_m", where),
-                registration_json=registration_json,
-                threshold_table=threshold_table,
-            )
-            session.add(inspection)
-            session.flush()
-            inspection_id = inspection.id
-            _insert_sections(session, inspection_id, section_rows)
-            _insert_defects(session, inspection_id, defect_rows)
-            _insert_frame_quality(session, inspection_id, quality_rows)
+            return _write(session, prepared)
     except sa.exc.DBAPIError as exc:
         raise StorageError(
-            f"could not save the {where}: {exc.orig}",
+            f"could not save {what}: {exc.orig}",
             hint="nothing was written; if the database was locked, retry",
         ) from exc
-    return inspection_id
 
 
 # ---------------------------------------------------------------------------------------------
