@@ -1,6 +1,8 @@
-"""Build the documentation's figures: a sample condition report and one page of it as PNG.
+"""Build the documentation's figures: a sample condition report, one page of it as PNG, and
+measured contours of the real scan.
 
-    python docs/build.py            # writes docs/img/sample-report.pdf and report-page-1.png
+    python docs/build.py            # writes docs/img/sample-report.pdf, report-page-1.png and
+                                    # contours-real459.png
     python docs/build.py --page 3   # another page as the PNG (still report-page-1.png's name
                                     # is kept for page 1; other pages get their own number)
 
@@ -29,6 +31,7 @@ def main() -> int:
     parser = argparse.ArgumentParser(description="Render the sample report and its page PNGs.")
     parser.add_argument("--page", type=int, action="append", help="page(s) to write as PNG")
     parser.add_argument("--dpi", type=int, default=110, help="PNG resolution")
+    parser.add_argument("--out", type=Path, default=DOCS / "img", help="output folder")
     args = parser.parse_args()
     pages = args.page or [1]
 
@@ -39,8 +42,8 @@ def main() -> int:
     if pdftoppm is None:
         print("error: pdftoppm not found (install poppler-utils)", file=sys.stderr)
         return 2
-    img = DOCS / "img"
-    img.mkdir(exist_ok=True)
+    img = args.out
+    img.mkdir(parents=True, exist_ok=True)
     pdf = render_pdf(sample_input(60.0), img / "sample-report.pdf")
     for page in pages:
         stem = img / f"report-page-{page}"
@@ -51,6 +54,13 @@ def main() -> int:
         )  # fmt: skip
         print(f"wrote {stem.with_suffix('.png')}")
     print(f"wrote {pdf}")
+    sys.path.insert(0, str(DOCS))
+    from contours import SCAN, draw
+
+    if SCAN.exists():
+        print(f"wrote {draw(img / 'contours-real459.png')}")
+    else:
+        print(f"skipped the contour figure: {SCAN} is not there")
     return 0
 
 

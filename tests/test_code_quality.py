@@ -30,10 +30,32 @@ def test_import_layers_are_kept():
 
 def test_ruff_is_clean():
     result = subprocess.run(
-        [_tool("ruff"), "check", "--output-format", "concise", "pipescan", "tests", "benchmarks"],
+        [
+            _tool("ruff"),
+            "check",
+            "--output-format",
+            "concise",
+            "pipescan",
+            "tests",
+            "benchmarks",
+            "docs",
+        ],
         cwd=ROOT,
         capture_output=True,
         text=True,
         check=False,
     )
     assert result.returncode == 0, result.stdout[-3000:]
+
+
+def test_docs_build_makes_its_figures(tmp_path):
+    result = subprocess.run(
+        [sys.executable, str(ROOT / "docs" / "build.py"), "--out", str(tmp_path), "--dpi", "40"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert result.returncode == 0, result.stderr[-3000:]
+    page = tmp_path / "report-page-1.png"
+    assert page.read_bytes().startswith(b"\x89PNG")
