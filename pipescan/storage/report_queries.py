@@ -13,14 +13,14 @@ from datetime import UTC, datetime
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
-from pipescan.core.model import SectionMeasures, SectionStatus
+from pipescan.core.model import SectionMeasures
 from pipescan.storage.db import StorageError, session_scope
 from pipescan.storage.models import DefectRow, Section
 from pipescan.storage.repository import (
     InspectionRecord,
     get_inspection,
     list_inspections,
-    mm_to_m,
+    section_from_row,
 )
 
 __all__ = [
@@ -99,32 +99,7 @@ def section_profiles(
     )
     with session_scope(engine) as session:
         for row in session.execute(statement):
-            try:
-                status = SectionStatus(row.status)
-            except ValueError as exc:
-                raise StorageError(
-                    f"inspection {row.inspection_id}: unknown section status {row.status!r}",
-                    field="status",
-                    hint="it was written by a newer pipescan; upgrade pipescan",
-                ) from exc
-            profiles[row.inspection_id].append(
-                SectionMeasures(
-                    chainage_start_m=mm_to_m(row.chainage_start_mm),
-                    chainage_end_m=mm_to_m(row.chainage_end_mm),
-                    nominal_area_m2=(
-                        float("nan") if row.nominal_area_m2 is None else row.nominal_area_m2
-                    ),
-                    status=status,
-                    point_count=row.point_count,
-                    coverage_ratio=row.coverage_ratio,
-                    open_area_m2=row.open_area_m2,
-                    blockage_ratio=row.blockage_ratio,
-                    ovality_ratio=row.ovality_ratio,
-                    deformation_ratio=row.deformation_ratio,
-                    deposit_height_ratio=row.deposit_height_ratio,
-                    grade=row.grade,
-                )
-            )
+            profiles[row.inspection_id].append(section_from_row(row))
     return profiles
 
 

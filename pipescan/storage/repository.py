@@ -300,7 +300,12 @@ def _section_row(section: SectionMeasures) -> dict[str, Any]:
     }
 
 
-def _section_from_row(row: Section) -> SectionMeasures:
+def section_from_row(row: Any) -> SectionMeasures:
+    """A stored section as the core's ``SectionMeasures``.
+
+    ``row`` is a ``Section`` or any result row with its columns; without ``contour_json``
+    (a query that left the contours out), ``contour_m`` is None.
+    """
     try:
         status = SectionStatus(row.status)
     except ValueError as exc:
@@ -324,7 +329,7 @@ def _section_from_row(row: Section) -> SectionMeasures:
         deformation_ratio=row.deformation_ratio,
         deposit_height_ratio=row.deposit_height_ratio,
         grade=row.grade,
-        contour_m=_contour_from_json(row.contour_json),
+        contour_m=_contour_from_json(getattr(row, "contour_json", None)),
     )
 
 
@@ -921,7 +926,7 @@ def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:
     )
     with session_scope(engine) as session:
         _require_inspection(session, inspection_id)
-        return [_section_from_row(row) for row in session.scalars(statement)]
+        return [section_from_row(row) for row in session.scalars(statement)]
 
 
 def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
@@ -1021,6 +1026,6 @@ def get_section_trend(engine: Engine, asset_id: str, chainage_m: float) -> list[
     )
     with session_scope(engine) as session:
         return [
-            TrendPoint(inspection_id=i, inspected_at=t, section=_section_from_row(s))
+            TrendPoint(inspection_id=i, inspected_at=t, section=section_from_row(s))
             for i, t, s in session.execute(statement).all()
         ]
