@@ -24,6 +24,8 @@ def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
     """
     run_dir.mkdir(parents=True, exist_ok=True)
     with open_archive(archive, workdir=run_dir) as arc:
+        # Hash while the extracted files are still where the archive object expects them.
+        content_hash = arc.content_hash
         root = arc.root
         if not Path(archive).is_dir():
             root = run_dir / "archive"
@@ -32,7 +34,7 @@ def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
             name=arc.name,
             root=root,
             meta=arc.meta,
-            content_hash=arc.content_hash,
+            content_hash=content_hash,
             frame_count=arc.frame_count,
             cloud_member=arc.cloud_member,
         )
