@@ -46,8 +46,10 @@ class Settings(BaseSettings):
     dask_address: str | None = Field(
         None, description="Dask scheduler (tcp://host:8786) that runs the tasks; none: local pool"
     )
-    network_concurrency: int = Field(
-        2, ge=1, description="archives a network run processes at the same time"
+    network_concurrency: int | None = Field(
+        None,
+        ge=1,
+        description="archives a network run processes at once; none: 2, on Dask its threads",
     )
     # --- report delivery (docs/reports.md) ---
     reports_location: str | None = Field(

@@ -14,6 +14,7 @@ from pathlib import Path
 from prefect import flow
 
 import pipescan
+from pipescan.core.grading import choose_grading
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import (
     RegistrationParams,
@@ -22,6 +23,7 @@ from pipescan.core.registration import (
     registration_summary,
 )
 from pipescan.core.sections import plan_windows
+from pipescan.storage.repository import params_hash
 from pipescan.storage.workspace import remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
@@ -30,10 +32,23 @@ from pipescan.tasks.inspection import (
     measure_sections,
     register_chunk,
 )
+from pipescan.tasks.network import (
+    IO_RETRY_OPTIONS,
+    find_stored_inspection,
+    load_stored_inspection,
+)
 from pipescan.tasks.reporting import render_report
 from pipescan.tasks.storing import save_results, stage_archive
 
 log = logging.getLogger("pipescan")
+
+# The tasks that read the store or scratch files, or write the database, are retried with
+# backoff on transient I/O errors only: a bad archive or a geometry error fails at once.
+stage_archive = stage_archive.with_options(**IO_RETRY_OPTIONS)
+bucket_points = bucket_points.with_options(**IO_RETRY_OPTIONS)
+measure_sections = measure_sections.with_options(**IO_RETRY_OPTIONS)
+save_results = save_results.with_options(**IO_RETRY_OPTIONS)
+render_report = render_report.with_options(**IO_RETRY_OPTIONS)
 
 
 @dataclass(frozen=True)
@@ -80,6 +95,18 @@ class InspectionSummary:
     registration: dict
     report_path: str | None
     wall_time_s: float
+    reused: bool = False
+    """True when the archive was already inspected under the same parameters and the stored
+    inspection was summarised instead of processing it again (``reuse_stored``)."""
+
+
+def stored_params(params: InspectionParams, pipe_class: str, pipe_class_reason: str) -> dict:
+    """The parameters stored with an inspection and hashed into its identity: the figure
+    parameters, with the pipe class that graded the figures (``"auto"`` resolved)."""
+    return params.figure_params() | {
+        "pipe_class": pipe_class,
+        "pipe_class_reason": pipe_class_reason,
+    }
 
 
 @flow(name="inspect-archive")
@@ -89,11 +116,16 @@ def inspect_archive(
     report_path: str | None = None,
     params: InspectionParams | None = None,
     work_dir: str = ".pipescan-work",
+    reuse_stored: bool = False,
 ) -> InspectionSummary:
     """Register, section, measure, grade and store one scan archive; optionally render its PDF.
 
     Nothing is written to the database unless every stage succeeded; the sections, defects and
     registration quality are then written in one transaction.
+
+    With ``reuse_stored``, an archive whose content (hash) was already inspected under the same
+    figure parameters (hash) is not processed again: its stored inspection is summarised
+    (``reused=True``). This is what lets a network run resume after a crash.
     """
     started = time.perf_counter()
     params = params or InspectionParams()
@@ -102,6 +134,38 @@ def inspect_archive(
         staged = stage_archive(archive, run_dir)
         meta = staged.meta
         log.info(f"archive {staged.name}: asset {meta.asset_id}, {staged.frame_count} frames")
+        if reuse_stored:
+            # The same choice as the grade task's, so the same parameters and hash as a save.
+            choice = choose_grading(
+                meta.material, pipe_class=params.pipe_class, table=params.threshold_table
+            )
+            stored_id = find_stored_inspection(
+                database_url,
+                meta.asset_id,
+                staged.content_hash,
+                params_hash(stored_params(params, choice.pipe_class, choice.reason)),
+            )
+            if stored_id is not None:
+                log.info(f"archive {staged.name} already stored as inspection {stored_id}")
+                stored = load_stored_inspection(database_url, stored_id)
+                rec = stored.record
+                written = None
+                if report_path:
+                    written = str(render_report(database_url, stored_id, Path(report_path)))
+                return _summarise(
+                    inspection_id=stored_id,
+                    meta=meta,
+                    archive=archive,
+                    frame_count=rec.frame_count,
+                    point_count=rec.point_count,
+                    scanned_length_m=rec.scanned_length_m,
+                    graded=stored.sections,
+                    defects=stored.defects,
+                    registration=rec.registration,
+                    report_path=written,
+                    started=started,
+                    reused=True,
+                )
 
         trajectory = None
         chunks = plan_chunks(staged.frame_count, params.chunk_frames)
@@ -161,16 +225,13 @@ def inspect_archive(
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )
-        ok = [s for s in graded if s.is_ok]
         scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
         inspection_id = save_results(
             database_url,
             meta=meta,
             archive_uri=str(archive),
             content_hash=staged.content_hash,
-            # The resolved pipe class, not "auto", is what graded these figures.
-            params=params.figure_params()
-            | {"pipe_class": grading.pipe_class, "pipe_class_reason": grading.pipe_class_reason},
+            params=stored_params(params, grading.pipe_class, grading.pipe_class_reason),
             software_version=pipescan.__version__,
             sections=graded,
             defects=defects,
@@ -188,28 +249,60 @@ def inspect_archive(
         if report_path:
             written = str(render_report(database_url, inspection_id, Path(report_path)))
             log.info(f"report written to {written}")
-        worst = max(ok, key=lambda s: s.blockage_ratio or 0.0, default=None)
-        unmeasured: dict[str, int] = {}
-        for s in graded:
-            if not s.is_ok:
-                unmeasured[s.status.value] = unmeasured.get(s.status.value, 0) + 1
-        return InspectionSummary(
+        return _summarise(
             inspection_id=inspection_id,
-            asset_id=meta.asset_id,
-            inspected_at=meta.inspected_at.isoformat(),
-            archive=str(archive),
+            meta=meta,
+            archive=archive,
             frame_count=staged.frame_count,
             point_count=point_count,
             scanned_length_m=scanned,
-            section_count=len(graded),
-            sections_ok=len(ok),
-            defect_count=len(defects),
-            max_blockage_ratio=worst.blockage_ratio if worst else None,
-            max_blockage_chainage_m=worst.chainage_start_m if worst else None,
-            unmeasured_by_status=unmeasured,
+            graded=graded,
+            defects=defects,
             registration=registration,
             report_path=written,
-            wall_time_s=time.perf_counter() - started,
+            started=started,
         )
     finally:
         remove_workspace(run_dir)
+
+
+def _summarise(
+    *,
+    inspection_id: int,
+    meta,
+    archive: str,
+    frame_count: int,
+    point_count: int,
+    scanned_length_m: float,
+    graded,
+    defects,
+    registration: dict,
+    report_path: str | None,
+    started: float,
+    reused: bool = False,
+) -> InspectionSummary:
+    ok = [s for s in graded if s.is_ok]
+    worst = max(ok, key=lambda s: s.blockage_ratio or 0.0, default=None)
+    unmeasured: dict[str, int] = {}
+    for s in graded:
+        if not s.is_ok:
+            unmeasured[s.status.value] = unmeasured.get(s.status.value, 0) + 1
+    return InspectionSummary(
+        inspection_id=inspection_id,
+        asset_id=meta.asset_id,
+        inspected_at=meta.inspected_at.isoformat(),
+        archive=str(archive),
+        frame_count=frame_count,
+        point_count=point_count,
+        scanned_length_m=scanned_length_m,
+        section_count=len(graded),
+        sections_ok=len(ok),
+        defect_count=len(defects),
+        max_blockage_ratio=worst.blockage_ratio if worst else None,
+        max_blockage_chainage_m=worst.chainage_start_m if worst else None,
+        unmeasured_by_status=unmeasured,
+        registration=registration,
+        report_path=report_path,
+        wall_time_s=time.perf_counter() - started,
+        reused=reused,
+    )

@@ -1,0 +1,276 @@
+"""Prefect tasks and helpers of a network run: finding the archives in a store, deciding which
+errors are worth a retry, and looking up inspections already stored.
+
+A store is a local directory or any fsspec URL (``s3://bucket/runs``, ``memory://...``)
+holding many scan archives: directories with an ``inspection.toml``, or ``.zip``, ``.tar``,
+``.tar.gz``/``.tgz`` files, at any depth.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import PurePosixPath
+
+import sqlalchemy as sa
+from prefect import task
+from prefect.tasks import exponential_backoff
+
+from pipescan.core.errors import (
+    GeometryError,
+    GradingError,
+    MetadataError,
+    PipescanError,
+    PointFileError,
+    RegistrationError,
+)
+from pipescan.core.model import Defect, SectionMeasures
+from pipescan.storage.db import connect
+from pipescan.storage.metadata import INSPECTION_FILE
+from pipescan.storage.repository import (
+    InspectionRecord,
+    get_defects,
+    get_inspection,
+    get_sections,
+    list_inspections,
+)
+
+ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".zip", ".tar")
+"""File names that are scan archives in a store (directories are recognised by content)."""
+
+IO_RETRY_COUNT = 3
+"""How many times an I/O failure (store read, database write) is retried."""
+
+IO_RETRY_BACKOFF_S = 2.0
+"""The first retry's delay; each next one doubles (2, 4, 8 s), with ±50 % jitter."""
+
+# Errors that come from the archive's content or the geometry: the same input fails the same
+# way every time, so a retry only delays the failure.
+_DETERMINISTIC: tuple[type[BaseException], ...] = (
+    GeometryError,
+    RegistrationError,
+    GradingError,
+    MetadataError,
+    PointFileError,
+    FileNotFoundError,
+    IsADirectoryError,
+    NotADirectoryError,
+    PermissionError,
+)
+# Database driver errors that a second attempt can get past: a lock, a dropped connection.
+_TRANSIENT_DB: tuple[type[BaseException], ...] = (
+    sa.exc.OperationalError,
+    sa.exc.InterfaceError,
+    sa.exc.DisconnectionError,
+    sa.exc.TimeoutError,
+)
+
+
+class StoreError(PipescanError):
+    """A store of archives is missing, unreadable or holds no archive."""
+
+
+def _causes(exc: BaseException) -> Iterator[BaseException]:
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        yield current
+        current = current.__cause__ or current.__context__
+
+
+def is_transient_io_error(exc: BaseException) -> bool:
+    """True when ``exc`` is an I/O failure that a retry may get past.
+
+    Walks the exception and its causes: a connection, timeout or other ``OSError`` (reading
+    from a store, a network file system), or a database lock or lost connection, is
+    transient, also when wrapped in an :class:`~pipescan.core.errors.ArchiveError` or a
+    ``StorageError``. Geometry, registration, grading, metadata and point-file errors, and
+    missing files or permissions, are deterministic: never transient, whatever they wrap.
+
+    Examples
+    --------
+    >>> is_transient_io_error(ConnectionResetError("peer reset"))
+    True
+    >>> is_transient_io_error(GeometryError("no points in the window"))
+    False
+    """
+    for link in _causes(exc):
+        if isinstance(link, _DETERMINISTIC):
+            return False
+        if isinstance(link, (*_TRANSIENT_DB, OSError)):
+            return True
+    return False
+
+
+def retry_on_io_error(task, task_run, state) -> bool:
+    """Prefect ``retry_condition_fn``: retry a failed task run only on a transient I/O error."""
+    exc = state.data if isinstance(state.data, BaseException) else None
+    if exc is None:
+        try:
+            exc = state.result(raise_on_failure=False)
+        except Exception as raised:  # the result itself could not be read back
+            exc = raised
+    return isinstance(exc, BaseException) and is_transient_io_error(exc)
+
+
+IO_RETRY_OPTIONS = {
+    "retries": IO_RETRY_COUNT,
+    "retry_delay_seconds": exponential_backoff(IO_RETRY_BACKOFF_S),
+    "retry_jitter_factor": 0.5,
+    "retry_condition_fn": retry_on_io_error,
+}
+"""Task options (``task.with_options(**IO_RETRY_OPTIONS)``) for tasks that read the store or
+write the database: retried with exponential backoff, on transient I/O errors only."""
+
+
+# --- the store --------------------------------------------------------------------------------
+
+
+def archive_label(uri: str) -> str:
+    """A short name for an archive: its file or folder name without the archive suffix.
+
+    >>> archive_label("s3://bucket/2026-11/MH1042-MH1043.tar.gz")
+    'MH1042-MH1043'
+    """
+    name = PurePosixPath(uri.rstrip("/").split("://", 1)[-1]).name
+    for suffix in ARCHIVE_SUFFIXES:
+        if name.lower().endswith(suffix) and len(name) > len(suffix):
+            return name[: -len(suffix)]
+    return name
+
+
+def _natural_key(text: str) -> list:
+    return [int(part) if part.isdigit() else part.lower() for part in re.split(r"(\d+)", text)]
+
+
+def find_archives(store: str) -> list[str]:
+    """Every scan archive in a store, in natural order of their paths.
+
+    Parameters
+    ----------
+    store
+        A local directory or an fsspec URL. Archives are found at any depth: a directory
+        holding ``inspection.toml`` (not looked into further), or a file named ``*.zip``,
+        ``*.tar``, ``*.tar.gz`` or ``*.tgz`` outside such a directory.
+
+    Returns
+    -------
+    list of str
+        Local paths for a local store, full URLs (with their protocol) otherwise, as
+        :func:`pipescan.storage.archive.open_archive` takes them.
+
+    Raises
+    ------
+    StoreError
+        The store does not exist, is not a directory, or holds no archive. A failed listing
+        (network, credentials) is raised as the ``OSError`` it is, so that it can be retried.
+    """
+    import fsspec
+    from fsspec.implementations.local import LocalFileSystem
+
+    try:
+        fs, root = fsspec.core.url_to_fs(store)
+    except (ValueError, ImportError) as exc:
+        raise StoreError(
+            f"cannot open the store: {exc}",
+            archive=store,
+            hint="install the fsspec backend for this protocol (e.g. s3fs for s3://)",
+        ) from exc
+    root = root.rstrip("/") or root
+    if not fs.exists(root):
+        raise StoreError("the store does not exist", archive=store, hint="check the path or URL")
+    if not fs.isdir(root):
+        raise StoreError(
+            "the store is a file, not a folder of archives",
+            archive=store,
+            hint="to process one archive, use 'pipescan inspect'",
+        )
+    files = [p for p in fs.find(root) if not fs.isdir(p)]
+    archive_dirs = {
+        str(PurePosixPath(p).parent) for p in files if PurePosixPath(p).name == INSPECTION_FILE
+    }
+
+    def inside_archive_dir(path: str) -> bool:
+        return any(str(parent) in archive_dirs for parent in PurePosixPath(path).parents)
+
+    archive_files = [
+        p
+        for p in files
+        if p.lower().endswith(ARCHIVE_SUFFIXES)
+        and not PurePosixPath(p).name.startswith(".")
+        and not inside_archive_dir(p)
+    ]
+    found = sorted(
+        [d for d in archive_dirs if not inside_archive_dir(d)] + archive_files, key=_natural_key
+    )
+    if not found:
+        raise StoreError(
+            "the store holds no scan archive",
+            archive=store,
+            hint="a store holds folders with an inspection.toml, or .zip/.tar/.tar.gz files",
+        )
+    if isinstance(fs, LocalFileSystem):
+        return found
+    return [fs.unstrip_protocol(p) for p in found]
+
+
+@task(name="discover-archives", **IO_RETRY_OPTIONS)
+def discover_archives(store: str) -> list[str]:
+    """List the scan archives of a store (see :func:`find_archives`)."""
+    return find_archives(store)
+
+
+# --- inspections already stored ----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class StoredInspection:
+    """An inspection read back from the database, to summarise a re-run that reused it."""
+
+    record: InspectionRecord
+    sections: list[SectionMeasures]
+    defects: list[Defect]
+
+
+def stored_inspection_id(
+    database_url: str, asset_id: str, content_hash: str, params_hash: str
+) -> int | None:
+    """The id of the stored inspection of this archive content under these parameters, if any.
+
+    ``(asset_id, content_hash, params_hash)`` is an inspection's identity: saving the same
+    identity again replaces the earlier inspection, so there is at most one.
+    """
+    engine = connect(database_url)
+    try:
+        matches = [
+            r.id
+            for r in list_inspections(engine, asset_id)
+            if r.content_hash == content_hash and r.params_hash == params_hash
+        ]
+    finally:
+        engine.dispose()
+    return max(matches, default=None)
+
+
+@task(name="find-stored-inspection", **IO_RETRY_OPTIONS)
+def find_stored_inspection(
+    database_url: str, asset_id: str, content_hash: str, params_hash: str
+) -> int | None:
+    """The id of this archive's inspection under these parameters if already stored, or None."""
+    return stored_inspection_id(database_url, asset_id, content_hash, params_hash)
+
+
+@task(name="load-stored-inspection", **IO_RETRY_OPTIONS)
+def load_stored_inspection(database_url: str, inspection_id: int) -> StoredInspection:
+    """Read a stored inspection with its sections and defects."""
+    engine = connect(database_url)
+    try:
+        return StoredInspection(
+            record=get_inspection(engine, inspection_id),
+            sections=get_sections(engine, inspection_id),
+            defects=get_defects(engine, inspection_id),
+        )
+    finally:
+        engine.dispose()

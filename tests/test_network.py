@@ -1,0 +1,158 @@
+"""Network runs: finding archives in a store, retrying only I/O, one bad archive failing alone,
+re-runs reusing what is stored (one copy of each inspection), and the network summary."""
+
+from __future__ import annotations
+
+import fsspec
+import pytest
+import sqlalchemy as sa
+
+from pipescan.core.errors import ArchiveError, GeometryError, MetadataError, RegistrationError
+from pipescan.flows.network import (
+    ArchiveOutcome,
+    absolute_database_url,
+    progress_line,
+    worst_pipes,
+)
+from pipescan.storage.db import StorageError
+from pipescan.tasks.network import (
+    StoreError,
+    archive_label,
+    find_archives,
+    is_transient_io_error,
+)
+
+# --- the store ----------------------------------------------------------------------------------
+
+
+def _touch(path, text="x"):
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)
+
+
+def test_find_archives_at_any_depth_in_natural_order(tmp_path):
+    store = tmp_path / "store"
+    _touch(store / "MH10-MH11" / "inspection.toml")
+    _touch(store / "MH2-MH3" / "inspection.toml")
+    _touch(store / "MH2-MH3" / "frames" / "stray.zip")  # inside an archive: content, not archive
+    _touch(store / "2026-11" / "MH7-MH8.tar.gz")
+    _touch(store / "2026-11" / "deep" / "MH9-MH10.ZIP")
+    _touch(store / "2026-11" / "MH5-MH6" / "inspection.toml")
+    _touch(store / "notes.txt")
+    _touch(store / ".hidden.zip")
+    _touch(store / "MH1.tgz")
+    found = find_archives(str(store))
+    rel = [p[len(str(store)) + 1 :] for p in found]
+    assert rel == [
+        "2026-11/deep/MH9-MH10.ZIP",
+        "2026-11/MH5-MH6",
+        "2026-11/MH7-MH8.tar.gz",
+        "MH1.tgz",
+        "MH2-MH3",
+        "MH10-MH11",
+    ]
+
+
+def test_find_archives_in_an_fsspec_store():
+    fs = fsspec.filesystem("memory")
+    fs.pipe("/netstore-test/a/MH1-MH2/inspection.toml", b"x")
+    fs.pipe("/netstore-test/a/MH3-MH4.zip", b"x")
+    try:
+        assert find_archives("memory://netstore-test/a") == [
+            "memory:///netstore-test/a/MH1-MH2",
+            "memory:///netstore-test/a/MH3-MH4.zip",
+        ]
+    finally:
+        fs.rm("/netstore-test", recursive=True)
+
+
+@pytest.mark.parametrize(
+    ("make", "message"),
+    [
+        (lambda p: None, "does not exist"),
+        (lambda p: p.mkdir(), "holds no scan archive"),
+        (lambda p: p.write_text("x"), "is a file"),
+    ],
+)
+def test_a_missing_empty_or_file_store_is_a_clear_error(tmp_path, make, message):
+    store = tmp_path / "store"
+    make(store)
+    with pytest.raises(StoreError, match=message) as info:
+        find_archives(str(store))
+    assert str(store) in str(info.value)
+
+
+def test_archive_labels():
+    assert archive_label("/s/2026/MH1042-MH1043.tar.gz") == "MH1042-MH1043"
+    assert archive_label("s3://b/runs/MH1-MH2.zip") == "MH1-MH2"
+    assert archive_label("/s/MH1-MH2/") == "MH1-MH2"
+    assert archive_label("/s/x.tar") == "x"
+
+
+def test_relative_sqlite_urls_are_made_absolute(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    assert absolute_database_url("sqlite:///p.db") == f"sqlite:///{tmp_path / 'p.db'}"
+    assert absolute_database_url("sqlite:////abs/p.db") == "sqlite:////abs/p.db"
+    url = "postgresql+psycopg://u:secret@h/db"
+    assert absolute_database_url(url) == url
+
+
+# --- what is retried ----------------------------------------------------------------------------
+
+
+def _wrapped(outer_cls, inner: BaseException, **kw) -> BaseException:
+    try:
+        try:
+            raise inner
+        except BaseException as exc:
+            raise outer_cls("wrapped", **kw) from exc
+    except BaseException as outer:
+        return outer
+
+
+@pytest.mark.parametrize(
+    ("exc", "transient"),
+    [
+        (ConnectionResetError("peer reset"), True),
+        (TimeoutError("read timed out"), True),
+        (OSError(5, "Input/output error"), True),
+        (_wrapped(ArchiveError, OSError(104, "reset"), archive="s3://b/a.zip"), True),
+        (_wrapped(StorageError, sa.exc.OperationalError("INSERT", {}, "database is locked")), True),
+        (StorageError("no inspection with id 4"), False),
+        (GeometryError("no points in the window"), False),
+        (_wrapped(GeometryError, OSError(5, "io")), False),
+        (RegistrationError("ICP diverged"), False),
+        (MetadataError("missing inspected_at"), False),
+        (ArchiveError("the archive does not exist"), False),
+        (FileNotFoundError(2, "No such file"), False),
+        (PermissionError(13, "denied"), False),
+        (ValueError("bad value"), False),
+    ],
+)
+def test_only_transient_io_errors_are_retried(exc, transient):
+    assert is_transient_io_error(exc) is transient
+
+
+def test_progress_and_worst_pipes():
+    ok = ArchiveOutcome(
+        archive="/s/MH1-MH2",
+        label="MH1-MH2",
+        status="inspected",
+        wall_time_s=12.34,
+        inspection_id=7,
+        asset_id="A1",
+        defect_count=2,
+        max_blockage_ratio=0.167,
+        max_blockage_chainage_m=2.8,
+    )
+    bad = ArchiveOutcome(
+        archive="/s/X", label="X", status="failed", wall_time_s=0.5, error="archive /s/X: broken"
+    )
+    low = ArchiveOutcome(**{**ok.__dict__, "label": "L", "max_blockage_ratio": 0.02})
+    assert progress_line(3, 20, ok) == (
+        "[3/20] MH1-MH2 inspected in 12.3 s as inspection 7: asset A1, 2 defects, "
+        "worst blockage 16.7 % at 2.8 m"
+    )
+    assert progress_line(4, 20, bad) == "[4/20] X FAILED after 0.5 s: archive /s/X: broken"
+    assert worst_pipes([low, bad, ok], 5) == [ok, low]
+    assert worst_pipes([low, bad, ok], 1) == [ok]
