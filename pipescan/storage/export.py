@@ -10,7 +10,7 @@ from __future__ import annotations
 import csv
 import json
 import math
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import Any, TextIO, TypeVar
 
 import sqlalchemy as sa
@@ -222,13 +222,12 @@ def export_sections_csv(
     metres with three decimals (exact: they are stored in millimetres), ``inspected_at`` in
     ISO 8601 UTC, other figures with six significant digits; unmeasured figures are empty.
     """
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(SECTION_CSV_COLUMNS)
-    count = 0
-    for record in _section_rows(engine, asset_id, inspection_id):
-        writer.writerow(_section_csv_cells(record))
-        count += 1
-    return count
+    return _write_csv(
+        out,
+        SECTION_CSV_COLUMNS,
+        _section_rows(engine, asset_id, inspection_id),
+        _section_csv_cells,
+    )
 
 
 def export_defects_csv(
@@ -248,17 +247,47 @@ def export_defects_csv(
     int
         The number of data rows written (the header not counted).
     """
-    writer = csv.writer(out, lineterminator="\n")
-    writer.writerow(DEFECT_CSV_COLUMNS)
-    count = 0
-    for record in _defect_rows(engine, asset_id, inspection_id):
-        writer.writerow(_defect_csv_cells(record))
-        count += 1
-    return count
+    return _write_csv(
+        out, DEFECT_CSV_COLUMNS, _defect_rows(engine, asset_id, inspection_id), _defect_csv_cells
+    )
 
 
 def _json_number(value: float | None) -> float | None:
     return None if value is None or not math.isfinite(value) else value
+
+
+def _write_csv(
+    out: TextIO,
+    columns: Sequence[str],
+    records: Iterable[Mapping[str, Any]],
+    cells: Callable[[Mapping[str, Any]], list[str]],
+) -> int:
+    writer = csv.writer(out, lineterminator="\n")
+    writer.writerow(columns)
+    count = 0
+    for record in records:
+        writer.writerow(cells(record))
+        count += 1
+    return count
+
+
+def _write_jsonl(
+    out: TextIO,
+    columns: Sequence[str],
+    records: Iterable[Mapping[str, Any]],
+    numbers: Sequence[str],
+) -> int:
+    """One JSON object per record; ``numbers`` are written as null when NaN or unknown."""
+    count = 0
+    for record in records:
+        obj = {name: record[name] for name in columns}
+        obj["inspected_at"] = record["inspected_at"].isoformat()
+        for name in numbers:
+            obj[name] = _json_number(record[name])
+        out.write(json.dumps(obj, ensure_ascii=False, allow_nan=False))
+        out.write("\n")
+        count += 1
+    return count
 
 
 def export_sections_jsonl(
@@ -279,16 +308,9 @@ def export_sections_jsonl(
     int
         The number of lines written.
     """
-    count = 0
-    for record in _section_rows(engine, asset_id, inspection_id):
-        obj = {name: record[name] for name in SECTION_CSV_COLUMNS}
-        obj["inspected_at"] = record["inspected_at"].isoformat()
-        for name in _MEASURE_COLUMNS:
-            obj[name] = _json_number(record[name])
-        out.write(json.dumps(obj, ensure_ascii=False, allow_nan=False))
-        out.write("\n")
-        count += 1
-    return count
+    return _write_jsonl(
+        out, SECTION_CSV_COLUMNS, _section_rows(engine, asset_id, inspection_id), _MEASURE_COLUMNS
+    )
 
 
 def export_defects_jsonl(
@@ -310,12 +332,9 @@ def export_defects_jsonl(
     int
         The number of lines written.
     """
-    count = 0
-    for record in _defect_rows(engine, asset_id, inspection_id):
-        obj = {name: record[name] for name in DEFECT_CSV_COLUMNS}
-        obj["inspected_at"] = record["inspected_at"].isoformat()
-        obj["peak_blockage_ratio"] = _json_number(record["peak_blockage_ratio"])
-        out.write(json.dumps(obj, ensure_ascii=False, allow_nan=False))
-        out.write("\n")
-        count += 1
-    return count
+    return _write_jsonl(
+        out,
+        DEFECT_CSV_COLUMNS,
+        _defect_rows(engine, asset_id, inspection_id),
+        ("peak_blockage_ratio",),
+    )
