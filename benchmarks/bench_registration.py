@@ -1,6 +1,7 @@
 """Registration: engines side by side, sections with estimated poses, parallel chunks, memory.
 
     python benchmarks/bench_registration.py engines     # accuracy and speed of every engine
+    python benchmarks/bench_registration.py imu         # roll with and without the IMU prior
     python benchmarks/bench_registration.py sections    # defect chainages, blockage est vs true
     python benchmarks/bench_registration.py parallel    # register_chunk in 1 vs 2 threads/procs
     python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
@@ -160,6 +161,27 @@ def bench_engines(args) -> None:
                 for span in summary["unconstrained_spans"]:
                     print(f"  unconstrained: {span}")
         print()
+
+
+# --------------------------------------------------------------------------- imu
+
+
+def bench_imu(args) -> None:
+    """The default engine on `paper`, with and without the simulated IMU's gravity prior."""
+    scan = simulate_scan(get_scenario("paper", travel_m=args.travel_m), seed=args.seed)
+    frames = _frames_in_memory(scan)
+    print(
+        f"### paper, IMU gravity prior: {len(frames)} frames, {scan.true_travel_m[-1]:.2f} m, "
+        f"IMU noise {scan.scenario.imu_noise_deg}° per axis; "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
+    print(HEADER)
+    for label, imu in (("small_gicp gicp, no IMU", False), ("small_gicp gicp + IMU", True)):
+        rows = [(*f, scan.gravity_sensor[f[0]] if imu else None) for f in frames]
+        started = time.perf_counter()
+        trajectory = register_frames(iter(rows), RegistrationParams())
+        print(_row(label, scan, trajectory, time.perf_counter() - started), flush=True)
+    print()
 
 
 # --------------------------------------------------------------------------- sections
@@ -465,7 +487,8 @@ def main() -> None:
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
     parser.add_argument(
-        "what", choices=["engines", "sections", "parallel", "memory", "all", "memory-child"]
+        "what",
+        choices=["engines", "imu", "sections", "parallel", "memory", "all", "memory-child"],
     )
     parser.add_argument("--travel-m", type=float, default=4.5, help="length of the paper scan")
     parser.add_argument("--frames", type=int, nargs="+", default=[100, 400], help="memory runs")
@@ -477,6 +500,7 @@ def main() -> None:
         return
     steps = {
         "engines": bench_engines,
+        "imu": bench_imu,
         "sections": bench_sections,
         "parallel": bench_parallel,
         "memory": bench_memory,

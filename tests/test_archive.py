@@ -564,3 +564,56 @@ def test_inspection_toml_errors(extra: str, field: str, message: str) -> None:
         _meta(text + extra)
     assert message in str(info.value)
     assert_names(info.value, "run.zip", "inspection.toml", field)
+
+
+# --- the IMU's gravity direction ----------------------------------------------------------------
+
+
+def test_gravity_is_read_and_normalised() -> None:
+    head = 'asset_id = "A"\ninspected_at = 2024-05-17\nnominal_diameter_m = 0.5\n'
+    frames = "".join(
+        f'[[frames]]\nfile = "frames/{i}.npy"\ngravity = {g}\n'
+        for i, g in enumerate(["[0, 0, -9.81]", "[3.0, 0.0, -4.0]"])
+    )
+    meta = _meta(head + frames)
+    assert meta.frames[0].gravity == (0.0, 0.0, -1.0)
+    assert meta.frames[1].gravity == pytest.approx((0.6, 0.0, -0.8))
+    assert _meta(head + '[[frames]]\nfile = "frames/0.npy"\n').frames[0].gravity is None
+
+
+@pytest.mark.parametrize(
+    ("frames", "field", "message"),
+    [
+        ("gravity = [0, 0, 0]\n", "frames[0].gravity", "non-zero direction"),
+        ("gravity = [0.0, -1.0]\n", "frames[0].gravity", "3 components"),
+        ("gravity = [0.0, nan, -1.0]\n", "frames[0].gravity[1]", "finite"),
+        ("gravity = [0.0, 'down', -1.0]\n", "frames[0].gravity[1]", "valid number"),
+        (
+            "gravity = [0.0, 0.0, -1.0]\n[[frames]]\nfile = 'b.npy'\n",
+            "frames[1].gravity",
+            "given for some frames but not for this one",
+        ),
+    ],
+)
+def test_gravity_errors(frames: str, field: str, message: str) -> None:
+    text = 'asset_id = "A"\ninspected_at = 2024-05-17\nnominal_diameter_m = 0.5\n'
+    with pytest.raises(MetadataError) as info:
+        _meta(text + "[[frames]]\nfile = 'a.npy'\n" + frames)
+    assert message in str(info.value)
+    assert_names(info.value, "run.zip", "inspection.toml", field)
+    assert "gravity" in str(info.value.hint)
+
+
+def test_simulated_archive_carries_the_imu_gravity(tmp_path: Path) -> None:
+    from pipescan.core.simulate import get_scenario, simulate_scan
+    from pipescan.storage.simulated import write_simulated_archive
+
+    scan = simulate_scan(get_scenario("clean", travel_m=0.1, points_per_s=20_000), seed=2)
+    write_simulated_archive(scan, tmp_path / "sim")
+    with open_archive(tmp_path / "sim") as arc:
+        gravity = np.array([f.gravity for f in arc.meta.frames])
+    # The true "down" seen from the true attitude, within the IMU's noise (0.05° per axis).
+    down_sensor = -scan.T_world_sensor[:, 2, :3]
+    angle_deg = np.degrees(np.arccos(np.clip(np.sum(gravity * down_sensor, axis=1), -1, 1)))
+    assert len(gravity) == len(scan) and angle_deg.max() < 0.3
+    np.testing.assert_allclose(np.linalg.norm(gravity, axis=1), 1.0)

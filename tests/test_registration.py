@@ -146,6 +146,48 @@ def test_chunks_chain_into_the_same_trajectory(paper_scan, paper_frames):
     assert e["tilt_rms_deg"] < 0.2
 
 
+@pytest.fixture(scope="module")
+def paper_imu_frames(paper_scan, paper_frames):
+    """The paper frames with the simulated IMU's gravity direction as a 4th element."""
+    return [(i, p, o, paper_scan.gravity_sensor[i]) for i, p, o in paper_frames]
+
+
+def test_imu_gravity_holds_roll_within_target(paper_scan, paper_frames, paper_imu_frames):
+    with_imu = register_frames(iter(paper_imu_frames))
+    e = trajectory_errors(with_imu.T_world_frame, paper_scan.T_world_sensor)
+    assert e.roll_rms_deg <= 0.2
+    # The other targets still hold.
+    assert e.across_rms_m < 0.002
+    assert e.tilt_rms_deg < 0.05
+    odometer_final_m = abs(paper_scan.odometer_m[-1] - paper_scan.true_travel_m[-1])
+    assert abs(e.along_final_m) < 0.25 * odometer_final_m
+    # Without the IMU, roll is held to the previous attitude: the crawler's roll jitter.
+    without = register_frames(iter(paper_frames))
+    roll_without_deg = trajectory_errors(without.T_world_frame, paper_scan.T_world_sensor)
+    assert roll_without_deg.roll_rms_deg > 0.2
+    assert e.roll_rms_deg < roll_without_deg.roll_rms_deg / 3
+
+
+def test_imu_gravity_survives_chunking(paper_scan, paper_imu_frames):
+    frames = paper_imu_frames[:80]
+    parts = [register_frames(iter(frames[a : b + 1])) for a, b in plan_chunks(len(frames), 25)]
+    chained = chain_trajectories(parts)
+    e = trajectory_errors(chained.T_world_frame, paper_scan.T_world_sensor[:80])
+    assert e.roll_rms_deg <= 0.2
+    assert e.tilt_rms_deg < 0.05
+
+
+def test_gravity_needs_the_first_frame_and_a_direction(paper_scan, paper_frames):
+    frames = paper_frames[:20]
+    plain = register_frames(iter(frames))
+    # Without the first frame's reading there is no world "down": gravity is not used.
+    late = [(i, p, o, None if i == 0 else paper_scan.gravity_sensor[i]) for i, p, o in frames]
+    np.testing.assert_allclose(register_frames(iter(late)).T_world_frame, plain.T_world_frame)
+    bad = [(i, p, o, (0.0, 0.0, 0.0)) for i, p, o in frames]
+    with pytest.raises(RegistrationError, match="gravity must be a finite, non-zero"):
+        register_frames(iter(bad))
+
+
 def test_kabsch_recovers_a_rigid_motion_and_never_reflects():
     rng = np.random.default_rng(0)
     src = rng.normal(size=(50, 3))

@@ -21,12 +21,14 @@ class FrameRef:
     """One LiDAR frame listed in an archive.
 
     ``file`` is relative to the archive root (e.g. ``frames/000012.npy``). ``time_s`` and
-    ``odometer_m`` are None when the archive does not give them.
+    ``odometer_m`` are None when the archive does not give them. ``gravity`` is the unit
+    direction of gravity an IMU measured in the sensor frame, or None without an IMU.
     """
 
     file: str
     time_s: float | None = None
     odometer_m: float | None = None
+    gravity: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)

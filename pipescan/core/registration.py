@@ -3,8 +3,9 @@
 In a smooth straight pipe, ICP cannot tell where along the axis one frame sits relative to the
 next, nor how it is rolled about the axis: the cost is flat in those directions. pipescan finds
 them from the eigenvalues of the point-to-plane Hessian and keeps the prior (the odometer along
-the axis, the previous attitude for roll) there, letting the geometry decide only the directions
-it constrains ("solution remapping").
+the axis, the previous attitude for roll, turned to agree with an IMU's gravity when frames
+carry it) there, letting the geometry decide only the directions it constrains ("solution
+remapping").
 
 Each frame is registered against a local map of the last few keyframes. A keyframe groups the
 consecutive frames registered while the crawler moved less than ``keyframe_distance_m``, so the
@@ -47,6 +48,9 @@ _MIN_FRAME_POINTS = 50
 _MIN_CORRESPONDENCES = 30
 _NORMAL_NEIGHBOURS = 12
 _FACING_AXIS_COS = np.cos(np.radians(45.0))
+# Gravity says nothing about roll about an axis within ~6° of vertical (a shaft): there the
+# components of gravity across the axis are below this and the IMU correction is skipped.
+_MIN_GRAVITY_ACROSS_AXIS = 0.1
 
 
 @dataclass(frozen=True)
@@ -502,10 +506,37 @@ class FrameRegistrar:
         self._prev_constrained = False
         self._velocity_m = np.zeros(3)
         self._prev_odometer: float | None = None
+        self._down_world: np.ndarray | None = None
         self.odometer_frames = 0
         self.count = 0
 
     # -- prediction -------------------------------------------------------------------------
+    def _gravity_corrected(self, pred: np.ndarray, gravity_sensor: np.ndarray) -> np.ndarray:
+        """Turn the predicted attitude about the pipe axis so that it agrees with the IMU.
+
+        The world "down" (the first frame's measured gravity) seen from the prediction
+        should read as this frame's measured gravity. The roll about the axis that best
+        aligns them is the signed angle between the two directions' components across the
+        axis (both in the sensor frame); the predicted attitude is turned by it about the
+        sensor. Pitch and yaw are left to ICP, which observes them to ~0.01°.
+        """
+        assert self._axis_world is not None and self._down_world is not None
+        R = pred[:3, :3]
+        axis = R.T @ self._axis_world
+        predicted = R.T @ self._down_world
+        across_pred = predicted - axis * (axis @ predicted)
+        across_meas = gravity_sensor - axis * (axis @ gravity_sensor)
+        if min(np.linalg.norm(across_pred), np.linalg.norm(across_meas)) < (
+            _MIN_GRAVITY_ACROSS_AXIS
+        ):
+            return pred
+        # R_new = R @ Rot(axis, θ) reads down as Rot(axis, -θ) @ predicted: θ turns the
+        # measured direction onto the predicted one.
+        theta = np.arctan2(axis @ np.cross(across_meas, across_pred), across_meas @ across_pred)
+        corrected = pred.copy()
+        corrected[:3, :3] = R @ Rotation.from_rotvec(theta * axis).as_matrix()
+        return corrected
+
     def _predict(self, odometer_m: float | None) -> np.ndarray:
         assert self._prev is not None
         prev = self._prev
@@ -523,7 +554,10 @@ class FrameRegistrar:
 
     # -- one frame --------------------------------------------------------------------------
     def add(
-        self, points_sensor_m: np.ndarray, odometer_m: float | None = None
+        self,
+        points_sensor_m: np.ndarray,
+        odometer_m: float | None = None,
+        gravity: np.ndarray | tuple[float, float, float] | None = None,
     ) -> tuple[np.ndarray, FrameQuality]:
         """Register the next frame.
 
@@ -535,6 +569,12 @@ class FrameRegistrar:
             The crawler's cable-counter reading at this frame. Without it, the along-axis
             motion is extrapolated at constant velocity where the Hessian shows no
             constraint at all, and such frames are flagged ``degenerate``.
+        gravity : (3,) float, optional
+            The direction of gravity an IMU measured at this frame, in the sensor frame (any
+            length). The first frame's reading defines the world "down"; later readings turn
+            the predicted roll about the pipe axis into agreement with it before ICP, and a
+            held (degenerate) roll stays there instead of at the previous attitude. Without
+            it (or without one on the first frame), roll is held to the previous attitude.
 
         Returns
         -------
@@ -549,6 +589,7 @@ class FrameRegistrar:
         """
         p = self.params
         index = self.count
+        gravity_sensor = _unit_gravity(gravity, index)
         pts = preprocess_frame(points_sensor_m, p)
         if len(pts) < _MIN_FRAME_POINTS:
             raise RegistrationError(
@@ -562,9 +603,13 @@ class FrameRegistrar:
             self._map.add_keyframe(pts)
             self._last_key_position = T[:3, 3].copy()
             self._axis_world = self._map.axis_world(T[:3, 0])
+            self._down_world = gravity_sensor  # the world frame is this frame's sensor frame
         else:
             has_odometer = odometer_m is not None and self._prev_odometer is not None
-            T, quality = self._register(pts, self._predict(odometer_m), index, has_odometer)
+            pred = self._predict(odometer_m)
+            if gravity_sensor is not None and self._down_world is not None:
+                pred = self._gravity_corrected(pred, gravity_sensor)
+            T, quality = self._register(pts, pred, index, has_odometer)
             self._pending.append(_transform(T, pts))
             assert self._last_key_position is not None
             if np.linalg.norm(T[:3, 3] - self._last_key_position) >= p.keyframe_distance_m:
@@ -674,16 +719,36 @@ class FrameRegistrar:
         return "constant_velocity" if self.odometer_frames == 0 else "mixed"
 
 
+def _unit_gravity(
+    gravity: np.ndarray | tuple[float, float, float] | None, index: int
+) -> np.ndarray | None:
+    if gravity is None:
+        return None
+    g = np.asarray(gravity, dtype=np.float64)
+    norm = float(np.linalg.norm(g)) if g.shape == (3,) else 0.0
+    if not (np.isfinite(norm) and norm > 0):
+        raise RegistrationError(
+            f"gravity must be a finite, non-zero 3-vector, got {gravity!r} (frame {index})",
+            hint="pass the IMU's gravity direction in the sensor frame, or None",
+        )
+    return g / norm
+
+
 def register_frames(
-    frames: Iterable[tuple[int, np.ndarray, float | None]],
+    frames: Iterable[
+        tuple[int, np.ndarray, float | None]
+        | tuple[int, np.ndarray, float | None, np.ndarray | tuple[float, float, float] | None]
+    ],
     params: RegistrationParams = RegistrationParams(),
 ) -> Trajectory:
     """Register a sequence of frames into one trajectory.
 
     Parameters
     ----------
-    frames : iterable of (frame_index, points_sensor_m (N, 3), odometer_m or None)
-        Streamed in order; each full frame is dropped once registered.
+    frames : iterable of (frame_index, points_sensor_m (N, 3), odometer_m or None[, gravity])
+        Streamed in order; each full frame is dropped once registered. The optional fourth
+        element is the IMU's gravity direction in the sensor frame, (3,) or None (see
+        :meth:`FrameRegistrar.add`): it holds the roll about the pipe axis to the IMU.
     params : RegistrationParams
 
     Returns
@@ -706,9 +771,10 @@ def register_frames(
     """
     reg = FrameRegistrar(params)
     poses, quality, indices = [], [], []
-    for frame_index, points, odometer in frames:
+    for frame_index, points, odometer, *rest in frames:
+        gravity = rest[0] if rest else None
         try:
-            T, q = reg.add(points, odometer)
+            T, q = reg.add(points, odometer, gravity)
         except RegistrationError as exc:
             raise RegistrationError(f"frame {frame_index}: {exc.reason}", hint=exc.hint) from exc
         poses.append(T)

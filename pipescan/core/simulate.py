@@ -177,6 +177,8 @@ class Scenario:
     mount_pitch_deg: float = 3.0
     odometer_scale_error_ratio: float = 0.02
     odometer_noise_m: float = 0.0005
+    imu: bool = True
+    imu_noise_deg: float = 0.05
     end_wall_beyond_travel_m: float = 2.0
     world_yaw_deg: float = 30.0
     world_gradient_ratio: float = 0.01
@@ -203,7 +205,7 @@ class Scenario:
                 raise ValueError(f"Scenario.{name} must be > 0, got {getattr(self, name)!r}.")
         non_negative = (
             "blind_zone_m", "range_noise_sigma_m", "spurious_return_ratio",
-            "attitude_jitter_deg", "odometer_noise_m", "chainage_offset_m",
+            "attitude_jitter_deg", "odometer_noise_m", "chainage_offset_m", "imu_noise_deg",
         )  # fmt: skip
         for name in non_negative:
             if not getattr(self, name) >= 0:
@@ -300,7 +302,8 @@ class SimulatedFrame:
 
     ``points_sensor`` is (N, 3) float32, metres, in the sensor frame (x forward, y left,
     z up). ``T_world_sensor`` (4, 4) float64 is the true pose. ``odometer_m`` is the noisy
-    odometer reading, as an archive would hold it.
+    odometer reading, as an archive would hold it; ``gravity`` the IMU's unit gravity
+    direction in the sensor frame (None when ``Scenario.imu`` is off).
     """
 
     index: int
@@ -308,6 +311,7 @@ class SimulatedFrame:
     odometer_m: float
     points_sensor: np.ndarray = field(repr=False)
     T_world_sensor: np.ndarray = field(repr=False)
+    gravity: tuple[float, float, float] | None = None
 
 
 @dataclass(frozen=True)
@@ -864,6 +868,9 @@ class SimulatedScan:
     times_s, odometer_m, true_travel_m
         (F,) capture time (s), odometer reading (m, with scale error and noise) and true
         distance travelled along the axis (m).
+    gravity_sensor
+        (F, 3) the IMU's unit gravity direction in the sensor frame (true attitude plus
+        ``imu_noise_deg`` of noise), or None when ``Scenario.imu`` is off.
     T_world_sensor
         (F, 4, 4) true sensor poses.
     T_world_pipe
@@ -913,6 +920,7 @@ class SimulatedScan:
             position = (self.true_travel_m[i], s.mount_offset_y_m, s.mount_offset_z_m)
             self._T_pipe_sensor[i] = _pose(rotation, position)
         self.T_world_sensor = self.T_world_pipe[None] @ self._T_pipe_sensor
+        self.gravity_sensor = self._imu_gravity() if s.imu else None
 
         self.meta = InspectionMeta(
             asset_id=s.asset_id,
@@ -924,11 +932,43 @@ class SimulatedScan:
             chainage_offset_m=s.chainage_offset_m,
             material=s.material,
             frames=tuple(
-                FrameRef(frame_file_name(i), float(self.times_s[i]), float(self.odometer_m[i]))
+                FrameRef(
+                    frame_file_name(i),
+                    float(self.times_s[i]),
+                    float(self.odometer_m[i]),
+                    self._gravity(i),
+                )
                 for i in range(n)
             ),
         )
         self._coverage_cache: tuple[np.ndarray, np.ndarray] | None = None
+
+    def _imu_gravity(self) -> np.ndarray:
+        """The IMU's gravity directions, (F, 3), in the sensor frame: the true world "down"
+        seen from the true attitude, tilted by a random rotation of ``imu_noise_deg`` RMS
+        per axis (its own random stream, so the other draws do not change)."""
+        rng = np.random.default_rng((self.seed, 2))
+        down_sensor = -self.T_world_sensor[:, 2, :3]  # R_world_sensorᵀ (0, 0, -1)
+        tilt_rad = rng.normal(0.0, math.radians(self.scenario.imu_noise_deg), (len(self), 3))
+        noisy = np.empty_like(down_sensor)
+        for i, (g, w) in enumerate(zip(down_sensor, tilt_rad, strict=True)):
+            angle = float(np.linalg.norm(w))
+            if angle == 0.0:
+                noisy[i] = g
+                continue
+            k = w / angle  # Rodrigues' rotation of g about k by angle
+            noisy[i] = (
+                g * math.cos(angle)
+                + np.cross(k, g) * math.sin(angle)
+                + k * (k @ g) * (1.0 - math.cos(angle))
+            )
+        return noisy / np.linalg.norm(noisy, axis=1, keepdims=True)
+
+    def _gravity(self, i: int) -> tuple[float, float, float] | None:
+        if self.gravity_sensor is None:
+            return None
+        gx, gy, gz = (float(v) for v in self.gravity_sensor[i])
+        return (gx, gy, gz)
 
     def __len__(self) -> int:
         return int(self.times_s.size)
@@ -978,6 +1018,7 @@ class SimulatedScan:
             odometer_m=float(self.odometer_m[i]),
             points_sensor=points,
             T_world_sensor=self.T_world_sensor[i].copy(),
+            gravity=self._gravity(i),
         )
 
     def frames(self) -> Iterator[SimulatedFrame]:

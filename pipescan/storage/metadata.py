@@ -55,6 +55,28 @@ class _FrameEntry(BaseModel):
     file: str = Field(min_length=1)
     time_s: float | None = None
     odometer_m: float | None = None
+    gravity: list[float] | None = None
+
+    @field_validator("gravity")
+    @classmethod
+    def _unit_gravity(cls, value: list[float] | None) -> tuple[float, float, float] | None:
+        """Normalise the IMU's gravity direction; a zero vector has no direction."""
+        if value is None:
+            return None
+        if len(value) != 3:
+            raise PydanticCustomError(
+                "gravity_length",
+                "gravity must have 3 components [gx, gy, gz], got {value}",
+                {"value": list(value), "hint": _HINTS["gravity"]},
+            )
+        norm = math.hypot(*value)
+        if not norm > 0 or not math.isfinite(norm):
+            raise PydanticCustomError(
+                "zero_gravity",
+                "gravity must be a non-zero direction, got {value}",
+                {"value": list(value), "hint": _HINTS["gravity"]},
+            )
+        return (value[0] / norm, value[1] / norm, value[2] / norm)
 
 
 class InspectionDocument(BaseModel):
@@ -264,9 +286,13 @@ def _check_frames(entries: Sequence[_FrameEntry], fail: Any) -> tuple[FrameRef, 
                 hint="list each frame once",
             )
         seen[file] = i
-        frames.append(FrameRef(file=file, time_s=entry.time_s, odometer_m=entry.odometer_m))
+        frames.append(
+            FrameRef(
+                file=file, time_s=entry.time_s, odometer_m=entry.odometer_m, gravity=entry.gravity
+            )
+        )
 
-    for key in ("time_s", "odometer_m"):
+    for key in ("time_s", "odometer_m", "gravity"):
         given = [getattr(f, key) is not None for f in frames]
         if any(given) and not all(given):
             i = given.index(False)
@@ -312,7 +338,9 @@ def _metadata_error(exc: ValidationError, raw: dict[str, Any], fail: Any) -> Met
     reason = first["msg"].removeprefix("Value error, ")
     if first["type"] not in _CUSTOM_ERROR_TYPES:  # their messages already quote the value
         reason += f", got {_short_repr(first['input'])}"
-    hint = ctx.get("hint") or _HINTS.get(str(loc[-1]) if loc else "")
+    # The innermost named field: frames[0].gravity[1] takes the hint of gravity.
+    name = next((str(part) for part in reversed(loc) if isinstance(part, str)), "")
+    hint = ctx.get("hint") or _HINTS.get(name)
     if loc and loc[0] == "frames" and len(loc) == 1:
         hint = "write each frame as a [[frames]] table with file = ..."
     return fail(reason + more, field, hint=hint)
@@ -323,6 +351,8 @@ _CUSTOM_ERROR_TYPES = {
     "implausible_diameter",
     "not_iso_date",
     "time_without_date",
+    "zero_gravity",
+    "gravity_length",
 }
 
 _HINTS = {
@@ -332,6 +362,10 @@ _HINTS = {
     "chainage_offset_m": "give the distance in metres from the upstream node to the scan start",
     "asset_id": 'write the pipe asset id, e.g. asset_id = "MH1042-MH1043"',
     "file": 'give the frame file relative to the archive root, e.g. "frames/000001.npy"',
+    "gravity": (
+        "gravity = [gx, gy, gz] is the IMU's gravity direction in the sensor frame "
+        "(any length but zero), e.g. gravity = [0.05, 0.0, -1.0]"
+    ),
 }
 
 

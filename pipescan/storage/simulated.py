@@ -161,7 +161,13 @@ def _inspection_doc(scan: SimulatedScan) -> dict[str, Any]:
         "material": meta.material,
         "pipe_shape": meta.pipe_shape,
         "frames": [
-            {"file": f.file, "time_s": f.time_s, "odometer_m": f.odometer_m} for f in meta.frames
+            {
+                "file": f.file,
+                "time_s": f.time_s,
+                "odometer_m": f.odometer_m,
+                "gravity": list(f.gravity) if f.gravity is not None else None,
+            }
+            for f in meta.frames
         ],
     }
 

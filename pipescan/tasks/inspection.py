@@ -64,11 +64,13 @@ def register_chunk(
 ) -> Trajectory:
     """Register frames ``first..last`` (inclusive) relative to frame ``first``.
 
-    Frames stream from the archive one at a time; only the local map stays in memory.
+    Frames stream from the archive one at a time; only the local map stays in memory. The
+    IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
     """
+    meta = staged.meta
     with open_archive(staged.root) as arc:
         frames = (
-            (i, pts, _odometer(staged.meta, i))
+            (i, pts, _odometer(meta, i), meta.frames[i].gravity if meta.frames else None)
             for i, pts in arc.iter_frames(range(first, last + 1))
         )
         trajectory = register_frames(frames, params)
