@@ -46,24 +46,9 @@ def simulate(
 
 
 def _inspection_params(contour: str | None, registration: str | None):
-    from pipescan.core.measures import MeasureParams
-    from pipescan.core.registration import RegistrationParams
-    from pipescan.flows.inspect import InspectionParams
+    from pipescan.flows.network import params_from_settings
 
-    s = _settings()
-    return InspectionParams(
-        registration=RegistrationParams(
-            method=registration or s.registration_method, engine=s.registration_engine
-        ),
-        measure=MeasureParams(method=contour or s.contour_method),
-        step_m=s.step_m,
-        window_m=s.window_m,
-        chunk_frames=s.chunk_frames,
-        threshold_table=s.threshold_table,
-        pipe_class=s.pipe_class,
-        blockage_threshold_ratio=s.blockage_threshold_ratio,
-        flag_grade=s.flag_grade,
-    )
+    return params_from_settings(_settings(), contour=contour, registration=registration)
 
 
 def _run_inspection(archive: str, db_url: str, report: Path | None, params):

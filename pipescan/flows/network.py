@@ -26,6 +26,7 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 from sqlalchemy.engine import make_url
 
+from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
@@ -105,9 +106,25 @@ class NetworkSummary:
 
 
 def params_from_settings(settings, *, contour: str | None = None, registration: str | None = None):
-    """The inspection parameters that ``PIPESCAN_*`` settings (or a ``.env``) give."""
+    """The inspection parameters that ``PIPESCAN_*`` settings (or a ``.env``) give, with the
+    CLI's ``--contour`` and ``--registration`` overriding them.
+
+    Raises
+    ------
+    PipescanError
+        When the settings combine a registration method and engine that do not go together.
+    """
+    method = registration or settings.registration_method
+    try:
+        registration_params = RegistrationParams(method=method, engine=settings.registration_engine)
+    except ValueError as exc:
+        raise PipescanError(
+            str(exc),
+            field="PIPESCAN_REGISTRATION_METHOD, PIPESCAN_REGISTRATION_ENGINE",
+            hint="set them together; docs/registration.md lists the combinations",
+        ) from exc
     return InspectionParams(
-        registration=RegistrationParams(method=registration or settings.registration_method),
+        registration=registration_params,
         measure=MeasureParams(method=contour or settings.contour_method),
         step_m=settings.step_m,
         window_m=settings.window_m,
