@@ -76,14 +76,21 @@ def choose_bins(point_count: int, *, points_per_bin: int = 16) -> int:
     return _BIN_CHOICES[-1]
 
 
+def _wall_bins(
+    radii_m: np.ndarray, seen: np.ndarray, nominal_diameter_m: float, wall_tolerance_ratio: float
+) -> np.ndarray:
+    """Seen bins whose contour lies at the wall: within ``wall_tolerance_ratio`` of the nominal
+    radius. Anything further in is a deposit or an obstacle."""
+    return seen & (radii_m >= nominal_diameter_m / 2.0 * (1.0 - wall_tolerance_ratio))
+
+
 def _diameter_measures(
     radii_m: np.ndarray, seen: np.ndarray, nominal_diameter_m: float, wall_tolerance_ratio: float
 ) -> tuple[float | None, float | None]:
     """Ovality (ASTM F1216) and deformation (EN 13508-2 BAA) from wall diameters only."""
     bins = len(radii_m)
     half = bins // 2
-    r_nom = nominal_diameter_m / 2.0
-    wall = seen & (radii_m >= r_nom * (1.0 - wall_tolerance_ratio))
+    wall = _wall_bins(radii_m, seen, nominal_diameter_m, wall_tolerance_ratio)
     pair = wall[:half] & wall[half:]
     if pair.sum() < max(3, half // 6):
         return None, None
@@ -106,8 +113,7 @@ def _deposit_height_ratio(
     The invert is placed at the median wall radius below the centre; the fill's top is the
     median radius within ±5° of straight down.
     """
-    r_nom = nominal_diameter_m / 2.0
-    wall = seen & (profile_radii_m >= r_nom * (1.0 - wall_tolerance_ratio))
+    wall = _wall_bins(profile_radii_m, seen, nominal_diameter_m, wall_tolerance_ratio)
     down = np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * np.pi)))) <= np.radians(5.0)
     bottom = down & seen
     if not bottom.any() or wall.sum() < 3:
@@ -213,8 +219,7 @@ def measure_section(
     # wall's diameters.
     wall_seen = profile.seen.copy()
     if deposit is not None and deposit * nominal_diameter_m > _DEPOSIT_FLOOR_M:
-        r_wall = nominal_diameter_m / 2.0
-        y_top = -r_wall + deposit * nominal_diameter_m
+        y_top = -nominal_diameter_m / 2.0 + deposit * nominal_diameter_m
         y = radii_smooth * np.sin(profile.angles_rad)
         wall_seen &= y > y_top + _DEPOSIT_FLOOR_M
     ovality, deformation = _diameter_measures(
