@@ -15,12 +15,8 @@ from pipescan.flows.network import (
     worst_pipes,
 )
 from pipescan.storage.db import StorageError
-from pipescan.tasks.network import (
-    StoreError,
-    archive_label,
-    find_archives,
-    is_transient_io_error,
-)
+from pipescan.tasks.network import StoreError, archive_label, find_archives
+from pipescan.tasks.retries import is_transient_io_error
 
 # --- the store ----------------------------------------------------------------------------------
 

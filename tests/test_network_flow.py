@@ -15,7 +15,7 @@ from pipescan.flows.network import inspect_network
 from pipescan.storage.db import connect
 from pipescan.storage.repository import list_inspections
 from pipescan.storage.simulated import read_ground_truth
-from pipescan.tasks.network import IO_RETRY_OPTIONS
+from pipescan.tasks.retries import IO_RETRY_OPTIONS
 from tests.netstore import asset_id, write_archive, write_store
 
 pytestmark = pytest.mark.e2e

@@ -33,7 +33,6 @@ from pipescan.tasks.inspection import (
     register_chunk,
 )
 from pipescan.tasks.network import (
-    IO_RETRY_OPTIONS,
     find_stored_inspection,
     load_stored_inspection,
 )
@@ -41,14 +40,6 @@ from pipescan.tasks.reporting import render_report
 from pipescan.tasks.storing import save_results, stage_archive
 
 log = logging.getLogger("pipescan")
-
-# The tasks that read the store or scratch files, or write the database, are retried with
-# backoff on transient I/O errors only: a bad archive or a geometry error fails at once.
-stage_archive = stage_archive.with_options(**IO_RETRY_OPTIONS)
-bucket_points = bucket_points.with_options(**IO_RETRY_OPTIONS)
-measure_sections = measure_sections.with_options(**IO_RETRY_OPTIONS)
-save_results = save_results.with_options(**IO_RETRY_OPTIONS)
-render_report = render_report.with_options(**IO_RETRY_OPTIONS)
 
 
 @dataclass(frozen=True)

@@ -39,6 +39,7 @@ from typing import Any, Literal
 from prefect import task
 
 from pipescan.core.errors import PipescanError
+from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 __all__ = [
     "Delivery",
@@ -54,7 +55,6 @@ __all__ = [
     "write_to_location",
 ]
 
-_IO_RETRIES = {"retries": 2, "retry_delay_seconds": [2, 10]}
 # A practical check, not RFC 5322: one @, no spaces, a dot in the domain.
 _ADDRESS = re.compile(r"^[^@\s<>,;]+@[^@\s<>,;]+\.[^@\s<>,;]+$")
 _UNSAFE_NAME = re.compile(r"[^A-Za-z0-9._-]+")
@@ -336,7 +336,7 @@ def deliver_report(
     return Delivery(written_to=written, emailed_to=emailed)
 
 
-@task(name="deliver-report", **_IO_RETRIES)
+@task(name="deliver-report", **IO_RETRY_OPTIONS)
 def deliver_report_task(
     pdf_path: Path,
     *,

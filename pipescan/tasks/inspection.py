@@ -26,11 +26,9 @@ from pipescan.core.registration import (
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.storage.archive import open_archive
 from pipescan.storage.workspace import read_window_offsets, write_buckets
+from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 log = logging.getLogger("pipescan")
-
-# Retry reads and writes a couple of times: a network store or a busy database can fail once.
-_IO_RETRIES = {"retries": 2, "retry_delay_seconds": [1, 5]}
 
 
 @dataclass(frozen=True)
@@ -130,7 +128,7 @@ def fit_pipe_axis(
     return AxisFit(axis=axis, chainage_min_m=float(lo), chainage_max_m=float(hi))
 
 
-@task(name="bucket-points", **_IO_RETRIES)
+@task(name="bucket-points", **IO_RETRY_OPTIONS)
 def bucket_points(
     staged: StagedArchive,
     trajectory: Trajectory | None,
@@ -149,7 +147,7 @@ def bucket_points(
     return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
 
 
-@task(name="measure-window", **_IO_RETRIES)
+@task(name="measure-window", **IO_RETRY_OPTIONS)
 def measure_sections(
     bucket_root: Path,
     window: ChainageWindow,

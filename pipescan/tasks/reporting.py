@@ -27,6 +27,7 @@ from pipescan.storage.report_queries import (
     section_profiles,
 )
 from pipescan.storage.repository import get_defects, get_inspection, get_sections
+from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 __all__ = [
     "load_network_input",
@@ -38,7 +39,6 @@ __all__ = [
     "report_message",
 ]
 
-_IO_RETRIES = {"retries": 2, "retry_delay_seconds": [1, 5]}
 #: Earlier inspections of the asset loaded for the trend page.
 TREND_HISTORY = 4
 
@@ -151,7 +151,7 @@ def load_network_input(
     )
 
 
-@task(name="render-report", **_IO_RETRIES)
+@task(name="render-report", **IO_RETRY_OPTIONS)
 def render_report(database_url: str, inspection_id: int, out_path: Path) -> Path:
     """Render one inspection's PDF condition report from the database."""
     return render_pdf(load_report_input(database_url, inspection_id), out_path)
@@ -193,7 +193,7 @@ def render_network_report(
 
 
 #: :func:`render_network_report` as a Prefect task, for flows that want it retried and logged.
-render_network_report_task = task(name="render-network-report", **_IO_RETRIES)(
+render_network_report_task = task(name="render-network-report", **IO_RETRY_OPTIONS)(
     render_network_report
 )
 

@@ -12,11 +12,10 @@ from pipescan.storage.archive import open_archive
 from pipescan.storage.db import connect
 from pipescan.storage.repository import save_inspection
 from pipescan.tasks.inspection import StagedArchive
+from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
-_IO_RETRIES = {"retries": 2, "retry_delay_seconds": [1, 5]}
 
-
-@task(name="stage-archive", **_IO_RETRIES)
+@task(name="stage-archive", **IO_RETRY_OPTIONS)
 def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
     """Open and validate an archive; unpack a file archive into the run's scratch directory.
 
@@ -40,7 +39,7 @@ def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
         )
 
 
-@task(name="save-results", **_IO_RETRIES)
+@task(name="save-results", **IO_RETRY_OPTIONS)
 def save_results(
     database_url: str,
     *,

@@ -1,0 +1,102 @@
+"""When a Prefect task is retried: on transient I/O errors only, with exponential backoff.
+
+Reading a store or scratch files and writing the database can fail once and work the next
+time; a bad archive or a geometry error fails the same way every time, so retrying it only
+delays the failure. Every task that does I/O is declared with ``IO_RETRY_OPTIONS``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import sqlalchemy as sa
+from prefect.tasks import exponential_backoff
+
+from pipescan.core.errors import (
+    GeometryError,
+    GradingError,
+    MetadataError,
+    PointFileError,
+    RegistrationError,
+)
+
+IO_RETRY_COUNT = 3
+"""How many times an I/O failure (store read, database write) is retried."""
+
+IO_RETRY_BACKOFF_S = 2.0
+"""The first retry's delay; each next one doubles (2, 4, 8 s), with ±50 % jitter."""
+
+# Errors that come from the archive's content or the geometry: the same input fails the same
+# way every time, so a retry only delays the failure.
+_DETERMINISTIC: tuple[type[BaseException], ...] = (
+    GeometryError,
+    RegistrationError,
+    GradingError,
+    MetadataError,
+    PointFileError,
+    FileNotFoundError,
+    IsADirectoryError,
+    NotADirectoryError,
+    PermissionError,
+)
+# Database driver errors that a second attempt can get past: a lock, a dropped connection.
+_TRANSIENT_DB: tuple[type[BaseException], ...] = (
+    sa.exc.OperationalError,
+    sa.exc.InterfaceError,
+    sa.exc.DisconnectionError,
+    sa.exc.TimeoutError,
+)
+
+
+def _causes(exc: BaseException) -> Iterator[BaseException]:
+    seen: set[int] = set()
+    current: BaseException | None = exc
+    while current is not None and id(current) not in seen:
+        seen.add(id(current))
+        yield current
+        current = current.__cause__ or current.__context__
+
+
+def is_transient_io_error(exc: BaseException) -> bool:
+    """True when ``exc`` is an I/O failure that a retry may get past.
+
+    Walks the exception and its causes: a connection, timeout or other ``OSError`` (reading
+    from a store, a network file system), or a database lock or lost connection, is
+    transient, also when wrapped in an :class:`~pipescan.core.errors.ArchiveError` or a
+    ``StorageError``. Geometry, registration, grading, metadata and point-file errors, and
+    missing files or permissions, are deterministic: never transient, whatever they wrap.
+
+    Examples
+    --------
+    >>> is_transient_io_error(ConnectionResetError("peer reset"))
+    True
+    >>> is_transient_io_error(GeometryError("no points in the window"))
+    False
+    """
+    for link in _causes(exc):
+        if isinstance(link, _DETERMINISTIC):
+            return False
+        if isinstance(link, (*_TRANSIENT_DB, OSError)):
+            return True
+    return False
+
+
+def retry_on_io_error(task, task_run, state) -> bool:
+    """Prefect ``retry_condition_fn``: retry a failed task run only on a transient I/O error."""
+    exc = state.data if isinstance(state.data, BaseException) else None
+    if exc is None:
+        try:
+            exc = state.result(raise_on_failure=False)
+        except Exception as raised:  # the result itself could not be read back
+            exc = raised
+    return isinstance(exc, BaseException) and is_transient_io_error(exc)
+
+
+IO_RETRY_OPTIONS = {
+    "retries": IO_RETRY_COUNT,
+    "retry_delay_seconds": exponential_backoff(IO_RETRY_BACKOFF_S),
+    "retry_jitter_factor": 0.5,
+    "retry_condition_fn": retry_on_io_error,
+}
+"""Task options (``@task(..., **IO_RETRY_OPTIONS)``) for tasks that read the store or
+write the database: retried with exponential backoff, on transient I/O errors only."""
