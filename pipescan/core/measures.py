@@ -51,7 +51,7 @@ class MeasureParams:
     stray_radius_m, stray_min_neighbours
         Stray-point removal (see ``remove_stray_points``).
     max_points : int
-        A denser section is thinned to at most this many points by an even stride: the
+        A denser section is thinned to this many points, evenly spaced: the
         per-angle medians do not need more, and the cost stays bounded.
     grid : GridParams
         Parameters of the paper's grid method.
@@ -174,9 +174,11 @@ def measure_section(
     )
     if len(raw) == 0:
         return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)
-    # Points arrive frame after frame, so an even stride thins every frame alike.
-    stride = -(-len(raw) // params.max_points)
-    raw_used = raw[::stride] if stride > 1 else raw
+    # Points arrive frame after frame, so evenly spaced picks thin every frame alike. (Not a
+    # whole-number stride: a section just over the limit would lose half its points.)
+    raw_used = raw
+    if len(raw) > params.max_points:
+        raw_used = raw[np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64)]
     pts = remove_stray_points(
         raw_used, radius_m=params.stray_radius_m, min_neighbours=params.stray_min_neighbours
     )
