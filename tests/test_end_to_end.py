@@ -93,10 +93,12 @@ def test_flow_stores_sections_that_match_ground_truth(inspected, archive):
     ]
     assert sum(errors) / len(errors) < 0.005
     assert max(errors) < 0.025
-    # Unmeasured sections carry no figure at all (empty cells, never 0).
-    for r in rows:
-        if r["status"] != "ok":
-            assert r["blockage_ratio"] == "" or r["status"] != "ok"
+    # Sections that are not ok export no figure (empty cells, never 0), only the reason.
+    not_ok = [r for r in rows if r["status"] != "ok"]
+    assert not_ok
+    for r in not_ok:
+        assert r["blockage_ratio"] == r["open_area_m2"] == r["ovality_ratio"] == "", r
+        assert r["coverage_ratio"] != "" and int(r["point_count"]) >= 0
     # Every section in an occlusion shadow is reported as not ok.
     for r in rows:
         t = true_by_start.get(round(float(r["chainage_start_m"]), 1))

@@ -16,6 +16,7 @@ import sqlalchemy as sa
 
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage import db, export, repository
+from pipescan.storage.models import Section
 
 DESIGN_COLUMNS = (
     "asset_id,inspection_id,inspected_at,chainage_start_m,chainage_end_m,open_area_m2,"
@@ -37,6 +38,8 @@ MEASURED = SectionMeasures(
     deposit_height_ratio=0.1,
     grade=3,
 )
+# Figures computed but not trusted (only a fifth of the perimeter seen): stored for
+# diagnosis, never exported as measured.
 UNMEASURED = SectionMeasures(
     chainage_start_m=12.4,
     chainage_end_m=12.5,
@@ -44,6 +47,11 @@ UNMEASURED = SectionMeasures(
     status=SectionStatus.LOW_COVERAGE,
     point_count=12,
     coverage_ratio=0.2,
+    open_area_m2=0.2,
+    blockage_ratio=1 - 0.2 / NOMINAL_AREA_M2,
+    ovality_ratio=0.05,
+    deformation_ratio=0.02,
+    deposit_height_ratio=0.0,
 )
 DEFECT = Defect(
     code="BBC",
@@ -132,6 +140,14 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         assert unmeasured[name] == "", name
     assert (unmeasured["status"], unmeasured["point_count"]) == ("low_coverage", "12")
     assert unmeasured["coverage_ratio"] == "0.2"
+    # The database still holds the untrusted figures, for diagnosis.
+    with engine.connect() as connection:
+        stored = connection.execute(
+            sa.select(Section.blockage_ratio).where(
+                Section.inspection_id == ids["A-2024"], Section.status == "low_coverage"
+            )
+        ).scalar_one()
+    assert stored == pytest.approx(UNMEASURED.blockage_ratio)
 
 
 def test_sections_csv_selection_and_order(engine: sa.Engine, ids: dict[str, int]) -> None:

@@ -2,7 +2,8 @@
 
 Rows are streamed from the database in batches, so an export of a whole network does not
 have to fit in memory. Column names are the names used end to end (DESIGN.md). A figure that
-was not measured is an empty CSV cell (``null`` in JSON), never 0.
+was not measured is an empty CSV cell (``null`` in JSON), never 0; so are the figures of a
+section whose status is not ``ok`` (its coverage and point count stay, as the reason).
 """
 
 from __future__ import annotations
@@ -72,6 +73,15 @@ _MEASURE_COLUMNS = (
     "coverage_ratio",
 )
 
+# Figures of a section that are empty in an export unless its status is ok.
+_UNTRUSTED_UNLESS_OK = (
+    "open_area_m2",
+    "blockage_ratio",
+    "ovality_ratio",
+    "deformation_ratio",
+    "deposit_height_ratio",
+)
+
 # Rows fetched per round trip while streaming.
 _BATCH_ROWS = 1000
 
@@ -131,6 +141,10 @@ def _section_rows(
         record = row._asdict()
         record["chainage_start_m"] = mm_to_m(record.pop("chainage_start_mm"))
         record["chainage_end_m"] = mm_to_m(record.pop("chainage_end_mm"))
+        if record["status"] != "ok":
+            # The database keeps what could be computed, for diagnosis; an export never
+            # presents it as measured. Coverage and point count stay: they are the reason.
+            record.update(dict.fromkeys(_UNTRUSTED_UNLESS_OK))
         yield record
 
 
