@@ -190,3 +190,130 @@ def test_obstacle_is_blockage_not_deformation():
     assert m.blockage_ratio > 0.03
     assert m.deformation_ratio < 0.015
     assert m.deposit_height_ratio < 0.01
+
+
+# --------------------------------------------------------------------------------------------
+# Free space behind an overhanging obstacle (pockets)
+
+BOX_HALF_WIDTH_M, BOX_BOTTOM_M = 0.14, 0.1184  # the paper scenario's obstacle
+EDGE_DEG = math.degrees(math.atan2(BOX_BOTTOM_M, BOX_HALF_WIDTH_M))  # 40.2°
+ATTACH_DEG = math.degrees(math.acos(BOX_HALF_WIDTH_M / R))  # 55.9°, where its side meets the wall
+
+
+def overhang_section(rng, *, wall_seen_to_deg: float, n: int = 40_000, noise_m: float = 0.003):
+    """A section under a box hanging from the crown, as a forward-looking sensor sees it: the
+    wall, the box's underside, and, beside the box, the wall up to ``wall_seen_to_deg`` (from
+    the right, mirrored on the left); the rest of the wall beside the box and the box's sides
+    were never seen. Column 2 is the position along the section, for the sub-slice vote."""
+    theta = np.degrees(rng.uniform(0.0, 2.0 * np.pi, n))
+    folded = np.where(theta > 90.0, 180.0 - theta, theta)  # right-side angle
+    keep = ~((folded > wall_seen_to_deg) & (theta < 180.0))
+    theta = np.radians(theta[keep])
+    r = R + rng.normal(0.0, noise_m, len(theta))
+    wall = np.column_stack((r * np.cos(theta), r * np.sin(theta)))
+    m = n // 5
+    underside = np.column_stack(
+        (
+            rng.uniform(-BOX_HALF_WIDTH_M, BOX_HALF_WIDTH_M, m),
+            BOX_BOTTOM_M + rng.normal(0.0, noise_m, m),
+        )
+    )
+    pts = np.vstack((wall, underside))
+    return np.column_stack((pts, rng.uniform(0.0, 0.1, len(pts))))
+
+
+def _hidden_and_box_area(wall_seen_to_deg: float) -> tuple[float, float]:
+    """The box's area inside the pipe, and the free area beside it that was never seen: between
+    the chord from the box's corner to the last wall point seen, the wall, and the box's side."""
+    import shapely
+
+    disc = shapely.Point(0.0, 0.0).buffer(R, quad_segs=512)
+    box = shapely.box(-BOX_HALF_WIDTH_M, BOX_BOTTOM_M, BOX_HALF_WIDTH_M, R).intersection(disc)
+    arc = np.radians(np.linspace(wall_seen_to_deg, ATTACH_DEG, 200))
+    right = shapely.Polygon(
+        [(BOX_HALF_WIDTH_M, BOX_BOTTOM_M), *zip(R * np.cos(arc), R * np.sin(arc), strict=True)]
+    )
+    return 2.0 * right.area, box.area
+
+
+@pytest.mark.parametrize("wall_seen_to_deg", [45.0, 51.5, ATTACH_DEG - 0.5])
+def test_pocket_seen_beside_an_overhanging_obstacle_counts_as_free(wall_seen_to_deg):
+    rng = np.random.default_rng(31)
+    pts = overhang_section(rng, wall_seen_to_deg=wall_seen_to_deg)
+    hidden, box = _hidden_and_box_area(wall_seen_to_deg)
+    nominal = math.pi * R * R
+    true_blockage = box / nominal
+    m = measure(pts)
+    assert m.status == SectionStatus.OK
+    # What was seen counts as free; what was never seen counts as blocked: the figure is the
+    # true blockage plus the hidden pocket, never less than the truth.
+    assert m.blockage_ratio == pytest.approx(true_blockage + hidden / nominal, abs=0.003)
+    assert m.blockage_ratio >= true_blockage - 0.002
+    # The contour runs out into the pockets: it is no longer star-shaped around the centre.
+    contour = m.contour_m
+    assert (contour[:, 0] > BOX_HALF_WIDTH_M + 0.01).any() and (contour[:, 1] > 0.17).any()
+
+
+def test_pocket_left_out_when_no_wall_was_seen_beside_the_obstacle():
+    rng = np.random.default_rng(32)
+    pts = overhang_section(rng, wall_seen_to_deg=EDGE_DEG - 1.0)
+    _, box = _hidden_and_box_area(EDGE_DEG)
+    star_shaped = measure(pts).blockage_ratio
+    # Everything behind the box's underside, seen from the centre, counts as blocked: the box
+    # and both pockets beside it (about 2.3 points here).
+    assert star_shaped > box / (math.pi * R * R) + 0.02
+
+
+def test_a_few_stray_returns_beside_the_obstacle_do_not_make_a_pocket():
+    rng = np.random.default_rng(33)
+    pts = overhang_section(rng, wall_seen_to_deg=EDGE_DEG - 1.0)
+    base = measure(pts).blockage_ratio
+    # Returns on the unseen wall beside the box, in one sub-slice only, and a pair in others.
+    phi = np.radians(rng.uniform(EDGE_DEG, ATTACH_DEG, 12))
+    strays = np.column_stack((R * np.cos(phi), R * np.sin(phi), np.full(12, 0.01)))
+    strays[:2, 2] = [0.04, 0.09]
+    # They may nudge a median by a rank (a pocket, had they made one, would be ~1 point).
+    assert measure(np.vstack((pts, strays))).blockage_ratio == pytest.approx(base, abs=1e-4)
+
+
+def test_wall_seen_behind_an_island_obstacle_stays_blocked():
+    """A root across the section, seen from below with the crown seen past both its edges: its
+    far side was never seen, so nothing behind it is counted as free (conservative)."""
+    rng = np.random.default_rng(34)
+    ring = ring_section(30_000, noise_m=0.003, rng=rng)
+    phi = rng.uniform(np.pi, 2.0 * np.pi, 3000)  # the root's underside, radius 4 cm at 15 cm up
+    root = np.column_stack((0.04 * np.cos(phi), 0.15 + 0.04 * np.sin(phi)))
+    pts = np.vstack((ring, root))
+    pts = np.column_stack((pts, rng.uniform(0.0, 0.1, len(pts))))
+    profile = polar_profile(pts, bins=360, section_length_m=0.1)
+    assert np.isfinite(profile.far_radii_m).sum() > 5  # the crown, seen past the root
+    assert profile.pocket_polygons() == []
+    assert profile.area_m2() == pytest.approx(profile.star_area_m2())
+
+
+def test_pocket_measure_invariant_under_shuffle_and_rotation():
+    rng = np.random.default_rng(35)
+    pts = overhang_section(rng, wall_seen_to_deg=51.5)
+    base = measure(pts).blockage_ratio
+    for angle in (0.3, 2.0, 4.5):
+        c, s = math.cos(angle), math.sin(angle)
+        moved = pts[rng.permutation(len(pts))].copy()
+        moved[:, :2] = moved[:, :2] @ np.array([[c, -s], [s, c]]).T
+        assert measure(moved).blockage_ratio == pytest.approx(base, abs=0.003)
+
+
+@pytest.mark.parametrize("keep_every", [1, 4])
+def test_a_sub_slice_with_a_few_leaked_points_does_not_see_the_arc(keep_every):
+    """A deposit ends halfway along the section; its downstream ramp is hidden behind the
+    plateau's edge. The plateau's last points leak into the third sub-slice, a few per bin.
+    Those do not make the bottom seen, whatever the point density."""
+    rng = np.random.default_rng(36)
+    ring = ring_section(60_000, noise_m=0.003, deposit_m=0.12, rng=rng)
+    along = rng.uniform(0.0, 0.1, len(ring))
+    fill = ring[:, 1] < -R + 0.12 + 0.01
+    leaked = fill & (along >= 0.05) & (rng.random(len(ring)) < 0.04) & (along < 0.06)
+    keep = ~fill | (along < 0.05) | leaked
+    pts = np.column_stack((ring, along))[keep][::keep_every]
+    m = measure(pts)
+    assert m.status == SectionStatus.LOW_COVERAGE
+    assert m.coverage_ratio < 0.8

@@ -83,14 +83,19 @@ class PolarProfile:
     angles_rad : (B,) float
         Bin centres, counter-clockwise from the ``right`` axis.
     radii_m : (B,) float
-        Median radius of each bin; NaN where the bin has fewer points than required (unseen).
+        Radius of the nearest surface in each bin (the median of its layer); NaN where the bin
+        has fewer points than required (unseen).
     counts : (B,) int
         Points per bin.
+    far_radii_m : (B,) float, optional
+        Where the sensor also saw a surface beyond the nearest one (the wall behind the edge
+        of an obstacle that overhangs it), that surface's radius; NaN elsewhere.
     """
 
     angles_rad: np.ndarray
     radii_m: np.ndarray
     counts: np.ndarray
+    far_radii_m: np.ndarray | None = None
 
     @property
     def seen(self) -> np.ndarray:
@@ -119,7 +124,7 @@ class PolarProfile:
         return float(max(runs)) * 360.0 / len(seen)
 
     def filled_radii(self) -> np.ndarray:
-        """Radii with unseen bins linearly interpolated around the circle.
+        """Radii of the nearest surface, with unseen bins linearly interpolated around the circle.
 
         Only for drawing and for figures whose status already says the gap is small; a gap
         never becomes a confident number through this.
@@ -130,8 +135,9 @@ class PolarProfile:
         a = self.angles_rad
         return np.interp(a, a[seen], self.radii_m[seen], period=2.0 * np.pi)
 
-    def area_m2(self) -> float:
-        """Enclosed area by the polar integral ``½ Σ r² Δθ`` (gaps interpolated).
+    def star_area_m2(self) -> float:
+        """Area inside the nearest surface, by the polar integral ``½ Σ r² Δθ`` (gaps
+        interpolated).
 
         Exact for a circle at any bin count, where a polygon through the bin radii falls short
         by ``(2π/B)² / 6`` of the area (0.13 % at 72 bins).
@@ -139,10 +145,115 @@ class PolarProfile:
         r = self.filled_radii()
         return float(0.5 * np.sum(r * r) * 2.0 * np.pi / len(r))
 
-    def polygon(self) -> np.ndarray:
-        """The contour polygon (B, 2), gaps interpolated (see ``filled_radii``)."""
+    def star_polygon(self) -> np.ndarray:
+        """The nearest surface as a polygon (B, 2), gaps interpolated (see ``filled_radii``)."""
         r = self.filled_radii()
         return np.column_stack((r * np.cos(self.angles_rad), r * np.sin(self.angles_rad)))
+
+    def pocket_polygons(self, *, layer_gap_m: float = 0.03) -> list[np.ndarray]:
+        """Free space seen behind the edge of an overhanging obstacle, one polygon per pocket.
+
+        An obstacle that hangs from the crown (or juts from the side) can have free space
+        beside it that a ray from the centre would only reach through the obstacle. The
+        sensor, looking past the obstacle's edge from elsewhere, still sees the wall there:
+        those bins hold two layers, the obstacle's near face and the wall beyond it. A pocket
+        is a run of such bins that starts at the obstacle's edge, where the wall continues
+        from the open bins beside it. Its polygon runs from the edge, out along the wall
+        that was seen, and back to the edge in a straight line: the wall further on, which no
+        ray reached, counts as blocked. A run that does not start at a visible edge (a hole,
+        or an island such as a root seen from below, whose far side is unseen) is left out:
+        it stays blocked.
+
+        Parameters
+        ----------
+        layer_gap_m : float
+            The far layer must lie this far beyond the near one (as in ``polar_profile``), and
+            an open bin beside the run must reach the far layer's radius within this.
+
+        Returns
+        -------
+        list of (M, 2) float
+        """
+        if self.far_radii_m is None:
+            return []
+        near, far, seen = self.radii_m, self.far_radii_m, self.seen
+        bins = len(near)
+        two = seen & np.isfinite(far)
+        two[two] = far[two] - near[two] >= layer_gap_m
+        if not two.any() or two.all():
+            return []
+        half_bin = np.pi / bins
+
+        def wall_beside(neighbour: int, edge: int) -> bool:
+            return bool(
+                seen[neighbour]
+                and not two[neighbour]
+                and abs(near[neighbour] - far[edge]) <= layer_gap_m
+            )
+
+        pockets = []
+        start = int(np.argmin(two))  # a bin outside every run
+        idx = np.roll(np.arange(bins), -start)
+        flags = two[idx]
+        i = 0
+        while i < bins:
+            if not flags[i]:
+                i += 1
+                continue
+            j = i
+            while j + 1 < bins and flags[j + 1]:
+                j += 1
+            run = idx[i : j + 1]
+            before, after = idx[i - 1], idx[(j + 1) % bins]
+            edge_first, edge_last = wall_beside(before, run[0]), wall_beside(after, run[-1])
+            if edge_first != edge_last:
+                wall = before if edge_first else after
+                if edge_last:
+                    run = run[::-1]
+                theta_edge = self.angles_rad[run[0]] + (-half_bin if edge_first else half_bin)
+                # The edge bin can straddle the obstacle's edge (its sub-slices disagree, and
+                # its near radius is halfway out): the edge is the nearer of the first two.
+                # From there the pocket starts at the open bin's wall point, a vertex of the
+                # nearest-surface polygon, so that their union has no notch.
+                r_edge = float(near[run[:2]].min())
+                theta = np.concatenate(([theta_edge, self.angles_rad[wall]], self.angles_rad[run]))
+                radius = np.concatenate(([r_edge, near[wall]], far[run]))
+                pockets.append(np.column_stack((radius * np.cos(theta), radius * np.sin(theta))))
+            i = j + 1
+        return pockets
+
+    def _free_region(self):
+        import shapely
+
+        star = shapely.Polygon(self.star_polygon())
+        pockets = [shapely.make_valid(shapely.Polygon(p)) for p in self.pocket_polygons()]
+        if not pockets:
+            return star, star
+        return star, shapely.union_all([star, *pockets])
+
+    def area_m2(self) -> float:
+        """Open area: inside the nearest surface (``star_area_m2``) plus the pockets seen
+        behind overhanging obstacles (``pocket_polygons``) that the nearest surface leaves out.
+        """
+        area = self.star_area_m2()
+        if self.far_radii_m is None or not np.isfinite(self.far_radii_m).any():
+            return area
+        star, free = self._free_region()
+        return area + float(free.area - star.area)
+
+    def polygon(self) -> np.ndarray:
+        """The contour polygon (M, 2): the nearest surface, gaps interpolated (see
+        ``filled_radii``), with any pockets seen behind overhanging obstacles added."""
+        if self.far_radii_m is None or not np.isfinite(self.far_radii_m).any():
+            return self.star_polygon()
+        import shapely
+
+        star, free = self._free_region()
+        if free is star:
+            return self.star_polygon()
+        if not isinstance(free, shapely.Polygon):
+            free = max(shapely.get_parts(free), key=lambda g: g.area)
+        return np.asarray(free.exterior.coords, dtype=np.float64)[:-1]
 
 
 def polar_profile(
@@ -153,15 +264,27 @@ def polar_profile(
     min_slices: int = 3,
     section_length_m: float | None = None,
     centre: np.ndarray | None = None,
+    layer_gap_m: float = 0.03,
+    min_layer_points: int = 3,
+    min_cell_share: float = 0.25,
 ) -> PolarProfile:
     """Robust radius per angle bin, judged along the section's length.
 
     The section is split into ``slices`` sub-slices along the axis. Each (bin, sub-slice) cell
     gets the median radius of its points; a bin is seen when at least ``min_slices`` of its
-    sub-slices have points, and its radius is the median of those sub-slice radii. So a face
+    sub-slices have points (each at least ``min_cell_share`` of their median count), and its
+    radius is the median of those sub-slice radii. So a face
     perpendicular to the axis (an obstacle's front, the pipe's end wall), which lies in one
     sub-slice, is outvoted by the wall behind it; and a few points that leak across the
     section's boundary from a neighbour cannot make an unseen arc (a shadow) look seen.
+
+    A cell whose sorted radii jump by more than ``layer_gap_m``, with at least
+    ``min_layer_points`` on each side of the jump, holds two layers: the near face of an
+    obstacle and, beyond it, the wall the sensor saw past the obstacle's edge. The cell's
+    radius is then the near layer's median. The points more than ``layer_gap_m`` beyond the
+    bin's near surface make its far layer, seen when ``min_slices`` sub-slices have such
+    points; its radius is the median of their sub-slice medians. ``PolarProfile.pocket_polygons``
+    uses it to count the free space behind an obstacle's edge that the sensor actually saw.
 
     Parameters
     ----------
@@ -177,6 +300,14 @@ def polar_profile(
         Length of the section (default: the span of column 2).
     centre : (2,) float, optional
         Centre of the profile; default the origin (the fitted axis).
+    min_cell_share : float
+        A sub-slice sees a bin only when it holds at least this share of the median count of
+        the bin's sub-slices.
+    layer_gap_m : float
+        Radial jump, metres, that separates two layers in a cell (several times the range
+        noise).
+    min_layer_points : int
+        Points each layer needs, so that a few stray returns cannot make a layer.
 
     Returns
     -------
@@ -196,27 +327,81 @@ def polar_profile(
         s_idx = np.zeros(len(pts), dtype=np.int64)
     cell = b_idx * slices + s_idx
     counts = np.bincount(cell, minlength=bins * slices)
-    cell_median = np.full(bins * slices, np.nan)
+    near_median = np.full(bins * slices, np.nan)
+    far_median = np.full(bins * slices, np.nan)
     if len(pts):
-        # Sorted by (cell, radius), a cell's median is the middle of its run. One float key
-        # (the cell plus the radius as a fraction below 1) sorts about ten times faster than
-        # ``np.lexsort`` on the two.
+        # Sorted by (cell, radius), a cell's points are one run, in order of radius. One
+        # float key (the cell plus the radius as a fraction below 1) sorts about ten times
+        # faster than ``np.lexsort`` on the two.
         order = np.argsort(cell + rad / (float(rad.max()) * (1.0 + 1e-9) + 1e-300))
         sorted_rad = rad[order]
         starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
         good = np.flatnonzero(counts > 0)
         lo, n = starts[good], counts[good]
-        cell_median[good] = 0.5 * (sorted_rad[lo + (n - 1) // 2] + sorted_rad[lo + n // 2])
-    per_bin = cell_median.reshape(bins, slices)
-    seen_slices = np.isfinite(per_bin).sum(axis=1)
+        near_median[good] = _run_median(
+            sorted_rad, lo, _near_layer_length(sorted_rad, lo, n, layer_gap_m, min_layer_points)
+        )
+    near_per_bin = near_median.reshape(bins, slices)
+    # A sub-slice that holds only a few points where the others hold many (the edge of a
+    # deposit's plateau leaking past the place where its hidden downstream ramp begins) did
+    # not see that bin: it does not vote. Relative to the bin's median sub-slice (not its
+    # densest: a face across the axis packs one sub-slice), so it holds at any point density.
+    per_cell = counts.reshape(bins, slices)
+    typical = np.median(per_cell, axis=1, keepdims=True)  # not the max: a face is dense
+    near_per_bin[per_cell < min_cell_share * typical] = np.nan
+    seen = np.isfinite(near_per_bin).sum(axis=1) >= min_slices
     radii = np.full(bins, np.nan)
-    seen = seen_slices >= min_slices
+    far_radii = np.full(bins, np.nan)
     if seen.any():
-        radii[seen] = np.nanmedian(per_bin[seen], axis=1)
+        radii[seen] = np.nanmedian(near_per_bin[seen], axis=1)
+        # The far layer: the points of each cell beyond the bin's near surface by more than
+        # the gap, a suffix of the cell's sorted run. Pooled by bin, as it is sparse.
+        cell_of = np.repeat(good, n)
+        with np.errstate(invalid="ignore"):
+            beyond = sorted_rad >= radii[cell_of // slices] + layer_gap_m
+        far_n = np.bincount(cell_of[beyond], minlength=bins * slices)
+        has_far = far_n > 0
+        far_median[has_far] = _run_median(
+            sorted_rad, (starts + counts - far_n)[has_far], far_n[has_far]
+        )
+        far_per_bin = far_median.reshape(bins, slices)
+        far_seen = seen & (np.isfinite(far_per_bin).sum(axis=1) >= min_slices)
+        if far_seen.any():
+            far_radii[far_seen] = np.nanmedian(far_per_bin[far_seen], axis=1)
     angles = (np.arange(bins) + 0.5) * 2.0 * np.pi / bins
     return PolarProfile(
-        angles_rad=angles, radii_m=radii, counts=counts.reshape(bins, slices).sum(1)
+        angles_rad=angles,
+        radii_m=radii,
+        counts=counts.reshape(bins, slices).sum(1),
+        far_radii_m=far_radii,
     )
+
+
+def _run_median(sorted_values: np.ndarray, lo: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Median of each run ``sorted_values[lo : lo + n]`` (every run sorted, n >= 1)."""
+    return 0.5 * (sorted_values[lo + (n - 1) // 2] + sorted_values[lo + n // 2])
+
+
+def _near_layer_length(
+    sorted_rad: np.ndarray, lo: np.ndarray, n: np.ndarray, gap_m: float, min_points: int
+) -> np.ndarray:
+    """How many of each cell's sorted radii belong to its nearest layer.
+
+    The runs ``[lo, lo + n)`` must cover ``sorted_rad`` in order. A cell whose largest jump
+    between consecutive radii is at least ``gap_m``, with ``min_points`` or more on each side,
+    holds two layers, and its near layer ends at that jump; otherwise the whole run is one
+    layer.
+    """
+    gaps = np.empty_like(sorted_rad)
+    gaps[:-1] = np.diff(sorted_rad)
+    gaps[lo + n - 1] = -np.inf  # no jump from a cell's last point to the next cell's first
+    cell_max = np.maximum.reduceat(gaps, lo)
+    at_max = np.flatnonzero(gaps == np.repeat(cell_max, n))
+    owner = np.repeat(np.arange(len(lo)), n)[at_max]
+    first = np.unique(owner, return_index=True)[1]  # the first largest jump of every cell
+    near_n = at_max[first] - lo + 1
+    two = (cell_max >= gap_m) & (near_n >= min_points) & (n - near_n >= min_points)
+    return np.where(two, near_n, n)
 
 
 # --------------------------------------------------------------------------------------------
