@@ -26,6 +26,10 @@ class Settings(BaseSettings):
     )
     reports_dir: Path = Field(Path("reports"), description="where reports are written by default")
     contour_method: Literal["polar", "grid"] = "polar"
+    grid_k: int = Field(12, ge=3, description="grid method: neighbours in the angle-gap test")
+    grid_s_threshold_rad: float = Field(
+        0.55, gt=0, description="grid method: angle-gap standard deviation S of a boundary point"
+    )
     registration_method: Literal["gicp", "point_to_plane", "point_to_point"] = Field(
         "gicp", description="gicp (default), point_to_plane, or the paper's point_to_point"
     )

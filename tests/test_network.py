@@ -152,3 +152,20 @@ def test_progress_and_worst_pipes():
     assert progress_line(4, 20, bad) == "[4/20] X FAILED after 0.5 s: archive /s/X: broken"
     assert worst_pipes([low, bad, ok], 5) == [ok, low]
     assert worst_pipes([low, bad, ok], 1) == [ok]
+
+
+def test_settings_give_the_inspection_parameters(monkeypatch):
+    from pipescan.flows.network import params_from_settings
+    from pipescan.settings import Settings
+
+    monkeypatch.setenv("PIPESCAN_GRID_K", "8")
+    monkeypatch.setenv("PIPESCAN_GRID_S_THRESHOLD_RAD", "0.7")
+    monkeypatch.setenv("PIPESCAN_REGISTRATION_METHOD", "point_to_plane")
+    monkeypatch.setenv("PIPESCAN_REGISTRATION_ENGINE", "open3d")
+    params = params_from_settings(Settings(), contour="grid")
+    assert params.measure.method == "grid"
+    assert (params.measure.grid.k, params.measure.grid.s_threshold_rad) == (8, 0.7)
+    assert (params.registration.method, params.registration.engine) == ("point_to_plane", "open3d")
+    monkeypatch.setenv("PIPESCAN_GRID_K", "2")
+    with pytest.raises(ValueError, match="grid_k"):
+        Settings()

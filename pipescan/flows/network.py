@@ -26,6 +26,7 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 from sqlalchemy.engine import make_url
 
+from pipescan.core.contour import GridParams
 from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
@@ -125,7 +126,10 @@ def params_from_settings(settings, *, contour: str | None = None, registration: 
         ) from exc
     return InspectionParams(
         registration=registration_params,
-        measure=MeasureParams(method=contour or settings.contour_method),
+        measure=MeasureParams(
+            method=contour or settings.contour_method,
+            grid=GridParams(k=settings.grid_k, s_threshold_rad=settings.grid_s_threshold_rad),
+        ),
         step_m=settings.step_m,
         window_m=settings.window_m,
         chunk_frames=settings.chunk_frames,
