@@ -18,6 +18,7 @@ polygon (M, 2) in the same frame.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Literal
 
 import numpy as np
@@ -90,12 +91,15 @@ class PolarProfile:
     far_radii_m : (B,) float, optional
         Where the sensor also saw a surface beyond the nearest one (the wall behind the edge
         of an obstacle that overhangs it), that surface's radius; NaN elsewhere.
+    layer_gap_m : float
+        The radial jump that separated the two layers (see ``polar_profile``).
     """
 
     angles_rad: np.ndarray
     radii_m: np.ndarray
     counts: np.ndarray
     far_radii_m: np.ndarray | None = None
+    layer_gap_m: float = 0.03
 
     @property
     def seen(self) -> np.ndarray:
@@ -150,7 +154,7 @@ class PolarProfile:
         r = self.filled_radii()
         return np.column_stack((r * np.cos(self.angles_rad), r * np.sin(self.angles_rad)))
 
-    def pocket_polygons(self, *, layer_gap_m: float = 0.03) -> list[np.ndarray]:
+    def pocket_polygons(self) -> list[np.ndarray]:
         """Free space seen behind the edge of an overhanging obstacle, one polygon per pocket.
 
         An obstacle that hangs from the crown (or juts from the side) can have free space
@@ -162,13 +166,8 @@ class PolarProfile:
         that was seen, and back to the edge in a straight line: the wall further on, which no
         ray reached, counts as blocked. A run that does not start at a visible edge (a hole,
         or an island such as a root seen from below, whose far side is unseen) is left out:
-        it stays blocked.
-
-        Parameters
-        ----------
-        layer_gap_m : float
-            The far layer must lie this far beyond the near one (as in ``polar_profile``), and
-            an open bin beside the run must reach the far layer's radius within this.
+        it stays blocked. The far layer must lie ``layer_gap_m`` beyond the near one, and the
+        open bin beside the run must reach the far layer's radius within ``layer_gap_m``.
 
         Returns
         -------
@@ -176,7 +175,7 @@ class PolarProfile:
         """
         if self.far_radii_m is None:
             return []
-        near, far, seen = self.radii_m, self.far_radii_m, self.seen
+        near, far, seen, layer_gap_m = self.radii_m, self.far_radii_m, self.seen, self.layer_gap_m
         bins = len(near)
         two = seen & np.isfinite(far)
         two[two] = far[two] - near[two] >= layer_gap_m
@@ -222,7 +221,9 @@ class PolarProfile:
             i = j + 1
         return pockets
 
+    @cached_property
     def _free_region(self):
+        """(nearest-surface polygon, its union with the pockets), as shapely geometries."""
         import shapely
 
         star = shapely.Polygon(self.star_polygon())
@@ -238,7 +239,7 @@ class PolarProfile:
         area = self.star_area_m2()
         if self.far_radii_m is None or not np.isfinite(self.far_radii_m).any():
             return area
-        star, free = self._free_region()
+        star, free = self._free_region
         return area + float(free.area - star.area)
 
     def polygon(self) -> np.ndarray:
@@ -248,7 +249,7 @@ class PolarProfile:
             return self.star_polygon()
         import shapely
 
-        star, free = self._free_region()
+        star, free = self._free_region
         if free is star:
             return self.star_polygon()
         if not isinstance(free, shapely.Polygon):
@@ -374,6 +375,7 @@ def polar_profile(
         radii_m=radii,
         counts=counts.reshape(bins, slices).sum(1),
         far_radii_m=far_radii,
+        layer_gap_m=layer_gap_m,
     )
 
 
