@@ -317,3 +317,14 @@ def test_a_sub_slice_with_a_few_leaked_points_does_not_see_the_arc(keep_every):
     m = measure(pts)
     assert m.status == SectionStatus.LOW_COVERAGE
     assert m.coverage_ratio < 0.8
+
+
+def test_grid_chain_that_does_not_go_round_is_no_contour_not_a_small_one():
+    rng = np.random.default_rng(37)
+    whole = measure(ring_section(20_000, noise_m=0.002, rng=rng), method="grid")
+    assert whole.status == SectionStatus.OK
+    # A 60° arc unseen: the chain from the lowest point runs round one side to the gap and
+    # cannot jump it. Half a contour would read as a huge blockage.
+    broken = measure(ring_section(20_000, noise_m=0.002, gap_deg=(60, 120), rng=rng), method="grid")
+    assert broken.status == SectionStatus.NO_CONTOUR
+    assert broken.blockage_ratio is None

@@ -435,6 +435,10 @@ class GridParams:
     max_jump_m : float
         The nearest-neighbour chain may cross a gap in the data up to this long (e.g. between a
         wall and an obstacle that hides part of it); a longer jump ends the chain.
+    min_chain_share : float
+        A chain that ends before it has passed through this share of the boundary cells has
+        not gone round the section (it ran along a deposit's top and back, say): the method
+        found no contour, rather than a small one.
     """
 
     k: int = 12
@@ -444,6 +448,7 @@ class GridParams:
     smooth_window: int = 5
     resample_m: float = 0.005
     max_jump_m: float = 0.10
+    min_chain_share: float = 0.8
 
 
 def _thin(points_2d: np.ndarray, cell_m: float) -> np.ndarray:
@@ -655,6 +660,11 @@ def grid_contour(points_2d: np.ndarray, params: GridParams = GridParams()) -> Gr
     np.add.at(per_cell, inverse.ravel(), edge)
     per_cell /= counts[:, None]
     ordered = _order_nearest_neighbour(per_cell, max_jump_m=max(4.0 * cell, params.max_jump_m))
+    if len(ordered) < params.min_chain_share * len(per_cell):
+        raise GeometryError(
+            f"the boundary chain ended after {len(ordered)} of {len(per_cell)} boundary cells:"
+            " it did not go round the section"
+        )
     smoothed = _smooth_closed(ordered, params.smooth_window)
     polygon = _resample_closed(smoothed, params.resample_m)
     return GridContour(polygon=polygon, boundary_points=edge, cell_size_m=cell)
