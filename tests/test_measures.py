@@ -324,7 +324,12 @@ def test_grid_chain_that_does_not_go_round_is_no_contour_not_a_small_one():
     whole = measure(ring_section(20_000, noise_m=0.002, rng=rng), method="grid")
     assert whole.status == SectionStatus.OK
     # A 60° arc unseen: the chain from the lowest point runs round one side to the gap and
-    # cannot jump it. Half a contour would read as a huge blockage.
-    broken = measure(ring_section(20_000, noise_m=0.002, gap_deg=(60, 120), rng=rng), method="grid")
-    assert broken.status == SectionStatus.NO_CONTOUR
+    # cannot jump it. Half a contour would read as a huge blockage. The gap is the first
+    # reason; allowed a 60° gap, the section has no contour instead.
+    gap = ring_section(20_000, noise_m=0.002, gap_deg=(60, 120), rng=rng)
+    broken = measure(gap, method="grid")
+    assert broken.status == SectionStatus.LOW_COVERAGE
     assert broken.blockage_ratio is None
+    lenient = measure(gap, method="grid", max_gap_deg=90.0, min_coverage_ratio=0.5)
+    assert lenient.status == SectionStatus.NO_CONTOUR
+    assert lenient.blockage_ratio is None

@@ -199,7 +199,10 @@ def measure_section(
         try:
             polygon = grid_contour(pts[:, :2], params.grid).polygon
         except GeometryError:
-            return SectionMeasures(status=SectionStatus.NO_CONTOUR, coverage_ratio=coverage, **base)
+            # Too little of the perimeter seen is the first reason, where it applies.
+            if status == SectionStatus.OK:
+                status = SectionStatus.NO_CONTOUR
+            return SectionMeasures(status=status, coverage_ratio=coverage, **base)
         radii = radii_of_polygon(polygon, profile.angles_rad)
         open_area = polygon_area(polygon)
     else:
