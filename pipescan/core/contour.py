@@ -8,7 +8,8 @@ Two methods, selectable per run:
   interpolation).
 - ``polar``: pipescan's own. A robust radius per angle bin around the pipe centre (the median of
   the bin's radii, which is the wall surface under symmetric range noise), with unseen bins kept
-  as gaps rather than guessed.
+  as gaps rather than guessed, and the free space that the sensor saw behind the edge of an
+  overhanging obstacle added as pockets (so the contour need not be star-shaped).
 
 Both take the section's points projected onto the section plane, (N, 2) metres, with the pipe
 axis at the origin, column 0 across and column 1 up, and return an ordered, closed-implied
