@@ -1,6 +1,7 @@
 """Sections and measures: accuracy against ground truth, throughput, and memory.
 
     python benchmarks/bench_sections.py accuracy      # both contour methods, simulator, true poses
+    python benchmarks/bench_sections.py obstacles     # polar method, obstacles of other shapes
     python benchmarks/bench_sections.py real          # the real S3DSS scan (800 mm concrete pipe)
     python benchmarks/bench_sections.py throughput    # points/s through slicing, contour, measures
     python benchmarks/bench_sections.py memory        # peak RSS of the section stage, 10 m vs 100 m
@@ -25,7 +26,7 @@ import numpy as np
 from pipescan.core.axis import fit_axis
 from pipescan.core.measures import MeasureParams
 from pipescan.core.sections import measure_window, plan_windows
-from pipescan.core.simulate import get_scenario, simulate_scan
+from pipescan.core.simulate import BoxObstacle, get_scenario, simulate_scan
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"
@@ -115,6 +116,48 @@ def accuracy(seeds: list[int]) -> None:
                 f" {table1.mean():.2f} / {table1.max():.2f} (n={len(table1)}) |"
                 f" {found}/{len(big)} | {shadow_ok} of {shadows} |"
                 f"  ({elapsed:.1f} s, {len(points) / elapsed / 1e6:.1f} M points/s)"
+            )
+
+
+# Obstacles at 2.6-2.9 m, scanned from 3 m of travel: the paper's box hanging from the crown,
+# wider and narrower ones, and one jutting from the side at the axis's height.
+OBSTACLE_SHAPES = {
+    "paper box, crown, 0.28 m wide": BoxObstacle(2.6, 2.9, -0.14, 0.14, 0.1184, 0.35),
+    "wide box, crown, 0.40 m wide": BoxObstacle(2.6, 2.9, -0.20, 0.20, 0.10, 0.35),
+    "narrow box, crown, 0.12 m wide": BoxObstacle(2.6, 2.9, -0.06, 0.06, 0.12, 0.35),
+    "box from the side, 0.16 m high": BoxObstacle(2.6, 2.9, 0.12, 0.35, -0.08, 0.08),
+}
+
+
+def obstacles(seeds: list[int]) -> None:
+    print("## Obstacles of other shapes: polar method, true poses, 5 mm range noise")
+    print(
+        "| obstacle | seed | true blockage | read at 2.6 / 2.7 / 2.8 m | ok sections |"
+        " mean / max abs error (pp) | most negative error (pp) |"
+    )
+    print("|---|---|---|---|---|---|---|")
+    for name, box in OBSTACLE_SHAPES.items():
+        for seed in seeds:
+            scenario = get_scenario(
+                "paper", travel_m=3.0, deformations=(), deposits=(), obstacles=(box,)
+            )
+            scan = simulate_scan(scenario, seed=seed)
+            truth = {round(t.chainage_start_m, 1): t for t in scan.true_sections()}
+            points, start, last = registered_cloud_true_poses(scan)
+            axis = fit_axis(points, start_m=start, travel_m=last - start)
+            sections = measure_all(points, axis, scenario.nominal_diameter_m, "polar")
+            pairs = [(s, truth.get(round(s.chainage_start_m, 1))) for s in sections]
+            ok = [(s, t) for s, t in pairs if t is not None and s.is_ok]
+            err = np.array([100 * (s.blockage_ratio - t.blockage_ratio) for s, t in ok])
+            over = [
+                f"{100 * s.blockage_ratio:.2f}" if s.is_ok else s.status.value
+                for s, t in pairs
+                if t is not None and round(s.chainage_start_m, 1) in (2.6, 2.7, 2.8)
+            ]
+            print(
+                f"| {name} | {seed} | {100 * truth[2.7].blockage_ratio:.2f} % |"
+                f" {' / '.join(over)} | {len(ok)} | {np.abs(err).mean():.2f} /"
+                f" {np.abs(err).max():.2f} | {err.min():.2f} |"
             )
 
 
@@ -247,12 +290,16 @@ def main() -> None:
         print(json.dumps(_memory_child(float(sys.argv[2]))))
         return
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("what", choices=["accuracy", "real", "throughput", "memory", "all"])
+    parser.add_argument(
+        "what", choices=["accuracy", "obstacles", "real", "throughput", "memory", "all"]
+    )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--lengths", type=float, nargs="+", default=[10.0, 100.0])
     args = parser.parse_args()
     if args.what in ("accuracy", "all"):
         accuracy(args.seeds)
+    if args.what in ("obstacles", "all"):
+        obstacles(args.seeds)
     if args.what in ("real", "all"):
         real_scan()
     if args.what in ("throughput", "all"):
