@@ -91,8 +91,10 @@ def test_flow_stores_sections_that_match_ground_truth(inspected, archive):
         )
         for r in ok
     ]
-    assert sum(errors) / len(errors) < 0.005
-    assert max(errors) < 0.025
+    # Issue 4's targets, here with estimated poses (measured: mean 0.10 pp, max 0.67 pp at the
+    # rear of the obstacle, where part of the free space beside it is hidden from the sensor).
+    assert sum(errors) / len(errors) < 0.003
+    assert max(errors) < 0.010
     # Sections that are not ok export no figure (empty cells, never 0), only the reason.
     not_ok = [r for r in rows if r["status"] != "ok"]
     assert not_ok
