@@ -192,7 +192,8 @@ def test_a_worker_picks_up_a_run_of_the_deployment(server, tmp_path):
         timeout=400,
     )
     assert worker.returncode == 0, worker.stdout[-3000:] + worker.stderr[-3000:]
-    assert "1 inspected, 0 reused" in worker.stdout + worker.stderr
+    # What the run did, not what the worker printed: whether the flow run's logs reach the
+    # worker's output depends on Prefect's log settings.
     engine = connect(db_url)
     try:
         [stored] = list_inspections(engine)
