@@ -336,24 +336,6 @@ def deliver_report(
     return Delivery(written_to=written, emailed_to=emailed)
 
 
-@task(name="deliver-report", **IO_RETRY_OPTIONS)
-def deliver_report_task(
-    pdf_path: Path,
-    *,
-    name: str,
-    location: str | None,
-    recipients: Sequence[str] = (),
-    smtp: SmtpConfig | None = None,
-    subject: str = "",
-    body: str = "",
-) -> Delivery:
-    """:func:`deliver_report` as a Prefect task (retried: both steps are network I/O)."""
-    return deliver_report(
-        pdf_path,
-        name=name,
-        location=location,
-        recipients=recipients,
-        smtp=smtp,
-        subject=subject,
-        body=body,
-    )
+# Retried: both steps are network I/O.
+deliver_report_task = task(name="deliver-report", **IO_RETRY_OPTIONS)(deliver_report)
+"""`deliver_report` as a Prefect task."""
