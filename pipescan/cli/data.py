@@ -11,17 +11,18 @@ import typer
 from pipescan.cli._app import DbOption, ExportFormat, _db_url, _fail, app, db_app, export_app
 from pipescan.core.errors import PipescanError
 
+AssetOption = Annotated[str | None, typer.Option(help="Only this asset.")]
+InspectionOption = Annotated[int | None, typer.Option(help="Only this inspection id.")]
+FormatOption = Annotated[ExportFormat, typer.Option("--format", help="Output format.")]
+OutputOption = Annotated[Path | None, typer.Option("-o", "--output", help="File (default stdout).")]
+
 
 @export_app.command("sections")
 def export_sections(
-    asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
-    inspection: Annotated[int | None, typer.Option(help="Only this inspection id.")] = None,
-    fmt: Annotated[
-        ExportFormat, typer.Option("--format", help="Output format.")
-    ] = ExportFormat.csv,
-    output: Annotated[
-        Path | None, typer.Option("-o", "--output", help="File (default stdout).")
-    ] = None,
+    asset: AssetOption = None,
+    inspection: InspectionOption = None,
+    fmt: FormatOption = ExportFormat.csv,
+    output: OutputOption = None,
     db: DbOption = None,
 ) -> None:
     """One row per section, with the DESIGN.md column names."""
@@ -33,14 +34,10 @@ def export_sections(
 
 @export_app.command("defects")
 def export_defects(
-    asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
-    inspection: Annotated[int | None, typer.Option(help="Only this inspection id.")] = None,
-    fmt: Annotated[
-        ExportFormat, typer.Option("--format", help="Output format.")
-    ] = ExportFormat.csv,
-    output: Annotated[
-        Path | None, typer.Option("-o", "--output", help="File (default stdout).")
-    ] = None,
+    asset: AssetOption = None,
+    inspection: InspectionOption = None,
+    fmt: FormatOption = ExportFormat.csv,
+    output: OutputOption = None,
     db: DbOption = None,
 ) -> None:
     """One row per merged defect."""
@@ -96,7 +93,7 @@ def assets(db: DbOption = None) -> None:
 
 @app.command()
 def inspections(
-    asset: Annotated[str | None, typer.Option(help="Only this asset.")] = None,
+    asset: AssetOption = None,
     db: DbOption = None,
 ) -> None:
     """List stored inspections, with their measured sections and blockage."""
