@@ -34,19 +34,15 @@ MAX_RANGE_M = 5.0
 
 
 def registered_cloud_true_poses(scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The scan's frames in the first frame's coordinates, with the true poses.
+    """The scan's frames placed with the true poses, within ``MAX_RANGE_M``, in the first
+    frame's coordinates (as registration gives them).
 
     Returns the points (N, 3), the first and the last sensor positions.
     """
-    T0 = np.linalg.inv(scan.T_world_sensor[0])
-    parts = []
-    for frame in scan.frames():
-        p = frame.points_sensor.astype(np.float64)
-        p = p[np.einsum("ij,ij->i", p, p) <= MAX_RANGE_M**2]
-        T = T0 @ frame.T_world_sensor
-        parts.append(p @ T[:3, :3].T + T[:3, 3])
-    last = T0 @ scan.T_world_sensor[-1]
-    return np.concatenate(parts), np.zeros(3), last[:3, 3]
+    T0 = np.linalg.inv(scan.T_pipe_sensor(0))
+    points = scan.points_true_poses(max_range_m=MAX_RANGE_M) @ T0[:3, :3].T + T0[:3, 3]
+    last = T0 @ scan.T_pipe_sensor(len(scan) - 1)
+    return points, np.zeros(3), last[:3, 3]
 
 
 def split_windows(points, axis, step_m=0.1):

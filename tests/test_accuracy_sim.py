@@ -20,13 +20,7 @@ def obstacle_sections():
     """The paper scenario's obstacle (16.8 % blockage, hanging from the crown at 2.6-2.9 m)
     scanned from 3 m of travel, measured with the true poses, paired with the truth."""
     scan = simulate_scan(get_scenario("paper", travel_m=3.0, deformations=(), deposits=()), seed=3)
-    parts = []
-    for i, frame in enumerate(scan.frames()):
-        p = frame.points_sensor.astype(np.float64)
-        p = p[np.einsum("ij,ij->i", p, p) <= MAX_RANGE_M**2]
-        T = scan.T_pipe_sensor(i)
-        parts.append(p @ T[:3, :3].T + T[:3, 3])
-    points = np.concatenate(parts)
+    points = scan.points_true_poses(max_range_m=MAX_RANGE_M)
     start = scan.T_pipe_sensor(0)[:3, 3]
     axis = fit_axis(
         points, start_m=start, travel_m=scan.T_pipe_sensor(len(scan) - 1)[:3, 3] - start

@@ -1026,6 +1026,24 @@ class SimulatedScan:
         for i in range(len(self)):
             yield self.frame(i)
 
+    def points_true_poses(self, *, max_range_m: float | None = None) -> np.ndarray:
+        """Every frame's points placed in the pipe frame with the true poses, (N, 3) float64:
+        the cloud a perfect registration would give.
+
+        Parameters
+        ----------
+        max_range_m
+            Leave out returns further than this from the sensor (as the inspection does).
+        """
+        parts = []
+        for frame in self.frames():
+            p = frame.points_sensor.astype(np.float64)
+            if max_range_m is not None:
+                p = p[np.einsum("ij,ij->i", p, p) <= max_range_m**2]
+            T = self._T_pipe_sensor[frame.index]
+            parts.append(p @ T[:3, :3].T + T[:3, 3])
+        return np.concatenate(parts) if parts else np.empty((0, 3))
+
     def _coverage_grids(self) -> tuple[np.ndarray, np.ndarray]:
         """Hit grids (chainage bins of 1 cm × angle bins) with and without occluders."""
         if self._coverage_cache is not None:
