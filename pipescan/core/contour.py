@@ -224,21 +224,23 @@ class PolarProfile:
 
     @cached_property
     def _free_region(self):
-        """(nearest-surface polygon, its union with the pockets), as shapely geometries."""
+        """The nearest-surface polygon and its union with the pockets, as shapely geometries;
+        None when there is no pocket (most sections: no polygon work at all then)."""
+        pockets = self.pocket_polygons()
+        if not pockets:
+            return None
         import shapely
 
         star = shapely.Polygon(self.star_polygon())
-        pockets = [shapely.make_valid(shapely.Polygon(p)) for p in self.pocket_polygons()]
-        if not pockets:
-            return star, star
-        return star, shapely.union_all([star, *pockets])
+        parts = [shapely.make_valid(shapely.Polygon(p)) for p in pockets]
+        return star, shapely.union_all([star, *parts])
 
     def area_m2(self) -> float:
         """Open area: inside the nearest surface (``star_area_m2``) plus the pockets seen
         behind overhanging obstacles (``pocket_polygons``) that the nearest surface leaves out.
         """
         area = self.star_area_m2()
-        if self.far_radii_m is None or not np.isfinite(self.far_radii_m).any():
+        if self._free_region is None:
             return area
         star, free = self._free_region
         return area + float(free.area - star.area)
@@ -246,13 +248,11 @@ class PolarProfile:
     def polygon(self) -> np.ndarray:
         """The contour polygon (M, 2): the nearest surface, gaps interpolated (see
         ``filled_radii``), with any pockets seen behind overhanging obstacles added."""
-        if self.far_radii_m is None or not np.isfinite(self.far_radii_m).any():
+        if self._free_region is None:
             return self.star_polygon()
         import shapely
 
-        star, free = self._free_region
-        if free is star:
-            return self.star_polygon()
+        _, free = self._free_region
         if not isinstance(free, shapely.Polygon):
             free = max(shapely.get_parts(free), key=lambda g: g.area)
         return np.asarray(free.exterior.coords, dtype=np.float64)[:-1]
