@@ -116,8 +116,9 @@ FRAME_QUALITY = [
 PARAMS = {"section_step_m": 0.1, "contour_method": "alpha_shape", "voxel_m": 0.01}
 
 
-def save(engine: sa.Engine, **changes: object) -> int:
-    arguments: dict[str, object] = {
+def _inspection_arguments() -> dict[str, object]:
+    """What every saved test inspection has, for ``save`` and ``item``."""
+    return {
         "meta": make_meta(),
         "archive_uri": "/scans/run1.zip",
         "content_hash": "sha256:aaaa",
@@ -126,6 +127,12 @@ def save(engine: sa.Engine, **changes: object) -> int:
         "sections": make_sections(),
         "defects": DEFECTS,
         "frame_quality": FRAME_QUALITY,
+    }
+
+
+def save(engine: sa.Engine, **changes: object) -> int:
+    arguments: dict[str, object] = {
+        **_inspection_arguments(),
         "registration": {"mean_fitness": 0.965, "rmse_m": 0.002, "degenerate_frames": 1},
         "threshold_table": "vsa-2023",
         "point_count": 123_456,
@@ -505,16 +512,7 @@ def test_a_section_the_database_refuses_leaves_the_previous_save(
 
 
 def item(**changes: object) -> repository.InspectionToSave:
-    arguments: dict[str, object] = {
-        "meta": make_meta(),
-        "archive_uri": "/scans/run1.zip",
-        "content_hash": "sha256:aaaa",
-        "params": PARAMS,
-        "software_version": "0.1.0",
-        "sections": make_sections(),
-        "defects": DEFECTS,
-        "frame_quality": FRAME_QUALITY,
-    }
+    arguments = _inspection_arguments()
     arguments.update(changes)
     return repository.InspectionToSave(**arguments)  # type: ignore[arg-type]
 
