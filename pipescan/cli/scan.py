@@ -147,10 +147,7 @@ def demo(
     try:
         log.info("1/3 simulating the paper scenario (0.5 m pipe, Livox HAP-like sensor)")
         scan = simulate_scan(get_scenario("paper"), seed=seed)
-        if archive.exists():
-            import shutil
-
-            shutil.rmtree(archive)
+        # Replaces an earlier demo's archive, and refuses any other folder of that name.
         write_simulated_archive(scan, archive)
         log.info("    archive: %s (%d frames)", archive, len(scan.times_s))
         log.info("2/3 inspecting: registration, axis, sections, measures, grading, storage")

@@ -24,7 +24,7 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sections import plan_windows
 from pipescan.storage.repository import params_hash
-from pipescan.storage.workspace import remove_workspace
+from pipescan.storage.workspace import create_run_dir, remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
     fit_pipe_axis,
@@ -120,7 +120,7 @@ def inspect_archive(
     """
     started = time.perf_counter()
     params = params or InspectionParams()
-    run_dir = Path(work_dir) / f"run-{time.time_ns():x}"
+    run_dir = create_run_dir(Path(work_dir))
     try:
         staged = stage_archive(archive, run_dir)
         meta = staged.meta

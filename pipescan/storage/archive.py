@@ -96,6 +96,7 @@ class ScanArchive:
         self.meta = meta
         self.cloud_member = cloud_member
         self._closed = False
+        self._tempdir = tempdir
         # Remove the extraction even if the caller forgets close(): at GC or interpreter exit.
         self._cleanup = (
             weakref.finalize(self, shutil.rmtree, tempdir, ignore_errors=True)
@@ -112,6 +113,27 @@ class ScanArchive:
     def __repr__(self) -> str:
         content = f"{len(self.meta.frames)} frames" if self.has_frames else self.cloud_member
         return f"ScanArchive({self.name!r}, asset_id={self.meta.asset_id!r}, {content})"
+
+    @property
+    def is_extracted(self) -> bool:
+        """True when ``root`` lies in a temporary directory this object created (a file
+        archive unpacked, or a remote one copied); False when ``root`` is the user's own
+        directory, used in place."""
+        return self._tempdir is not None and self.root.is_relative_to(self._tempdir)
+
+    def detach_extraction(self, dest: Path) -> Path:
+        """Move an extracted ``root`` to ``dest`` (so that it outlives :meth:`close`) and
+        return where the content now is.
+
+        The user's own directory is never moved: for an archive used in place this returns
+        ``root`` unchanged. Only what pipescan itself extracted is ever moved or deleted.
+        """
+        self._check_open()
+        if not self.is_extracted:
+            return self.root
+        shutil.move(str(self.root), dest)
+        self.root = Path(dest)
+        return self.root
 
     @property
     def has_frames(self) -> bool:

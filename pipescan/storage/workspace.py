@@ -11,7 +11,10 @@ origin, and offsets stay small even for georeferenced clouds with large coordina
 
 from __future__ import annotations
 
+import logging
+import os
 import shutil
+import time
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,6 +22,29 @@ import numpy as np
 
 from pipescan.core.axis import PipeAxis
 from pipescan.core.sections import ChainageWindow
+
+RUN_MARKER = ".pipescan-run"
+"""The file that marks a directory as a run's scratch space, created by pipescan."""
+
+log = logging.getLogger(__name__)
+
+
+def create_run_dir(work_dir: Path) -> Path:
+    """Create a new, empty scratch directory for one run under ``work_dir`` and mark it.
+
+    Only a directory carrying the marker is ever deleted by :func:`remove_workspace`, so a
+    user's folder can never be removed by mistake, whatever it is called.
+    """
+    work_dir = Path(work_dir)
+    work_dir.mkdir(parents=True, exist_ok=True)
+    while True:
+        run_dir = work_dir / f"run-{time.time_ns():x}-{os.getpid()}"
+        try:
+            run_dir.mkdir()
+        except FileExistsError:
+            continue
+        (run_dir / RUN_MARKER).write_text(f"pid {os.getpid()}\n", encoding="utf-8")
+        return run_dir
 
 
 def window_dir(bucket_root: Path, window: ChainageWindow) -> Path:
@@ -81,5 +107,13 @@ def read_window_offsets(bucket_root: Path, window: ChainageWindow) -> np.ndarray
 
 
 def remove_workspace(path: Path) -> None:
-    """Delete a run's scratch directory (safe if it does not exist)."""
+    """Delete a run's scratch directory made by :func:`create_run_dir` (safe if it does not
+    exist). A directory without the run marker, or a symlink, is left alone and logged: it
+    was not made by pipescan."""
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        return
+    if path.is_symlink() or not (path / RUN_MARKER).is_file():
+        log.warning("not deleting %s: it is not a pipescan run directory", path)
+        return
     shutil.rmtree(path, ignore_errors=True)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 from prefect import task
@@ -19,16 +18,14 @@ from pipescan.tasks.retries import IO_RETRY_OPTIONS
 def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
     """Open and validate an archive; unpack a file archive into the run's scratch directory.
 
-    A directory archive is used in place. Later tasks reopen ``root`` as a directory.
+    A local directory archive (a path or a ``file://`` URL) is used in place and never moved:
+    only what :func:`open_archive` extracted into ``run_dir`` is. Later tasks reopen ``root``
+    as a directory.
     """
-    run_dir.mkdir(parents=True, exist_ok=True)
     with open_archive(archive, workdir=run_dir) as arc:
         # Hash while the extracted files are still where the archive object expects them.
         content_hash = arc.content_hash
-        root = arc.root
-        if not Path(archive).is_dir():
-            root = run_dir / "archive"
-            shutil.move(str(arc.root), root)
+        root = arc.detach_extraction(run_dir / "archive")
         return StagedArchive(
             name=arc.name,
             root=root,
