@@ -39,8 +39,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus  # noqa: E402
-from pipescan.storage import db, repository, trends  # noqa: E402
-from pipescan.storage.models import Inspection  # noqa: E402
+from pipescan.storage.database import db, repository, trends  # noqa: E402
+from pipescan.storage.database.models import Inspection  # noqa: E402
 
 PIPES = 2000
 INSPECTIONS = 5

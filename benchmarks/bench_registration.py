@@ -40,7 +40,7 @@ from pipescan.core.registration import (
     registration_summary,
     trajectory_errors,
 )
-from pipescan.core.simulate import get_scenario, simulate_scan
+from pipescan.simulator.scan import get_scenario, simulate_scan
 
 FRAME_RATE_HZ = 10.0
 SECTION_RANGE_M = 5.0  # the flow's max_section_range_m
@@ -283,7 +283,7 @@ def bench_sections(args) -> None:
 
 def _register_chunk_in_worker(root: str, first: int, last: int, params: RegistrationParams):
     """The flow's register-chunk task body (``register_chunk.fn``): open, stream, register."""
-    from pipescan.storage.archive import open_archive
+    from pipescan.storage.input.archive import open_archive
     from pipescan.tasks.inspection import StagedArchive, register_chunk
 
     with open_archive(root) as arc:
@@ -363,7 +363,7 @@ def _gil_table() -> None:
 
 
 def bench_parallel(args) -> None:
-    from pipescan.storage.simulated import write_simulated_archive
+    from pipescan.simulator.archive import write_simulated_archive
 
     print(f"load average before: {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
     _gil_table()

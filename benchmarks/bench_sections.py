@@ -26,7 +26,7 @@ import numpy as np
 from pipescan.core.axis import fit_axis
 from pipescan.core.measures import MeasureParams
 from pipescan.core.sections import measure_window, plan_windows
-from pipescan.core.simulate import BoxObstacle, get_scenario, simulate_scan
+from pipescan.simulator.scan import BoxObstacle, get_scenario, simulate_scan
 
 ROOT = Path(__file__).resolve().parents[1]
 REAL_SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"
@@ -216,7 +216,7 @@ def throughput() -> None:
 
 def _memory_child(travel_m: float) -> dict:
     """Run the section stage the way the flow does (bucket per chunk, then window by window)."""
-    from pipescan.storage.workspace import read_window_offsets, write_buckets
+    from pipescan.storage.scratch import read_window_offsets, write_buckets
 
     scan = simulate_scan(get_scenario("long", travel_m=travel_m), seed=0)
     T0 = np.linalg.inv(scan.T_world_sensor[0])

@@ -20,7 +20,7 @@ import numpy as np
 from pipescan.core.axis import fit_axis
 from pipescan.core.measures import measure_section
 from pipescan.core.sections import iter_section_points, plan_windows
-from pipescan.storage.pointfiles import read_points
+from pipescan.storage.input.pointfiles import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
 SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"

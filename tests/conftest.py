@@ -87,7 +87,7 @@ def engine(db_url: str) -> Iterator[sa.Engine]:
     SQLite is migrated by ``connect`` on first use; PostgreSQL explicitly first, as an
     operator would with ``pipescan db upgrade``.
     """
-    from pipescan.storage import db
+    from pipescan.storage.database import db
 
     if not is_sqlite(db_url):
         db.upgrade(db_url)

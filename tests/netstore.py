@@ -9,8 +9,8 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from pipescan.core.simulate import get_scenario, simulate_scan
-from pipescan.storage.simulated import write_simulated_archive
+from pipescan.simulator.archive import write_simulated_archive
+from pipescan.simulator.scan import get_scenario, simulate_scan
 
 BAD_INSPECTION_TOML = 'asset_id = "BAD-1"\nnominal_diameter_m = 0.5\n'
 """An ``inspection.toml`` without the required ``inspected_at``: a bad archive."""

@@ -1,6 +1,6 @@
 """Small synthetic pipes with known geometry, for unit tests of the geometry core.
 
-The full ray-cast simulator lives in ``pipescan.core.simulate``; these are cheaper stand-ins for
+The full ray-cast simulator lives in ``pipescan.simulator.scan``; these are cheaper stand-ins for
 tests that need exact control of one property at a time.
 """
 

@@ -10,7 +10,7 @@ import pytest
 from pipescan.core.axis import fit_axis
 from pipescan.core.measures import MeasureParams
 from pipescan.core.sections import measure_window, plan_windows
-from pipescan.core.simulate import get_scenario, simulate_scan
+from pipescan.simulator.scan import get_scenario, simulate_scan
 
 MAX_RANGE_M = 5.0
 

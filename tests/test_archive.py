@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 
 from pipescan.core.errors import ArchiveError, MetadataError, PointFileError
-from pipescan.storage.archive import natural_key, open_archive, validate_archive
-from pipescan.storage.metadata import parse_inspection_toml
-from pipescan.storage.pointfiles import write_points
+from pipescan.storage.input.archive import natural_key, open_archive, validate_archive
+from pipescan.storage.input.metadata import parse_inspection_toml
+from pipescan.storage.input.pointfiles import write_points
 
 TOML = """\
 asset_id = "MH1042-MH1043"
@@ -605,8 +605,8 @@ def test_gravity_errors(frames: str, field: str, message: str) -> None:
 
 
 def test_simulated_archive_carries_the_imu_gravity(tmp_path: Path) -> None:
-    from pipescan.core.simulate import get_scenario, simulate_scan
-    from pipescan.storage.simulated import write_simulated_archive
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.scan import get_scenario, simulate_scan
 
     scan = simulate_scan(get_scenario("clean", travel_m=0.1, points_per_s=20_000), seed=2)
     write_simulated_archive(scan, tmp_path / "sim")

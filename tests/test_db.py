@@ -24,8 +24,8 @@ from alembic.runtime.migration import MigrationContext
 from alembic.script import ScriptDirectory
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
-from pipescan.storage import db, repository
-from pipescan.storage.models import Base
+from pipescan.storage.database import db, repository
+from pipescan.storage.database.models import Base
 from tests.conftest import is_sqlite
 
 TABLES = {"assets", "inspections", "sections", "defects", "frame_quality"}

@@ -20,8 +20,8 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from typer.testing import CliRunner
 
 from pipescan.cli import app
-from pipescan.storage.db import connect
-from pipescan.storage.repository import list_inspections
+from pipescan.storage.database.db import connect
+from pipescan.storage.database.repository import list_inspections
 from tests.netstore import asset_id, write_store
 
 pytestmark = pytest.mark.e2e

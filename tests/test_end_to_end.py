@@ -13,9 +13,9 @@ from pypdf import PdfReader
 from typer.testing import CliRunner
 
 from pipescan.cli import app
-from pipescan.core.simulate import get_scenario, simulate_scan
 from pipescan.flows.inspect import InspectionParams, inspect_archive
-from pipescan.storage.simulated import read_ground_truth, write_simulated_archive
+from pipescan.simulator.archive import read_ground_truth, write_simulated_archive
+from pipescan.simulator.scan import get_scenario, simulate_scan
 
 pytestmark = pytest.mark.e2e
 

@@ -15,8 +15,8 @@ import pytest
 import sqlalchemy as sa
 
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures, SectionStatus
-from pipescan.storage import db, export, repository
-from pipescan.storage.models import Section
+from pipescan.storage.database import db, export, repository
+from pipescan.storage.database.models import Section
 
 DESIGN_COLUMNS = (
     "asset_id,inspection_id,inspected_at,chainage_start_m,chainage_end_m,open_area_m2,"

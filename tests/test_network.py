@@ -14,7 +14,7 @@ from pipescan.flows.network import (
     progress_line,
     worst_pipes,
 )
-from pipescan.storage.db import StorageError
+from pipescan.storage.database.db import StorageError
 from pipescan.tasks.network import StoreError, archive_label, find_archives
 from pipescan.tasks.retries import is_transient_io_error
 

@@ -9,7 +9,7 @@ from distributed.diagnostics.plugin import SchedulerPlugin
 from prefect.testing.utilities import prefect_test_harness
 
 from pipescan.flows.network import inspect_network
-from pipescan.storage.simulated import read_ground_truth
+from pipescan.simulator.archive import read_ground_truth
 from tests.netstore import asset_id, write_store
 
 pytestmark = pytest.mark.e2e

@@ -12,9 +12,9 @@ from prefect.testing.utilities import prefect_test_harness
 
 from pipescan.core.errors import GeometryError
 from pipescan.flows.network import inspect_network
-from pipescan.storage.db import connect
-from pipescan.storage.repository import list_inspections
-from pipescan.storage.simulated import read_ground_truth
+from pipescan.simulator.archive import read_ground_truth
+from pipescan.storage.database.db import connect
+from pipescan.storage.database.repository import list_inspections
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 from tests.netstore import asset_id, write_archive, write_store
 

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from pipescan.core.errors import PointFileError
-from pipescan.storage.pointfiles import (
+from pipescan.storage.input.pointfiles import (
     LAS_SCALE_M,
     MM_HINT,
     POINT_SUFFIXES,

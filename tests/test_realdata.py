@@ -10,7 +10,7 @@ import pytest
 from pipescan.core.axis import fit_axis
 from pipescan.core.model import SectionStatus
 from pipescan.core.sections import measure_window, plan_windows
-from pipescan.storage.pointfiles import read_points
+from pipescan.storage.input.pointfiles import read_points
 
 REAL = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "s3dss-real459-16k"
 

@@ -21,7 +21,7 @@ from pipescan.core.registration import (
     registration_summary,
     trajectory_errors,
 )
-from pipescan.core.simulate import get_scenario, simulate_scan
+from pipescan.simulator.scan import get_scenario, simulate_scan
 
 
 def _errors(scan, trajectory: Trajectory) -> dict[str, float]:

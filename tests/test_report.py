@@ -470,8 +470,8 @@ PARAMS = {
 def save_sample(database_url: str, inp: ReportInput, *, content_hash: str) -> int:
     """Store a report input as an inspection (its sections, defects and parameters)."""
     from pipescan.core.model import InspectionMeta
-    from pipescan.storage.db import connect
-    from pipescan.storage.repository import save_inspection
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.repository import save_inspection
 
     engine = connect(database_url)
     try:
@@ -519,8 +519,8 @@ def report_db(tmp_path_factory) -> tuple[str, dict[str, int]]:
 
 
 def test_report_from_the_database_holds_its_figures(report_db, tmp_path):
-    from pipescan.storage.db import connect
-    from pipescan.storage.repository import get_defects, get_sections
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.repository import get_defects, get_sections
     from pipescan.tasks.reporting import load_report_input
 
     url, ids = report_db
@@ -551,7 +551,7 @@ def test_report_from_the_database_holds_its_figures(report_db, tmp_path):
 
 
 def test_network_report_from_the_database(report_db, tmp_path):
-    from pipescan.storage.db import StorageError
+    from pipescan.storage.database.db import StorageError
     from pipescan.tasks.reporting import render_network_report
 
     url, ids = report_db

@@ -13,7 +13,12 @@ import pytest
 import shapely
 
 from pipescan.core.errors import ArchiveError
-from pipescan.core.simulate import (
+from pipescan.simulator.archive import (
+    read_ground_truth,
+    read_simulated_scene,
+    write_simulated_archive,
+)
+from pipescan.simulator.scan import (
     SCENARIO_NAMES,
     SURFACE_END_WALL,
     SURFACE_WALL,
@@ -27,11 +32,6 @@ from pipescan.core.simulate import (
     ray_directions_sensor,
     simulate_scan,
     surface_residual_m,
-)
-from pipescan.storage.simulated import (
-    read_ground_truth,
-    read_simulated_scene,
-    write_simulated_archive,
 )
 
 FAST = {"points_per_s": 100_000}

@@ -19,7 +19,7 @@ from typer.testing import CliRunner
 
 from pipescan.cli import app
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus
-from pipescan.storage import db, repository, trends
+from pipescan.storage.database import db, repository, trends
 from tests.conftest import is_sqlite
 
 STEP_M = 0.1

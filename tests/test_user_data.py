@@ -24,10 +24,10 @@ import fsspec
 import pytest
 from prefect.testing.utilities import prefect_test_harness
 
-from pipescan.core.simulate import get_scenario, simulate_scan
 from pipescan.flows.inspect import InspectionParams, inspect_archive
-from pipescan.storage.simulated import write_simulated_archive
-from pipescan.storage.workspace import RUN_MARKER, create_run_dir, remove_workspace
+from pipescan.simulator.archive import write_simulated_archive
+from pipescan.simulator.scan import get_scenario, simulate_scan
+from pipescan.storage.scratch import RUN_MARKER, create_run_dir, remove_workspace
 
 MEMORY_URL = "memory://pipescan-user-data/run.zip"
 
@@ -173,7 +173,7 @@ def test_a_killed_run_leaves_every_input_form_unchanged(source, tmp_path, monkey
         f"""
         import json, os, sys, time
         from pathlib import Path
-        from pipescan.storage.workspace import create_run_dir
+        from pipescan.storage.scratch import create_run_dir
         from pipescan.tasks.storing import stage_archive
         for archive in json.loads(sys.argv[1]):
             stage_archive.fn(archive, create_run_dir(Path({str(tmp_path / "work")!r})))

@@ -26,7 +26,7 @@ def export_sections(
     db: DbOption = None,
 ) -> None:
     """One row per section, with the DESIGN.md column names."""
-    from pipescan.storage import export
+    from pipescan.storage.database import export
 
     fn = export.export_sections_csv if fmt == ExportFormat.csv else export.export_sections_jsonl
     _export(fn, asset, inspection, output, db)
@@ -41,14 +41,14 @@ def export_defects(
     db: DbOption = None,
 ) -> None:
     """One row per merged defect."""
-    from pipescan.storage import export
+    from pipescan.storage.database import export
 
     fn = export.export_defects_csv if fmt == ExportFormat.csv else export.export_defects_jsonl
     _export(fn, asset, inspection, output, db)
 
 
 def _export(fn, asset, inspection, output, db) -> None:
-    from pipescan.storage.db import connect
+    from pipescan.storage.database.db import connect
 
     try:
         engine = connect(_db_url(db))
@@ -67,8 +67,8 @@ def _export(fn, asset, inspection, output, db) -> None:
 @app.command()
 def assets(db: DbOption = None) -> None:
     """List the pipe assets in the database."""
-    from pipescan.storage.db import connect
-    from pipescan.storage.repository import list_assets
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.repository import list_assets
 
     try:
         engine = connect(_db_url(db))
@@ -97,8 +97,8 @@ def inspections(
     db: DbOption = None,
 ) -> None:
     """List stored inspections, with their measured sections and blockage."""
-    from pipescan.storage.db import connect
-    from pipescan.storage.repository import list_inspections
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.repository import list_inspections
 
     try:
         engine = connect(_db_url(db))
@@ -128,7 +128,7 @@ def db_upgrade(
     ] = "head",
 ) -> None:
     """Migrate the database schema (SQLite files are migrated automatically on first use)."""
-    from pipescan.storage.db import create_engine_for, current_revision, upgrade
+    from pipescan.storage.database.db import create_engine_for, current_revision, upgrade
 
     try:
         engine = create_engine_for(_db_url(db))
@@ -150,7 +150,7 @@ def db_upgrade(
 @db_app.command("current")
 def db_current(db: DbOption = None) -> None:
     """Show the database's schema revision and the newest one this pipescan knows."""
-    from pipescan.storage.db import create_engine_for, current_revision, head_revision
+    from pipescan.storage.database.db import create_engine_for, current_revision, head_revision
 
     try:
         engine = create_engine_for(_db_url(db))

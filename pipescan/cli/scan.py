@@ -23,8 +23,8 @@ def simulate(
     travel_m: Annotated[float | None, typer.Option(help="Override the crawler's travel.")] = None,
 ) -> None:
     """Simulate a crawler LiDAR scan of a pipe and write it as a scan archive with ground truth."""
-    from pipescan.core.simulate import get_scenario, simulate_scan
-    from pipescan.storage.simulated import write_simulated_archive
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.scan import get_scenario, simulate_scan
 
     overrides = {"travel_m": travel_m} if travel_m is not None else {}
     try:
@@ -135,8 +135,8 @@ def demo(
     db: DbOption = None,
 ) -> None:
     """Simulate the paper's scenario, inspect it and write the PDF report, printing each stage."""
-    from pipescan.core.simulate import get_scenario, simulate_scan
-    from pipescan.storage.simulated import write_simulated_archive
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.scan import get_scenario, simulate_scan
 
     log = logging.getLogger("pipescan")
     out.mkdir(parents=True, exist_ok=True)

@@ -20,7 +20,7 @@ from pipescan.cli._app import DbOption, _db_url, _fail, app
 from pipescan.core.errors import PipescanError
 
 if TYPE_CHECKING:
-    from pipescan.storage.trends import AssetRanking, AssetTrend
+    from pipescan.storage.database.trends import AssetRanking, AssetTrend
 
 
 class RankBy(StrEnum):
@@ -79,8 +79,8 @@ def trend(
 
     Surveys are aligned by cross-correlation; change per year is a Theil-Sen slope.
     """
-    from pipescan.storage.db import connect
-    from pipescan.storage.trends import asset_trend
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.trends import asset_trend
 
     try:
         engine = connect(_db_url(db))
@@ -285,8 +285,8 @@ def worst(
     db: DbOption = None,
 ) -> None:
     """The network's worst pipes, by blockage growth per year or by current blockage."""
-    from pipescan.storage.db import connect
-    from pipescan.storage.trends import worst_assets
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.trends import worst_assets
 
     try:
         engine = connect(_db_url(db))

@@ -763,7 +763,7 @@ def register_frames(
 
     Examples
     --------
-    >>> from pipescan.core.simulate import get_scenario, simulate_scan
+    >>> from pipescan.simulator.scan import get_scenario, simulate_scan
     >>> scan = simulate_scan(get_scenario("paper", travel_m=0.3), seed=1)
     >>> traj = register_frames((f.index, f.points_sensor, f.odometer_m) for f in scan.frames())
     >>> traj.T_world_frame.shape[1:], traj.along_axis_prior

@@ -23,8 +23,8 @@ from pipescan.core.registration import (
     registration_summary,
 )
 from pipescan.core.sections import plan_windows
-from pipescan.storage.repository import params_hash
-from pipescan.storage.workspace import create_run_dir, remove_workspace
+from pipescan.storage.database.repository import params_hash
+from pipescan.storage.scratch import create_run_dir, remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
     fit_pipe_axis,

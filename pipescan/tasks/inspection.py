@@ -24,8 +24,8 @@ from pipescan.core.registration import (
     register_frames,
 )
 from pipescan.core.sections import ChainageWindow, measure_window
-from pipescan.storage.archive import open_archive
-from pipescan.storage.workspace import read_window_offsets, write_buckets
+from pipescan.storage.input.archive import open_archive
+from pipescan.storage.scratch import read_window_offsets, write_buckets
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 log = logging.getLogger("pipescan")

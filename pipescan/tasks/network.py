@@ -18,15 +18,15 @@ from pipescan.core.errors import (
     PipescanError,
 )
 from pipescan.core.model import Defect, SectionMeasures
-from pipescan.storage.db import connect
-from pipescan.storage.metadata import INSPECTION_FILE
-from pipescan.storage.repository import (
+from pipescan.storage.database.db import connect
+from pipescan.storage.database.repository import (
     InspectionRecord,
     get_defects,
     get_inspection,
     get_sections,
     list_inspections,
 )
+from pipescan.storage.input.metadata import INSPECTION_FILE
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".zip", ".tar")
@@ -71,7 +71,7 @@ def find_archives(store: str) -> list[str]:
     -------
     list of str
         Local paths for a local store, full URLs (with their protocol) otherwise, as
-        :func:`pipescan.storage.archive.open_archive` takes them.
+        :func:`pipescan.storage.input.archive.open_archive` takes them.
 
     Raises
     ------

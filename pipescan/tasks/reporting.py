@@ -18,15 +18,15 @@ from pipescan.reports.context import (
 )
 from pipescan.reports.network import NetworkInput, PipeInspection, build_network_context
 from pipescan.reports.render import render_network_pdf, render_pdf
-from pipescan.storage.db import connect
-from pipescan.storage.report_queries import (
+from pipescan.storage.database.db import connect
+from pipescan.storage.database.report_queries import (
     defect_counts,
     earlier_inspections,
     network_inspections,
     previous_inspections,
     section_profiles,
 )
-from pipescan.storage.repository import get_defects, get_inspection, get_sections
+from pipescan.storage.database.repository import get_defects, get_inspection, get_sections
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 __all__ = [

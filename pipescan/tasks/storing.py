@@ -7,9 +7,9 @@ from pathlib import Path
 from prefect import task
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures
-from pipescan.storage.archive import open_archive
-from pipescan.storage.db import connect
-from pipescan.storage.repository import save_inspection
+from pipescan.storage.database.db import connect
+from pipescan.storage.database.repository import save_inspection
+from pipescan.storage.input.archive import open_archive
 from pipescan.tasks.inspection import StagedArchive
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 

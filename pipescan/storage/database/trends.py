@@ -40,9 +40,9 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from pipescan.core.model import SectionStatus
-from pipescan.storage.db import StorageError, session_scope
-from pipescan.storage.models import Asset, Inspection, Section
-from pipescan.storage.repository import mm_to_m
+from pipescan.storage.database.db import StorageError, session_scope
+from pipescan.storage.database.models import Asset, Inspection, Section
+from pipescan.storage.database.repository import mm_to_m
 
 __all__ = [
     "DEFAULT_MAX_OFFSET_M",
@@ -450,7 +450,7 @@ def asset_trend(
     Parameters
     ----------
     engine
-        From ``pipescan.storage.db.connect``.
+        From ``pipescan.storage.database.db.connect``.
     asset_id
         The pipe asset.
     max_offset_m
@@ -622,7 +622,7 @@ def worst_assets(
     Parameters
     ----------
     engine
-        From ``pipescan.storage.db.connect``.
+        From ``pipescan.storage.database.db.connect``.
     by
         ``"growth"``: fastest-growing peak blockage (Theil–Sen slope of each measured
         inspection's peak, ratio per year; assets need two measured inspections at different

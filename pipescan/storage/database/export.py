@@ -17,8 +17,8 @@ from typing import Any, TextIO, TypeVar
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
-from pipescan.storage.models import DefectRow, Inspection, Section
-from pipescan.storage.repository import mm_to_m
+from pipescan.storage.database.models import DefectRow, Inspection, Section
+from pipescan.storage.database.repository import mm_to_m
 
 __all__ = [
     "DEFECT_CSV_COLUMNS",
@@ -217,7 +217,7 @@ def export_sections_csv(
     Parameters
     ----------
     engine
-        From ``pipescan.storage.db.connect``.
+        From ``pipescan.storage.database.db.connect``.
     out
         A text stream; open files with ``newline=""`` (the csv module's convention). Rows end
         with ``\\n``.

@@ -13,8 +13,8 @@ Two representation choices matter to anyone querying the tables directly:
   SQLite, which has no such type, they are naive UTC and made aware again on reading
   (:class:`UTCDateTime`).
 
-The migrations (``pipescan/migrations/versions``) must build exactly these models; a test
-compares the migrated schema with them through Alembic's autogenerate.
+The migrations (``pipescan/storage/database/migrations/versions``) must build exactly these
+models; a test compares the migrated schema with them through Alembic's autogenerate.
 """
 
 from __future__ import annotations

@@ -14,9 +14,9 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from pipescan.core.model import SectionMeasures
-from pipescan.storage.db import StorageError, session_scope
-from pipescan.storage.models import DefectRow, Section
-from pipescan.storage.repository import (
+from pipescan.storage.database.db import StorageError, session_scope
+from pipescan.storage.database.models import DefectRow, Section
+from pipescan.storage.database.repository import (
     InspectionRecord,
     get_inspection,
     list_inspections,

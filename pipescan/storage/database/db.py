@@ -43,7 +43,7 @@ DEFAULT_DATABASE_URL = "sqlite:///pipescan.db"
 SQLITE_BUSY_TIMEOUT_S = 30.0
 """How long a SQLite writer waits for another writer's lock before giving up, in seconds."""
 
-MIGRATIONS_DIR = Path(__file__).resolve().parent.parent / "migrations"
+MIGRATIONS_DIR = Path(__file__).resolve().parent / "migrations"
 """The Alembic script directory shipped inside the package."""
 
 # Connection execution option read by the SQLite "begin" listener.
@@ -361,7 +361,7 @@ def connect(url: str | URL = DEFAULT_DATABASE_URL) -> Engine:
     Returns
     -------
     Engine
-        Ready for the functions of ``pipescan.storage.repository``.
+        Ready for the functions of ``pipescan.storage.database.repository``.
 
     Raises
     ------

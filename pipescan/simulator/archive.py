@@ -6,7 +6,7 @@ ignore:
 
 - ``poses.csv``: ``frame_index, time_s, odometer_m, true_travel_m`` and the 16 entries of
   ``T_world_sensor``, row-major (``T00 ... T33``).
-- ``sections.csv``: one :class:`~pipescan.core.simulate.TrueSection` per row (0.1 m sections).
+- ``sections.csv``: one :class:`~pipescan.simulator.scan.TrueSection` per row (0.1 m sections).
 - ``scene.toml``: the generator, the seed, ``T_world_pipe`` and every scenario parameter.
 
 TOML is written by the small writer below (no extra dependency); ``tomllib`` reads it back.
@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from pipescan.core.errors import ArchiveError
-from pipescan.core.simulate import (
+from pipescan.simulator.scan import (
     BoxObstacle,
     DepositFill,
     EllipticalDeformation,
@@ -40,7 +40,7 @@ from pipescan.core.simulate import (
     TrueSection,
 )
 
-GENERATOR = "pipescan.core.simulate"
+GENERATOR = "pipescan.simulator.scan"
 """Value of ``generator`` in ``ground_truth/scene.toml``: marks a simulated archive."""
 
 SECTION_STEP_M = 0.1

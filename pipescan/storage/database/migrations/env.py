@@ -2,10 +2,10 @@
 
 Run in two ways:
 
-- by pipescan (``pipescan.storage.db.upgrade``), which passes a connection already inside
-  the migration transaction in ``config.attributes["connection"]``;
-- by a developer with ``alembic -c pipescan/migrations/alembic.ini ...``, where the URL comes
-  from ``-x url=...`` or the ini's ``sqlalchemy.url``.
+- by pipescan (``pipescan.storage.database.db.upgrade``), which passes a connection already
+  inside the migration transaction in ``config.attributes["connection"]``;
+- by a developer with ``alembic -c pipescan/storage/database/migrations/alembic.ini ...``,
+  where the URL comes from ``-x url=...`` or the ini's ``sqlalchemy.url``.
 
 ``render_as_batch`` is always on: SQLite can only alter most things by copying the table
 (Alembic's batch mode), and on PostgreSQL the same batch operations become plain ALTERs, so
@@ -19,8 +19,12 @@ from logging.config import fileConfig
 from alembic import context
 from sqlalchemy.engine import Connection
 
-from pipescan.storage.db import DEFAULT_DATABASE_URL, create_engine_for, migration_connection
-from pipescan.storage.models import Base
+from pipescan.storage.database.db import (
+    DEFAULT_DATABASE_URL,
+    create_engine_for,
+    migration_connection,
+)
+from pipescan.storage.database.models import Base
 
 config = context.config
 target_metadata = Base.metadata

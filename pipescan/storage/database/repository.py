@@ -27,8 +27,8 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
-from pipescan.storage.db import StorageError, session_scope
-from pipescan.storage.models import (
+from pipescan.storage.database.db import StorageError, session_scope
+from pipescan.storage.database.models import (
     Asset,
     DefectRow,
     FrameQualityRow,
@@ -615,7 +615,7 @@ def save_inspection(
     Parameters
     ----------
     engine
-        From ``pipescan.storage.db.connect``.
+        From ``pipescan.storage.database.db.connect``.
     meta
         The archive's metadata. A naive ``inspected_at`` is taken as UTC. A NaN
         ``nominal_diameter_m`` (non-circular pipe) is stored as NULL.
@@ -788,7 +788,7 @@ def save_inspections(engine: Engine, inspections: Iterable[InspectionToSave]) ->
     Parameters
     ----------
     engine
-        From ``pipescan.storage.db.connect``.
+        From ``pipescan.storage.database.db.connect``.
     inspections
         What to store, in order.
 

@@ -1,7 +1,7 @@
 """Initial schema: assets, inspections, sections, defects, frame quality.
 
-Written to match ``pipescan/storage/models.py`` exactly; ``tests/test_db.py`` checks it with
-Alembic's autogenerate comparison. Types are spelled with plain SQLAlchemy types (not the
+Written to match ``pipescan/storage/database/models.py`` exactly; ``tests/test_db.py`` checks
+it with Alembic's autogenerate comparison. Types are spelled with plain SQLAlchemy types (not the
 models' ``UTCDateTime`` decorator) so that this file never changes when the models do.
 
 Revision ID: c5e1a9f40b21

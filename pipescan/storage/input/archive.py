@@ -38,8 +38,13 @@ import numpy as np
 
 from pipescan.core.errors import ArchiveError, MetadataError
 from pipescan.core.model import FrameRef, InspectionMeta
-from pipescan.storage.metadata import INSPECTION_FILE, read_inspection_toml
-from pipescan.storage.pointfiles import POINT_SUFFIXES, is_point_file, point_suffix, read_points
+from pipescan.storage.input.metadata import INSPECTION_FILE, read_inspection_toml
+from pipescan.storage.input.pointfiles import (
+    POINT_SUFFIXES,
+    is_point_file,
+    point_suffix,
+    read_points,
+)
 
 FRAMES_DIR = "frames"
 _COPY_CHUNK_BYTES = 1 << 20
@@ -304,7 +309,7 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     """Check a whole archive before anything is processed or written.
 
     With ``check_points``, every point file is read once, one at a time, and checked as
-    :func:`~pipescan.storage.pointfiles.read_points` does; the first problem is raised.
+    :func:`~pipescan.storage.input.pointfiles.read_points` does; the first problem is raised.
 
     Returns
     -------
