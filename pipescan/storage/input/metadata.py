@@ -149,7 +149,9 @@ class InspectionDocument(BaseModel):
         return value.lower()
 
 
-def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
+def read_inspection_toml(
+    path: Path, *, archive: str, max_bytes: int | None = None
+) -> InspectionMeta:
     """Read and validate an ``inspection.toml`` file.
 
     Parameters
@@ -158,6 +160,8 @@ def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
         The file on disk.
     archive
         The archive's name, for error messages.
+    max_bytes
+        The largest file accepted (the ``metadata_max_bytes`` limit); None: any.
 
     Returns
     -------
@@ -167,7 +171,8 @@ def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
     Raises
     ------
     MetadataError
-        The file is missing, not UTF-8, or invalid (see :func:`parse_inspection_toml`).
+        The file is missing, larger than ``max_bytes``, not UTF-8, or invalid (see
+        :func:`parse_inspection_toml`).
     """
     if not path.is_file():
         raise MetadataError(
@@ -178,7 +183,22 @@ def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
             "nominal_diameter_m next to frames/ (or the cloud)",
         )
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as fh:
+            data = fh.read(max_bytes + 1 if max_bytes is not None else -1)
+    except OSError as exc:
+        raise MetadataError(
+            f"cannot read the file: {exc.strerror}", archive=archive, file=INSPECTION_FILE
+        ) from exc
+    if max_bytes is not None and len(data) > max_bytes:
+        raise MetadataError(
+            f"the file is larger than {max_bytes:,} bytes, the limit (metadata_max_bytes)",
+            archive=archive,
+            file=INSPECTION_FILE,
+            field="size",
+            hint="if it is genuine, raise PIPESCAN_METADATA_MAX_BYTES (docs/security.md)",
+        )
+    try:
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise MetadataError(
             f"the file is not UTF-8 text (byte {exc.start})",
