@@ -798,12 +798,13 @@ def _open_decompressed(raw: IO[bytes]) -> IO[bytes]:
     magic = raw.read(6)
     raw.seek(0)
     stream: io.BufferedIOBase | IO[bytes] = raw
+    # Returned open: the caller's ``with`` closes it.
     if magic.startswith(_GZIP_MAGIC):
         stream = gzip.GzipFile(fileobj=raw, mode="rb")
     elif magic.startswith(_BZIP2_MAGIC):
         stream = bz2.BZ2File(raw, mode="rb")
     elif magic.startswith(_XZ_MAGIC):
-        stream = lzma.LZMAFile(raw, mode="rb")
+        stream = lzma.LZMAFile(raw, mode="rb")  # noqa: SIM115
     return cast(IO[bytes], stream)
 
 
