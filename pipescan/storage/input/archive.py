@@ -870,8 +870,10 @@ def natural_key(name: str) -> list[int | str]:
 
 
 def _point_files(folder: Path) -> list[str]:
+    # Everything but folders: a link, a FIFO or a device named like a point file is listed,
+    # so that it is refused by name rather than silently skipped.
     return sorted(
-        (p.name for p in folder.iterdir() if p.is_file() and not _is_junk(p.name)),
+        (p.name for p in folder.iterdir() if not p.is_dir() and not _is_junk(p.name)),
         key=natural_key,
     )
 
@@ -1004,6 +1006,7 @@ def _resolve_listed(frames: tuple[FrameRef, ...], root: Path, name: str) -> tupl
                 field=field,
                 hint=f"frames must be point files: {', '.join(POINT_SUFFIXES)}",
             )
+        _check_inside(root, ref.file, name)  # a link out, a FIFO: refused, not "missing"
         if not (root / ref.file).is_file():
             # Tolerate a path given relative to frames/ rather than to the root.
             in_frames = f"{FRAMES_DIR}/{ref.file}"

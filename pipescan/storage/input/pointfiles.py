@@ -36,6 +36,11 @@ CLOUD_MM_DIAMETER_M = 20.0
 """A cloud whose second-largest principal extent (≈ the pipe diameter) exceeds this is in
 millimetres. A cloud may be georeferenced, so its distance from the origin says nothing."""
 
+MAX_COORDINATE = 1e11
+"""No coordinate is larger than this, in metres or in millimetres (an earth-centred frame
+reaches 6.4 × 10^9 mm): larger values are not a position, and would overflow the checks
+below."""
+
 MM_HINT = "the values look like millimetres; pipescan expects metres: divide by 1000"
 
 PointKind = Literal["frame", "cloud"]
@@ -206,6 +211,12 @@ def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:
             f"{rows} of {n} points have NaN or infinite coordinates ({per_axis})",
             field=",".join(a for j, a in enumerate(_AXES) if bad[:, j].any()),
             hint="drop the non-finite points (keep rows where every coordinate is finite)",
+        )
+    largest = float(np.abs(points).max())
+    if largest > MAX_COORDINATE:
+        raise where.error(
+            f"a coordinate is {largest:.3g}, beyond any position ({MAX_COORDINATE:g})",
+            hint="check the file's units and scale",
         )
     if kind == "frame":
         median_range = float(np.median(np.linalg.norm(points, axis=1)))

@@ -191,6 +191,8 @@ def read(path: Path, where: Where) -> np.ndarray:
     vertex = header.vertex
     names = [name for name, _ in vertex.props]
     cols = [names.index(a) for a in AXES]
+    if vertex.count == 0:
+        return np.empty((0, 3))
     if header.fmt == "ascii":
         before = 0
         for element in header.elements:
