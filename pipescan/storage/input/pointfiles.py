@@ -212,7 +212,7 @@ def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:
             field=",".join(a for j, a in enumerate(_AXES) if bad[:, j].any()),
             hint="drop the non-finite points (keep rows where every coordinate is finite)",
         )
-    largest = float(np.abs(points).max())
+    largest = max(abs(float(points.max())), abs(float(points.min())))  # no (N, 3) temporary
     if largest > MAX_COORDINATE:
         raise where.error(
             f"a coordinate is {largest:.3g}, beyond any position ({MAX_COORDINATE:g})",

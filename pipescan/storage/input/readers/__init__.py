@@ -8,7 +8,7 @@ picks the reader by suffix and adds the checks common to every format (no points
 millimetres); an unknown suffix is refused, never read as text.
 
 Adding a format (E57, a ROS bag...) is one new module here and one line in
-:data:`FORMATS`; docs/archive.md says what its ``check`` must guarantee.
+:data:`FORMATS`; docs/security.md says what its ``check`` must guarantee.
 """
 
 from __future__ import annotations
