@@ -309,3 +309,31 @@ def test_fuzz_point_file_headers(tmp_path_factory, header) -> None:
         return
     assert points.ndim == 2 and points.shape[1] == 3 and np.isfinite(points).all()
     assert points.nbytes <= 24 * max(len(data), 1)
+
+
+def test_a_full_work_directory_is_typed_and_not_retried(tmp_path, monkeypatch) -> None:
+    """ENOSPC while extracting is the work directory's condition: a ScratchSpaceError that
+    says so, never retried (a retry 2, 4 and 8 s later finds the disk as full)."""
+    import errno
+
+    from pipescan.core.errors import ScratchSpaceError
+
+    zip_path = tmp_path / "run.zip"
+    with zipfile.ZipFile(zip_path, "w") as zf:
+        zf.writestr("inspection.toml", TOML)
+        zf.writestr("frames/1.xyz", b"1 2 3\n" * 1000)
+
+    class FullDisk(io.BytesIO):
+        def write(self, data) -> int:
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    real_open = Path.open
+
+    def open_on_a_full_disk(self, mode="r", *args, **kwargs):
+        return FullDisk() if mode == "xb" else real_open(self, mode, *args, **kwargs)
+
+    monkeypatch.setattr(Path, "open", open_on_a_full_disk)
+    with pytest.raises(ScratchSpaceError, match="PIPESCAN_WORK_DIR") as info:
+        open_archive(zip_path, workdir=tmp_path / "work")
+    assert not is_transient_io_error(info.value)
+    assert list((tmp_path / "work").iterdir()) == []
