@@ -337,3 +337,24 @@ def test_a_full_work_directory_is_typed_and_not_retried(tmp_path, monkeypatch) -
         open_archive(zip_path, workdir=tmp_path / "work")
     assert not is_transient_io_error(info.value)
     assert list((tmp_path / "work").iterdir()) == []
+
+
+def test_a_remote_folder_is_copied_under_the_caps_but_without_a_ratio(tmp_path) -> None:
+    """A folder in a store is copied, not unpacked: large frames pass, too many files do not."""
+    import fsspec
+
+    fs = fsspec.filesystem("memory")
+    base = "memory://pipescan-remote-folder"
+    try:
+        fs.pipe(f"{base}/inspection.toml", TOML)
+        for i in range(3):
+            buf = io.BytesIO()
+            np.save(buf, frame(300_000, seed=i))  # 7 MB each, past the 4 MiB ratio floor
+            fs.pipe(f"{base}/frames/{i}.npy", buf.getvalue())
+        with open_archive(base, workdir=tmp_path / "work") as arc:
+            assert validate_archive(arc).point_count == 900_000
+        with pytest.raises(PipescanError, match="archive_max_members"):
+            open_archive(base, workdir=tmp_path / "work", limits=InputLimits(archive_max_members=3))
+        assert list((tmp_path / "work").iterdir()) == []
+    finally:
+        fs.rm(base, recursive=True)

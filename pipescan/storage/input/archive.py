@@ -326,7 +326,7 @@ def open_archive(
         local = _local_path(uri, name)
         if local is None:
             tempdir = _make_tempdir(workdir)
-            budget = _Budget(limits, name, packed_bytes=lambda: 0)
+            budget = _Budget(limits, name, packed_bytes=None)  # a copy: nothing unpacks
             local = _fetch(str(uri), tempdir / "download", name, budget)
         if not local.exists():
             raise ArchiveError(
@@ -574,7 +574,9 @@ class _Budget:
     member paths seen so far (a second member at the same path, or a file where a folder
     is, is a name clash)."""
 
-    def __init__(self, limits: InputLimits, archive: str, *, packed_bytes: Callable[[], int]):
+    def __init__(
+        self, limits: InputLimits, archive: str, *, packed_bytes: Callable[[], int] | None
+    ):
         self.limits = limits
         self.archive = archive
         self.members = 0
@@ -655,7 +657,7 @@ class _Budget:
             raise self.over(
                 "archive_max_bytes", f"the archive expands past {format_bytes(self.total_bytes)}"
             )
-        if self.total_bytes > RATIO_FLOOR_BYTES:
+        if self.packed_bytes is not None and self.total_bytes > RATIO_FLOOR_BYTES:
             ratio = self.total_bytes / max(self.packed_bytes(), 1)
             if ratio > limits.compression_max_ratio:
                 raise self.over(
