@@ -76,8 +76,10 @@ except RecursionError as exc:
 except BaseException as exc:
     outcome = f"{type(exc).__name__} (raw): {exc}"
 peak = status_kib("VmHWM")
+import pipescan
 print(json.dumps({"outcome": outcome, "base_kib": base, "peak_kib": peak,
-                  "seconds": time.perf_counter() - t0, "caps": has_caps}))
+                  "seconds": time.perf_counter() - t0, "caps": has_caps,
+                  "code": os.path.dirname(os.path.dirname(pipescan.__file__))}))
 """
 
 
@@ -134,8 +136,15 @@ def run_case(code: Path, build, limits: dict, scale: float, cap: int, timeout_s:
         args = [sys.executable, "-c", CHILD, given, str(work), json.dumps(limits), str(cap)]
         started = time.perf_counter()
         try:
+            # cwd elsewhere: "python -c" puts the working directory first on sys.path.
             done = subprocess.run(
-                args, env=env, capture_output=True, text=True, timeout=timeout_s, check=False
+                args,
+                env=env,
+                cwd=tmp,
+                capture_output=True,
+                text=True,
+                timeout=timeout_s,
+                check=False,
             )
             lines = [ln for ln in done.stdout.splitlines() if ln.startswith("{")]
             if lines:
