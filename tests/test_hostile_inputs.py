@@ -358,3 +358,23 @@ def test_a_remote_folder_is_copied_under_the_caps_but_without_a_ratio(tmp_path) 
         assert list((tmp_path / "work").iterdir()) == []
     finally:
         fs.rm(base, recursive=True)
+
+
+def test_a_bad_frame_found_mid_run_names_the_archive_given(tmp_path) -> None:
+    """Tasks reopen the staged extraction; an error there still names the user's archive,
+    not the scratch directory."""
+    from pipescan.core.errors import PointFileError
+    from pipescan.core.registration import RegistrationParams
+    from pipescan.storage.scratch import create_run_dir
+    from pipescan.tasks.inspection import register_chunk
+    from pipescan.tasks.storing import stage_archive
+    from tests.hostile import ply_list_then_vertices
+
+    zip_path = tmp_path / "site7.zip"
+    with zipfile.ZipFile(zip_path, "w") as zf:
+        zf.writestr("inspection.toml", TOML)
+        zf.writestr("frames/000000.ply", ply_list_then_vertices(tmp_path))
+    staged = stage_archive.fn(str(zip_path), create_run_dir(tmp_path / "work"))
+    with pytest.raises(PointFileError) as info:
+        register_chunk.fn(staged, 0, 0, RegistrationParams())
+    assert info.value.archive == str(zip_path) and info.value.file == "frames/000000.ply"

@@ -69,7 +69,7 @@ def register_chunk(
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
     """
     meta = staged.meta
-    with open_archive(staged.root, limits=staged.limits) as arc:
+    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         frames = (
             (i, pts, _odometer(meta, i), meta.frames[i].gravity if meta.frames else None)
             for i, pts in arc.iter_frames(range(first, last + 1))
@@ -104,7 +104,7 @@ def fit_pipe_axis(
 ) -> AxisFit:
     """Fit the pipe axis on a sample of the registered points, and the chainage they span."""
     meta = staged.meta
-    with open_archive(staged.root, limits=staged.limits) as arc:
+    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         if trajectory is None:
             points = arc.read_cloud()
             start = travel = None
@@ -143,7 +143,7 @@ def bucket_points(
     max_range_m: float,
 ) -> int:
     """Write the registered points of frames ``first..last`` (or the cloud) into window files."""
-    with open_archive(staged.root, limits=staged.limits) as arc:
+    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         if trajectory is None:
             return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
         pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))

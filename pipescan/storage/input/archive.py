@@ -283,7 +283,11 @@ class ScanArchive:
 
 
 def open_archive(
-    uri: str | Path, *, workdir: Path | None = None, limits: InputLimits = DEFAULT_LIMITS
+    uri: str | Path,
+    *,
+    workdir: Path | None = None,
+    limits: InputLimits = DEFAULT_LIMITS,
+    name: str | None = None,
 ) -> ScanArchive:
     """Open and validate a scan archive.
 
@@ -298,6 +302,9 @@ def open_archive(
         Where to create the temporary extraction directory (default: the system's).
     limits
         Caps on what the archive may expand to and on its point files (docs/security.md).
+    name
+        What to call the archive in messages (default: ``uri`` without credentials); a task
+        that reopens a staged extraction passes the archive's own name.
 
     Returns
     -------
@@ -320,7 +327,7 @@ def open_archive(
     ScratchSpaceError
         The work directory could not hold the extraction (full, read-only).
     """
-    name = strip_credentials(str(uri))
+    name = strip_credentials(name if name is not None else str(uri))
     tempdir: Path | None = None
     try:
         local = _local_path(uri, name)
