@@ -322,6 +322,19 @@ def _las_patched(where: Path, suffix: str, count: int) -> bytes:
     return bytes(data)
 
 
+def las_vlr_count_lies(where: Path) -> bytes:
+    """2 billion variable-length records declared: laspy would read them from EOF forever."""
+    data = bytearray(_point_file(where, ".las", frame(10)))
+    struct.pack_into("<I", data, 100, 2_000_000_000)
+    return bytes(data)
+
+
+def las_evlr_count_lies(where: Path) -> bytes:
+    data = bytearray(_point_file(where, ".laz", frame(10)))
+    struct.pack_into("<QI", data, 235, len(data) - 10, 4_000_000_000)
+    return bytes(data)
+
+
 def las_offset_past_end(where: Path) -> bytes:
     data = bytearray(_point_file(where, ".las", frame(10)))
     struct.pack_into("<I", data, 96, 10_000_000)  # offset to point data
@@ -444,7 +457,9 @@ CASES: tuple[Case, ...] = (
     Case("lying header", "LAS claiming 1e12 points", in_dir("1.las", lambda w: _las_patched(w, ".las", 10**12)), PointFileError, "points_max_count"),
     Case("lying header", "LAZ claiming 1e8 points", in_dir("1.laz", lambda w: _las_patched(w, ".laz", 10**8)), PointFileError, "cannot read LAS/LAZ"),
     Case("lying header", "LAZ claiming 1e12 points", in_dir("1.laz", lambda w: _las_patched(w, ".laz", 10**12)), PointFileError, "points_max_count"),
-    Case("lying header", "LAS point data offset past the end", in_dir("1.las", las_offset_past_end), PointFileError, "truncated or the header lies"),
+    Case("lying header", "LAS point data offset past the end", in_dir("1.las", las_offset_past_end), PointFileError, "outside the file"),
+    Case("lying header", "LAS declaring 2e9 variable-length records", in_dir("1.las", las_vlr_count_lies), PointFileError, "variable-length records"),
+    Case("lying header", "LAZ declaring 4e9 extended records", in_dir("1.laz", las_evlr_count_lies), PointFileError, "extended records"),
     Case("lying header", ".npy of shape (1e8, 3) in 176 bytes", in_dir("1.npy", npy_lies((10**8, 3))), PointFileError, "truncated or the header lies"),
     Case("lying header", ".npy of shape (1e12, 3)", in_dir("1.npy", npy_lies((10**12, 3))), PointFileError, "points_max_count"),
     Case("lying header", ".npy holding a pickle", in_dir("1.npy", npy_pickle), PointFileError, "dtype object"),

@@ -7,6 +7,7 @@ after the point-data offset; LAZ cannot be sized from its header, so it is read 
 
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +16,7 @@ from pipescan.storage.input.readers._common import (
     Where,
     file_size,
     fill_columns,
+    read_head,
     require_bytes,
 )
 
@@ -29,6 +31,45 @@ def _errors():
     import laspy
 
     return (laspy.errors.LaspyException, ValueError, RuntimeError, OSError, EOFError, KeyError)
+
+
+_VLR_HEADER_BYTES = 54
+_EVLR_HEADER_BYTES = 60
+
+
+def _check_layout(path: Path, where: Where) -> None:
+    """Check the header's record counts against the file before laspy sees it.
+
+    laspy reads as many variable-length records as the header declares, from wherever the
+    file ends: 2 billion of them from a 675-byte file, without end. The records sit between
+    the header and the point data (VLRs) and after the points (LAS 1.4 EVLRs), so their
+    counts are bounded by the bytes there.
+    """
+    head = read_head(path, where, 375)
+    size = file_size(path, where)
+    if not head.startswith(b"LASF"):
+        raise where.corrupt("cannot read LAS/LAZ: the file does not start with 'LASF'")
+    if len(head) < 227:
+        raise where.corrupt(f"cannot read LAS/LAZ: the header is cut short ({len(head)} bytes)")
+    (header_bytes,) = struct.unpack_from("<H", head, 94)
+    offset, vlrs = struct.unpack_from("<II", head, 96)
+    if not header_bytes <= offset <= size:
+        raise where.corrupt(
+            f"the LAS header puts the points at byte {offset:,}, outside the file's "
+            f"{size:,} bytes (after its {header_bytes}-byte header)"
+        )
+    if vlrs * _VLR_HEADER_BYTES > offset - header_bytes:
+        raise where.corrupt(
+            f"the LAS header declares {vlrs:,} variable-length records, more than the "
+            f"{offset - header_bytes:,} bytes before the points can hold"
+        )
+    if head[24:26] >= b"\x01\x04" and header_bytes >= 375 and len(head) >= 251:
+        start, evlrs = struct.unpack_from("<QI", head, 235)
+        if evlrs and (start > size or evlrs * _EVLR_HEADER_BYTES > size - start):
+            raise where.corrupt(
+                f"the LAS header declares {evlrs:,} extended records from byte {start:,}, "
+                f"more than the file's {size:,} bytes hold"
+            )
 
 
 def _declared(reader, path: Path, where: Where) -> int:
@@ -46,6 +87,7 @@ def _declared(reader, path: Path, where: Where) -> int:
 def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | None]:
     import laspy
 
+    _check_layout(path, where)
     try:
         with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
             declared = _declared(reader, path, where)
