@@ -30,7 +30,21 @@ CHUNK_POINTS = 1_000_000
 def _errors():
     import laspy
 
-    return (laspy.errors.LaspyException, ValueError, RuntimeError, OSError, EOFError, KeyError)
+    # laspy parses headers with struct and int.from_bytes as they come: a crafted header
+    # surfaces as any of these.
+    return (
+        laspy.errors.LaspyException,
+        ValueError,
+        RuntimeError,
+        OSError,
+        EOFError,
+        KeyError,
+        IndexError,
+        TypeError,
+        OverflowError,
+        ZeroDivisionError,
+        struct.error,
+    )
 
 
 _VLR_HEADER_BYTES = 54
