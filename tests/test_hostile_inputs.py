@@ -209,7 +209,7 @@ _data = st.one_of(
 )
 
 
-@settings(max_examples=60 * FUZZ_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=150 * FUZZ_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
 @given(
     members=st.lists(st.tuples(_names, _data), min_size=1, max_size=6),
     kind=st.sampled_from(["zip", "tar", "tar.gz"]),
@@ -315,7 +315,7 @@ def _patched_las(suffix: str, offset: int, value: int) -> bytes:
     return bytes(data)
 
 
-@settings(max_examples=150 * FUZZ_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=400 * FUZZ_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
 @given(header=_headers)
 def test_fuzz_point_file_headers(tmp_path_factory, header) -> None:
     """A header of any counts, types and lengths: points that match it, or a PointFileError;
