@@ -11,6 +11,10 @@ from typing import Literal
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pipescan.storage.input.limits import InputLimits
+
+_LIMITS = InputLimits()
+
 
 class Settings(BaseSettings):
     """pipescan's settings. Each field can be set as ``PIPESCAN_<FIELD>``."""
@@ -70,6 +74,21 @@ class Settings(BaseSettings):
     smtp_username: str | None = None
     smtp_password: SecretStr | None = None
     smtp_security: Literal["none", "starttls", "ssl"] = "none"
+    smtp_allow_plaintext_login: bool = Field(
+        False, description="send the SMTP password without TLS (smtp_security = none)"
+    )
+    # --- input limits (docs/security.md): what one archive and its point files may cost ---
+    archive_max_bytes: int = Field(_LIMITS.archive_max_bytes, gt=0, description="64 GiB")
+    member_max_bytes: int = Field(_LIMITS.member_max_bytes, gt=0, description="32 GiB")
+    compression_max_ratio: float = Field(_LIMITS.compression_max_ratio, gt=1)
+    archive_max_members: int = Field(_LIMITS.archive_max_members, gt=0)
+    line_max_bytes: int = Field(_LIMITS.line_max_bytes, gt=0, description="64 KiB")
+    points_max_count: int = Field(_LIMITS.points_max_count, gt=0)
+    metadata_max_bytes: int = Field(_LIMITS.metadata_max_bytes, gt=0, description="32 MiB")
+
+    def input_limits(self) -> InputLimits:
+        """The input limits these settings give, to pass down explicitly."""
+        return InputLimits.from_settings(self)
 
 
 def get_settings() -> Settings:

@@ -7,7 +7,14 @@ import fsspec
 import pytest
 import sqlalchemy as sa
 
-from pipescan.core.errors import ArchiveError, GeometryError, MetadataError, RegistrationError
+from pipescan.core.errors import (
+    ArchiveError,
+    FetchError,
+    GeometryError,
+    MetadataError,
+    RegistrationError,
+    ScratchSpaceError,
+)
 from pipescan.flows.network import (
     ArchiveOutcome,
     absolute_database_url,
@@ -112,7 +119,12 @@ def _wrapped(outer_cls, inner: BaseException, **kw) -> BaseException:
         (ConnectionResetError("peer reset"), True),
         (TimeoutError("read timed out"), True),
         (OSError(5, "Input/output error"), True),
-        (_wrapped(ArchiveError, OSError(104, "reset"), archive="s3://b/a.zip"), True),
+        (_wrapped(FetchError, OSError(104, "reset"), archive="s3://b/a.zip"), True),
+        (_wrapped(FetchError, FileNotFoundError(2, "no such key"), archive="s3://b/a"), False),
+        # About the input: never retried, even when an OSError is underneath (a member name
+        # too long for the file system, a full work directory).
+        (_wrapped(ArchiveError, OSError(36, "File name too long"), archive="a.zip"), False),
+        (_wrapped(ScratchSpaceError, OSError(28, "No space left on device")), False),
         (_wrapped(StorageError, sa.exc.OperationalError("INSERT", {}, "database is locked")), True),
         (StorageError("no inspection with id 4"), False),
         (GeometryError("no points in the window"), False),

@@ -24,6 +24,7 @@ import fsspec
 import pytest
 from prefect.testing.utilities import prefect_test_harness
 
+from pipescan.flows.housekeeping import start_run_dir
 from pipescan.flows.inspect import InspectionParams, inspect_archive
 from pipescan.simulator.archive import write_simulated_archive
 from pipescan.simulator.scan import get_scenario, simulate_scan
@@ -199,6 +200,11 @@ def test_a_killed_run_leaves_every_input_form_unchanged(source, tmp_path, monkey
         assert path.exists(), f"{name}: the input is gone"
         assert fingerprint(path) == before[name], f"{name}: the input was changed"
     assert len(list((tmp_path / "work").iterdir())) == len(given)  # each staged, then killed
+    # The next run sweeps what the killed one left, and still touches no input.
+    run = start_run_dir(tmp_path / "work")
+    assert list((tmp_path / "work").iterdir()) == [run]
+    for name, (_, path) in forms.items():
+        assert fingerprint(path) == before[name], f"{name}: the input was changed by the sweep"
 
 
 def test_only_a_marked_run_directory_is_ever_deleted(tmp_path: Path) -> None:

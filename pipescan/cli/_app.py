@@ -16,6 +16,14 @@ os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "pipescan")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 # The CLI logs its own stage lines outside flow runs too; those are not for the API.
 os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
+# A bad archive is one line ("error: ..."), exit code 2; Prefect's run loggers would print the
+# same error again with a traceback. The run's state in the API keeps it; --verbose shows it.
+_RUN_LOGGERS = (
+    "PREFECT_LOGGING_LOGGERS_PREFECT_FLOW_RUNS_LEVEL",
+    "PREFECT_LOGGING_LOGGERS_PREFECT_TASK_RUNS_LEVEL",
+)
+for _name in _RUN_LOGGERS:
+    os.environ.setdefault(_name, "CRITICAL")
 
 app = typer.Typer(
     help="Measure the inside of underground pipes from LiDAR scans.",
@@ -60,6 +68,8 @@ def _db_url(db: str | None) -> str:
 def _setup_logging(verbose: bool) -> None:
     if verbose:
         os.environ["PREFECT_LOGGING_LEVEL"] = "INFO"
+        for name in _RUN_LOGGERS:
+            os.environ[name] = "INFO"
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("%(asctime)s  %(message)s", datefmt="%H:%M:%S"))
     logger = logging.getLogger("pipescan")

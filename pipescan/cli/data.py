@@ -10,6 +10,7 @@ import typer
 
 from pipescan.cli._app import DbOption, ExportFormat, _db_url, _fail, app, db_app, export_app
 from pipescan.core.errors import PipescanError
+from pipescan.core.sanitize import escape_control, strip_credentials
 
 AssetOption = Annotated[str | None, typer.Option(help="Only this asset.")]
 InspectionOption = Annotated[int | None, typer.Option(help="Only this inspection id.")]
@@ -85,7 +86,8 @@ def assets(db: DbOption = None) -> None:
         last = a.last_inspected_at.date().isoformat() if a.last_inspected_at else "-"
         size = f"DN {1000 * a.nominal_diameter_m:.0f}" if a.nominal_diameter_m else "DN ?"
         typer.echo(
-            f"{a.asset_id:24} {a.upstream_node or '-':>10} -> {a.downstream_node or '-':10} "
+            f"{escape_control(a.asset_id):24} {escape_control(a.upstream_node or '-'):>10} -> "
+            f"{escape_control(a.downstream_node or '-'):10} "
             f"{size:8} {a.pipe_shape:10} {a.material or '-':10} "
             f"{a.inspection_count} inspections, last {last}"
         )
@@ -113,10 +115,12 @@ def inspections(
         typer.echo("no inspections yet")
     for r in rows:
         peak = "-" if r.peak_blockage_ratio is None else f"{100 * r.peak_blockage_ratio:.1f} %"
+        # Rows stored before credentials were stripped, or ids with control characters,
+        # still print safely.
         typer.echo(
-            f"{r.id:6}  {r.asset_id:24} {r.inspected_at.isoformat():26} "
+            f"{r.id:6}  {escape_control(r.asset_id):24} {r.inspected_at.isoformat():26} "
             f"{r.measured_section_count:5}/{r.section_count:<5} measured  peak {peak:>7}  "
-            f"{r.status:10} {r.archive_uri}"
+            f"{r.status:10} {escape_control(strip_credentials(r.archive_uri))}"
         )
 
 

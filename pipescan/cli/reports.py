@@ -53,6 +53,7 @@ def _smtp_config(settings):
         username=settings.smtp_username,
         password=settings.smtp_password.get_secret_value() if settings.smtp_password else None,
         security=settings.smtp_security,
+        allow_plaintext_login=settings.smtp_allow_plaintext_login,
     )
 
 

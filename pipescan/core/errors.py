@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pipescan.core.sanitize import escape_control, strip_credentials, strip_credentials_in_text
+
 
 class PipescanError(Exception):
     """Base class of every error pipescan raises on purpose.
@@ -34,9 +36,12 @@ class PipescanError(Exception):
         super().__init__(self._format())
 
     def _format(self) -> str:
+        # The message is printed, logged and stored: it carries no credentials (an archive
+        # URL, a backend's error quoting one) and stays one line whatever names the input
+        # holds (a member name with an ESC sequence cannot drive the terminal).
         where = []
         if self.archive:
-            where.append(f"archive {self.archive}")
+            where.append(f"archive {strip_credentials(self.archive)}")
         if self.file:
             where.append(f"file {self.file}")
         if self.field:
@@ -44,11 +49,15 @@ class PipescanError(Exception):
         text = (", ".join(where) + ": " if where else "") + self.reason
         if self.hint:
             text += f" ({self.hint})"
-        return text
+        return escape_control(strip_credentials_in_text(text))
 
 
 class ArchiveError(PipescanError):
-    """The scan archive is unreadable, incomplete or unsafe."""
+    """The scan archive is unreadable, incomplete, unsafe or over a limit.
+
+    Always the input's fault, so the same archive fails the same way every time: never
+    retried. A failure to *reach* the archive (network, store) is a :class:`FetchError`.
+    """
 
 
 class MetadataError(ArchiveError):
@@ -57,6 +66,19 @@ class MetadataError(ArchiveError):
 
 class PointFileError(ArchiveError):
     """A point file is corrupt, truncated, empty or holds non-finite values."""
+
+
+class FetchError(PipescanError):
+    """The archive could not be copied from where it lives (a network store, a backend).
+
+    Retried when what caused it is transient I/O (a reset connection, a timeout); a missing
+    object or refused credentials fail at once.
+    """
+
+
+class ScratchSpaceError(PipescanError):
+    """The work directory cannot hold what the run must write there (disk full, quota,
+    read-only). Not the archive's fault and not transient: never retried."""
 
 
 class RegistrationError(PipescanError):

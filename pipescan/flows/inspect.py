@@ -22,9 +22,12 @@ from pipescan.core.registration import (
     plan_chunks,
     registration_summary,
 )
+from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows
+from pipescan.flows.housekeeping import start_run_dir
+from pipescan.settings import get_settings
 from pipescan.storage.database.repository import params_hash
-from pipescan.storage.scratch import create_run_dir, remove_workspace
+from pipescan.storage.scratch import remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
     fit_pipe_axis,
@@ -120,9 +123,9 @@ def inspect_archive(
     """
     started = time.perf_counter()
     params = params or InspectionParams()
-    run_dir = create_run_dir(Path(work_dir))
+    run_dir = start_run_dir(Path(work_dir))
     try:
-        staged = stage_archive(archive, run_dir)
+        staged = stage_archive(archive, run_dir, get_settings().input_limits())
         meta = staged.meta
         log.info(f"archive {staged.name}: asset {meta.asset_id}, {staged.frame_count} frames")
         if reuse_stored:
@@ -220,7 +223,7 @@ def inspect_archive(
         inspection_id = save_results(
             database_url,
             meta=meta,
-            archive_uri=str(archive),
+            archive_uri=staged.name,  # without credentials
             content_hash=staged.content_hash,
             params=stored_params(params, grading.pipe_class, grading.pipe_class_reason),
             software_version=pipescan.__version__,
@@ -282,7 +285,7 @@ def _summarise(
         inspection_id=inspection_id,
         asset_id=meta.asset_id,
         inspected_at=meta.inspected_at.isoformat(),
-        archive=str(archive),
+        archive=strip_credentials(str(archive)),
         frame_count=frame_count,
         point_count=point_count,
         scanned_length_m=scanned_length_m,

@@ -30,6 +30,7 @@ from pipescan.core.contour import GridParams
 from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
+from pipescan.core.sanitize import strip_credentials
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
 from pipescan.flows.runners import make_task_runner
 from pipescan.tasks.network import IO_RETRY_OPTIONS, archive_label, discover_archives
@@ -65,7 +66,7 @@ class ArchiveOutcome:
     @classmethod
     def from_summary(cls, archive: str, label: str, summary: InspectionSummary, wall_s: float):
         return cls(
-            archive=archive,
+            archive=strip_credentials(archive),
             label=label,
             status="reused" if summary.reused else "inspected",
             wall_time_s=wall_s,
@@ -285,7 +286,7 @@ def inspect_one_archive(
         )
     except Exception as exc:
         return ArchiveOutcome(
-            archive=archive,
+            archive=strip_credentials(archive),
             label=label,
             status="failed",
             wall_time_s=time.perf_counter() - started,
@@ -378,7 +379,9 @@ def inspect_network(
             concurrency = s.network_concurrency or (
                 sum(pool.client.nthreads().values()) if dask_address else 2
             )
-        log.info(f"{total} archives in {store}; {concurrency} at a time on {executor}")
+        log.info(
+            f"{total} archives in {strip_credentials(store)}; {concurrency} at a time on {executor}"
+        )
         queue = list(zip(archives, labels, strict=True))
         pending: dict = {}
         while queue or pending:
@@ -417,7 +420,7 @@ def inspect_network(
         )
         report_path, report_error = _write_network_report(database_url, out, ids)
     summary = NetworkSummary(
-        store=store,
+        store=strip_credentials(store),
         executor=executor,
         outcomes=ordered,
         worst=worst_pipes(ordered, worst_count),

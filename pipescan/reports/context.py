@@ -17,6 +17,7 @@ from typing import Any, TypeGuard
 
 from pipescan.core.grading import ThresholdTable, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
+from pipescan.core.sanitize import strip_credentials
 
 __all__ = [
     "APPENDIX_ALL_MAX_SECTIONS",
@@ -612,7 +613,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "point_count": fmt_int(inp.point_count),
         "registration": _registration_rows(inp),
         "inspection_id": str(inp.inspection_id),
-        "archive_uri": inp.archive_uri,
+        "archive_uri": strip_credentials(inp.archive_uri),
         "software_version": inp.software_version,
         "generated_at": fmt_datetime(inp.generated_at),
     }

@@ -7,6 +7,8 @@ import os
 import tempfile
 from functools import cache
 from pathlib import Path
+from urllib.parse import urlsplit
+from urllib.request import url2pathname
 
 from jinja2 import Environment, PackageLoader, StrictUndefined
 
@@ -24,6 +26,33 @@ __all__ = [
 
 TEMPLATE = "inspection.html.j2"
 NETWORK_TEMPLATE = "network.html.j2"
+ASSETS_DIR = (Path(__file__).parent / "templates").resolve()
+"""The package's own report assets: the only files a report may load."""
+
+
+@cache
+def _url_fetcher():
+    """WeasyPrint's fetcher, restricted to ``data:`` URLs and files in :data:`ASSETS_DIR`.
+
+    Reports embed their charts as data URIs and need nothing else. Text from an archive is
+    escaped by Jinja2, but should a URL still reach the HTML, it cannot make the renderer
+    read a local file (``file:///etc/...``) into a PDF that is e-mailed out, nor reach the
+    network (``http:``, ``ftp:``). A refused resource is left out, with WeasyPrint's warning.
+    """
+    from weasyprint.urls import URLFetcher
+
+    class PackageAssetsFetcher(URLFetcher):
+        def __init__(self) -> None:
+            super().__init__(allowed_protocols={"data", "file"}, allow_redirects=False)
+
+        def fetch(self, url, headers=None):
+            if url.lower().startswith("file:"):
+                path = Path(url2pathname(urlsplit(url).path)).resolve()
+                if not path.is_relative_to(ASSETS_DIR):
+                    raise ValueError(f"reports load no file outside their own assets: {url}")
+            return super().fetch(url, headers)
+
+    return PackageAssetsFetcher()
 
 
 @cache
@@ -98,7 +127,9 @@ def _write_pdf(html: str, out_path: Path) -> Path:
     )
     try:
         with os.fdopen(fd, "wb") as tmp:
-            HTML(string=html, base_url=str(out_path.parent)).write_pdf(tmp)
+            HTML(
+                string=html, base_url=ASSETS_DIR.as_uri() + "/", url_fetcher=_url_fetcher()
+            ).write_pdf(tmp)
             tmp.flush()
             os.fsync(tmp.fileno())
         os.replace(tmp_name, out_path)

@@ -11,14 +11,18 @@ origin, and offsets stay small even for georeferenced clouds with large coordina
 
 from __future__ import annotations
 
+import json
 import logging
 import os
 import shutil
+import socket
 import time
 from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
+import psutil
 
 from pipescan.core.axis import PipeAxis
 from pipescan.core.sections import ChainageWindow
@@ -29,22 +33,117 @@ RUN_MARKER = ".pipescan-run"
 log = logging.getLogger(__name__)
 
 
-def create_run_dir(work_dir: Path) -> Path:
+@dataclass(frozen=True)
+class ProcessRef:
+    """One process, by id and start time (seconds since the epoch): together they tell it
+    apart from a later process that was given the same id."""
+
+    pid: int
+    started: float
+
+    @classmethod
+    def of(cls, pid: int) -> ProcessRef:
+        return cls(pid, psutil.Process(pid).create_time())
+
+    def is_running(self) -> bool:
+        """True while this very process runs (not a later one with the same id)."""
+        try:
+            proc = psutil.Process(self.pid)
+            return (
+                abs(proc.create_time() - self.started) < 1.0
+                and proc.status() != psutil.STATUS_ZOMBIE
+            )
+        except psutil.Error:
+            return False
+
+
+@dataclass(frozen=True)
+class RunOwner:
+    """What a run directory's marker records: the process that owns the run, on which host,
+    and helper processes it started for the run (a Prefect API server) that outlive it if
+    it is killed."""
+
+    owner: ProcessRef
+    host: str
+    helpers: tuple[ProcessRef, ...] = field(default=())
+
+    def to_json(self) -> str:
+        return json.dumps(asdict(self))
+
+    @classmethod
+    def from_json(cls, text: str) -> RunOwner | None:
+        try:
+            data = json.loads(text)
+            return cls(
+                owner=ProcessRef(int(data["owner"]["pid"]), float(data["owner"]["started"])),
+                host=str(data["host"]),
+                helpers=tuple(
+                    ProcessRef(int(h["pid"]), float(h["started"])) for h in data["helpers"]
+                ),
+            )
+        except (ValueError, KeyError, TypeError):
+            return None
+
+
+def create_run_dir(work_dir: Path, *, helpers: Sequence[ProcessRef] = ()) -> Path:
     """Create a new, empty scratch directory for one run under ``work_dir`` and mark it.
 
-    Only a directory carrying the marker is ever deleted by :func:`remove_workspace`, so a
-    user's folder can never be removed by mistake, whatever it is called.
+    Only a directory carrying the marker is ever deleted by :func:`remove_workspace` and
+    :func:`sweep_stale_runs`, so a user's folder can never be removed by mistake, whatever it
+    is called. The marker records this process and ``helpers`` (see :class:`RunOwner`).
     """
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
+    owner = RunOwner(ProcessRef.of(os.getpid()), socket.gethostname(), tuple(helpers))
     while True:
         run_dir = work_dir / f"run-{time.time_ns():x}-{os.getpid()}"
         try:
             run_dir.mkdir()
         except FileExistsError:
             continue
-        (run_dir / RUN_MARKER).write_text(f"pid {os.getpid()}\n", encoding="utf-8")
+        (run_dir / RUN_MARKER).write_text(owner.to_json(), encoding="utf-8")
         return run_dir
+
+
+@dataclass(frozen=True)
+class Sweep:
+    """What :func:`sweep_stale_runs` found: the run directories it removed, and the helper
+    processes their dead owners had started (still to be stopped, if still running)."""
+
+    removed: tuple[Path, ...]
+    orphans: tuple[ProcessRef, ...]
+
+
+def sweep_stale_runs(work_dir: Path) -> Sweep:
+    """Remove the run directories in ``work_dir`` whose owner is no longer running.
+
+    A run killed with ``kill -9`` cannot clean up after itself; the next run does. Only
+    directories carrying a run marker written on this host are considered, and only those
+    whose owner process (by id and start time) is gone; a user's folder, a symlink, a run of
+    another host (on a shared work directory) or a live run is never touched.
+    """
+    work_dir = Path(work_dir)
+    if not work_dir.is_dir():
+        return Sweep((), ())
+    host = socket.gethostname()
+    removed: list[Path] = []
+    orphans: list[ProcessRef] = []
+    for entry in sorted(work_dir.iterdir()):
+        marker = entry / RUN_MARKER
+        if entry.is_symlink() or not entry.is_dir() or marker.is_symlink():
+            continue
+        try:
+            text = marker.read_text(encoding="utf-8")
+        except OSError:  # no marker (not ours, or being created): leave it
+            continue
+        owner = RunOwner.from_json(text)
+        if owner is None or owner.host != host or owner.owner.is_running():
+            continue
+        log.info("removing %s: its run (process %d) is gone", entry, owner.owner.pid)
+        remove_workspace(entry)
+        removed.append(entry)
+        orphans += [h for h in owner.helpers if h.is_running()]
+    return Sweep(tuple(removed), tuple(orphans))
 
 
 def window_dir(bucket_root: Path, window: ChainageWindow) -> Path:

@@ -29,7 +29,7 @@ import smtplib
 import ssl
 import tomllib
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from datetime import datetime
 from email.message import EmailMessage
 from email.utils import make_msgid
@@ -70,16 +70,23 @@ class SmtpConfig:
 
     ``security`` is ``"none"`` (plain SMTP, e.g. a relay on the local network),
     ``"starttls"`` (upgrade the connection, usually port 587) or ``"ssl"`` (TLS from the
-    start, usually port 465). ``username`` and ``password`` are used when both are set.
+    start, usually port 465). ``username`` and ``password`` are used when both are set; over
+    ``"none"`` only with ``allow_plaintext_login``, since the password would cross the network
+    in clear. The password is left out of the repr, so it never reaches a log.
     """
 
     host: str
     port: int = 25
     sender: str = "pipescan@localhost"
     username: str | None = None
-    password: str | None = None
+    password: str | None = field(default=None, repr=False)
     security: Literal["none", "starttls", "ssl"] = "none"
     timeout_s: float = 30.0
+    allow_plaintext_login: bool = False
+
+    @property
+    def logs_in(self) -> bool:
+        return bool(self.username and self.password)
 
 
 @dataclass(frozen=True)
@@ -249,6 +256,13 @@ def send_report_email(
     """
     if not recipients:
         raise DeliveryError("no recipients to e-mail the report to")
+    if smtp.logs_in and smtp.security == "none" and not smtp.allow_plaintext_login:
+        raise DeliveryError(
+            f"refusing to send the SMTP password to {smtp.host}:{smtp.port} without TLS",
+            field="PIPESCAN_SMTP_SECURITY",
+            hint="set PIPESCAN_SMTP_SECURITY=starttls (port 587) or ssl (port 465); only on a "
+            "trusted network, PIPESCAN_SMTP_ALLOW_PLAINTEXT_LOGIN=true",
+        )
     # The SMTP policy folds long headers (a subject with an asset id) the modern way and
     # ends lines with CRLF, as servers expect.
     message = EmailMessage(policy=email.policy.SMTP)
@@ -275,7 +289,8 @@ def send_report_email(
         with client:
             if smtp.security == "starttls":
                 client.starttls(context=ssl.create_default_context())
-            if smtp.username and smtp.password:
+            if smtp.logs_in:
+                assert smtp.username is not None and smtp.password is not None
                 client.login(smtp.username, smtp.password)
             refused = client.send_message(message, to_addrs=list(recipients))
     except (smtplib.SMTPException, OSError) as exc:

@@ -25,6 +25,7 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.storage.input.archive import open_archive
+from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.scratch import read_window_offsets, write_buckets
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
@@ -33,7 +34,8 @@ log = logging.getLogger("pipescan")
 
 @dataclass(frozen=True)
 class StagedArchive:
-    """An archive ready to process: its content as a local directory, and its metadata."""
+    """An archive ready to process: its content as a local directory, its metadata, and the
+    limits its point files are read under. ``name`` carries no credentials."""
 
     name: str
     root: Path
@@ -41,6 +43,7 @@ class StagedArchive:
     content_hash: str
     frame_count: int
     cloud_member: str | None
+    limits: InputLimits = DEFAULT_LIMITS
 
 
 @dataclass(frozen=True)
@@ -66,7 +69,7 @@ def register_chunk(
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
     """
     meta = staged.meta
-    with open_archive(staged.root) as arc:
+    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         frames = (
             (i, pts, _odometer(meta, i), meta.frames[i].gravity if meta.frames else None)
             for i, pts in arc.iter_frames(range(first, last + 1))
@@ -101,7 +104,7 @@ def fit_pipe_axis(
 ) -> AxisFit:
     """Fit the pipe axis on a sample of the registered points, and the chainage they span."""
     meta = staged.meta
-    with open_archive(staged.root) as arc:
+    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         if trajectory is None:
             points = arc.read_cloud()
             start = travel = None
@@ -140,7 +143,7 @@ def bucket_points(
     max_range_m: float,
 ) -> int:
     """Write the registered points of frames ``first..last`` (or the cloud) into window files."""
-    with open_archive(staged.root) as arc:
+    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         if trajectory is None:
             return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
         pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))

@@ -13,11 +13,11 @@ import sqlalchemy as sa
 from prefect.tasks import exponential_backoff
 
 from pipescan.core.errors import (
+    ArchiveError,
     GeometryError,
     GradingError,
-    MetadataError,
-    PointFileError,
     RegistrationError,
+    ScratchSpaceError,
 )
 
 IO_RETRY_COUNT = 3
@@ -32,8 +32,8 @@ _DETERMINISTIC: tuple[type[BaseException], ...] = (
     GeometryError,
     RegistrationError,
     GradingError,
-    MetadataError,
-    PointFileError,
+    ArchiveError,  # with MetadataError and PointFileError: whatever it wraps
+    ScratchSpaceError,
     FileNotFoundError,
     IsADirectoryError,
     NotADirectoryError,
@@ -62,9 +62,10 @@ def is_transient_io_error(exc: BaseException) -> bool:
 
     Walks the exception and its causes: a connection, timeout or other ``OSError`` (reading
     from a store, a network file system), or a database lock or lost connection, is
-    transient, also when wrapped in an :class:`~pipescan.core.errors.ArchiveError` or a
-    ``StorageError``. Geometry, registration, grading, metadata and point-file errors, and
-    missing files or permissions, are deterministic: never transient, whatever they wrap.
+    transient, also when wrapped in a :class:`~pipescan.core.errors.FetchError` or a
+    ``StorageError``. Archive errors (metadata, point files, limits, unsafe or clashing
+    names), a full work directory, geometry, registration and grading errors, and missing
+    files or permissions, are deterministic: never transient, whatever they wrap.
 
     Examples
     --------

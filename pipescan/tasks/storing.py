@@ -10,19 +10,22 @@ from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMea
 from pipescan.storage.database.db import connect
 from pipescan.storage.database.repository import save_inspection
 from pipescan.storage.input.archive import open_archive
+from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.tasks.inspection import StagedArchive
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 
 @task(name="stage-archive", **IO_RETRY_OPTIONS)
-def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
+def stage_archive(
+    archive: str, run_dir: Path, limits: InputLimits = DEFAULT_LIMITS
+) -> StagedArchive:
     """Open and validate an archive; unpack a file archive into the run's scratch directory.
 
     A local directory archive (a path or a ``file://`` URL) is used in place and never moved:
     only what :func:`open_archive` extracted into ``run_dir`` is. Later tasks reopen ``root``
-    as a directory.
+    as a directory, under the same ``limits``.
     """
-    with open_archive(archive, workdir=run_dir) as arc:
+    with open_archive(archive, workdir=run_dir, limits=limits) as arc:
         # Hash while the extracted files are still where the archive object expects them.
         content_hash = arc.content_hash
         root = arc.detach_extraction(run_dir / "archive")
@@ -33,6 +36,7 @@ def stage_archive(archive: str, run_dir: Path) -> StagedArchive:
             content_hash=content_hash,
             frame_count=arc.frame_count,
             cloud_member=arc.cloud_member,
+            limits=limits,
         )
 
 

@@ -27,6 +27,7 @@ __all__ = [
     "export_defects_jsonl",
     "export_sections_csv",
     "export_sections_jsonl",
+    "text_cell",
 ]
 
 SECTION_CSV_COLUMNS: tuple[str, ...] = (
@@ -84,6 +85,26 @@ _UNTRUSTED_UNLESS_OK = (
 
 # Rows fetched per round trip while streaming.
 _BATCH_ROWS = 1000
+
+
+_FORMULA_STARTS = ("=", "+", "-", "@", "\t", "\r")
+
+
+def text_cell(value: str | None) -> str:
+    """A text cell that a spreadsheet shows as text, never runs as a formula.
+
+    Text starting with ``=``, ``+``, ``-`` or ``@`` (or a tab or CR, which some spreadsheets
+    skip before looking) gets a leading ``'``, the spreadsheet's own "this is text" mark:
+    ``=HYPERLINK(...)`` in an asset id stays a string. Only text columns pass through here;
+    figures are written by pipescan's own number formats, so a negative ratio such as
+    ``-0.02`` stays a number a spreadsheet reads as -0.02.
+
+    >>> text_cell("=HYPERLINK(1)"), text_cell("MH1-MH2"), text_cell("-12")
+    ("'=HYPERLINK(1)", 'MH1-MH2', "'-12")
+    """
+    if value is None:
+        return ""
+    return "'" + value if value.startswith(_FORMULA_STARTS) else value
 
 
 def _float_cell(value: float | None) -> str:
@@ -177,25 +198,25 @@ def _defect_rows(
 
 def _section_csv_cells(record: Mapping[str, Any]) -> list[str]:
     return [
-        record["asset_id"],
+        text_cell(record["asset_id"]),
         str(record["inspection_id"]),
         record["inspected_at"].isoformat(),
         _chainage_cell(record["chainage_start_m"]),
         _chainage_cell(record["chainage_end_m"]),
         *(_float_cell(record[name]) for name in _MEASURE_COLUMNS),
         str(record["point_count"]),
-        record["status"],
+        text_cell(record["status"]),
         _int_cell(record["grade"]),
     ]
 
 
 def _defect_csv_cells(record: Mapping[str, Any]) -> list[str]:
     return [
-        record["asset_id"],
+        text_cell(record["asset_id"]),
         str(record["inspection_id"]),
         record["inspected_at"].isoformat(),
-        record["code"],
-        record["measure"],
+        text_cell(record["code"]),
+        text_cell(record["measure"]),
         _chainage_cell(record["chainage_start_m"]),
         _chainage_cell(record["chainage_end_m"]),
         _chainage_cell(record["peak_chainage_m"]),

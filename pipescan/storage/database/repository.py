@@ -27,6 +27,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
+from pipescan.core.sanitize import strip_credentials
 from pipescan.storage.database.db import StorageError, session_scope
 from pipescan.storage.database.models import (
     Asset,
@@ -712,7 +713,9 @@ def _prepare(item: InspectionToSave) -> _Prepared:
         # inspection.toml without an offset (or a bare date) gives a naive datetime: UTC is
         # the only reading that does not depend on the machine that processed the scan.
         inspected_at = inspected_at.replace(tzinfo=UTC)
-    where = f"inspection of asset {meta.asset_id} from {item.archive_uri}"
+    # Never store credentials, whoever calls: the URL is printed and rendered from here on.
+    archive_uri = strip_credentials(item.archive_uri)
+    where = f"inspection of asset {meta.asset_id} from {archive_uri}"
     canonical = canonical_params_json(item.params)
     registration_json = (
         None if item.registration is None else json.loads(canonical_params_json(item.registration))
@@ -724,7 +727,7 @@ def _prepare(item: InspectionToSave) -> _Prepared:
     _check_unique([r["frame_index"] for r in quality_rows], "frame quality rows", " (frame)")
     values = {
         "inspected_at": inspected_at,
-        "archive_uri": item.archive_uri,
+        "archive_uri": archive_uri,
         "params_json": json.loads(canonical),
         "software_version": item.software_version,
         "status": item.status,

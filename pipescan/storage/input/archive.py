@@ -1,11 +1,12 @@
 """Open scan archives: a directory, a ``.zip``, a ``.tar`` or ``.tar.gz``, locally or at an
 fsspec URL, laid out as the archive contract in DESIGN.md says.
 
-:func:`open_archive` extracts a file archive safely into a temporary directory (rejecting
-absolute paths, ``..`` components, links and device files before anything is written),
-reads and validates ``inspection.toml``, and checks the layout: ``frames/`` or one
-registered cloud, never both, and every listed frame present. Point files are read later,
-one at a time, by :meth:`ScanArchive.read_frame` / :meth:`ScanArchive.iter_frames`; call
+:func:`open_archive` copies a remote archive and extracts a file archive into a temporary
+directory (:mod:`pipescan.storage.input.extract`: streaming, under the input limits, refusing
+unsafe members), reads and validates ``inspection.toml``, and checks the layout: ``frames/``
+or one registered cloud, never both, every listed frame present, and (for a directory used
+in place) every file it reads inside the directory, not linked out of it. Point files are
+read later, one at a time, by :meth:`ScanArchive.read_frame` / :meth:`ScanArchive.iter_frames`; call
 :func:`validate_archive` to read them all once, before writing anything anywhere, so that a
 bad frame halfway through never leaves half-written results.
 
@@ -24,11 +25,7 @@ import hashlib
 import re
 import shutil
 import stat
-import tarfile
-import tempfile
 import weakref
-import zipfile
-import zlib
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from functools import cached_property
@@ -36,8 +33,26 @@ from pathlib import Path, PurePosixPath
 
 import numpy as np
 
-from pipescan.core.errors import ArchiveError, MetadataError
+from pipescan.core.errors import (
+    ArchiveError,
+    MetadataError,
+)
 from pipescan.core.model import FrameRef, InspectionMeta
+from pipescan.core.sanitize import strip_credentials
+from pipescan.storage.input.extract import (
+    COPY_CHUNK_BYTES,
+    Budget,
+    extract,
+    fetch,
+    local_path,
+    make_tempdir,
+    unsafe,
+)
+from pipescan.storage.input.limits import (
+    DEFAULT_LIMITS,
+    InputLimits,
+    archive_limit_error,
+)
 from pipescan.storage.input.metadata import INSPECTION_FILE, read_inspection_toml
 from pipescan.storage.input.pointfiles import (
     POINT_SUFFIXES,
@@ -47,16 +62,11 @@ from pipescan.storage.input.pointfiles import (
 )
 
 FRAMES_DIR = "frames"
-_COPY_CHUNK_BYTES = 1 << 20
 # Files that archiving tools add and that are never content (macOS resource forks, ...).
 _JUNK_NAMES = {"__MACOSX", ".DS_Store", "Thumbs.db", "desktop.ini"}
-# tarfile.FilterError exists from Python 3.11.4 on; before that nothing raises it.
-_TAR_FILTER_ERRORS: tuple[type[Exception], ...] = (
-    (tarfile.FilterError,) if hasattr(tarfile, "FilterError") else ()
-)
-_UNSAFE_HINT = (
-    "rebuild the archive with plain relative paths: no absolute paths, no '..', "
-    "no symlinks, hardlinks or device files"
+_OUTSIDE_HINT = (
+    "copy the file into the archive folder instead of linking to it; a link may point "
+    "only to a file inside the archive"
 )
 
 
@@ -75,7 +85,8 @@ class ScanArchive:
     Attributes
     ----------
     name : str
-        The archive as given to :func:`open_archive` (path or URL), used in messages.
+        The archive as given to :func:`open_archive` (path or URL) without credentials,
+        used in messages and records.
     root : pathlib.Path
         The directory holding the (extracted) content: ``inspection.toml``, ``frames/``...
     meta : InspectionMeta
@@ -85,6 +96,8 @@ class ScanArchive:
     cloud_member : str or None
         The registered cloud's path relative to ``root`` (e.g. ``"cloud.las"``), or None
         for a frames archive.
+    limits : InputLimits
+        The caps its point files are read under.
     """
 
     def __init__(
@@ -95,11 +108,13 @@ class ScanArchive:
         meta: InspectionMeta,
         cloud_member: str | None,
         tempdir: Path | None = None,
+        limits: InputLimits = DEFAULT_LIMITS,
     ) -> None:
         self.name = name
         self.root = root
         self.meta = meta
         self.cloud_member = cloud_member
+        self.limits = limits
         self._closed = False
         self._tempdir = tempdir
         # Remove the extraction even if the caller forgets close(): at GC or interpreter exit.
@@ -166,7 +181,7 @@ class ScanArchive:
             digest.update(member.encode("utf-8") + b"\0")
             digest.update(path.stat().st_size.to_bytes(8, "little"))
             with path.open("rb") as fh:
-                while chunk := fh.read(_COPY_CHUNK_BYTES):
+                while chunk := fh.read(COPY_CHUNK_BYTES):
                     digest.update(chunk)
         return digest.hexdigest()
 
@@ -198,7 +213,13 @@ class ScanArchive:
         if not 0 <= i < len(self.meta.frames):
             raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
         ref = self.meta.frames[i]
-        return read_points(self.root / ref.file, archive=self.name, member=ref.file, kind="frame")
+        return read_points(
+            self.root / ref.file,
+            archive=self.name,
+            member=ref.file,
+            kind="frame",
+            limits=self.limits,
+        )
 
     def iter_frames(self, indices: Iterable[int] | None = None) -> Iterator[tuple[int, np.ndarray]]:
         """Yield ``(i, points)`` for each frame (or each index in ``indices``), one at a time.
@@ -232,7 +253,11 @@ class ScanArchive:
                 hint="use read_frame() or iter_frames()",
             )
         return read_points(
-            self.root / self.cloud_member, archive=self.name, member=self.cloud_member, kind="cloud"
+            self.root / self.cloud_member,
+            archive=self.name,
+            member=self.cloud_member,
+            kind="cloud",
+            limits=self.limits,
         )
 
     def close(self) -> None:
@@ -246,7 +271,13 @@ class ScanArchive:
             raise ArchiveError("the archive is closed", archive=self.name)
 
 
-def open_archive(uri: str | Path, *, workdir: Path | None = None) -> ScanArchive:
+def open_archive(
+    uri: str | Path,
+    *,
+    workdir: Path | None = None,
+    limits: InputLimits = DEFAULT_LIMITS,
+    name: str | None = None,
+) -> ScanArchive:
     """Open and validate a scan archive.
 
     Parameters
@@ -258,6 +289,11 @@ def open_archive(uri: str | Path, *, workdir: Path | None = None) -> ScanArchive
         top-level folder holding ``inspection.toml`` is looked into.
     workdir
         Where to create the temporary extraction directory (default: the system's).
+    limits
+        Caps on what the archive may expand to and on its point files (docs/security.md).
+    name
+        What to call the archive in messages (default: ``uri`` without credentials); a task
+        that reopens a staged extraction passes the archive's own name.
 
     Returns
     -------
@@ -268,19 +304,26 @@ def open_archive(uri: str | Path, *, workdir: Path | None = None) -> ScanArchive
     Raises
     ------
     ArchiveError
-        Missing or unreadable archive, an unsafe member ("unsafe path"), a bad layout
-        (both or neither of ``frames/`` and a cloud).
+        Missing or unreadable archive, an unsafe member ("unsafe path"), a link out of a
+        directory archive, a name clash or a name no file system holds, an archive over a
+        limit (the error names it), a bad layout (both or neither of ``frames/`` and a
+        cloud). Never worth a retry.
     MetadataError
         ``inspection.toml`` missing or invalid, or a ``[[frames]]`` file missing or not a
         point file.
+    FetchError
+        A remote archive could not be copied (network, credentials, backend).
+    ScratchSpaceError
+        The work directory could not hold the extraction (full, read-only).
     """
-    name = str(uri)
+    name = strip_credentials(name if name is not None else str(uri))
     tempdir: Path | None = None
     try:
-        local = _local_path(uri)
+        local = local_path(uri, name)
         if local is None:
-            tempdir = _make_tempdir(workdir)
-            local = _fetch(name, tempdir / "download")
+            tempdir = make_tempdir(workdir)
+            budget = Budget(limits, name, packed_bytes=None)  # a copy: nothing unpacks
+            local = fetch(str(uri), tempdir / "download", name, budget)
         if not local.exists():
             raise ArchiveError(
                 "the archive does not exist", archive=name, hint="check the path or URL"
@@ -288,16 +331,21 @@ def open_archive(uri: str | Path, *, workdir: Path | None = None) -> ScanArchive
         if local.is_dir():
             content = local
         else:
-            tempdir = tempdir or _make_tempdir(workdir)
+            tempdir = tempdir or make_tempdir(workdir)
             content = tempdir / "content"
             content.mkdir()
-            _extract(local, content, name)
+            extract(local, content, name, limits)
             if local.is_relative_to(tempdir):
                 local.unlink()  # a downloaded copy: once extracted, it only takes up disk
         root = _find_root(content)
-        meta, cloud_member = _inspect_layout(root, name)
+        meta, cloud_member = _inspect_layout(root, name, limits)
         return ScanArchive(
-            name=name, root=root, meta=meta, cloud_member=cloud_member, tempdir=tempdir
+            name=name,
+            root=root,
+            meta=meta,
+            cloud_member=cloud_member,
+            tempdir=tempdir,
+            limits=limits,
         )
     except BaseException:
         if tempdir is not None:
@@ -340,157 +388,6 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     return ArchiveSummary(frame_count=arc.frame_count, point_count=total)
 
 
-# --- locating and fetching --------------------------------------------------------------------
-
-
-def _local_path(uri: str | Path) -> Path | None:
-    """The local path of ``uri``, or None when it is a remote fsspec URL."""
-    if isinstance(uri, Path) or "://" not in uri:
-        return Path(uri)
-    import fsspec
-    from fsspec.implementations.local import LocalFileSystem
-
-    try:
-        fs, path = fsspec.core.url_to_fs(uri)
-    except (ValueError, ImportError) as exc:
-        raise ArchiveError(
-            f"cannot open the URL: {exc}",
-            archive=uri,
-            hint="install the fsspec backend for this protocol (e.g. s3fs for s3://)",
-        ) from exc
-    return Path(path) if isinstance(fs, LocalFileSystem) else None
-
-
-def _make_tempdir(workdir: Path | None) -> Path:
-    if workdir is not None:
-        Path(workdir).mkdir(parents=True, exist_ok=True)
-    return Path(tempfile.mkdtemp(prefix="pipescan-archive-", dir=workdir))
-
-
-def _fetch(uri: str, dest: Path) -> Path:
-    """Copy a remote archive (file or directory) to ``dest``, streamed; return the local copy."""
-    import fsspec
-
-    dest.mkdir(parents=True)
-    try:
-        fs, path = fsspec.core.url_to_fs(uri)
-        if not fs.exists(path):
-            raise ArchiveError("the archive does not exist", archive=uri, hint="check the URL")
-        if fs.isdir(path):
-            base = path.rstrip("/")
-            for remote in fs.find(base):
-                member = remote[len(base) :].lstrip("/")
-                _check_member_path(member, uri)
-                target = dest / member
-                target.parent.mkdir(parents=True, exist_ok=True)
-                with fs.open(remote, "rb") as src, target.open("wb") as dst:
-                    shutil.copyfileobj(src, dst, _COPY_CHUNK_BYTES)
-            return dest
-        target = dest / (PurePosixPath(path).name or "archive")
-        with fs.open(path, "rb") as src, target.open("wb") as dst:
-            shutil.copyfileobj(src, dst, _COPY_CHUNK_BYTES)
-        return target
-    except (OSError, ValueError, ImportError) as exc:
-        raise ArchiveError(
-            f"cannot copy the archive: {exc}",
-            archive=uri,
-            hint="check the URL, the credentials and that the fsspec backend is installed",
-        ) from exc
-
-
-# --- safe extraction --------------------------------------------------------------------------
-
-
-def _unsafe(member: str, archive: str, why: str) -> ArchiveError:
-    return ArchiveError(
-        f"unsafe path: member {member!r} {why}; the archive was rejected",
-        archive=archive,
-        file=member,
-        field="path",
-        hint=_UNSAFE_HINT,
-    )
-
-
-def _check_member_path(member: str, archive: str) -> None:
-    """Reject absolute paths and ``..`` components (with either slash)."""
-    normal = member.replace("\\", "/")
-    if normal.startswith("/") or re.match(r"^[A-Za-z]:", normal):
-        raise _unsafe(member, archive, "is an absolute path")
-    if ".." in normal.split("/"):
-        raise _unsafe(member, archive, "has a '..' component")
-
-
-def _extract(path: Path, dest: Path, archive: str) -> None:
-    if zipfile.is_zipfile(path):
-        _extract_zip(path, dest, archive)
-    elif tarfile.is_tarfile(path):
-        _extract_tar(path, dest, archive)
-    else:
-        raise ArchiveError(
-            "not a directory, .zip, .tar or .tar.gz archive",
-            archive=archive,
-            hint="give a directory, or pack it with zip or tar",
-        )
-
-
-def _extract_zip(path: Path, dest: Path, archive: str) -> None:
-    try:
-        with zipfile.ZipFile(path) as zf:
-            infos = zf.infolist()
-            # Check every member before writing any, so a bad archive leaves nothing behind.
-            for info in infos:
-                _check_member_path(info.filename, archive)
-                mode = info.external_attr >> 16  # Unix mode, when a Unix tool wrote the zip
-                if stat.S_ISLNK(mode):
-                    raise _unsafe(info.filename, archive, "is a symlink")
-                if stat.S_IFMT(mode) not in (0, stat.S_IFREG, stat.S_IFDIR):
-                    raise _unsafe(info.filename, archive, "is a device or special file")
-            for info in infos:
-                target = dest / info.filename.replace("\\", "/")
-                if info.is_dir():
-                    target.mkdir(parents=True, exist_ok=True)
-                    continue
-                target.parent.mkdir(parents=True, exist_ok=True)
-                with zf.open(info) as src, target.open("wb") as dst:
-                    shutil.copyfileobj(src, dst, _COPY_CHUNK_BYTES)
-    except (zipfile.BadZipFile, zlib.error, EOFError, NotImplementedError, RuntimeError) as exc:
-        raise ArchiveError(
-            f"cannot extract the zip archive: {exc}",
-            archive=archive,
-            hint="the archive is corrupt, truncated or encrypted: pack it again",
-        ) from exc
-
-
-def _extract_tar(path: Path, dest: Path, archive: str) -> None:
-    try:
-        with tarfile.open(path, "r:*") as tf:
-            members = tf.getmembers()
-            for member in members:
-                _check_member_path(member.name, archive)
-                if member.issym():
-                    raise _unsafe(member.name, archive, f"is a symlink to {member.linkname!r}")
-                if member.islnk():
-                    raise _unsafe(member.name, archive, f"is a hardlink to {member.linkname!r}")
-                if not (member.isfile() or member.isdir()):
-                    raise _unsafe(member.name, archive, "is a device or special file")
-            if hasattr(tarfile, "data_filter"):
-                # Belt and braces: the "data" filter repeats the checks above and drops
-                # set-uid bits; it is missing on Python 3.11 before 3.11.4.
-                tf.extractall(dest, members=members, filter="data")
-            else:
-                tf.extractall(dest, members=members)
-    except _TAR_FILTER_ERRORS as exc:
-        refused = getattr(exc, "tarinfo", None)
-        name = refused.name if refused is not None else "?"
-        raise _unsafe(name, archive, f"was refused by the tar data filter: {exc}") from exc
-    except (tarfile.TarError, EOFError, zlib.error, OSError) as exc:
-        raise ArchiveError(
-            f"cannot extract the tar archive: {exc}",
-            archive=archive,
-            hint="the archive is corrupt or truncated: pack it again",
-        ) from exc
-
-
 def _find_root(content: Path) -> Path:
     """``content``, or its single top-level folder when that holds ``inspection.toml``."""
     if (content / INSPECTION_FILE).is_file():
@@ -514,8 +411,10 @@ def natural_key(name: str) -> list[int | str]:
 
 
 def _point_files(folder: Path) -> list[str]:
+    # Everything but folders: a link, a FIFO or a device named like a point file is listed,
+    # so that it is refused by name rather than silently skipped.
     return sorted(
-        (p.name for p in folder.iterdir() if p.is_file() and not _is_junk(p.name)),
+        (p.name for p in folder.iterdir() if not p.is_dir() and not _is_junk(p.name)),
         key=natural_key,
     )
 
@@ -524,14 +423,67 @@ def _layout_error(reason: str, archive: str, member: str, hint: str) -> ArchiveE
     return ArchiveError(reason, archive=archive, file=member, field="layout", hint=hint)
 
 
-def _inspect_layout(root: Path, name: str) -> tuple[InspectionMeta, str | None]:
+def _check_inside(root: Path, member: str, archive: str) -> None:
+    """Refuse a member of a directory archive that resolves outside the archive's root (a
+    symlink, or a folder on its path that is one) or that is not a regular file (a FIFO
+    would block the run, a device never ends)."""
+    path = root / member
+    if not path.exists() and not path.is_symlink():
+        return  # missing: reported where it is needed, with its field
+    try:
+        real = path.resolve(strict=True)
+        inside = real.is_relative_to(root.resolve(strict=True))
+        regular = stat.S_ISREG(real.stat().st_mode)
+    except (OSError, RuntimeError) as exc:  # a dangling link, or a loop of links
+        raise unsafe(member, archive, f"cannot be resolved ({exc})") from exc
+    if not inside:
+        raise ArchiveError(
+            f"unsafe path: member {member!r} links to {str(real)!r}, outside the archive; "
+            "the archive was rejected",
+            archive=archive,
+            file=member,
+            field="path",
+            hint=_OUTSIDE_HINT,
+        )
+    if not regular:
+        raise unsafe(member, archive, "is not a regular file (a device, FIFO or socket)")
+
+
+def _inspect_layout(
+    root: Path, name: str, limits: InputLimits
+) -> tuple[InspectionMeta, str | None]:
     """Validate the metadata and the layout; return the metadata with frames filled in and
-    the registered cloud's member path (None for a frames archive)."""
-    meta = read_inspection_toml(root / INSPECTION_FILE, archive=name)
+    the registered cloud's member path (None for a frames archive).
+
+    Every file the run will read is checked to lie inside ``root``: extracted archives were
+    checked member by member, but a directory archive is used in place and may hold links.
+    """
+    _check_inside(root, INSPECTION_FILE, name)
+    meta = read_inspection_toml(
+        root / INSPECTION_FILE, archive=name, max_bytes=limits.metadata_max_bytes
+    )
+    meta, cloud = _layout(root, name, meta, limits)
+    for member in [f.file for f in meta.frames] if cloud is None else [cloud]:
+        _check_inside(root, member, name)
+    return meta, cloud
+
+
+def _layout(
+    root: Path, name: str, meta: InspectionMeta, limits: InputLimits
+) -> tuple[InspectionMeta, str | None]:
     frames_dir = root / FRAMES_DIR
     frame_files = (
         [f for f in _point_files(frames_dir) if is_point_file(f)] if frames_dir.is_dir() else []
     )
+    frame_count = max(len(frame_files), len(meta.frames))
+    if frame_count > limits.archive_max_members:
+        raise archive_limit_error(
+            "archive_max_members",
+            limits,
+            f"the archive has {frame_count:,} frames",
+            archive=name,
+            file=f"{FRAMES_DIR}/",
+        )
     root_points = [f for f in _point_files(root) if is_point_file(f)]
     clouds = [f for f in root_points if PurePosixPath(f).stem.lower() == "cloud"]
     has_frames = bool(meta.frames) or bool(frame_files)
@@ -595,6 +547,7 @@ def _resolve_listed(frames: tuple[FrameRef, ...], root: Path, name: str) -> tupl
                 field=field,
                 hint=f"frames must be point files: {', '.join(POINT_SUFFIXES)}",
             )
+        _check_inside(root, ref.file, name)  # a link out, a FIFO: refused, not "missing"
         if not (root / ref.file).is_file():
             # Tolerate a path given relative to frames/ rather than to the root.
             in_frames = f"{FRAMES_DIR}/{ref.file}"

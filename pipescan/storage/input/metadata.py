@@ -19,9 +19,17 @@ import tomllib
 from collections.abc import Sequence
 from datetime import date, datetime, time
 from pathlib import Path, PurePosixPath
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    StringConstraints,
+    ValidationError,
+    field_validator,
+)
 from pydantic_core import PydanticCustomError
 
 from pipescan.core.errors import MetadataError
@@ -35,6 +43,14 @@ MIN_DIAMETER_M = 0.05
 MAX_DIAMETER_M = 6.0
 """Nominal diameters must be at most this (6 m: larger is a tunnel, or millimetres)."""
 
+MAX_NAME_CHARS = 64
+"""Longest asset id, node name, material or pipe shape. Asset registers use far less (ISYBAU
+allows 30 characters for an object's name); report file names are built from the asset id,
+and must stay within the 255 bytes a file system allows."""
+
+MAX_FILE_CHARS = 1024
+"""Longest ``[[frames]]`` file path (as long as an archive member path may be)."""
+
 ODOMETER_TOLERANCE_M = 0.05
 """How far the cable counter may step back between frames (slack, jitter) before the
 ``[[frames]]`` order is taken to be wrong."""
@@ -47,12 +63,39 @@ _EXAMPLES = {
 }
 
 
+def _printable(value: str) -> str:
+    """Refuse control and invisible characters (CR, LF, ESC, NUL, bidirectional overrides,
+    zero-width spaces...): ids end up in terminals, file names, CSV cells and reports."""
+    if value.isprintable():
+        return value
+    bad = sorted({ch for ch in value if not ch.isprintable()})
+    raise PydanticCustomError(
+        "control_characters",
+        "holds control or invisible characters ({chars}), got {value}",
+        {
+            "chars": ", ".join(ch.encode("unicode_escape").decode("ascii") for ch in bad),
+            "value": _short_repr(value),
+            "hint": "use printable text only: letters, digits, spaces and punctuation",
+        },
+    )
+
+
+NameText = Annotated[
+    str, StringConstraints(min_length=1, max_length=MAX_NAME_CHARS), AfterValidator(_printable)
+]
+"""An asset id, node name, material or shape: 1-64 printable characters."""
+
+FileText = Annotated[
+    str, StringConstraints(min_length=1, max_length=MAX_FILE_CHARS), AfterValidator(_printable)
+]
+
+
 class _FrameEntry(BaseModel):
     """One ``[[frames]]`` table."""
 
     model_config = ConfigDict(extra="ignore", allow_inf_nan=False, str_strip_whitespace=True)
 
-    file: str = Field(min_length=1)
+    file: FileText
     time_s: float | None = None
     odometer_m: float | None = None
     gravity: list[float] | None = None
@@ -94,15 +137,15 @@ class InspectionDocument(BaseModel):
         coerce_numbers_to_str=True,  # asset_id = 1042 is an id, not an error
     )
 
-    asset_id: str = Field(min_length=1)
+    asset_id: NameText
     inspected_at: datetime
     nominal_diameter_m: float | None = None
-    upstream_node: str | None = None
-    downstream_node: str | None = None
+    upstream_node: NameText | None = None
+    downstream_node: NameText | None = None
     direction: Literal["downstream", "upstream"] = "downstream"
     chainage_offset_m: float = Field(default=0.0, ge=0.0)
-    material: str | None = None
-    pipe_shape: str = Field(default="circular", min_length=1)
+    material: NameText | None = None
+    pipe_shape: NameText = "circular"
     frames: list[_FrameEntry] = Field(default_factory=list)
 
     @field_validator("inspected_at", mode="before")
@@ -149,7 +192,9 @@ class InspectionDocument(BaseModel):
         return value.lower()
 
 
-def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
+def read_inspection_toml(
+    path: Path, *, archive: str, max_bytes: int | None = None
+) -> InspectionMeta:
     """Read and validate an ``inspection.toml`` file.
 
     Parameters
@@ -158,6 +203,8 @@ def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
         The file on disk.
     archive
         The archive's name, for error messages.
+    max_bytes
+        The largest file accepted (the ``metadata_max_bytes`` limit); None: any.
 
     Returns
     -------
@@ -167,7 +214,8 @@ def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
     Raises
     ------
     MetadataError
-        The file is missing, not UTF-8, or invalid (see :func:`parse_inspection_toml`).
+        The file is missing, larger than ``max_bytes``, not UTF-8, or invalid (see
+        :func:`parse_inspection_toml`).
     """
     if not path.is_file():
         raise MetadataError(
@@ -178,7 +226,22 @@ def read_inspection_toml(path: Path, *, archive: str) -> InspectionMeta:
             "nominal_diameter_m next to frames/ (or the cloud)",
         )
     try:
-        text = path.read_text(encoding="utf-8")
+        with path.open("rb") as fh:
+            data = fh.read(max_bytes + 1 if max_bytes is not None else -1)
+    except OSError as exc:
+        raise MetadataError(
+            f"cannot read the file: {exc.strerror}", archive=archive, file=INSPECTION_FILE
+        ) from exc
+    if max_bytes is not None and len(data) > max_bytes:
+        raise MetadataError(
+            f"the file is larger than {max_bytes:,} bytes, the limit (metadata_max_bytes)",
+            archive=archive,
+            file=INSPECTION_FILE,
+            field="size",
+            hint="if it is genuine, raise PIPESCAN_METADATA_MAX_BYTES (docs/security.md)",
+        )
+    try:
+        text = data.decode("utf-8")
     except UnicodeDecodeError as exc:
         raise MetadataError(
             f"the file is not UTF-8 text (byte {exc.start})",
@@ -347,6 +410,7 @@ def _metadata_error(exc: ValidationError, raw: dict[str, Any], fail: Any) -> Met
 
 
 _CUSTOM_ERROR_TYPES = {
+    "control_characters",
     "diameter_in_mm",
     "implausible_diameter",
     "not_iso_date",

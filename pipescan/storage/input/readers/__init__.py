@@ -1,0 +1,56 @@
+"""Point readers, one module per format, in a registry keyed by file suffix.
+
+Each format module provides ``check(path, where)`` (parse the header and check every
+declared count against the bytes present, allocating nothing the file does not back; returns
+the point count), ``read(path, where)`` (the points, ``(N, 3)`` float64 in metres) and,
+optionally, ``write(path, points)``. :func:`pipescan.storage.input.pointfiles.read_points`
+picks the reader by suffix and adds the checks common to every format (no points, NaN,
+millimetres); an unknown suffix is refused, never read as text.
+
+Adding a format (E57, a ROS bag...) is one new module here and one line in
+:data:`FORMATS`; docs/security.md says what its ``check`` must guarantee.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from types import ModuleType
+
+import numpy as np
+
+from pipescan.storage.input.readers import ascii, las, npy, pcd, ply
+from pipescan.storage.input.readers._common import Where
+
+__all__ = ["FORMATS", "READERS", "PointFormat", "Where"]
+
+
+@dataclass(frozen=True)
+class PointFormat:
+    """One point-file format: its suffixes, and how to check, read and (optionally) write
+    its files."""
+
+    name: str
+    suffixes: tuple[str, ...]
+    check: Callable[[Path, Where], int]
+    read: Callable[[Path, Where], np.ndarray]
+    write: Callable[[Path, np.ndarray], None] | None = None
+
+    @classmethod
+    def from_module(cls, name: str, module: ModuleType) -> PointFormat:
+        """The format a reader module defines (``SUFFIXES``, ``check``, ``read``, ``write``)."""
+        return cls(name, module.SUFFIXES, module.check, module.read, getattr(module, "write", None))
+
+
+FORMATS: tuple[PointFormat, ...] = (
+    PointFormat.from_module("LAS/LAZ", las),
+    PointFormat.from_module("PLY", ply),
+    PointFormat.from_module("PCD", pcd),
+    PointFormat.from_module("NumPy .npy", npy),
+    PointFormat.from_module("ASCII x y z", ascii),
+)
+"""Every format pipescan reads: a new one is one module above and one line here."""
+
+READERS: dict[str, PointFormat] = {s: f for f in FORMATS for s in f.suffixes}
+"""Lower-case suffix -> format; its keys are ``pointfiles.POINT_SUFFIXES``."""

@@ -1,0 +1,80 @@
+"""ASCII ``x y z`` rows (``.xyz``, ``.txt``), space or comma separated.
+
+Extra columns, non-numeric header lines before the first row and ``#``/``//`` comments are
+ignored. The whole file is first scanned in fixed blocks: a line longer than
+``line_max_bytes`` (a file with no newlines) is refused before any of it is parsed.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.storage.input.readers._common import Where, count_lines, text_from
+
+SUFFIXES = (".xyz", ".txt")
+HEADER_LINES = 50
+"""The first data row must come within this many lines."""
+_ROW_HINT = "each data row must start with x y z in metres, separated by spaces or commas"
+_ERRORS = (ValueError, RuntimeError, OSError, EOFError, IndexError, TypeError, UnicodeError)
+
+
+def _layout(path: Path, where: Where) -> tuple[int | None, str | None, int]:
+    """The first data row's line number (None: no rows), its delimiter and the line count."""
+    lines = count_lines(path, 0, where)  # refuses over-long lines before anything is parsed
+    if lines > where.limits.points_max_count + HEADER_LINES:
+        raise where.over("points_max_count", f"the file has {lines:,} lines")
+    lineno = -1
+    try:
+        with path.open("r", encoding="utf-8") as fh:
+            for lineno, line in enumerate(fh):
+                if lineno >= HEADER_LINES:
+                    break
+                text = line.strip()
+                if not text or text.startswith(("#", "//")):
+                    continue
+                delimiter = "," if "," in text else None
+                try:
+                    float(text.split(delimiter)[0].strip())
+                except ValueError:
+                    continue
+                return lineno, delimiter, lines
+    except (UnicodeDecodeError, OSError) as exc:
+        raise where.corrupt(f"cannot read ASCII points: {exc}") from exc
+    if lineno < HEADER_LINES:  # read to the end: only headers and comments, no rows
+        return None, None, lines
+    raise where.error(f"no numeric x y z row in the first {HEADER_LINES} lines", hint=_ROW_HINT)
+
+
+def check(path: Path, where: Where) -> int:
+    """Check line lengths and find the rows; return an upper bound of the point count."""
+    first, _, lines = _layout(path, where)
+    return 0 if first is None else lines - first
+
+
+def read(path: Path, where: Where) -> np.ndarray:
+    """The points, ``(N, 3)`` float64, metres."""
+    first, delimiter, _ = _layout(path, where)
+    if first is None:
+        return np.empty((0, 3))
+    try:
+        with text_from(path, 0) as fh:
+            return np.loadtxt(
+                fh,
+                delimiter=delimiter,
+                skiprows=first,
+                usecols=(0, 1, 2),
+                comments=("#", "//"),
+                dtype=np.float64,
+                ndmin=2,
+            )
+    except _ERRORS as exc:
+        raise where.error(
+            f"cannot read x y z rows (after {first} header lines): {exc}", hint=_ROW_HINT
+        ) from exc
+
+
+def write(path: Path, pts: np.ndarray) -> None:
+    """Rows ``x y z`` with 17 significant digits (lossless)."""
+    np.savetxt(path, pts, fmt="%.17g")

@@ -1,0 +1,164 @@
+"""LAS and LAZ (laspy, lazrs): scaled coordinates in metres.
+
+The header's point count is checked before anything is allocated: for LAS against the bytes
+after the point-data offset; LAZ cannot be sized from its header, so it is read in chunks of
+:data:`CHUNK_POINTS` and a file that ends early fails at the chunk where it ends.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.storage.input.readers._common import (
+    Where,
+    file_size,
+    fill_columns,
+    read_head,
+    require_bytes,
+)
+
+SUFFIXES = (".las", ".laz")
+LAS_SCALE_M = 1e-4
+"""Scale of the LAS/LAZ integer coordinates that :func:`write` writes (0.1 mm)."""
+CHUNK_POINTS = 1_000_000
+"""Points decoded at a time: bounds what a lying header can make pipescan allocate."""
+
+
+def _errors():
+    import laspy
+
+    # laspy parses headers with struct and int.from_bytes as they come: a crafted header
+    # surfaces as any of these.
+    return (
+        laspy.errors.LaspyException,
+        ValueError,
+        RuntimeError,
+        OSError,
+        EOFError,
+        KeyError,
+        IndexError,
+        TypeError,
+        OverflowError,
+        ZeroDivisionError,
+        struct.error,
+    )
+
+
+_VLR_HEADER_BYTES = 54
+_EVLR_HEADER_BYTES = 60
+
+
+def _check_layout(path: Path, where: Where) -> None:
+    """Check the header's record counts against the file before laspy sees it.
+
+    laspy reads as many variable-length records as the header declares, from wherever the
+    file ends: 2 billion of them from a 675-byte file, without end. The records sit between
+    the header and the point data (VLRs) and after the points (LAS 1.4 EVLRs), so their
+    counts are bounded by the bytes there.
+    """
+    head = read_head(path, where, 375)
+    size = file_size(path, where)
+    if not head.startswith(b"LASF"):
+        raise where.corrupt("cannot read LAS/LAZ: the file does not start with 'LASF'")
+    if len(head) < 227:
+        raise where.corrupt(f"cannot read LAS/LAZ: the header is cut short ({len(head)} bytes)")
+    (header_bytes,) = struct.unpack_from("<H", head, 94)
+    offset, vlrs = struct.unpack_from("<II", head, 96)
+    if not header_bytes <= offset <= size:
+        raise where.corrupt(
+            f"the LAS header puts the points at byte {offset:,}, outside the file's "
+            f"{size:,} bytes (after its {header_bytes}-byte header)"
+        )
+    if vlrs * _VLR_HEADER_BYTES > offset - header_bytes:
+        raise where.corrupt(
+            f"the LAS header declares {vlrs:,} variable-length records, more than the "
+            f"{offset - header_bytes:,} bytes before the points can hold"
+        )
+    if head[24:26] >= b"\x01\x04" and header_bytes >= 375 and len(head) >= 251:
+        start, evlrs = struct.unpack_from("<QI", head, 235)
+        if evlrs and (start > size or evlrs * _EVLR_HEADER_BYTES > size - start):
+            raise where.corrupt(
+                f"the LAS header declares {evlrs:,} extended records from byte {start:,}, "
+                f"more than the file's {size:,} bytes hold"
+            )
+
+
+def _declared(reader, path: Path, where: Where) -> int:
+    """The header's point count, checked against the cap and (LAS) the bytes present."""
+    header = reader.header
+    declared = int(header.point_count)
+    where.check_count(declared)
+    if not header.are_points_compressed:
+        record = int(header.point_format.size)
+        needed = int(header.offset_to_point_data) + declared * record
+        require_bytes(where, declared, needed, file_size(path, where))
+    return declared
+
+
+def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | None]:
+    import laspy
+
+    _check_layout(path, where)
+    try:
+        with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
+            declared = _declared(reader, path, where)
+            compressed = reader.header.are_points_compressed
+            # LAS was sized above, so its count can be trusted; a LAZ is collected chunk by
+            # chunk and so never allocates more than it decoded.
+            out = np.empty((declared, 3)) if keep and not compressed else None
+            parts: list[np.ndarray] = []
+            n = 0
+            for chunk in reader.chunk_iterator(CHUNK_POINTS):
+                if len(chunk) == 0:
+                    break
+                # chunk.x/y/z are the scaled coordinates in metres; X/Y/Z the raw integers.
+                if out is not None:
+                    n = fill_columns(out, n, chunk.x, chunk.y, chunk.z)
+                else:
+                    if keep:
+                        parts.append(np.column_stack([chunk.x, chunk.y, chunk.z]))
+                    n += len(chunk)
+                if n > declared:
+                    break
+    except _errors() as exc:
+        raise where.corrupt(f"cannot read LAS/LAZ: {exc}") from exc
+    if n != declared:
+        raise where.corrupt(f"the LAS header declares {declared:,} points but the file holds {n:,}")
+    if not keep:
+        return n, None
+    if out is None:
+        out = np.concatenate(parts) if parts else np.empty((0, 3))
+    return n, out.astype(np.float64, copy=False)
+
+
+def check(path: Path, where: Where) -> int:
+    """Check the header and that every declared point is present; return the count."""
+    return _read(path, where, keep=False)[0]
+
+
+def read(path: Path, where: Where) -> np.ndarray:
+    """The points, ``(N, 3)`` float64, metres."""
+    points = _read(path, where, keep=True)[1]
+    assert points is not None
+    return points
+
+
+def write(path: Path, pts: np.ndarray) -> None:
+    """LAS 1.4, point format 6, scale :data:`LAS_SCALE_M`, offset at the points' minimum;
+    ``.laz`` compressed with lazrs."""
+    import laspy
+
+    if not np.isfinite(pts).all():
+        raise ValueError("LAS/LAZ cannot store NaN or infinite coordinates")
+    offsets = pts.min(axis=0) if len(pts) else np.zeros(3)
+    if len(pts) and ((pts.max(axis=0) - offsets) / LAS_SCALE_M >= 2**31 - 1).any():
+        raise ValueError("the points span more than the 0.1 mm LAS integer grid can hold")
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.full(3, LAS_SCALE_M)
+    header.offsets = offsets
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    las.write(path, laz_backend=laspy.LazBackend.Lazrs)

@@ -1,0 +1,75 @@
+"""``.npy``: an ``(N, 3)`` float array, read without pickle.
+
+The header's shape is checked against the bytes after it before the array is read, so a
+128-byte file cannot declare a terabyte.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.storage.input.readers._common import Where, file_size, require_bytes
+
+SUFFIXES = (".npy",)
+_FORMAT_ERRORS = (ValueError, OSError, EOFError, TypeError, SyntaxError, KeyError)
+
+
+def _header(path: Path, where: Where) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """Shape, Fortran order, dtype and the offset of the data."""
+    fmt = np.lib.format
+    try:
+        with path.open("rb") as fh:
+            version = fmt.read_magic(fh)
+            if version == (1, 0):
+                shape, fortran, dtype = fmt.read_array_header_1_0(fh)
+            elif version in ((2, 0), (3, 0)):
+                shape, fortran, dtype = fmt.read_array_header_2_0(fh)
+            else:
+                raise ValueError(f"unknown .npy version {version}")
+            offset = fh.tell()
+    except _FORMAT_ERRORS as exc:
+        raise where.corrupt(f"cannot read .npy: {exc}") from exc
+    if dtype.hasobject or dtype.names is not None or not np.issubdtype(dtype, np.floating):
+        raise where.error(
+            f"the array has dtype {dtype}; expected a float array of x, y, z in metres",
+            hint="save np.asarray(points, dtype=np.float64) with shape (N, 3)",
+        )
+    count = math.prod(shape)
+    if count and (len(shape) != 2 or shape[1] != 3):
+        raise where.error(
+            f"the array has shape {shape}; expected (N, 3) columns x, y, z",
+            hint="save an (N, 3) array of x, y, z in metres",
+        )
+    where.check_count(count // 3)
+    require_bytes(where, count // 3, offset + count * dtype.itemsize, file_size(path, where))
+    return shape, fortran, dtype, offset
+
+
+def check(path: Path, where: Where) -> int:
+    """Check the header against the bytes present; return the point count."""
+    return math.prod(_header(path, where)[0]) // 3
+
+
+def read(path: Path, where: Where) -> np.ndarray:
+    """The points, ``(N, 3)`` float64, metres."""
+    shape, fortran, dtype, offset = _header(path, where)
+    count = math.prod(shape)
+    if count == 0:
+        return np.empty((0, 3))
+    try:
+        flat = np.fromfile(path, dtype=dtype, count=count, offset=offset)
+    except _FORMAT_ERRORS as exc:
+        raise where.corrupt(f"cannot read .npy: {exc}") from exc
+    if flat.size != count:
+        raise where.corrupt(f"the header declares {count // 3:,} points; fewer are present")
+    arr = flat.reshape(shape, order="F" if fortran else "C")
+    return arr.astype(np.float64, copy=False)
+
+
+def write(path: Path, pts: np.ndarray) -> None:
+    """A float64 ``.npy`` (never pickled)."""
+    with path.open("wb") as fh:  # np.save(path) would append a second ".npy"
+        np.save(fh, pts, allow_pickle=False)

@@ -1,0 +1,128 @@
+"""PCD (ASCII, binary and binary_compressed), read through Open3D after checking the header.
+
+Open3D does not raise on a bad PCD: it returns an empty cloud. So the header is parsed here
+and the point count it declares is checked against the bytes present before Open3D runs:
+the rows of an ASCII file, the size of a binary one, and for ``binary_compressed`` the sizes
+its own header gives (the uncompressed size must be the points' size, and the compressed
+bytes must be present and within LZF's greatest expansion).
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.storage.input.readers._common import (
+    AXES,
+    Where,
+    count_lines,
+    file_size,
+    read_head,
+    require_bytes,
+    write_with_open3d,
+)
+
+SUFFIXES = (".pcd",)
+LZF_MAX_RATIO = 100
+"""LZF expands a block by at most ~88× (back-references of at most 264 bytes in 3)."""
+EMPTY_HEADER = (
+    "# .PCD v0.7 - Point Cloud Data file format\nVERSION 0.7\nFIELDS x y z\n"
+    "SIZE 8 8 8\nTYPE F F F\nCOUNT 1 1 1\nWIDTH 0\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+    "POINTS 0\nDATA binary\n"
+)
+
+
+def check(path: Path, where: Where) -> int:
+    """Check the header against the bytes present; return the point count."""
+    head = read_head(path, where)
+    fields: dict[str, list[str]] = {}
+    offset = 0
+    data = None
+    for raw in head.split(b"\n"):
+        offset += len(raw) + 1
+        line = raw.decode("ascii", errors="replace").strip()
+        if not line or line.startswith("#"):
+            continue
+        key, _, rest = line.partition(" ")
+        fields[key.upper()] = rest.split()
+        if key.upper() == "DATA":
+            data = rest.strip().lower()
+            break
+    if data is None or "FIELDS" not in fields or offset > len(head):
+        raise where.corrupt("not a PCD file: no FIELDS or DATA line in its first 64 KiB")
+    for axis in AXES:
+        if axis not in fields["FIELDS"]:
+            raise where.error(
+                f"the PCD file has no {axis!r} field", field=axis, hint="write x, y, z fields"
+            )
+    try:
+        width, height = int(fields["WIDTH"][0]), int(fields.get("HEIGHT", ["1"])[0])
+        declared = int(fields["POINTS"][0]) if "POINTS" in fields else width * height
+        sizes = [int(s) for s in fields.get("SIZE", [])]
+        counts = [int(c) for c in fields.get("COUNT", ["1"] * len(sizes))]
+    except (KeyError, IndexError, ValueError) as exc:
+        raise where.corrupt(f"the PCD header is malformed: {exc}") from exc
+    if min([width, height, *sizes, *counts], default=0) < 0 or declared != width * height:
+        raise where.corrupt(
+            f"the PCD header's POINTS {declared} is not WIDTH × HEIGHT = {width} × {height}"
+        )
+    if len(sizes) != len(fields["FIELDS"]) or len(counts) != len(sizes):
+        raise where.corrupt("the PCD header's FIELDS, SIZE and COUNT differ in length")
+    where.check_count(declared)
+    point_bytes = sum(s * c for s, c in zip(sizes, counts, strict=True))
+    size = file_size(path, where)
+    if data == "ascii":
+        rows = count_lines(path, offset, where, comment=b"#", stop_after=declared)
+        if rows < declared:
+            raise where.corrupt(
+                f"the header declares {declared:,} points, but the file holds {rows:,} rows: "
+                "it is truncated or the header lies"
+            )
+    elif data == "binary":
+        require_bytes(where, declared, offset + declared * point_bytes, size)
+    elif data == "binary_compressed":
+        sizes_raw = head[offset : offset + 8]
+        if len(sizes_raw) < 8:
+            raise where.corrupt("the compressed PCD body has no size fields")
+        compressed, uncompressed = struct.unpack("<II", sizes_raw)
+        if uncompressed != declared * point_bytes:
+            raise where.corrupt(
+                f"the header declares {declared:,} points of {point_bytes} bytes, but the "
+                f"compressed body unpacks to {uncompressed:,} bytes"
+            )
+        require_bytes(where, declared, offset + 8 + compressed, size)
+        if uncompressed > max(compressed, 1) * LZF_MAX_RATIO:
+            raise where.corrupt(
+                f"{compressed:,} compressed bytes cannot unpack to {uncompressed:,} bytes"
+            )
+    else:
+        raise where.corrupt(f"unknown PCD DATA kind {data!r}")
+    return declared
+
+
+def read(path: Path, where: Where) -> np.ndarray:
+    """The points, ``(N, 3)`` float64, metres."""
+    declared = check(path, where)
+    if declared == 0:
+        return np.empty((0, 3))
+    import open3d as o3d
+
+    # Open3D reports failures as warnings and returns an empty cloud: silence them, and
+    # compare what it read with the (checked) declared count instead.
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.io.read_point_cloud(
+            path, format="pcd", remove_nan_points=False, remove_infinite_points=False
+        )
+    points = np.array(cloud.points, dtype=np.float64)  # a copy: the Open3D cloud dies here
+    if len(points) != declared:
+        raise where.corrupt(
+            f"the header declares {declared:,} points but Open3D read {len(points):,}"
+        )
+    return points
+
+
+def write(path: Path, pts: np.ndarray) -> None:
+    """Binary PCD through Open3D (which stores x, y, z as float32)."""
+    write_with_open3d(path, pts, EMPTY_HEADER)

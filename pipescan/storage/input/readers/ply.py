@@ -1,0 +1,227 @@
+"""PLY (ASCII and binary, either byte order), read with numpy.
+
+Open3D does not raise on a bad PLY: given a header that declares more vertices than the file
+holds, it returns a cloud of the declared size filled with whatever was in memory. So PLY is
+read here: the header is parsed, every element's declared count is checked against the bytes
+present (a list element counts at least its length fields) before anything is allocated, and
+the vertices are read in chunks into an array of the checked size.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.storage.input.readers._common import (
+    AXES,
+    Where,
+    count_lines,
+    file_size,
+    fill_columns,
+    read_head,
+    require_bytes,
+    text_from,
+    write_with_open3d,
+)
+
+SUFFIXES = (".ply",)
+CHUNK_ROWS = 1_000_000
+_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_FORMATS = {"ascii": "", "binary_little_endian": "<", "binary_big_endian": ">"}
+EMPTY_HEADER = (
+    "ply\nformat binary_little_endian 1.0\nelement vertex 0\n"
+    "property double x\nproperty double y\nproperty double z\nend_header\n"
+)
+
+
+@dataclass
+class _Element:
+    name: str
+    count: int
+    # (name, numpy type code) for a scalar; (name, (count code, item code)) for a list.
+    props: list[tuple[str, str | tuple[str, str]]] = field(default_factory=list)
+
+    @property
+    def has_list(self) -> bool:
+        return any(not isinstance(t, str) for _, t in self.props)
+
+    def min_row_bytes(self) -> int:
+        """Bytes of a row, its lists empty (exact when it has no list)."""
+        return sum(np.dtype(t if isinstance(t, str) else t[0]).itemsize for _, t in self.props)
+
+
+@dataclass
+class _Header:
+    fmt: str
+    body_offset: int
+    elements: list[_Element]
+    vertex: _Element
+
+
+def _parse_header(path: Path, where: Where) -> _Header:
+    head = read_head(path, where)
+    if not head.startswith(b"ply"):
+        raise where.corrupt("not a PLY file: it does not start with 'ply'")
+    end = head.find(b"end_header")
+    newline = head.find(b"\n", end)
+    if end < 0 or newline < 0:
+        raise where.corrupt("the PLY header has no end_header line in its first 64 KiB")
+    fmt = None
+    elements: list[_Element] = []
+    try:
+        for line in head[:end].decode("ascii").splitlines()[1:]:
+            tokens = line.split()
+            if not tokens or tokens[0] in ("comment", "obj_info"):
+                continue
+            if tokens[0] == "format":
+                fmt = tokens[1]
+            elif tokens[0] == "element":
+                count = int(tokens[2])
+                if count < 0:
+                    raise ValueError(f"element {tokens[1]} has a negative count {count}")
+                elements.append(_Element(tokens[1], count))
+            elif tokens[0] == "property" and elements:
+                if tokens[1] == "list":
+                    elements[-1].props.append((tokens[4], (_TYPES[tokens[2]], _TYPES[tokens[3]])))
+                else:
+                    elements[-1].props.append((tokens[2], _TYPES[tokens[1]]))
+            else:
+                raise ValueError(f"unexpected header line {line!r}")
+    except (UnicodeDecodeError, IndexError, ValueError, KeyError) as exc:
+        raise where.corrupt(f"the PLY header is malformed: {exc}") from exc
+    if fmt not in _FORMATS:
+        raise where.corrupt(f"unknown PLY format {fmt!r}")
+    vertex = next((e for e in elements if e.name == "vertex"), None)
+    if vertex is None:
+        raise where.corrupt("the PLY file has no vertex element")
+    names = [name for name, _ in vertex.props]
+    for axis in AXES:
+        if axis not in names:
+            raise where.error(
+                f"the PLY vertex element has no {axis!r} property",
+                field=axis,
+                hint="write x, y, z vertex properties",
+            )
+    if vertex.has_list:
+        raise where.error(
+            "the PLY vertex element has a list property; pipescan reads vertices of "
+            "fixed-size properties",
+            hint="export the vertices with scalar properties only",
+        )
+    where.check_count(vertex.count)
+    return _Header(fmt, newline + 1, elements, vertex)
+
+
+def _row_dtype(element: _Element, order: str) -> np.dtype:
+    return np.dtype([(f"p{i}", order + str(t)) for i, (_, t) in enumerate(element.props)])
+
+
+def _skip_list_rows(fh, element: _Element, order: str, where: Where, size: int) -> None:
+    """Walk the rows of an element with list properties (one before the vertices)."""
+    for _ in range(element.count):
+        for _, t in element.props:
+            if isinstance(t, str):
+                fh.seek(np.dtype(t).itemsize, 1)
+                continue
+            count_t, item_t = np.dtype(order + t[0]), np.dtype(t[1])
+            raw = fh.read(count_t.itemsize)
+            if len(raw) < count_t.itemsize:
+                raise where.corrupt(f"the PLY element {element.name!r} ends early")
+            n = int(np.frombuffer(raw, dtype=count_t)[0])
+            if n < 0 or fh.tell() + n * item_t.itemsize > size:
+                raise where.corrupt(f"the PLY element {element.name!r} ends early")
+            fh.seek(n * item_t.itemsize, 1)
+
+
+def _vertex_offset(path: Path, header: _Header, where: Where, size: int) -> int:
+    """The byte offset of the first vertex (binary), walking any list element before it."""
+    order = _FORMATS[header.fmt]
+    offset = header.body_offset
+    with path.open("rb") as fh:
+        for element in header.elements:
+            if element is header.vertex:
+                return offset
+            if element.has_list:
+                fh.seek(offset)
+                _skip_list_rows(fh, element, order, where, size)
+                offset = fh.tell()
+            else:
+                offset += element.count * element.min_row_bytes()
+    raise AssertionError("the vertex element is among the elements")
+
+
+def _check(path: Path, where: Where) -> tuple[_Header, int]:
+    """Parse and size-check; return the header and (binary) the vertices' byte offset."""
+    header = _parse_header(path, where)
+    size = file_size(path, where)
+    declared = header.vertex.count
+    if header.fmt == "ascii":
+        rows = sum(e.count for e in header.elements)
+        have = count_lines(path, header.body_offset, where, stop_after=rows)
+        if have < rows:
+            raise where.corrupt(
+                f"the header declares {declared:,} points in {rows:,} rows, but the file holds "
+                f"{have:,} rows: it is truncated or the header lies"
+            )
+        return header, -1
+    # Every element takes at least its rows with empty lists: a lower bound on the file's size
+    # that needs no walking; then the exact offset of the vertices, and their bytes.
+    least = header.body_offset + sum(e.count * e.min_row_bytes() for e in header.elements)
+    require_bytes(where, declared, least, size)
+    offset = _vertex_offset(path, header, where, size)
+    require_bytes(where, declared, offset + declared * header.vertex.min_row_bytes(), size)
+    return header, offset
+
+
+def check(path: Path, where: Where) -> int:
+    """Check the header against the bytes present; return the vertex count."""
+    return _check(path, where)[0].vertex.count
+
+
+def read(path: Path, where: Where) -> np.ndarray:
+    """The vertices' x, y, z, ``(N, 3)`` float64, metres."""
+    header, offset = _check(path, where)
+    vertex = header.vertex
+    names = [name for name, _ in vertex.props]
+    cols = [names.index(a) for a in AXES]
+    if vertex.count == 0:
+        return np.empty((0, 3))
+    if header.fmt == "ascii":
+        before = 0
+        for element in header.elements:
+            if element is vertex:
+                break
+            before += element.count
+        try:
+            with text_from(path, header.body_offset) as fh:
+                pts = np.loadtxt(fh, skiprows=before, max_rows=vertex.count, usecols=cols, ndmin=2)
+        except (ValueError, UnicodeError, OSError) as exc:
+            raise where.corrupt(f"cannot read the PLY vertex rows: {exc}") from exc
+        if len(pts) != vertex.count:
+            raise where.corrupt(
+                f"the header declares {vertex.count:,} points but the file holds {len(pts):,}"
+            )
+        return pts.reshape(-1, 3).astype(np.float64, copy=False)
+    dtype = _row_dtype(vertex, _FORMATS[header.fmt])
+    out = np.empty((vertex.count, 3))
+    n = 0
+    with path.open("rb") as fh:
+        fh.seek(offset)
+        while n < vertex.count:
+            rows = np.fromfile(fh, dtype=dtype, count=min(CHUNK_ROWS, vertex.count - n))
+            if len(rows) == 0:
+                raise where.corrupt("the PLY vertices end early")
+            n = fill_columns(out, n, *(rows[f"p{c}"] for c in cols))
+    return out
+
+
+def write(path: Path, pts: np.ndarray) -> None:
+    """Binary little-endian PLY of float64 vertices, through Open3D."""
+    write_with_open3d(path, pts, EMPTY_HEADER)

@@ -1,0 +1,514 @@
+# ruff: noqa: E501  (the corpus reads best as one case per line)
+"""A corpus of crafted, hostile scan archives, one per way an input can try to hurt pipescan.
+
+Each :class:`Case` builds its input in a folder and says how pipescan must refuse it: the
+error class and a fragment of the message (the cap, the field). ``tests/test_hostile_inputs.py``
+runs them all; ``benchmarks/bench_hostile.py`` measures each one's peak memory, on this code
+and on an older checkout. ``scale`` shrinks the few inputs that are large by nature (the
+bombs), so the test suite stays fast; the benchmark builds them full size.
+"""
+
+from __future__ import annotations
+
+import gzip
+import hashlib
+import io
+import os
+import struct
+import tarfile
+import warnings
+import zipfile
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.core.errors import ArchiveError, FetchError, MetadataError, PointFileError
+from pipescan.storage.input.pointfiles import write_points
+
+TOML = b'asset_id = "MH1-MH2"\ninspected_at = 2024-05-17\nnominal_diameter_m = 0.5\n'
+MIB = 1 << 20
+
+
+def frame(n: int = 400, seed: int = 0) -> np.ndarray:
+    """(n, 3) points on a 0.5 m pipe wall, sensor coordinates, metres."""
+    rng = np.random.default_rng(seed)
+    angle = rng.uniform(0.0, 2.0 * np.pi, n)
+    return np.column_stack([rng.uniform(0.5, 3.0, n), 0.25 * np.cos(angle), 0.25 * np.sin(angle)])
+
+
+@dataclass(frozen=True)
+class Case:
+    """One crafted input: what it is, how it is built, and how pipescan must refuse it."""
+
+    cls: str  # the issue's class: expansion, lying header, unsafe name, link, text, remote
+    name: str
+    build: Callable[[Path, float], str]  # (folder, scale) -> what is given to pipescan
+    error: type[Exception]
+    match: str
+    limits: dict = field(default_factory=dict)  # InputLimits overrides (caps set low)
+
+
+# --- builders ---------------------------------------------------------------------------------
+
+
+def _dir_archive(where: Path, frames: dict[str, bytes] | None = None, toml: bytes = TOML) -> Path:
+    root = where / "scan"
+    (root / "frames").mkdir(parents=True, exist_ok=True)
+    (root / "inspection.toml").write_bytes(toml)
+    for name, data in (frames or {}).items():
+        (root / "frames" / name).write_bytes(data)
+    return root
+
+
+def _npy_bytes(points: np.ndarray) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, points)
+    return buf.getvalue()
+
+
+def _point_file(where: Path, suffix: str, points: np.ndarray | None = None) -> bytes:
+    path = where / f"legit{suffix}"
+    write_points(path, frame() if points is None else points)
+    return path.read_bytes()
+
+
+def _zip(where: Path, name: str, members: list[tuple[str, bytes]], stored: bool = False) -> str:
+    path = where / name
+    method = zipfile.ZIP_STORED if stored else zipfile.ZIP_DEFLATED
+    with zipfile.ZipFile(path, "w", method) as zf, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a duplicate name is the point of one case
+        for member, data in members:
+            zf.writestr(member, data)
+    return str(path)
+
+
+def _tar(where: Path, name: str, members: list[tuple[tarfile.TarInfo, bytes]], mode="w") -> str:
+    path = where / name
+    with tarfile.open(path, mode) as tf:
+        for info, data in members:
+            info.size = len(data) if info.isfile() else 0
+            tf.addfile(info, io.BytesIO(data) if info.isfile() else None)
+    return str(path)
+
+
+def _file(name: str) -> tarfile.TarInfo:
+    return tarfile.TarInfo(name)
+
+
+def zip_bomb(where: Path, scale: float) -> str:
+    """A zip whose one frame inflates ~1000:1 (2 GiB from 2 MB at full scale)."""
+    size = max(8 * MIB, int(2048 * MIB * scale))
+    path = where / "bomb.zip"
+    with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.writestr("inspection.toml", TOML)
+        with zf.open("frames/000000.xyz", "w", force_zip64=True) as fh:
+            block = b"0" * MIB
+            for _ in range(size // MIB):
+                fh.write(block)
+    return str(path)
+
+
+def targz_bomb(where: Path, scale: float) -> str:
+    """A tar.gz whose member inflates ~1000:1: the tar's own sizes are honest, the ratio is not."""
+    size = max(8 * MIB, int(1024 * MIB * scale))
+    path = where / "bomb.tar.gz"
+    info = _file("frames/000000.xyz")
+    info.size = size
+    with gzip.open(path, "wb", compresslevel=9) as gz:
+        gz.write(_file_header(_file("inspection.toml"), TOML))
+        gz.write(info.tobuf(format=tarfile.PAX_FORMAT))
+        block = b"0" * MIB
+        for _ in range(size // MIB):
+            gz.write(block)
+        gz.write(b"\0" * 1024)
+    return str(path)
+
+
+def _file_header(info: tarfile.TarInfo, data: bytes) -> bytes:
+    info.size = len(data)
+    pad = (-len(data)) % tarfile.BLOCKSIZE
+    return info.tobuf(format=tarfile.PAX_FORMAT) + data + b"\0" * pad
+
+
+def tar_longname_bomb(where: Path, scale: float) -> str:
+    """A tar.gz whose GNU long-name header declares 1 GiB (tarfile reads it in one go)."""
+    path = where / "longname.tar.gz"
+    header = _file("././@LongLink")
+    header.type = tarfile.GNUTYPE_LONGNAME
+    header.size = 1 << 30
+    with gzip.open(path, "wb", compresslevel=1) as gz:
+        gz.write(header.tobuf(format=tarfile.GNU_FORMAT))
+        gz.write(b"a" * max(MIB, int(64 * MIB * scale)))
+    return str(path)
+
+
+def tar_pax_bomb(where: Path, scale: float) -> str:
+    """A tar.gz whose pax extended header declares 512 MiB of records."""
+    path = where / "pax.tar.gz"
+    header = _file("./PaxHeaders/x")
+    header.type = tarfile.XHDTYPE
+    header.size = 512 * MIB
+    with gzip.open(path, "wb", compresslevel=1) as gz:
+        gz.write(header.tobuf(format=tarfile.USTAR_FORMAT))
+        gz.write(b"9 a=b\n" * max(1000, int(1_000_000 * scale)))
+    return str(path)
+
+
+def zip_many(where: Path, scale: float) -> str:
+    names = [("inspection.toml", TOML)]
+    names += [(f"frames/{i:06d}.xyz", b"") for i in range(max(50_001, int(100_000 * scale)))]
+    return _zip(where, "many.zip", names, stored=True)
+
+
+def tar_many(where: Path, scale: float) -> str:
+    path = where / "many.tar"
+    with tarfile.open(path, "w") as tf:
+        tf.addfile(_sized(_file("inspection.toml"), TOML), io.BytesIO(TOML))
+        for i in range(max(50_001, int(100_000 * scale))):
+            tf.addfile(_file(f"frames/{i:06d}.xyz"), io.BytesIO(b""))
+    return str(path)
+
+
+def _sized(info: tarfile.TarInfo, data: bytes) -> tarfile.TarInfo:
+    info.size = len(data)
+    return info
+
+
+def sparse_tar(where: Path, scale: float) -> str:
+    info = _file("frames/000000.xyz")
+    info.type = tarfile.GNUTYPE_SPARSE
+    path = where / "sparse.tar"
+    with tarfile.open(path, "w", format=tarfile.GNU_FORMAT) as tf:
+        tf.addfile(_sized(_file("inspection.toml"), TOML), io.BytesIO(TOML))
+        tf.addfile(info, io.BytesIO(b""))
+    return str(path)
+
+
+def ascii_no_newline(where: Path, scale: float) -> str:
+    """An ASCII frame of one endless line (a directory archive: nothing to decompress)."""
+    size = max(4 * MIB, int(512 * MIB * scale))
+    root = _dir_archive(where)
+    with (root / "frames" / "000000.xyz").open("wb") as fh:
+        block = b"1" * MIB
+        for _ in range(size // MIB):
+            fh.write(block)
+    return str(root)
+
+
+def ascii_long_line_in_tar(where: Path, scale: float) -> str:
+    data = b"1 2 3\n" + b"4" * (2 * MIB) + b"\n"
+    return _tar(
+        where, "longline.tar", [(_file("inspection.toml"), TOML), (_file("frames/1.xyz"), data)]
+    )
+
+
+def ply_header_long_line(where: Path, scale: float) -> str:
+    body = b"ply\nformat ascii 1.0\ncomment " + b"x" * (1 * MIB) + b"\n"
+    return str(_dir_archive(where, {"1.ply": body}))
+
+
+def big_toml(where: Path, scale: float) -> str:
+    toml = TOML + b"# " + b"x" * (40 * MIB) + b"\n"
+    return str(_dir_archive(where, {"1.npy": _npy_bytes(frame())}, toml=toml))
+
+
+def legit_zip(where: Path, scale: float) -> str:
+    """A genuine archive, refused only because a cap was set below it."""
+    members = [("inspection.toml", TOML)]
+    members += [(f"frames/{i}.npy", _npy_bytes(frame(20_000, seed=i))) for i in range(4)]
+    return _zip(where, "legit.zip", members)
+
+
+def legit_dir(where: Path, scale: float) -> str:
+    return str(_dir_archive(where, {"1.npy": _npy_bytes(frame(20_000))}))
+
+
+def ply_binary(header: str, body: bytes) -> bytes:
+    return header.encode("ascii") + body
+
+
+_XYZ_DOUBLE = "property double x\nproperty double y\nproperty double z\n"
+
+
+def in_dir(name: str, data: Callable[[Path], bytes]) -> Callable[[Path, float], str]:
+    def build(where: Path, scale: float) -> str:
+        return str(_dir_archive(where, {name: data(where)}))
+
+    return build
+
+
+def ply_list_then_vertices(where: Path) -> bytes:
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement face 0\n"
+        "property list uchar int vertex_indices\nelement vertex 100000000\n"
+        + _XYZ_DOUBLE
+        + "end_header\n"
+    )
+    return ply_binary(header, np.zeros(6, "<f8").tobytes())
+
+
+def ply_1000_of_2(where: Path) -> bytes:
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex 1000\n" + _XYZ_DOUBLE + "end_header\n"
+    )
+    return ply_binary(header, frame(2).astype("<f8").tobytes())
+
+
+def ply_list_before_truncated(where: Path) -> bytes:
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement face 3\n"
+        "property list uchar int vertex_indices\nelement vertex 2\n" + _XYZ_DOUBLE + "end_header\n"
+    )
+    # The first face claims 200 indices; the file ends long before.
+    return ply_binary(header, bytes([200]) + b"\0" * 60)
+
+
+def ply_ascii_lies(where: Path) -> bytes:
+    header = "ply\nformat ascii 1.0\nelement vertex 1000000000\n" + _XYZ_DOUBLE + "end_header\n"
+    return (header + "1 0 0\n0 1 0\n0 0 1\n").encode()
+
+
+def ply_negative(where: Path) -> bytes:
+    header = (
+        "ply\nformat binary_little_endian 1.0\nelement vertex -5\n" + _XYZ_DOUBLE + "end_header\n"
+    )
+    return header.encode()
+
+
+def ply_huge_count(where: Path) -> bytes:
+    header = (
+        f"ply\nformat binary_big_endian 1.0\nelement vertex {2**63}\n"
+        + _XYZ_DOUBLE
+        + "end_header\n"
+    )
+    return header.encode() + b"\0" * 48
+
+
+def ply_big_endian_short(where: Path) -> bytes:
+    header = "ply\nformat binary_big_endian 1.0\nelement vertex 50\n" + _XYZ_DOUBLE + "end_header\n"
+    return header.encode() + frame(49).astype(">f8").tobytes()
+
+
+def _pcd_header(points: int, data: str, width: int | None = None) -> bytes:
+    return (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z\nSIZE 4 4 4\nTYPE F F F\nCOUNT 1 1 1\n"
+        f"WIDTH {points if width is None else width}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\n"
+        f"POINTS {points}\nDATA {data}\n"
+    ).encode()
+
+
+def pcd_binary_lies(where: Path) -> bytes:
+    return _pcd_header(100_000_000, "binary") + frame(10).astype("<f4").tobytes()
+
+
+def pcd_ascii_lies(where: Path) -> bytes:
+    return _pcd_header(1_000_000_000, "ascii") + b"1 0 0\n0 1 0\n"
+
+
+def pcd_compressed_lies(where: Path) -> bytes:
+    body = struct.pack("<II", 40, 12 * 100_000_000) + b"\0" * 40
+    return _pcd_header(100_000_000, "binary_compressed") + body
+
+
+def pcd_width_mismatch(where: Path) -> bytes:
+    return _pcd_header(10, "binary", width=10_000_000) + frame(10).astype("<f4").tobytes()
+
+
+def _las_patched(where: Path, suffix: str, count: int) -> bytes:
+    data = bytearray(_point_file(where, suffix, frame(10)))
+    struct.pack_into("<Q", data, 247, count)  # LAS 1.4: the 64-bit point count
+    return bytes(data)
+
+
+def las_vlr_count_lies(where: Path) -> bytes:
+    """2 billion variable-length records declared: laspy would read them from EOF forever."""
+    data = bytearray(_point_file(where, ".las", frame(10)))
+    struct.pack_into("<I", data, 100, 2_000_000_000)
+    return bytes(data)
+
+
+def las_evlr_count_lies(where: Path) -> bytes:
+    data = bytearray(_point_file(where, ".laz", frame(10)))
+    struct.pack_into("<QI", data, 235, len(data) - 10, 4_000_000_000)
+    return bytes(data)
+
+
+def las_offset_past_end(where: Path) -> bytes:
+    data = bytearray(_point_file(where, ".las", frame(10)))
+    struct.pack_into("<I", data, 96, 10_000_000)  # offset to point data
+    return bytes(data)
+
+
+def _npy_header(shape: tuple[int, ...], descr: str = "<f8") -> bytes:
+    header = f"{{'descr': '{descr}', 'fortran_order': False, 'shape': {shape}, }}"
+    header += " " * (-(len(header) + 11) % 64) + "\n"
+    return b"\x93NUMPY\x01\x00" + struct.pack("<H", len(header)) + header.encode("latin1")
+
+
+def npy_lies(shape: tuple[int, ...]) -> Callable[[Path], bytes]:
+    return lambda where: _npy_header(shape) + b"\0" * 48
+
+
+def npy_pickle(where: Path) -> bytes:
+    buf = io.BytesIO()
+    np.save(buf, np.array([{"x": 1}], dtype=object), allow_pickle=True)
+    return buf.getvalue()
+
+
+def link_frame_outside(where: Path, scale: float) -> str:
+    secret = where / "outside.npy"
+    secret.write_bytes(_npy_bytes(frame()))
+    root = _dir_archive(where)
+    (root / "frames" / "000000.npy").symlink_to(secret)
+    return str(root)
+
+
+def link_frames_dir_outside(where: Path, scale: float) -> str:
+    elsewhere = where / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "000000.npy").write_bytes(_npy_bytes(frame()))
+    root = where / "scan"
+    root.mkdir()
+    (root / "inspection.toml").write_bytes(TOML)
+    (root / "frames").symlink_to(elsewhere, target_is_directory=True)
+    return str(root)
+
+
+def link_toml_outside(where: Path, scale: float) -> str:
+    (where / "other.toml").write_bytes(TOML)
+    root = where / "scan"
+    (root / "frames").mkdir(parents=True)
+    (root / "frames" / "1.npy").write_bytes(_npy_bytes(frame()))
+    (root / "inspection.toml").symlink_to(where / "other.toml")
+    return str(root)
+
+
+def link_cloud_to_device(where: Path, scale: float) -> str:
+    root = where / "scan"
+    root.mkdir()
+    (root / "inspection.toml").write_bytes(TOML)
+    (root / "cloud.xyz").symlink_to("/dev/zero")
+    return str(root)
+
+
+def fifo_frame(where: Path, scale: float) -> str:
+    root = _dir_archive(where, {"1.npy": _npy_bytes(frame())})
+    os.mkfifo(root / "frames" / "2.npy")
+    toml = TOML + b'[[frames]]\nfile = "frames/1.npy"\n[[frames]]\nfile = "frames/2.npy"\n'
+    (root / "inspection.toml").write_bytes(toml)
+    return str(root)
+
+
+def dangling_link(where: Path, scale: float) -> str:
+    root = _dir_archive(where, {"1.npy": _npy_bytes(frame())})
+    (root / "frames" / "2.npy").symlink_to(where / "gone.npy")
+    toml = TOML + b'[[frames]]\nfile = "frames/1.npy"\n[[frames]]\nfile = "frames/2.npy"\n'
+    (root / "inspection.toml").write_bytes(toml)
+    return str(root)
+
+
+def _toml_with(line: str) -> Callable[[Path, float], str]:
+    def build(where: Path, scale: float) -> str:
+        toml = TOML.replace(b'asset_id = "MH1-MH2"\n', b"") + line.encode("utf-8") + b"\n"
+        return str(_dir_archive(where, {"1.npy": _npy_bytes(frame())}, toml=toml))
+
+    return build
+
+
+def _ok_members() -> list[tuple[str, bytes]]:
+    return [("inspection.toml", TOML), ("frames/1.npy", _npy_bytes(frame()))]
+
+
+# --- the corpus -------------------------------------------------------------------------------
+
+_LOW = {"member_max_bytes": 256 * 1024}
+
+CASES: tuple[Case, ...] = (
+    # 2. what an archive expands to
+    Case("expansion", "zip bomb, one member ~1000:1", zip_bomb, ArchiveError, "compression_max_ratio"),
+    Case("expansion", "tar.gz bomb ~1000:1", targz_bomb, ArchiveError, "compression_max_ratio"),
+    Case("expansion", "tar.gz long-name header of 1 GiB", tar_longname_bomb, ArchiveError, "tar header declares"),
+    Case("expansion", "tar.gz pax header of 512 MiB", tar_pax_bomb, ArchiveError, "tar header declares"),
+    Case("expansion", "zip of 100,000 members", zip_many, ArchiveError, "archive_max_members"),
+    Case("expansion", "tar of 100,000 members", tar_many, ArchiveError, "archive_max_members"),
+    Case("expansion", "tar with a sparse member", sparse_tar, ArchiveError, "sparse"),
+    Case("expansion", "ASCII frame with no newline (512 MiB)", ascii_no_newline, PointFileError, "line_max_bytes"),
+    Case("expansion", "ASCII frame with a 2 MiB line, in a tar", ascii_long_line_in_tar, PointFileError, "line_max_bytes"),
+    Case("expansion", "PLY header line of 1 MiB", ply_header_long_line, PointFileError, "end_header"),
+    Case("expansion", "inspection.toml of 40 MiB", big_toml, MetadataError, "metadata_max_bytes"),
+    Case("expansion", "archive over archive_max_bytes", legit_zip, ArchiveError, "archive_max_bytes", {"archive_max_bytes": 1 * MIB}),
+    Case("expansion", "member over member_max_bytes", legit_zip, ArchiveError, "member_max_bytes", _LOW),
+    Case("expansion", "points over points_max_count", legit_dir, PointFileError, "points_max_count", {"points_max_count": 10_000}),
+    # 3. headers that lie
+    Case("lying header", "PLY: 100 M vertices after an empty list element", in_dir("1.ply", ply_list_then_vertices), PointFileError, "truncated or the header lies"),
+    Case("lying header", "PLY: 1,000 vertices declared, 2 present", in_dir("1.ply", ply_1000_of_2), PointFileError, "truncated or the header lies"),
+    Case("lying header", "PLY: a list element before the vertices ends early", in_dir("1.ply", ply_list_before_truncated), PointFileError, "ends early"),
+    Case("lying header", "PLY ASCII: 1e9 vertices declared, 3 rows", in_dir("1.ply", ply_ascii_lies), PointFileError, "points_max_count"),
+    Case("lying header", "PLY: negative vertex count", in_dir("1.ply", ply_negative), PointFileError, "negative"),
+    Case("lying header", "PLY: 2^63 vertices", in_dir("1.ply", ply_huge_count), PointFileError, "points_max_count"),
+    Case("lying header", "PLY big-endian: 50 declared, 49 present", in_dir("1.ply", ply_big_endian_short), PointFileError, "truncated or the header lies"),
+    Case("lying header", "PCD binary: 1e8 points declared, 10 present", in_dir("1.pcd", pcd_binary_lies), PointFileError, "truncated or the header lies"),
+    Case("lying header", "PCD ASCII: 1e9 points declared", in_dir("1.pcd", pcd_ascii_lies), PointFileError, "points_max_count"),
+    Case("lying header", "PCD compressed: sizes that cannot be", in_dir("1.pcd", pcd_compressed_lies), PointFileError, "cannot unpack"),
+    Case("lying header", "PCD: WIDTH x HEIGHT is not POINTS", in_dir("1.pcd", pcd_width_mismatch), PointFileError, "WIDTH"),
+    Case("lying header", "LAS (675 bytes) claiming 1e8 points", in_dir("1.las", lambda w: _las_patched(w, ".las", 10**8)), PointFileError, "truncated or the header lies"),
+    Case("lying header", "LAS claiming 1e12 points", in_dir("1.las", lambda w: _las_patched(w, ".las", 10**12)), PointFileError, "points_max_count"),
+    Case("lying header", "LAZ claiming 1e8 points", in_dir("1.laz", lambda w: _las_patched(w, ".laz", 10**8)), PointFileError, "cannot read LAS/LAZ"),
+    Case("lying header", "LAZ claiming 1e12 points", in_dir("1.laz", lambda w: _las_patched(w, ".laz", 10**12)), PointFileError, "points_max_count"),
+    Case("lying header", "LAS point data offset past the end", in_dir("1.las", las_offset_past_end), PointFileError, "outside the file"),
+    Case("lying header", "LAS declaring 2e9 variable-length records", in_dir("1.las", las_vlr_count_lies), PointFileError, "variable-length records"),
+    Case("lying header", "LAZ declaring 4e9 extended records", in_dir("1.laz", las_evlr_count_lies), PointFileError, "extended records"),
+    Case("lying header", ".npy of shape (1e8, 3) in 176 bytes", in_dir("1.npy", npy_lies((10**8, 3))), PointFileError, "truncated or the header lies"),
+    Case("lying header", ".npy of shape (1e12, 3)", in_dir("1.npy", npy_lies((10**12, 3))), PointFileError, "points_max_count"),
+    Case("lying header", ".npy holding a pickle", in_dir("1.npy", npy_pickle), PointFileError, "dtype object"),
+    # 5. links and special files in directory archives
+    Case("link", "frame symlinked to a file outside", link_frame_outside, ArchiveError, "outside the archive"),
+    Case("link", "frames/ symlinked to a folder outside", link_frames_dir_outside, ArchiveError, "outside the archive"),
+    Case("link", "inspection.toml symlinked outside", link_toml_outside, ArchiveError, "outside the archive"),
+    Case("link", "cloud symlinked to /dev/zero", link_cloud_to_device, ArchiveError, "outside the archive"),
+    Case("link", "a frame that is a FIFO", fifo_frame, ArchiveError, "not a regular file"),
+    Case("link", "a dangling symlink frame", dangling_link, ArchiveError, "cannot be resolved"),
+    # 6. names that no file system holds, clashes
+    Case("name", "zip member name of 300 bytes", lambda w, s: _zip(w, "long.zip", [*_ok_members(), ("frames/" + "a" * 300 + ".xyz", b"1 2 3\n")]), ArchiveError, "file systems allow 255"),
+    Case("name", "tar member name of 300 bytes", lambda w, s: _tar(w, "long.tar", [(_file("inspection.toml"), TOML), (_file("frames/" + "b" * 300 + ".xyz"), b"1 2 3\n")]), ArchiveError, "file systems allow 255"),
+    Case("name", "zip: a file where a folder is", lambda w, s: _zip(w, "clash.zip", [("inspection.toml", TOML), ("frames", b"x"), ("frames/1.npy", b"")]), ArchiveError, "name clash"),
+    Case("name", "zip: the same member twice", lambda w, s: _zip(w, "dup.zip", [*_ok_members(), ("frames/1.npy", b"")]), ArchiveError, "name clash"),
+    Case("name", "tar: a member 2,100 folders deep", lambda w, s: _tar(w, "deep.tar", [(_file("inspection.toml"), TOML), (_file("/".join(["d"] * 2100) + "/1.xyz"), b"1 2 3\n")]), ArchiveError, "folders deep"),
+    # 6. remote archives that cannot be reached
+    Case("remote", "ftp:// with the connection refused", lambda w, s: "ftp://127.0.0.1:9/run.zip", FetchError, "cannot copy the archive"),
+    Case("remote", "an unknown protocol", lambda w, s: "nosuchproto://bucket/run.zip", ArchiveError, "cannot open the URL"),
+    # 7. text fields
+    Case("text", "asset_id with an ESC sequence", _toml_with('asset_id = "MH1\\u001b[2J"'), MetadataError, "control or invisible"),
+    Case("text", "asset_id of a million characters", _toml_with('asset_id = "' + "M" * 1_000_000 + '"'), MetadataError, "at most 64 characters"),
+    Case("text", "asset_id of 300 characters", _toml_with('asset_id = "' + "M" * 300 + '"'), MetadataError, "at most 64 characters"),
+    Case("text", "upstream_node with CR LF", _toml_with('asset_id = "A"\nupstream_node = "MH1\\r\\nMH2"'), MetadataError, "control or invisible"),
+    Case("text", "asset_id with a NUL", _toml_with('asset_id = "MH1\\u0000"'), MetadataError, "control or invisible"),
+    Case("text", "asset_id with a right-to-left override", _toml_with('asset_id = "MH1\\u202eFDP"'), MetadataError, "control or invisible"),
+)  # fmt: skip
+
+
+def fingerprint(path: Path) -> dict[str, tuple]:
+    """Every entry under ``path`` (links not followed): kind, mode, bytes' hash, link target."""
+    entries: dict[str, tuple] = {}
+    top = Path(path)
+    if not top.exists() and not top.is_symlink():
+        return entries
+    walk = [top] + (sorted(top.rglob("*")) if top.is_dir() and not top.is_symlink() else [])
+    for p in walk:
+        key = p.relative_to(top).as_posix()
+        st = p.lstat()
+        if p.is_symlink():
+            entries[key] = ("link", os.readlink(p))
+        elif p.is_dir():
+            entries[key] = ("dir", st.st_mode)
+        elif p.is_file():
+            digest = hashlib.sha256()
+            with p.open("rb") as fh:
+                while chunk := fh.read(MIB):
+                    digest.update(chunk)
+            entries[key] = ("file", st.st_mode, digest.hexdigest())
+        else:
+            entries[key] = ("special", st.st_mode)
+    return entries
