@@ -68,17 +68,19 @@ DEFECT = Defect(
 def _save(engine: sa.Engine, asset_id: str, year: int, content_hash: str) -> int:
     return repository.save_inspection(
         engine,
-        meta=InspectionMeta(
-            asset_id=asset_id,
-            inspected_at=datetime(year, 5, 17, 9, 30, tzinfo=UTC),
-            nominal_diameter_m=0.6,
+        repository.InspectionToSave(
+            meta=InspectionMeta(
+                asset_id=asset_id,
+                inspected_at=datetime(year, 5, 17, 9, 30, tzinfo=UTC),
+                nominal_diameter_m=0.6,
+            ),
+            archive_uri=f"/scans/{asset_id}-{year}.zip",
+            content_hash=content_hash,
+            params={"section_step_m": 0.1},
+            software_version="0.1.0",
+            sections=[MEASURED, UNMEASURED],
+            defects=[DEFECT],
         ),
-        archive_uri=f"/scans/{asset_id}-{year}.zip",
-        content_hash=content_hash,
-        params={"section_step_m": 0.1},
-        software_version="0.1.0",
-        sections=[MEASURED, UNMEASURED],
-        defects=[DEFECT],
     )
 
 

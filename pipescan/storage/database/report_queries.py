@@ -1,31 +1,45 @@
-"""Read-only queries the reports need beyond ``repository.py``: earlier inspections of an
-asset, light blockage profiles (no contours) and the inspections of a network run.
+"""Read-only queries the reports need beyond ``repository.py``: the latest inspection of each
+asset, the earlier scans of a pipe, light blockage profiles (no contours) and defect counts.
 
-Like the repository, every function opens and closes its own session and returns core
-dataclasses or the repository's records; nothing here writes.
+"Latest" and "earlier" are chosen by the database, with window functions (``row_number()``,
+on SQLite and PostgreSQL alike), and come back as records: no inspection list is filtered in
+Python, and no count runs once per row. Like the repository, every function opens and closes
+its own session and returns core dataclasses or the repository's records; nothing here writes.
+
+Two rules hold throughout:
+
+- **Order in time** is ``inspected_at``, then the id (an inspection saved earlier on the same
+  date counts as earlier).
+- **One scan counts once.** An earlier scan of a pipe is an archive with another content hash
+  than the inspection at hand; when it was processed more than once (other parameters), its
+  latest save before that inspection stands for it.
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 from datetime import UTC, datetime
+from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from pipescan.core.model import SectionMeasures
 from pipescan.storage.database.db import StorageError, session_scope
-from pipescan.storage.database.models import DefectRow, Section
+from pipescan.storage.database.models import DefectRow, Inspection, Section
 from pipescan.storage.database.repository import (
     InspectionRecord,
-    get_inspection,
-    list_inspections,
+    inspection_records,
+    record_statement,
     section_from_row,
 )
 
 __all__ = [
     "defect_counts",
     "earlier_inspections",
+    "earlier_scans",
+    "earlier_scans_statement",
+    "latest_per_asset_statement",
     "network_inspections",
     "previous_inspections",
     "section_profiles",
@@ -36,29 +50,148 @@ def _aware(value: datetime) -> datetime:
     return value if value.tzinfo is not None else value.replace(tzinfo=UTC)
 
 
+def latest_per_asset_statement(*where: Any) -> sa.Select[Any]:
+    """The id of each asset's latest inspection among those ``where`` selects.
+
+    ``row_number()`` over each asset's inspections, newest first (date, then id); the first
+    row of each asset is kept. One column, ``id``.
+    """
+    ranked = (
+        sa.select(
+            Inspection.id,
+            sa.func.row_number()
+            .over(
+                partition_by=Inspection.asset_id,
+                order_by=(Inspection.inspected_at.desc(), Inspection.id.desc()),
+            )
+            .label("recency"),
+        )
+        .where(*where)
+        .subquery("ranked")
+    )
+    return sa.select(ranked.c.id).where(ranked.c.recency == 1)
+
+
+def earlier_scans_statement(
+    inspection_ids: Sequence[int], *, limit: int | None = None
+) -> sa.Select[Any]:
+    """For each given inspection, its asset's earlier scans (see the module's rules).
+
+    Each inspection is joined to its asset's inspections that come before it and hold another
+    archive; ``row_number()`` keeps each archive's latest save, then numbers the scans newest
+    first, and ``limit`` keeps that many per inspection. Named columns: ``of_id`` (the given
+    inspection), ``earlier_id`` and ``recency`` (1 for the previous scan), ordered by
+    ``of_id`` and ``recency``.
+    """
+    target = Inspection.__table__.alias("target")
+    earlier = Inspection.__table__.alias("earlier")
+    before = sa.or_(
+        earlier.c.inspected_at < target.c.inspected_at,
+        sa.and_(earlier.c.inspected_at == target.c.inspected_at, earlier.c.id < target.c.id),
+    )
+    pairs = (
+        sa.select(
+            target.c.id.label("of_id"),
+            earlier.c.id.label("earlier_id"),
+            earlier.c.inspected_at,
+            sa.func.row_number()
+            .over(partition_by=(target.c.id, earlier.c.content_hash), order_by=earlier.c.id.desc())
+            .label("save_rank"),
+        )
+        .select_from(
+            target.join(
+                earlier,
+                sa.and_(
+                    earlier.c.asset_id == target.c.asset_id,
+                    earlier.c.content_hash != target.c.content_hash,
+                    before,
+                ),
+            )
+        )
+        .where(target.c.id.in_(list(inspection_ids)))
+        .subquery("pairs")
+    )
+    scans = (
+        sa.select(
+            pairs.c.of_id,
+            pairs.c.earlier_id,
+            sa.func.row_number()
+            .over(
+                partition_by=pairs.c.of_id,
+                order_by=(pairs.c.inspected_at.desc(), pairs.c.earlier_id.desc()),
+            )
+            .label("recency"),
+        )
+        .where(pairs.c.save_rank == 1)
+        .subquery("scans")
+    )
+    statement = sa.select(scans.c.of_id, scans.c.earlier_id, scans.c.recency)
+    if limit is not None:
+        statement = statement.where(scans.c.recency <= limit)
+    return statement.order_by(scans.c.of_id, scans.c.recency)
+
+
+def earlier_scans(
+    engine: Engine, inspection_ids: Sequence[int], *, limit: int | None = None
+) -> dict[int, list[InspectionRecord]]:
+    """The earlier scans of each inspection's pipe, most recent first (see the module's rules).
+
+    Parameters
+    ----------
+    inspection_ids
+        The inspections; an unknown id maps to ``[]``.
+    limit
+        At most this many per inspection (the most recent).
+
+    Returns
+    -------
+    dict
+        Inspection id to its pipe's earlier scans, newest first.
+    """
+    found: dict[int, list[InspectionRecord]] = {i: [] for i in inspection_ids}
+    if not inspection_ids:
+        return found
+    with session_scope(engine) as session:
+        pairs = session.execute(earlier_scans_statement(inspection_ids, limit=limit)).all()
+        wanted = sorted({p.earlier_id for p in pairs})
+        records = {r.id: r for r in inspection_records(session, record_statement(wanted))}
+    for p in pairs:
+        found[p.of_id].append(records[p.earlier_id])
+    return found
+
+
 def earlier_inspections(
     engine: Engine, inspection_id: int, *, limit: int | None = None
 ) -> list[InspectionRecord]:
-    """The inspections of the same asset taken before this one, most recent first.
-
-    "Before" orders by ``inspected_at``, then by id (an inspection saved earlier on the same
-    date counts as earlier). Re-processings of the same archive under other parameters are
-    excluded: they are the same scan, not an earlier state of the pipe.
+    """The earlier scans of the same asset as this inspection, most recent first (see the
+    module's rules): its trend history.
 
     Raises
     ------
     StorageError
         If there is no inspection with that id.
     """
-    current = get_inspection(engine, inspection_id)
-    earlier = [
-        r
-        for r in list_inspections(engine, current.asset_id)
-        if (r.inspected_at, r.id) < (current.inspected_at, current.id)
-        and r.content_hash != current.content_hash
-    ]
-    earlier.sort(key=lambda r: (r.inspected_at, r.id), reverse=True)
-    return earlier[:limit] if limit is not None else earlier
+    with session_scope(engine) as session:
+        if session.get(Inspection, inspection_id) is None:
+            raise StorageError(
+                f"no inspection with id {inspection_id}",
+                hint="list the stored inspections with `pipescan inspections`",
+            )
+    return earlier_scans(engine, [inspection_id], limit=limit)[inspection_id]
+
+
+def previous_inspections(
+    engine: Engine, records: Sequence[InspectionRecord]
+) -> dict[int, InspectionRecord]:
+    """For each inspection, its pipe's previous scan, if any (see the module's rules).
+
+    Returns
+    -------
+    dict
+        Inspection id to its previous scan; ids without one are left out.
+    """
+    earlier = earlier_scans(engine, [r.id for r in records], limit=1)
+    return {i: scans[0] for i, scans in earlier.items() if scans}
 
 
 def section_profiles(
@@ -98,7 +231,7 @@ def section_profiles(
         .order_by(Section.inspection_id, Section.chainage_start_mm)
     )
     with session_scope(engine) as session:
-        for row in session.execute(statement):
+        for row in session.connection().execute(statement):
             profiles[row.inspection_id].append(section_from_row(row))
     return profiles
 
@@ -145,51 +278,24 @@ def network_inspections(
     StorageError
         If an id in ``inspection_ids`` is not stored.
     """
-    records = list_inspections(engine)
+    where: list[Any] = []
     if inspection_ids is not None:
-        wanted = set(inspection_ids)
-        known = {r.id for r in records}
-        missing = sorted(wanted - known)
-        if missing:
-            raise StorageError(
-                f"no inspection with id {', '.join(map(str, missing))}",
-                field="inspection_ids",
-                hint="list the stored inspections with `pipescan inspections`",
-            )
-        records = [r for r in records if r.id in wanted]
+        where.append(Inspection.id.in_(list(inspection_ids)))
     if since is not None:
-        since = _aware(since)
-        records = [r for r in records if r.inspected_at >= since]
-    latest: dict[str, InspectionRecord] = {}
-    for r in records:
-        best = latest.get(r.asset_id)
-        if best is None or (r.inspected_at, r.id) > (best.inspected_at, best.id):
-            latest[r.asset_id] = r
-    return [latest[a] for a in sorted(latest)]
-
-
-def previous_inspections(
-    engine: Engine, records: Sequence[InspectionRecord]
-) -> dict[int, InspectionRecord]:
-    """For each inspection, the asset's latest earlier inspection of another scan, if any.
-
-    Returns
-    -------
-    dict
-        Inspection id to its previous inspection; ids without one are left out.
-    """
-    assets = {r.asset_id for r in records}
-    by_asset: dict[str, list[InspectionRecord]] = {a: [] for a in assets}
-    for r in list_inspections(engine):
-        if r.asset_id in assets:
-            by_asset[r.asset_id].append(r)
-    previous: dict[int, InspectionRecord] = {}
-    for r in records:
-        earlier = [
-            e
-            for e in by_asset[r.asset_id]
-            if (e.inspected_at, e.id) < (r.inspected_at, r.id) and e.content_hash != r.content_hash
-        ]
-        if earlier:
-            previous[r.id] = max(earlier, key=lambda e: (e.inspected_at, e.id))
-    return previous
+        where.append(Inspection.inspected_at >= _aware(since))
+    latest = latest_per_asset_statement(*where)
+    with session_scope(engine) as session:
+        if inspection_ids is not None:
+            known = set(
+                session.scalars(
+                    sa.select(Inspection.id).where(Inspection.id.in_(list(inspection_ids)))
+                )
+            )
+            missing = sorted(set(inspection_ids) - known)
+            if missing:
+                raise StorageError(
+                    f"no inspection with id {', '.join(map(str, missing))}",
+                    field="inspection_ids",
+                    hint="list the stored inspections with `pipescan inspections`",
+                )
+        return inspection_records(session, record_statement(latest).order_by(Inspection.asset_id))
