@@ -24,7 +24,7 @@ from pipescan.reports.network import (
 )
 from pipescan.reports.render import render_network_pdf, render_pdf
 from pipescan.storage.database.db import connect
-from pipescan.storage.database.report_queries import (
+from pipescan.storage.database.queries import (
     defect_counts,
     earlier_inspections,
     earlier_scans,

@@ -10,7 +10,8 @@ peak blockage); this module only reads the rows they need:
   is a gap (NaN in arrays, None in records), never a blockage of 0.
 - **One scan counts once.** When the same archive (content hash) of an asset was processed more
   than once with different parameters, the latest save stands for it; the database picks it
-  (:func:`scans_statement`, a window function), not Python.
+  (:func:`pipescan.storage.database.queries.scans_statement`, a window function), not
+  Python.
 - Chainages in a trend are those of the reference survey (the latest measured one).
 """
 
@@ -39,6 +40,7 @@ from pipescan.core.trends import (
 )
 from pipescan.storage.database.db import StorageError, session_scope
 from pipescan.storage.database.models import Asset, Inspection, Section
+from pipescan.storage.database.queries import scans_statement
 from pipescan.storage.database.repository import mm_to_m
 
 __all__ = [
@@ -46,7 +48,6 @@ __all__ = [
     "AssetTrend",
     "SurveyAlignment",
     "asset_trend",
-    "scans_statement",
     "trend_statement",
     "worst_assets",
 ]
@@ -183,41 +184,6 @@ class AssetRanking:
 
 # ---------------------------------------------------------------------------------------------
 # Queries
-
-
-def scans_statement(*where: Any) -> sa.Select:  # type: ignore[type-arg]
-    """One row per scan of an asset (its latest save), among the inspections ``where`` selects.
-
-    A window function ranks the saves of each (asset, content hash) by id; the first stands for
-    the scan. Rows have the named columns ``id, asset_id, inspected_at,
-    measured_section_count, mean_blockage_ratio, peak_blockage_ratio,
-    peak_chainage_start_mm``, ordered by asset, date and id.
-    """
-    ranked = (
-        sa.select(
-            Inspection.id,
-            Inspection.asset_id,
-            Inspection.inspected_at,
-            Inspection.measured_section_count,
-            Inspection.mean_blockage_ratio,
-            Inspection.peak_blockage_ratio,
-            Inspection.peak_chainage_start_mm,
-            sa.func.row_number()
-            .over(
-                partition_by=(Inspection.asset_id, Inspection.content_hash),
-                order_by=Inspection.id.desc(),
-            )
-            .label("save_rank"),
-        )
-        .where(*where)
-        .subquery("ranked")
-    )
-    columns = [c for c in ranked.c if c.name != "save_rank"]
-    return (
-        sa.select(*columns)
-        .where(ranked.c.save_rank == 1)
-        .order_by(ranked.c.asset_id, ranked.c.inspected_at, ranked.c.id)
-    )
 
 
 def trend_statement(inspection_ids: Sequence[int]) -> sa.Select:  # type: ignore[type-arg]

@@ -15,13 +15,13 @@ import sqlalchemy as sa
 
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage.database import db, repository
-from pipescan.storage.database.report_queries import (
+from pipescan.storage.database.queries import (
     earlier_inspections,
     earlier_scans,
     network_inspections,
     previous_inspections,
+    scans_statement,
 )
-from pipescan.storage.database.trends import scans_statement
 
 T0 = datetime(2021, 3, 1, 8, 0, tzinfo=UTC)
 

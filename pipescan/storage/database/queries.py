@@ -1,5 +1,6 @@
-"""Read-only queries the reports need beyond ``repository.py``: the latest inspection of each
-asset, the earlier scans of a pipe, light blockage profiles (no contours) and defect counts.
+"""Read-only queries beyond ``repository.py``: which inspections (the latest of each asset, the
+earlier scans of a pipe, one row per scan), light blockage profiles (no contours) and defect
+counts, for the reports and the trends.
 
 "Latest" and "earlier" are chosen by the database, with window functions (``row_number()``,
 on SQLite and PostgreSQL alike), and come back as records: no inspection list is filtered in
@@ -42,6 +43,7 @@ __all__ = [
     "latest_per_asset_statement",
     "network_inspections",
     "previous_inspections",
+    "scans_statement",
     "section_profiles",
 ]
 
@@ -192,6 +194,41 @@ def previous_inspections(
     """
     earlier = earlier_scans(engine, [r.id for r in records], limit=1)
     return {i: scans[0] for i, scans in earlier.items() if scans}
+
+
+def scans_statement(*where: Any) -> sa.Select:  # type: ignore[type-arg]
+    """One row per scan of an asset (its latest save), among the inspections ``where`` selects.
+
+    A window function ranks the saves of each (asset, content hash) by id; the first stands for
+    the scan. Rows have the named columns ``id, asset_id, inspected_at,
+    measured_section_count, mean_blockage_ratio, peak_blockage_ratio,
+    peak_chainage_start_mm``, ordered by asset, date and id.
+    """
+    ranked = (
+        sa.select(
+            Inspection.id,
+            Inspection.asset_id,
+            Inspection.inspected_at,
+            Inspection.measured_section_count,
+            Inspection.mean_blockage_ratio,
+            Inspection.peak_blockage_ratio,
+            Inspection.peak_chainage_start_mm,
+            sa.func.row_number()
+            .over(
+                partition_by=(Inspection.asset_id, Inspection.content_hash),
+                order_by=Inspection.id.desc(),
+            )
+            .label("save_rank"),
+        )
+        .where(*where)
+        .subquery("ranked")
+    )
+    columns = [c for c in ranked.c if c.name != "save_rank"]
+    return (
+        sa.select(*columns)
+        .where(ranked.c.save_rank == 1)
+        .order_by(ranked.c.asset_id, ranked.c.inspected_at, ranked.c.id)
+    )
 
 
 def section_profiles(
