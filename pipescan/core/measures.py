@@ -1,7 +1,7 @@
 """Measures of one cross-section, with its coverage and an honest status.
 
-DESIGN.md fixes the measures and their names. Ratios are fractions; percentages exist only in
-reports.
+docs/measures.md lists the measures, their names and the status rules. Ratios are fractions;
+percentages exist only in reports.
 """
 
 from __future__ import annotations

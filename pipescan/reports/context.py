@@ -18,7 +18,7 @@ from typing import Any, TypeGuard
 from pipescan.core.grading import ThresholdTable, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 from pipescan.core.summary import ADJACENT_TOL_M, adjacent_runs, blockage_summary, peak_blockage
-from pipescan.core.trends import growth_per_year
+from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
 
 __all__ = [
     "APPENDIX_ALL_MAX_SECTIONS",
@@ -547,6 +547,7 @@ def _trend(
         "shown_count": len(shown),
         "earlier_count": len(earlier),
         "any_partly": any("*" in c for row in changes for c in row["earlier"]),
+        "min_days_apart": round(MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0),
     }
 
 

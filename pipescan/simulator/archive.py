@@ -1,6 +1,6 @@
 """Write a simulated scan to disk as a scan archive, with its ground truth beside it.
 
-The archive is an ordinary scan archive (DESIGN.md, "Scan archive"): ``inspection.toml`` and
+The archive is an ordinary scan archive (docs/archive.md): ``inspection.toml`` and
 ``frames/NNNNNN.npy``. The ground truth sits in ``ground_truth/``, which archive readers
 ignore:
 

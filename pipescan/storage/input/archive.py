@@ -1,5 +1,5 @@
 """Open scan archives: a directory, a ``.zip``, a ``.tar`` or ``.tar.gz``, locally or at an
-fsspec URL, laid out as the archive contract in DESIGN.md says.
+fsspec URL, laid out as the archive contract (docs/archive.md) says.
 
 :func:`open_archive` extracts a file archive safely into a temporary directory (rejecting
 absolute paths, ``..`` components, links and device files before anything is written),
