@@ -286,6 +286,11 @@ def network_report_figures(engine: sa.Engine, url: str, label: str) -> None:
     )
 
 
+def _short(line: str, width: int = 160) -> str:
+    # A plan line can quote a list of thousands of ids.
+    return line if len(line) <= width else line[: width - 5] + " ..."
+
+
 def explain_network(engine: sa.Engine) -> None:
     """PostgreSQL's plans of the two window-function queries of the network report."""
     with engine.connect() as connection:
@@ -299,7 +304,7 @@ def explain_network(engine: sa.Engine) -> None:
             plan = connection.exec_driver_sql(f"EXPLAIN (ANALYZE, BUFFERS) {sql}").scalars().all()
             print(f"EXPLAIN (ANALYZE, BUFFERS), network report: {title}")
             for line in plan:
-                print(f"    {line}")
+                print(f"    {_short(line)}")
 
 
 def explain(engine: sa.Engine, asset: str) -> None:
@@ -316,7 +321,7 @@ def explain(engine: sa.Engine, asset: str) -> None:
             plan = connection.exec_driver_sql(f"EXPLAIN (ANALYZE, BUFFERS) {sql}").scalars().all()
             print(f"EXPLAIN (ANALYZE, BUFFERS), trend query: {title}")
             for line in plan:
-                print(f"    {line}")
+                print(f"    {_short(line)}")
 
 
 def table_size(engine: sa.Engine) -> str:
@@ -365,13 +370,20 @@ def run_postgres(url: str | None, pipes: int, batch: int, one_by_one: int) -> No
 
 
 def run_sqlite(path: Path, pipes: int, batch: int, one_by_one: int, keep: bool = False) -> None:
-    path.unlink(missing_ok=True)
+    """Write the network into a SQLite file and time the queries; with ``keep``, a file that
+    exists already (from an earlier ``--sqlite-file`` run) is only queried."""
+    reuse = keep and path.exists()
+    if not reuse:
+        path.unlink(missing_ok=True)
     engine = db.connect(f"sqlite:///{path}")
     try:
-        write_network(engine, pipes, "SQLite", batch)
-        write_one_by_one(engine, range(pipes, pipes + one_by_one), "SQLite")
-        with engine.connect() as connection:
-            connection.exec_driver_sql("ANALYZE")
+        if reuse:
+            print(f"SQLite: querying the network already in {path}")
+        else:
+            write_network(engine, pipes, "SQLite", batch)
+            write_one_by_one(engine, range(pipes, pipes + one_by_one), "SQLite")
+            with engine.connect() as connection:
+                connection.exec_driver_sql("ANALYZE")
         print(f"SQLite file: {path.stat().st_size / 1e6:,.0f} MB")
         query_figures(engine, pipes, "SQLite")
         network_report_figures(engine, f"sqlite:///{path}", "SQLite")
@@ -394,7 +406,10 @@ def main() -> None:
         "--sqlite-dir", type=Path, default=None, help="where the SQLite file goes (default: tmp)"
     )
     parser.add_argument(
-        "--sqlite-file", type=Path, default=None, help="write the SQLite database here and keep it"
+        "--sqlite-file",
+        type=Path,
+        default=None,
+        help="write the SQLite database here and keep it; if it exists, only time the queries",
     )
     parser.add_argument(
         "--batch", type=int, default=20, help="pipes per bulk transaction (default 20)"

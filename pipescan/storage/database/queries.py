@@ -18,7 +18,9 @@ Two rules hold throughout:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
@@ -36,6 +38,7 @@ from pipescan.storage.database.repository import (
 )
 
 __all__ = [
+    "ScanRecord",
     "defect_counts",
     "earlier_inspections",
     "earlier_scans",
@@ -82,8 +85,8 @@ def earlier_scans_statement(
     Each inspection is joined to its asset's inspections that come before it and hold another
     archive; ``row_number()`` keeps each archive's latest save, then numbers the scans newest
     first, and ``limit`` keeps that many per inspection. Named columns: ``of_id`` (the given
-    inspection), ``earlier_id`` and ``recency`` (1 for the previous scan), ordered by
-    ``of_id`` and ``recency``.
+    inspection), ``recency`` (1 for the previous scan) and the fields of :class:`ScanRecord`,
+    ordered by ``of_id`` and ``recency``.
     """
     target = Inspection.__table__.alias("target")
     earlier = Inspection.__table__.alias("earlier")
@@ -96,6 +99,10 @@ def earlier_scans_statement(
             target.c.id.label("of_id"),
             earlier.c.id.label("earlier_id"),
             earlier.c.inspected_at,
+            earlier.c.content_hash,
+            earlier.c.measured_section_count,
+            earlier.c.mean_blockage_ratio,
+            earlier.c.peak_blockage_ratio,
             sa.func.row_number()
             .over(partition_by=(target.c.id, earlier.c.content_hash), order_by=earlier.c.id.desc())
             .label("save_rank"),
@@ -116,7 +123,12 @@ def earlier_scans_statement(
     scans = (
         sa.select(
             pairs.c.of_id,
-            pairs.c.earlier_id,
+            pairs.c.earlier_id.label("id"),
+            pairs.c.inspected_at,
+            pairs.c.content_hash,
+            pairs.c.measured_section_count,
+            pairs.c.mean_blockage_ratio,
+            pairs.c.peak_blockage_ratio,
             sa.func.row_number()
             .over(
                 partition_by=pairs.c.of_id,
@@ -127,15 +139,28 @@ def earlier_scans_statement(
         .where(pairs.c.save_rank == 1)
         .subquery("scans")
     )
-    statement = sa.select(scans.c.of_id, scans.c.earlier_id, scans.c.recency)
+    statement = sa.select(*scans.c)
     if limit is not None:
         statement = statement.where(scans.c.recency <= limit)
     return statement.order_by(scans.c.of_id, scans.c.recency)
 
 
+@dataclass(frozen=True)
+class ScanRecord:
+    """An earlier scan of a pipe, as its history needs it: when, and its stored blockage
+    summary (see :class:`~pipescan.storage.database.repository.InspectionRecord`)."""
+
+    id: int
+    inspected_at: datetime
+    content_hash: str
+    measured_section_count: int
+    mean_blockage_ratio: float | None
+    peak_blockage_ratio: float | None
+
+
 def earlier_scans(
     engine: Engine, inspection_ids: Sequence[int], *, limit: int | None = None
-) -> dict[int, list[InspectionRecord]]:
+) -> dict[int, list[ScanRecord]]:
     """The earlier scans of each inspection's pipe, most recent first (see the module's rules).
 
     Parameters
@@ -150,21 +175,21 @@ def earlier_scans(
     dict
         Inspection id to its pipe's earlier scans, newest first.
     """
-    found: dict[int, list[InspectionRecord]] = {i: [] for i in inspection_ids}
+    found: dict[int, list[ScanRecord]] = {i: [] for i in inspection_ids}
     if not inspection_ids:
         return found
+    fields = [f.name for f in dataclasses.fields(ScanRecord)]
     with session_scope(engine) as session:
-        pairs = session.execute(earlier_scans_statement(inspection_ids, limit=limit)).all()
-        wanted = sorted({p.earlier_id for p in pairs})
-        records = {r.id: r for r in inspection_records(session, record_statement(wanted))}
-    for p in pairs:
-        found[p.of_id].append(records[p.earlier_id])
+        for row in session.connection().execute(
+            earlier_scans_statement(inspection_ids, limit=limit)
+        ):
+            found[row.of_id].append(ScanRecord(*(getattr(row, f) for f in fields)))
     return found
 
 
 def earlier_inspections(
     engine: Engine, inspection_id: int, *, limit: int | None = None
-) -> list[InspectionRecord]:
+) -> list[ScanRecord]:
     """The earlier scans of the same asset as this inspection, most recent first (see the
     module's rules): its trend history.
 
@@ -184,7 +209,7 @@ def earlier_inspections(
 
 def previous_inspections(
     engine: Engine, records: Sequence[InspectionRecord]
-) -> dict[int, InspectionRecord]:
+) -> dict[int, ScanRecord]:
     """For each inspection, its pipe's previous scan, if any (see the module's rules).
 
     Returns
@@ -261,6 +286,8 @@ def section_profiles(
         Section.deformation_ratio,
         Section.deposit_height_ratio,
         Section.grade,
+        # Named, so that section_from_row finds it (None) without a failed lookup per row.
+        sa.null().label("contour_json"),
     )
     statement = (
         sa.select(*columns)
