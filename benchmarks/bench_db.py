@@ -17,8 +17,10 @@ with PostgreSQL's default durability (fsync and synchronous commit on), and dele
 
 Then, on each database after ``ANALYZE``: the time of one asset's trend (the two queries alone
 and the whole ``asset_trend`` with alignment and slopes), of ``worst --by growth`` and
-``--by current``, and PostgreSQL's ``EXPLAIN (ANALYZE, BUFFERS)`` of the trend queries, to show
-they use indexes. Every figure is printed; nothing is asserted.
+``--by current``, of the network report's queries (the latest inspection of each asset and the
+earlier scans of each, both window functions; their sections; the whole input of the report),
+and PostgreSQL's ``EXPLAIN (ANALYZE, BUFFERS)`` of the trend and network queries, to show they
+use indexes. Every figure is printed; nothing is asserted.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus  # noqa: E402
-from pipescan.storage.database import db, repository, trends  # noqa: E402
+from pipescan.storage.database import db, queries, repository, trends  # noqa: E402
 from pipescan.storage.database.models import Inspection  # noqa: E402
 
 PIPES = 2000
@@ -251,6 +253,60 @@ def query_figures(engine: sa.Engine, pipes: int, label: str) -> None:
         )
 
 
+def network_report_figures(engine: sa.Engine, url: str, label: str) -> None:
+    """The network report's queries over the whole network: the latest inspection of each
+    asset, the earlier scans of each (window functions), their sections without contours, the
+    defect counts, and all of it as the report task gathers it (``load_network_input``)."""
+    from pipescan.tasks.reporting import load_network_input
+
+    latest = queries.network_inspections(engine)
+    ids = [r.id for r in latest]
+    history = queries.earlier_scans(engine, ids)
+    steps = (
+        ("latest inspection of each asset", lambda: queries.network_inspections(engine)),
+        ("earlier scans of each (history)", lambda: queries.earlier_scans(engine, ids)),
+        ("their sections, no contours", lambda: queries.section_profiles(engine, ids)),
+        ("defect counts", lambda: queries.defect_counts(engine, ids)),
+        ("all, as the report task reads it", lambda: load_network_input(url)),
+    )
+    rows = sum(len(v) for v in queries.section_profiles(engine, ids[:1]).values())
+    print(
+        f"{label} network report queries: {len(latest):,} assets, "
+        f"{sum(len(h) for h in history.values()):,} earlier scans, about {rows * len(ids):,} "
+        "section rows read"
+    )
+    for title, fn in steps:
+        median, best = timed(fn, 3)
+        print(f"    {title}: median {median:,.0f} ms, best {best:,.0f} ms")
+    one = ids[len(ids) // 2]
+    median, best = timed(lambda: queries.earlier_inspections(engine, one, limit=4), 20)
+    print(
+        f"{label} one inspection report's history (earlier scans, 4): median {median:.1f} ms,"
+        f" best {best:.1f} ms"
+    )
+
+
+def _short(line: str, width: int = 160) -> str:
+    # A plan line can quote a list of thousands of ids.
+    return line if len(line) <= width else line[: width - 5] + " ..."
+
+
+def explain_network(engine: sa.Engine) -> None:
+    """PostgreSQL's plans of the two window-function queries of the network report."""
+    with engine.connect() as connection:
+        latest = queries.latest_per_asset_statement()
+        ids = connection.scalars(latest).all()
+        for title, statement in (
+            ("latest inspection of each asset", latest),
+            ("earlier scans of each", queries.earlier_scans_statement(ids)),
+        ):
+            sql = statement.compile(connection, compile_kwargs={"literal_binds": True})
+            plan = connection.exec_driver_sql(f"EXPLAIN (ANALYZE, BUFFERS) {sql}").scalars().all()
+            print(f"EXPLAIN (ANALYZE, BUFFERS), network report: {title}")
+            for line in plan:
+                print(f"    {_short(line)}")
+
+
 def explain(engine: sa.Engine, asset: str) -> None:
     with engine.connect() as connection:
         ids = connection.scalars(sa.select(Inspection.id).where(Inspection.asset_id == asset)).all()
@@ -265,7 +321,7 @@ def explain(engine: sa.Engine, asset: str) -> None:
             plan = connection.exec_driver_sql(f"EXPLAIN (ANALYZE, BUFFERS) {sql}").scalars().all()
             print(f"EXPLAIN (ANALYZE, BUFFERS), trend query: {title}")
             for line in plan:
-                print(f"    {line}")
+                print(f"    {_short(line)}")
 
 
 def table_size(engine: sa.Engine) -> str:
@@ -303,7 +359,9 @@ def run_postgres(url: str | None, pipes: int, batch: int, one_by_one: int) -> No
                 )
             print(f"PostgreSQL sections table with its indexes: {table_size(engine)}")
             query_figures(engine, pipes, "PostgreSQL")
+            network_report_figures(engine, database_url, "PostgreSQL")
             explain(engine, asset_id(pipes // 2))
+            explain_network(engine)
         finally:
             engine.dispose()
     finally:
@@ -311,20 +369,29 @@ def run_postgres(url: str | None, pipes: int, batch: int, one_by_one: int) -> No
             cluster.stop()
 
 
-def run_sqlite(path: Path, pipes: int, batch: int, one_by_one: int) -> None:
-    path.unlink(missing_ok=True)
+def run_sqlite(path: Path, pipes: int, batch: int, one_by_one: int, keep: bool = False) -> None:
+    """Write the network into a SQLite file and time the queries; with ``keep``, a file that
+    exists already (from an earlier ``--sqlite-file`` run) is only queried."""
+    reuse = keep and path.exists()
+    if not reuse:
+        path.unlink(missing_ok=True)
     engine = db.connect(f"sqlite:///{path}")
     try:
-        write_network(engine, pipes, "SQLite", batch)
-        write_one_by_one(engine, range(pipes, pipes + one_by_one), "SQLite")
-        with engine.connect() as connection:
-            connection.exec_driver_sql("ANALYZE")
+        if reuse:
+            print(f"SQLite: querying the network already in {path}")
+        else:
+            write_network(engine, pipes, "SQLite", batch)
+            write_one_by_one(engine, range(pipes, pipes + one_by_one), "SQLite")
+            with engine.connect() as connection:
+                connection.exec_driver_sql("ANALYZE")
         print(f"SQLite file: {path.stat().st_size / 1e6:,.0f} MB")
         query_figures(engine, pipes, "SQLite")
+        network_report_figures(engine, f"sqlite:///{path}", "SQLite")
     finally:
         engine.dispose()
         for suffix in ("", "-wal", "-shm"):
-            Path(f"{path}{suffix}").unlink(missing_ok=True)
+            if not keep:
+                Path(f"{path}{suffix}").unlink(missing_ok=True)
 
 
 def main() -> None:
@@ -339,6 +406,12 @@ def main() -> None:
         "--sqlite-dir", type=Path, default=None, help="where the SQLite file goes (default: tmp)"
     )
     parser.add_argument(
+        "--sqlite-file",
+        type=Path,
+        default=None,
+        help="write the SQLite database here and keep it; if it exists, only time the queries",
+    )
+    parser.add_argument(
         "--batch", type=int, default=20, help="pipes per bulk transaction (default 20)"
     )
     args = parser.parse_args()
@@ -351,7 +424,9 @@ def main() -> None:
     )
     if not args.skip_postgres:
         run_postgres(args.pg_url, pipes, args.batch, one_by_one)
-    if not args.skip_sqlite:
+    if not args.skip_sqlite and args.sqlite_file is not None:
+        run_sqlite(args.sqlite_file, pipes, args.batch, one_by_one, keep=True)
+    elif not args.skip_sqlite:
         with tempfile.TemporaryDirectory(dir=args.sqlite_dir) as tmp:
             run_sqlite(Path(tmp) / "bench.db", pipes, args.batch, one_by_one)
 

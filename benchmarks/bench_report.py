@@ -23,8 +23,9 @@ from pathlib import Path
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
 from pipescan.core.model import SectionStatus
+from pipescan.core.summary import peak_blockage
 from pipescan.reports.context import build_context
-from pipescan.reports.network import NetworkInput, PipeInspection
+from pipescan.reports.network import EarlierScan, NetworkInput, PipeInspection
 from pipescan.reports.render import (
     _environment,
     render_network_pdf,
@@ -114,9 +115,7 @@ def main() -> None:
                 inspected_at=base.inspected_at,
                 sections=base.sections,
                 defect_count=len(base.defects),
-                previous_inspection_id=1000 + k,
-                previous_inspected_at=h.inspected_at,
-                previous_sections=h.sections,
+                earlier=[EarlierScan(1000 + k, h.inspected_at, _peak(h.sections))],
             )
         )
     network = NetworkInput(pipes=pipes, generated_at=base.generated_at, software_version="bench")
@@ -125,6 +124,11 @@ def main() -> None:
     print(
         f"network summary, {len(pipes)} pipes of {length_m:g} m: {time.perf_counter() - t0:.2f} s"
     )
+
+
+def _peak(sections) -> float | None:
+    peak = peak_blockage(sections)
+    return None if peak is None else peak.blockage_ratio
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from pipescan.core.axis import fit_axis
+from pipescan.core.contour import CONTOUR_METHODS
 from pipescan.core.measures import MeasureParams
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.simulator.scan import BoxObstacle, get_scenario, simulate_scan
@@ -84,7 +85,7 @@ def accuracy(seeds: list[int]) -> None:
         truth = {round(t.chainage_start_m, 1): t for t in scan.true_sections()}
         points, start, last = registered_cloud_true_poses(scan)
         axis = fit_axis(points, start_m=start, travel_m=last - start)
-        for method in ("polar", "grid"):
+        for method in CONTOUR_METHODS:
             t0 = time.perf_counter()
             sections = measure_all(points, axis, scan.scenario.nominal_diameter_m, method)
             elapsed = time.perf_counter() - t0
@@ -165,7 +166,7 @@ def real_scan() -> None:
     print(
         f"axis direction {np.round(axis.direction, 3).tolist()}, wall radius {axis.radius_m:.4f} m"
     )
-    for method in ("polar", "grid"):
+    for method in CONTOUR_METHODS:
         sections = measure_all(points, axis, 0.8, method)
         print(f"\n### {method}")
         print(
@@ -198,7 +199,7 @@ def throughput() -> None:
     axis = fit_axis(points, start_m=start, travel_m=last - start)
     recording_s = len(scan.times_s) / scan.scenario.frame_rate_hz
     split = split_windows(points, axis)
-    for method in ("polar", "grid"):
+    for method in CONTOUR_METHODS:
         walls, cpus = [], []
         for _ in range(3):
             t0, c0 = time.perf_counter(), time.process_time()

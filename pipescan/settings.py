@@ -29,7 +29,9 @@ class Settings(BaseSettings):
         Path(".pipescan-work"), description="scratch space for extracted archives and buckets"
     )
     reports_dir: Path = Field(Path("reports"), description="where reports are written by default")
-    contour_method: Literal["polar", "grid"] = "polar"
+    contour_method: str = Field(
+        "polar", description="a name in pipescan.core.contour.CONTOUR_METHODS (polar, grid)"
+    )
     grid_k: int = Field(12, ge=3, description="grid method: neighbours in the angle-gap test")
     grid_s_threshold_rad: float = Field(
         0.55, gt=0, description="grid method: angle-gap standard deviation S of a boundary point"

@@ -26,5 +26,7 @@ if [[ ! -x .venv/bin/python ]]; then
 fi
 echo "bootstrap: installing pipescan and its test tools into .venv"
 .venv/bin/python -m pip install -q --upgrade pip
-.venv/bin/python -m pip install -q -e '.[test]'
+# setuptools says "Editable installation" as a warning on every editable install: information
+# only (pypa/packaging-problems#558), so it is filtered out here.
+PYTHONWARNINGS="ignore:Editable installation" .venv/bin/python -m pip install -q -e '.[test]'
 echo "bootstrap: ready"

@@ -1,4 +1,5 @@
-"""The layering of DESIGN.md (import-linter) and the lint rules hold for the whole tree."""
+"""The layering (import-linter contracts in pyproject.toml), the lint rules and the docs build
+hold for the whole tree."""
 
 from __future__ import annotations
 

@@ -140,7 +140,7 @@ def save(engine: sa.Engine, **changes: object) -> int:
         "scanned_length_m": 0.5,
     }
     arguments.update(changes)
-    return repository.save_inspection(engine, **arguments)  # type: ignore[arg-type]
+    return repository.save_inspection(engine, repository.InspectionToSave(**arguments))  # type: ignore[arg-type]
 
 
 def count_rows(engine: sa.Engine, table: str) -> int:

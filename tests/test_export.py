@@ -18,7 +18,7 @@ from pipescan.core.model import Defect, InspectionMeta, SectionMeasures, Section
 from pipescan.storage.database import db, export, repository
 from pipescan.storage.database.models import Section
 
-DESIGN_COLUMNS = (
+DOCUMENTED_COLUMNS = (
     "asset_id,inspection_id,inspected_at,chainage_start_m,chainage_end_m,open_area_m2,"
     "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
     "coverage_ratio,point_count,status,grade"
@@ -68,17 +68,19 @@ DEFECT = Defect(
 def _save(engine: sa.Engine, asset_id: str, year: int, content_hash: str) -> int:
     return repository.save_inspection(
         engine,
-        meta=InspectionMeta(
-            asset_id=asset_id,
-            inspected_at=datetime(year, 5, 17, 9, 30, tzinfo=UTC),
-            nominal_diameter_m=0.6,
+        repository.InspectionToSave(
+            meta=InspectionMeta(
+                asset_id=asset_id,
+                inspected_at=datetime(year, 5, 17, 9, 30, tzinfo=UTC),
+                nominal_diameter_m=0.6,
+            ),
+            archive_uri=f"/scans/{asset_id}-{year}.zip",
+            content_hash=content_hash,
+            params={"section_step_m": 0.1},
+            software_version="0.1.0",
+            sections=[MEASURED, UNMEASURED],
+            defects=[DEFECT],
         ),
-        archive_uri=f"/scans/{asset_id}-{year}.zip",
-        content_hash=content_hash,
-        params={"section_step_m": 0.1},
-        software_version="0.1.0",
-        sections=[MEASURED, UNMEASURED],
-        defects=[DEFECT],
     )
 
 
@@ -97,7 +99,7 @@ def ids(engine: sa.Engine) -> dict[str, int]:
 
 
 def test_section_columns_are_the_design_names() -> None:
-    assert ",".join(export.SECTION_CSV_COLUMNS) == DESIGN_COLUMNS
+    assert ",".join(export.SECTION_CSV_COLUMNS) == DOCUMENTED_COLUMNS
 
 
 def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
@@ -106,7 +108,7 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
     lines = out.getvalue().splitlines()
     assert written == 2
     assert len(lines) == 3
-    assert lines[0] == DESIGN_COLUMNS
+    assert lines[0] == DOCUMENTED_COLUMNS
     measured, unmeasured = (
         dict(zip(export.SECTION_CSV_COLUMNS, r, strict=True)) for r in csv.reader(lines[1:])
     )

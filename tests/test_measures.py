@@ -10,13 +10,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from pipescan.core.contour import (
-    GridParams,
-    angle_gap_std,
-    grid_cell_size,
-    polar_profile,
-    polygon_area,
-    remove_stray_points,
+    CONTOUR_METHODS,
+    DEFAULT_CONTOUR_METHOD,
+    check_contour_method,
+    contour_method,
 )
+from pipescan.core.contour.base import ContourResult, polygon_area, remove_stray_points
+from pipescan.core.contour.grid import GridParams, angle_gap_std, grid_cell_size
+from pipescan.core.contour.polar import polar_profile
+from pipescan.core.errors import OptionError
 from pipescan.core.measures import MeasureParams, measure_section
 from pipescan.core.model import SectionStatus
 from tests.synthetic import ring_section, segment_area_ratio
@@ -94,7 +96,7 @@ def test_too_few_points_and_empty():
     assert empty.blockage_ratio is None
 
 
-@pytest.mark.parametrize("method", ["polar", "grid"])
+@pytest.mark.parametrize("method", list(CONTOUR_METHODS))
 def test_single_stray_point_does_not_move_the_figure(method):
     rng = np.random.default_rng(7)
     pts = ring_section(5_000, noise_m=0.002, rng=rng)
@@ -102,6 +104,75 @@ def test_single_stray_point_does_not_move_the_figure(method):
     for stray in ([0.0, 0.0], [0.05, 0.1], [-0.2, 0.0]):
         moved = measure(np.vstack((pts, [stray])), method=method).blockage_ratio
         assert moved == pytest.approx(base, abs=1e-9)
+
+
+# --- the registry of contour methods -------------------------------------------------------
+
+
+@pytest.mark.parametrize("method", list(CONTOUR_METHODS))
+@pytest.mark.parametrize("deposit_m", [0.0, 0.08])
+def test_every_registered_method_measures_a_ring_with_a_deposit(method, deposit_m):
+    rng = np.random.default_rng(11)
+    m = measure(ring_section(20_000, noise_m=0.001, deposit_m=deposit_m, rng=rng), method=method)
+    assert m.status == SectionStatus.OK
+    # Within 3 points of the true segment area (the grid method's boundary lies a few mm
+    # inside a noisy wall).
+    assert m.blockage_ratio == pytest.approx(segment_area_ratio(deposit_m, R), abs=0.03)
+    assert m.contour_m.ndim == 2 and m.contour_m.shape[1] == 2
+    assert m.open_area_m2 == pytest.approx(polygon_area(m.contour_m), rel=0.01)
+
+
+@pytest.mark.parametrize("method", list(CONTOUR_METHODS))
+def test_every_registered_method_returns_the_one_result_type(method):
+    rng = np.random.default_rng(12)
+    pts = ring_section(20_000, noise_m=0.001, rng=rng)
+    profile = polar_profile(pts, bins=180)
+    result = contour_method(method)(pts, profile, MeasureParams(method=method))
+    assert isinstance(result, ContourResult)
+    assert result.radii_m.shape == profile.angles_rad.shape
+    assert np.nanmedian(result.radii_m) == pytest.approx(R, abs=0.005)
+    assert result.area_m2 == pytest.approx(np.pi * R**2, rel=0.03)
+
+
+def test_unknown_contour_methods_are_refused_with_the_known_ones():
+    for build in (
+        lambda: MeasureParams(method="polr"),
+        lambda: contour_method("polr"),
+        lambda: check_contour_method("Polar"),
+    ):
+        with pytest.raises(OptionError) as caught:
+            build()
+        assert "unknown contour method" in str(caught.value)
+        assert ", ".join(CONTOUR_METHODS) in str(caught.value)
+
+
+def contour(points, profile, params):
+    """A contour method for the test below: the nominal circle, whatever the points."""
+    angles = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    circle = R * np.column_stack((np.cos(angles), np.sin(angles)))
+    return ContourResult(circle, float(np.pi * R**2), np.full(len(profile.angles_rad), R))
+
+
+def test_a_new_method_is_one_module_and_one_registry_line(monkeypatch):
+    # This test module is the new method's module (its ``contour`` above): one line registers
+    # it, and measure_section uses it; coverage is still judged outside the method.
+    monkeypatch.setitem(CONTOUR_METHODS, "circle", __name__)
+    rng = np.random.default_rng(13)
+    blocked = measure(ring_section(20_000, deposit_m=0.1, rng=rng), method="circle")
+    assert blocked.status == SectionStatus.OK and blocked.blockage_ratio == pytest.approx(0.0)
+    shadowed = measure(ring_section(20_000, gap_deg=(60, 120), rng=rng), method="circle")
+    assert shadowed.status == SectionStatus.LOW_COVERAGE
+    assert shadowed.coverage_ratio == pytest.approx(300 / 360, abs=0.01)
+
+
+@pytest.mark.parametrize("method", list(CONTOUR_METHODS))
+def test_coverage_is_judged_once_whatever_the_method(method):
+    rng = np.random.default_rng(5)
+    pts = ring_section(20_000, gap_deg=(60, 120), rng=rng)
+    m = measure(pts, method=method)
+    reference = measure(pts, method=DEFAULT_CONTOUR_METHOD)
+    assert m.status == SectionStatus.LOW_COVERAGE
+    assert m.coverage_ratio == reference.coverage_ratio
 
 
 def test_remove_stray_points_keeps_the_wall():
@@ -168,8 +239,6 @@ def test_blockage_grows_with_deposit_height(h1, h2):
 
 
 def test_polygon_area_of_a_self_crossing_chain_counts_both_loops():
-    from pipescan.core.contour import polygon_area
-
     bow_tie = np.array([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0]])
     # Shoelace gives 0 for this figure-eight; its two triangles hold 0.5 m².
     assert polygon_area(bow_tie) == pytest.approx(0.5)

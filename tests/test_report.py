@@ -27,7 +27,7 @@ from pipescan.reports import (
 )
 from pipescan.reports.charts import blockage_chart_svg, cross_section_svg
 from pipescan.reports.context import APPENDIX_ALL_MAX_SECTIONS, fmt_pct
-from pipescan.reports.network import NetworkInput, PipeInspection, summarise
+from pipescan.reports.network import EarlierScan, NetworkInput, PipeInspection, summarise
 from pipescan.reports.sample import Feature, sample_input, sample_sections
 
 pypdf = pytest.importorskip("pypdf")
@@ -419,11 +419,11 @@ def _pipe(
         inspected_at=datetime(2025, 6, 1, tzinfo=UTC),
         sections=sections(blockage_now),
         defect_count=int(blockage_now >= 0.10),
-        previous_inspection_id=0 if blockage_before is not None else None,
-        previous_inspected_at=(
-            datetime(2023, 6, 1, tzinfo=UTC) if blockage_before is not None else None
+        earlier=(
+            [EarlierScan(0, datetime(2023, 6, 1, tzinfo=UTC), blockage_before)]
+            if blockage_before is not None
+            else []
         ),
-        previous_sections=sections(blockage_before) if blockage_before is not None else (),
     )
 
 
@@ -435,7 +435,7 @@ def test_network_summary_ranks_by_grade_and_by_growth(tmp_path):
         _pipe("D1-D2", 0.03, 0.03),  # class 4, no growth
     ]
     b = summarise(pipes[1])
-    assert b.growth_ratio == pytest.approx(0.10) and b.growth_at_m == pytest.approx(0.7)
+    assert b.change_ratio == pytest.approx(0.10) and b.max_blockage_at_m == pytest.approx(0.7)
     assert b.growth_per_year_ratio == pytest.approx(0.10 / (731 / 365.25))  # 2024 is a leap year
     inp = NetworkInput(
         pipes=pipes,
@@ -452,7 +452,8 @@ def test_network_summary_ranks_by_grade_and_by_growth(tmp_path):
     assert [g["count"] for g in ctx["grade_counts"]] == [1, 0, 1, 1, 1]
     text = re.sub(r"\s+", " ", pdf_text(render_network_pdf(inp, tmp_path / "net.pdf")))
     assert re.search(r"1 C1-C2 .*? 0 55\.0 0\.70", text), text[:3000]
-    assert re.search(r"1 B1-B2 .*?\+10\.0 0\.70 \+5\.0 12\.0 2\.0 3", text), text[:4000]
+    # growth per year, inspections, change, largest blockage now and before, worst class
+    assert re.search(r"1 B1-B2 .*?\+5\.0 2 \+10\.0 12\.0 2\.0 3", text), text[:4000]
     assert "Inspected for the first time (no growth figure): C1-C2" in text
 
 
@@ -471,30 +472,32 @@ def save_sample(database_url: str, inp: ReportInput, *, content_hash: str) -> in
     """Store a report input as an inspection (its sections, defects and parameters)."""
     from pipescan.core.model import InspectionMeta
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.repository import save_inspection
+    from pipescan.storage.database.repository import InspectionToSave, save_inspection
 
     engine = connect(database_url)
     try:
         return save_inspection(
             engine,
-            meta=InspectionMeta(
-                asset_id=inp.asset_id,
-                inspected_at=inp.inspected_at,
-                nominal_diameter_m=inp.nominal_diameter_m,
-                upstream_node=inp.upstream_node,
-                downstream_node=inp.downstream_node,
-                material=inp.material,
+            InspectionToSave(
+                meta=InspectionMeta(
+                    asset_id=inp.asset_id,
+                    inspected_at=inp.inspected_at,
+                    nominal_diameter_m=inp.nominal_diameter_m,
+                    upstream_node=inp.upstream_node,
+                    downstream_node=inp.downstream_node,
+                    material=inp.material,
+                ),
+                archive_uri=inp.archive_uri,
+                content_hash=content_hash,
+                params=PARAMS,
+                software_version="0.1.0",
+                sections=inp.sections,
+                defects=inp.defects,
+                threshold_table="vsa-2023",
+                point_count=inp.point_count,
+                frame_count=inp.frame_count,
+                scanned_length_m=inp.scanned_length_m,
             ),
-            archive_uri=inp.archive_uri,
-            content_hash=content_hash,
-            params=PARAMS,
-            software_version="0.1.0",
-            sections=inp.sections,
-            defects=inp.defects,
-            threshold_table="vsa-2023",
-            point_count=inp.point_count,
-            frame_count=inp.frame_count,
-            scanned_length_m=inp.scanned_length_m,
         )
     finally:
         engine.dispose()

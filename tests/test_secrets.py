@@ -80,17 +80,19 @@ SECTION = SectionMeasures(
 def _save(engine: sa.Engine, asset_id: str, archive_uri: str) -> int:
     return repository.save_inspection(
         engine,
-        meta=InspectionMeta(
-            asset_id=asset_id,
-            inspected_at=datetime(2025, 3, 14, tzinfo=UTC),
-            nominal_diameter_m=0.5,
+        repository.InspectionToSave(
+            meta=InspectionMeta(
+                asset_id=asset_id,
+                inspected_at=datetime(2025, 3, 14, tzinfo=UTC),
+                nominal_diameter_m=0.5,
+            ),
+            archive_uri=archive_uri,
+            content_hash="h1",
+            params={"step_m": 0.1},
+            software_version="0.1.0",
+            sections=[SECTION],
+            defects=[],
         ),
-        archive_uri=archive_uri,
-        content_hash="h1",
-        params={"step_m": 0.1},
-        software_version="0.1.0",
-        sections=[SECTION],
-        defects=[],
     )
 
 

@@ -9,8 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from collections.abc import Sequence
 from datetime import UTC, datetime, timedelta
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,13 +20,14 @@ import sqlalchemy as sa
 from typer.testing import CliRunner
 
 from pipescan.cli import app
+from pipescan.core import trends as core_trends
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage.database import db, repository, trends
 from tests.conftest import is_sqlite
 
 STEP_M = 0.1
 NOMINAL_AREA_M2 = math.pi * 0.3**2
-YEAR = timedelta(days=365.25)  # the year of trends._SECONDS_PER_YEAR
+YEAR = timedelta(days=365.25)  # the year of core.trends.SECONDS_PER_YEAR
 T0 = datetime(2022, 5, 17, 9, 0, tzinfo=UTC)
 
 
@@ -69,13 +72,15 @@ def save(
 ) -> int:
     return repository.save_inspection(
         engine,
-        meta=InspectionMeta(asset_id=asset_id, inspected_at=when, nominal_diameter_m=0.6),
-        archive_uri=f"/scans/{asset_id}-{when.date()}.zip",
-        content_hash=content_hash or f"sha256:{asset_id}-{when.isoformat()}",
-        params=params or {"section_step_m": STEP_M},
-        software_version="0.1.0",
-        sections=sections,
-        defects=[],
+        repository.InspectionToSave(
+            meta=InspectionMeta(asset_id=asset_id, inspected_at=when, nominal_diameter_m=0.6),
+            archive_uri=f"/scans/{asset_id}-{when.date()}.zip",
+            content_hash=content_hash or f"sha256:{asset_id}-{when.isoformat()}",
+            params=params or {"section_step_m": STEP_M},
+            software_version="0.1.0",
+            sections=sections,
+            defects=[],
+        ),
     )
 
 
@@ -140,7 +145,7 @@ def test_robust_slopes_resist_an_outlier() -> None:
     wild = line.copy()
     wild[4] = 0.9  # one bad survey, the latest
     values = np.column_stack([line, wild, np.full(5, np.nan), [np.nan, 0.2, np.nan, np.nan, 0.5]])
-    slopes = trends.robust_slopes(times, values)
+    slopes = core_trends.robust_slopes(times, values)
     assert slopes[0] == pytest.approx(0.03, abs=1e-12)
     assert slopes[1] == pytest.approx(0.03, abs=1e-12)
     assert np.polyfit(times, wild, 1)[0] > 0.1  # where least squares follows the outlier
@@ -152,11 +157,11 @@ def test_robust_slopes_skip_simultaneous_pairs() -> None:
     times = np.array([0.0, 0.0, 2.0])
     values = np.array([[0.1], [0.3], [0.5]])
     # Pairs (0,2) and (1,2): slopes 0.2 and 0.1; the pair at the same time has none.
-    assert trends.robust_slopes(times, values)[0] == pytest.approx(0.15)
-    assert trends.robust_slope([1.0, 1.0], [0.1, 0.2]) is None
-    assert trends.robust_slope([0.0, 2.0, 4.0], [0.1, None, 0.3]) == pytest.approx(0.05)
+    assert core_trends.robust_slopes(times, values)[0] == pytest.approx(0.15)
+    assert core_trends.robust_slope([1.0, 1.0], [0.1, 0.2]) is None
+    assert core_trends.robust_slope([0.0, 2.0, 4.0], [0.1, None, 0.3]) == pytest.approx(0.05)
     with pytest.raises(ValueError, match=r"shape \(N, K\)"):
-        trends.robust_slopes(np.arange(3.0), np.zeros((4, 2)))
+        core_trends.robust_slopes(np.arange(3.0), np.zeros((4, 2)))
 
 
 @pytest.mark.parametrize("lag", [-7, -3, 0, 2, 5])
@@ -168,7 +173,7 @@ def test_estimate_offset_recovers_a_known_shift(lag: int) -> None:
     # ``lag`` cells, with noise and a gap: profile[k] is the pipe at reference cell k + lag.
     profile = true_blockage(x + lag * STEP_M, 2) + rng.normal(0, 0.005, x.size)
     profile[140:160] = np.nan
-    found, correlation = trends.estimate_offset(reference, profile, max_lag=10)
+    found, correlation = core_trends.estimate_offset(reference, profile, max_lag=10)
     assert found == lag
     assert correlation is not None and correlation > 0.9
 
@@ -176,13 +181,13 @@ def test_estimate_offset_recovers_a_known_shift(lag: int) -> None:
 def test_estimate_offset_keeps_featureless_profiles_in_place() -> None:
     rng = np.random.default_rng(3)
     flat = np.full(200, 0.02)
-    assert trends.estimate_offset(flat, flat.copy(), max_lag=10) == (0, None)
+    assert core_trends.estimate_offset(flat, flat.copy(), max_lag=10) == (0, None)
     noise_a, noise_b = rng.normal(0, 0.01, 200), rng.normal(0, 0.01, 200)
-    lag, correlation = trends.estimate_offset(noise_a, noise_b, max_lag=10)
+    lag, correlation = core_trends.estimate_offset(noise_a, noise_b, max_lag=10)
     assert lag == 0
-    assert correlation is None or correlation < trends.MIN_CORRELATION
+    assert correlation is None or correlation < core_trends.MIN_CORRELATION
     # Too little overlap: nothing to go on.
-    assert trends.estimate_offset(np.arange(5.0), np.arange(5.0), max_lag=2) == (0, None)
+    assert core_trends.estimate_offset(np.arange(5.0), np.arange(5.0), max_lag=2) == (0, None)
 
 
 def test_rasterise_puts_sections_on_the_grid() -> None:
@@ -190,7 +195,7 @@ def test_rasterise_puts_sections_on_the_grid() -> None:
     start = np.array([0, 200, 600])
     end = np.array([200, 400, 800])
     values = np.array([0.1, np.nan, 0.3])
-    grid = trends.rasterise(start, end, values, first_cell=-2, cell_count=10, step_mm=100)
+    grid = core_trends.rasterise(start, end, values, first_cell=-2, cell_count=10, step_mm=100)
     expected = [np.nan, np.nan, 0.1, 0.1, np.nan, np.nan, np.nan, np.nan, 0.3, 0.3]
     np.testing.assert_array_equal(grid, expected)
 
@@ -229,7 +234,9 @@ def test_trend_aligns_surveys_and_recovers_change_per_year(
     # section centre 0.05 m from the deposit's.
     assert result.peak_change_per_year == pytest.approx(0.05 * bump(np.array(0.05), 0, 0.3))
     assert result.mean_change_per_year == pytest.approx(
-        trends.robust_slope([i for i in range(4)], [s.mean_blockage_ratio for s in result.surveys])
+        core_trends.robust_slope(
+            [i for i in range(4)], [s.mean_blockage_ratio for s in result.surveys]
+        )
     )
 
 
@@ -352,6 +359,65 @@ def test_worst_by_current(engine: sa.Engine, network: dict[str, float]) -> None:
         trends.worst_assets(engine, by="size")  # type: ignore[arg-type]
     with pytest.raises(db.StorageError, match="limit"):
         trends.worst_assets(engine, limit=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# One growth figure for every output (SQLite and PostgreSQL)
+
+GROWTH = {"G1": 0.10, "G2": 0.0, "G3": -0.05, "G4": 0.05}  # peak blockage, ratio per year
+
+
+@pytest.fixture
+def surveyed(engine: sa.Engine) -> list[str]:
+    """Pipes surveyed as crawlers survey them: each survey's chainage off by a few sections,
+    noise on every section (G2 is noisy and does not change), three surveys of G3, and G1's
+    first scan processed twice. Returns the pipes in the order of their true growth."""
+    rng = np.random.default_rng(21)
+    peak = {"G1": 0.20, "G2": 0.25, "G3": 0.45, "G4": 0.15}
+    noise = {"G1": 0.002, "G2": 0.02, "G3": 0.002, "G4": 0.002}
+    lags = {"G1": (0, 1), "G2": (0, -1), "G3": (-3, 0, 3), "G4": (0, 0)}  # sections off
+    for asset, rate in GROWTH.items():
+        for year, lag in enumerate(lags[asset]):
+            x = (np.arange(60) + lag) * STEP_M + STEP_M / 2  # where each section truly is
+            height = peak[asset] + rate * year - 0.02
+            values = 0.02 + height * bump(x, 3.0, 0.4) + rng.normal(0, noise[asset], x.size)
+            when, content = T0 + year * YEAR, f"{asset}-{year}"
+            save(engine, asset, when, sections_from(values.tolist()), content_hash=content)
+            if asset == "G1" and year == 0:  # the same scan again, other parameters
+                again = sections_from((values + 0.01).tolist())
+                save(engine, asset, when, again, content_hash=content, params={"v": 2})
+    return sorted(GROWTH, key=lambda a: -GROWTH[a])
+
+
+def test_worst_by_growth_and_the_network_report_rank_pipes_the_same(
+    engine: sa.Engine, db_url: str, surveyed: list[str], tmp_path: Path
+) -> None:
+    from pipescan.reports.network import build_network_context, summarise
+    from pipescan.reports.render import render_network_pdf
+    from pipescan.tasks.reporting import load_network_input
+    from tests.test_report import pdf_text
+
+    worst = json.loads(run("worst", "--by", "growth", "--json", "--db", db_url))
+    inp = load_network_input(db_url)
+    ranked = build_network_context(inp)["by_growth"]
+    assert [r["asset_id"] for r in worst] == surveyed
+    assert [r["asset_id"] for r in ranked] == surveyed
+    growth = {p.asset_id: summarise(p).growth_per_year_ratio for p in inp.pipes}
+    for r in worst:
+        assert growth[r["asset_id"]] == pytest.approx(r["peak_change_per_year"], abs=1e-12)
+        # and ``trend`` says the same of each pipe
+        trend = trends.asset_trend(engine, r["asset_id"])
+        assert trend.peak_change_per_year == pytest.approx(r["peak_change_per_year"], abs=1e-12)
+    # Near the truth, chainage errors notwithstanding (G1's re-processed first scan, one point
+    # higher, stands for that scan; G2's peak moves with its 2-point noise).
+    expected = {**GROWTH, "G1": GROWTH["G1"] - 0.01}
+    assert [r["peak_change_per_year"] for r in worst] == pytest.approx(
+        [expected[a] for a in surveyed], abs=0.015
+    )
+    # The PDF's growth table, in its order.
+    text = pdf_text(render_network_pdf(inp, tmp_path / "network.pdf"))
+    section = text[text.index("Pipes ranked by growth") :]
+    assert re.findall(r"^\d+ (G\d) ", section, flags=re.MULTILINE) == surveyed
 
 
 # ---------------------------------------------------------------------------------------------

@@ -10,6 +10,8 @@ from typing import Annotated
 
 import typer
 
+from pipescan.core.contour import CONTOUR_METHODS, DEFAULT_CONTOUR_METHOD
+
 # Prefect reads its settings at import: set ours before any import of it.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_EXTRA_LOGGERS", "pipescan")
@@ -40,6 +42,14 @@ DbOption = Annotated[
     str | None,
     typer.Option(
         "--db", help="Database URL [env PIPESCAN_DATABASE_URL; default sqlite:///pipescan.db]"
+    ),
+]
+
+ContourOption = Annotated[
+    str | None,
+    typer.Option(
+        help=f"Contour method: {' or '.join(CONTOUR_METHODS)} "
+        f"(env PIPESCAN_CONTOUR_METHOD; default {DEFAULT_CONTOUR_METHOD})."
     ),
 ]
 

@@ -26,7 +26,7 @@ def export_sections(
     output: OutputOption = None,
     db: DbOption = None,
 ) -> None:
-    """One row per section, with the DESIGN.md column names."""
+    """One row per section, with the column names of docs/measures.md."""
     from pipescan.storage.database import export
 
     fn = export.export_sections_csv if fmt == ExportFormat.csv else export.export_sections_jsonl

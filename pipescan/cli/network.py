@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, _db_url, _fail, _settings, app
+from pipescan.cli._app import ContourOption, DbOption, _db_url, _fail, _settings, app
 from pipescan.core.errors import PipescanError
 
 DaskOption = Annotated[
@@ -69,7 +69,7 @@ def inspect_network_command(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print a machine-readable summary.")
     ] = False,
-    contour: Annotated[str | None, typer.Option(help="Contour method: polar or grid.")] = None,
+    contour: ContourOption = None,
     registration: Annotated[
         str | None, typer.Option(help="point_to_plane or point_to_point (the paper's).")
     ] = None,

@@ -11,8 +11,8 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, Scenario, _db_url, _fail, _settings, app
-from pipescan.core.errors import PipescanError
+from pipescan.cli._app import ContourOption, DbOption, Scenario, _db_url, _fail, _settings, app
+from pipescan.core.errors import OptionError, PipescanError
 
 
 @app.command()
@@ -46,9 +46,20 @@ def simulate(
 
 
 def _inspection_params(contour: str | None, registration: str | None):
+    """The run's parameters from the settings and the options; a contour method that is not
+    registered is refused here, before Prefect starts."""
+    from pipescan.core.contour import CONTOUR_METHODS
+
+    settings = _settings()
+    method = contour or settings.contour_method
+    if method not in CONTOUR_METHODS:
+        given = f"--contour {contour!r}" if contour else f"PIPESCAN_CONTOUR_METHOD={method!r}"
+        raise OptionError(
+            f"{given} is not a contour method", hint=f"use one of: {', '.join(CONTOUR_METHODS)}"
+        )
     from pipescan.flows.network import params_from_settings
 
-    return params_from_settings(_settings(), contour=contour, registration=registration)
+    return params_from_settings(settings, contour=contour, registration=registration)
 
 
 def _run_inspection(archive: str, db_url: str, report: Path | None, params):
@@ -107,7 +118,7 @@ def inspect(
     as_json: Annotated[
         bool, typer.Option("--json", help="Print a machine-readable summary.")
     ] = False,
-    contour: Annotated[str | None, typer.Option(help="Contour method: polar or grid.")] = None,
+    contour: ContourOption = None,
     registration: Annotated[
         str | None,
         typer.Option(help="gicp (default), point_to_plane, or the paper's point_to_point."),

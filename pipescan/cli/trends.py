@@ -301,7 +301,11 @@ def worst(
         typer.echo(json.dumps([_ranking_json(r) for r in rows], indent=2))
         return
     if not rows:
-        needs = "two inspections at different times" if by == RankBy.growth else "one"
+        from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR
+
+        days = MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0
+        apart = f"two inspections at least {days:.0f} days apart"
+        needs = apart if by == RankBy.growth else "one"
         typer.echo(f"no pipe has {needs} with measured sections yet")
         return
     typer.echo(

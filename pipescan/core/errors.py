@@ -91,3 +91,7 @@ class GeometryError(PipescanError):
 
 class GradingError(PipescanError):
     """A threshold table is malformed or unknown."""
+
+
+class OptionError(PipescanError):
+    """A processing option names something pipescan does not know (e.g. a contour method)."""

@@ -30,6 +30,7 @@ from typing import Any, Literal
 
 from pipescan.core.errors import GradingError
 from pipescan.core.model import Defect, SectionMeasures
+from pipescan.core.summary import adjacent_runs, peak_blockage
 
 __all__ = [
     "DEFAULT_TABLE",
@@ -58,9 +59,6 @@ _PIPE_CLASSES = ("rigid", "flexible")
 _N_BOUNDS = 4  # lower bounds of classes 0..3; class 4 is everything below the last
 _RULE_KEYS = {"code", "pipe_class", "label", "measure", "lower_bounds_ratio", "graded"}
 _TABLE_KEYS = {"name", "title", "source", "rules"}
-# Sections whose chainage intervals meet within this distance are adjacent. Chainages are
-# sums of 0.1 m steps, so exact float equality would split spans on rounding noise.
-_ADJACENT_TOL_M = 1e-6
 
 
 @dataclass(frozen=True)
@@ -429,7 +427,8 @@ def merge_defects(
 
     Sections are graded with ``table`` (any stored ``grade`` is ignored), flagged by
     :func:`flag_section`, and taken in chainage order. Flagged sections whose intervals touch
-    form one span; an unflagged or unmeasured section, or a gap in chainage, ends a span.
+    form one span (:func:`pipescan.core.summary.adjacent_runs`); an unflagged or unmeasured
+    section, or a gap in chainage, ends a span.
 
     For each span:
 
@@ -468,20 +467,7 @@ def merge_defects(
         for s, (g, _) in zip(ordered, graded, strict=True)
     ]
 
-    spans: list[list[int]] = []
-    for i, flagged in enumerate(flags):
-        if not flagged:
-            continue
-        touches_previous = (
-            spans
-            and spans[-1][-1] == i - 1
-            and abs(ordered[i].chainage_start_m - ordered[i - 1].chainage_end_m) <= _ADJACENT_TOL_M
-        )
-        if touches_previous:
-            spans[-1].append(i)
-        else:
-            spans.append([i])
-
+    spans = adjacent_runs(ordered, flags)
     blockage_rule = next(
         (r for r in table.rules_for(pipe_class) if r.measure == "blockage_ratio"), None
     )
@@ -502,9 +488,7 @@ def merge_defects(
         ]
         # max() keeps the first of equal values, so ties go to the upstream section.
         peak_value, peak_index = max(candidates, key=lambda vi: vi[0])
-        blockages = [
-            b for i in span if (b := _measure_value(ordered[i], "blockage_ratio")) is not None
-        ]
+        span_peak = peak_blockage(ordered[span.start : span.stop])
         defects.append(
             Defect(
                 code=code,
@@ -513,7 +497,7 @@ def merge_defects(
                 chainage_end_m=ordered[span[-1]].chainage_end_m,
                 peak_chainage_m=ordered[peak_index].chainage_start_m,
                 peak_value=peak_value,
-                peak_blockage_ratio=max(blockages) if blockages else None,
+                peak_blockage_ratio=None if span_peak is None else span_peak.blockage_ratio,
                 grade=worst_grade,
             )
         )

@@ -1,27 +1,21 @@
 """Measures of one cross-section, with its coverage and an honest status.
 
-DESIGN.md fixes the measures and their names. Ratios are fractions; percentages exist only in
-reports.
+docs/measures.md lists the measures, their names and the status rules. Ratios are fractions;
+percentages exist only in reports.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from scipy.ndimage import median_filter
 
-from pipescan.core.contour import (
-    GridParams,
-    PolarProfile,
-    grid_contour,
-    polar_profile,
-    polygon_area,
-    radii_of_polygon,
-    remove_stray_points,
-)
+from pipescan.core.contour import DEFAULT_CONTOUR_METHOD, check_contour_method, contour_method
+from pipescan.core.contour.base import remove_stray_points
+from pipescan.core.contour.grid import GridParams
+from pipescan.core.contour.polar import PolarProfile, polar_profile
 from pipescan.core.errors import GeometryError
 from pipescan.core.model import SectionMeasures, SectionStatus
 
@@ -36,8 +30,9 @@ class MeasureParams:
 
     Attributes
     ----------
-    method : {"polar", "grid"}
-        Contour method (see ``pipescan.core.contour``).
+    method : str
+        Contour method, a name in ``pipescan.core.contour.CONTOUR_METHODS``; an unknown name
+        raises ``OptionError``.
     min_points : int
         Fewer points (after stray-point removal) gives ``too_few_points``.
     min_coverage_ratio : float
@@ -57,7 +52,7 @@ class MeasureParams:
         Parameters of the paper's grid method.
     """
 
-    method: Literal["polar", "grid"] = "polar"
+    method: str = DEFAULT_CONTOUR_METHOD
     min_points: int = 200
     min_coverage_ratio: float = 0.9
     max_gap_deg: float = 20.0
@@ -66,6 +61,9 @@ class MeasureParams:
     stray_min_neighbours: int = 3
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
+
+    def __post_init__(self) -> None:
+        check_contour_method(self.method)
 
 
 def choose_bins(point_count: int, *, points_per_bin: int = 16) -> int:
@@ -195,20 +193,14 @@ def measure_section(
     if coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
         status = SectionStatus.LOW_COVERAGE
 
-    if params.method == "grid":
-        try:
-            polygon = grid_contour(pts[:, :2], params.grid).polygon
-        except GeometryError:
-            # Too little of the perimeter seen is the first reason, where it applies.
-            if status == SectionStatus.OK:
-                status = SectionStatus.NO_CONTOUR
-            return SectionMeasures(status=status, coverage_ratio=coverage, **base)
-        radii = radii_of_polygon(polygon, profile.angles_rad)
-        open_area = polygon_area(polygon)
-    else:
-        polygon = profile.polygon()
-        radii = profile.filled_radii()
-        open_area = profile.area_m2()
+    try:
+        contour = contour_method(params.method)(pts, profile, params)
+    except GeometryError:
+        # Too little of the perimeter seen is the first reason, where it applies.
+        if status == SectionStatus.OK:
+            status = SectionStatus.NO_CONTOUR
+        return SectionMeasures(status=status, coverage_ratio=coverage, **base)
+    polygon, radii, open_area = contour.polygon_m, contour.radii_m, contour.area_m2
 
     # A 5-bin running median keeps single noisy bins from setting D_min or D_max.
     radii_smooth = median_filter(radii, size=5, mode="wrap")

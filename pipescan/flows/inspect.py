@@ -24,9 +24,10 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows
+from pipescan.core.summary import peak_blockage
 from pipescan.flows.housekeeping import start_run_dir
 from pipescan.settings import get_settings
-from pipescan.storage.database.repository import params_hash
+from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
@@ -220,8 +221,7 @@ def inspect_archive(
             else {"engine": "none (registered cloud)", "frames": 0}
         )
         scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
-        inspection_id = save_results(
-            database_url,
+        inspection = InspectionToSave(
             meta=meta,
             archive_uri=staged.name,  # without credentials
             content_hash=staged.content_hash,
@@ -231,11 +231,13 @@ def inspect_archive(
             defects=defects,
             frame_quality=list(trajectory.quality) if trajectory else [],
             registration=registration,
+            status="ok" if any(s.is_ok for s in graded) else "unmeasured",
             threshold_table=params.threshold_table,
             point_count=point_count,
             frame_count=staged.frame_count,
             scanned_length_m=scanned,
         )
+        inspection_id = save_results(database_url, inspection)
         log.info(
             f"stored inspection {inspection_id}: {len(graded)} sections, {len(defects)} defects"
         )
@@ -276,7 +278,7 @@ def _summarise(
     reused: bool = False,
 ) -> InspectionSummary:
     ok = [s for s in graded if s.is_ok]
-    worst = max(ok, key=lambda s: s.blockage_ratio or 0.0, default=None)
+    worst = peak_blockage(graded)
     unmeasured: dict[str, int] = {}
     for s in graded:
         if not s.is_ok:

@@ -26,7 +26,7 @@ from prefect.settings import PREFECT_API_URL, temporary_settings
 from prefect.task_runners import ThreadPoolTaskRunner
 from sqlalchemy.engine import make_url
 
-from pipescan.core.contour import GridParams
+from pipescan.core.contour.grid import GridParams
 from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams

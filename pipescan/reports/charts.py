@@ -21,10 +21,10 @@ from matplotlib.patches import Circle, Patch
 from shapely.geometry import LineString, Point
 
 from pipescan.core.model import Defect, SectionMeasures
+from pipescan.core.summary import adjacent_runs, touches
 
 __all__ = ["blockage_chart_svg", "cross_section_svg", "trend_chart_svg"]
 
-_ADJACENT_TOL_M = 1e-6
 _COLOUR_MEASURED = "#3b6ea5"
 _COLOUR_FLAGGED = "#c0392b"
 _COLOUR_FLAG_SPAN = "#f6d5d1"
@@ -47,22 +47,10 @@ def _finite(value: float | None) -> bool:
 
 def _runs(sections: Sequence[SectionMeasures], keep: Sequence[bool]) -> list[tuple[float, float]]:
     """(start, end) chainage spans of touching sections for which ``keep`` is true."""
-    runs: list[list[float]] = []
-    previous_end = None
-    for s, k in zip(sections, keep, strict=True):
-        if not k:
-            previous_end = None
-            continue
-        if (
-            runs
-            and previous_end is not None
-            and abs(s.chainage_start_m - previous_end) <= _ADJACENT_TOL_M
-        ):
-            runs[-1][1] = s.chainage_end_m
-        else:
-            runs.append([s.chainage_start_m, s.chainage_end_m])
-        previous_end = s.chainage_end_m
-    return [(a, b) for a, b in runs]
+    return [
+        (sections[run.start].chainage_start_m, sections[run.stop - 1].chainage_end_m)
+        for run in adjacent_runs(sections, keep)
+    ]
 
 
 def _steps(
@@ -79,7 +67,7 @@ def _steps(
     heights: list[float] = []
     edges = [sections[0].chainage_start_m]
     for s, value in zip(sections, values, strict=True):
-        if abs(s.chainage_start_m - edges[-1]) > _ADJACENT_TOL_M:
+        if not touches(edges[-1], s.chainage_start_m):
             heights.append(math.nan)  # a gap: matplotlib leaves NaN steps undrawn
             edges.append(s.chainage_start_m)
         heights.append(value)
@@ -481,7 +469,7 @@ def _profile_xy(sections: Sequence[SectionMeasures]) -> tuple[list[float], list[
     ys: list[float] = []
     previous_end = None
     for s in sorted(sections, key=lambda s: s.chainage_start_m):
-        if previous_end is not None and abs(s.chainage_start_m - previous_end) > _ADJACENT_TOL_M:
+        if previous_end is not None and not touches(previous_end, s.chainage_start_m):
             xs.append(math.nan)
             ys.append(math.nan)
         xs.append(0.5 * (s.chainage_start_m + s.chainage_end_m))

@@ -18,6 +18,8 @@ from typing import Any, TypeGuard
 from pipescan.core.grading import ThresholdTable, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 from pipescan.core.sanitize import strip_credentials
+from pipescan.core.summary import ADJACENT_TOL_M, adjacent_runs, blockage_summary, peak_blockage
+from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
 
 __all__ = [
     "APPENDIX_ALL_MAX_SECTIONS",
@@ -41,7 +43,6 @@ APPENDIX_SAMPLE_EVERY_M = 1.0
 TREND_MAX_EARLIER = 4
 # Spans listed per unmeasured reason in the summary before "and N more".
 MAX_LISTED_SPANS = 6
-_ADJACENT_TOL_M = 1e-6
 
 STATUS_LABELS: dict[str, str] = {
     SectionStatus.OK: "measured",
@@ -188,6 +189,14 @@ def fmt_pct(ratio: float | None, digits: int = 1, *, unit: bool = True) -> str:
     return f"{text}\u00a0%" if unit else text
 
 
+def fmt_points(ratio: float | None) -> str:
+    """A change of a ratio in percentage points, signed (``+3.2``); never ``-0.0``."""
+    if not _finite(ratio):
+        return NOT_MEASURED
+    text = f"{ratio * 100.0:+.1f}"
+    return "0.0" if text in ("+0.0", "-0.0") else text
+
+
 def fmt_m(value_m: float | None, digits: int = 2, *, unit: bool = True) -> str:
     """A length in metres, e.g. ``"12.30 m"``."""
     if not _finite(value_m):
@@ -238,13 +247,10 @@ def _length_m(s: SectionMeasures) -> float:
 
 def _spans(sections: Sequence[SectionMeasures]) -> list[tuple[float, float]]:
     """Merge chainage-sorted sections whose intervals touch into (start, end) spans."""
-    spans: list[list[float]] = []
-    for s in sections:
-        if spans and abs(s.chainage_start_m - spans[-1][1]) <= _ADJACENT_TOL_M:
-            spans[-1][1] = s.chainage_end_m
-        else:
-            spans.append([s.chainage_start_m, s.chainage_end_m])
-    return [(a, b) for a, b in spans]
+    return [
+        (sections[run.start].chainage_start_m, sections[run.stop - 1].chainage_end_m)
+        for run in adjacent_runs(sections)
+    ]
 
 
 def _is_flagged_at(defects: Sequence[Defect], s: SectionMeasures) -> bool:
@@ -359,28 +365,19 @@ def _appendix(
     """
     if len(sections) <= APPENDIX_ALL_MAX_SECTIONS:
         return [_section_row(s, _is_flagged_at(defects, s)) for s in sections], True
+    unmeasured = adjacent_runs(sections, [not s.is_ok for s in sections], same=lambda s: s.status)
+    run_at = {run.start: run for run in unmeasured}
     rows: list[dict[str, Any]] = []
-    run: list[SectionMeasures] = []
-    previous: SectionMeasures | None = None
-    for s in sections:
-        touching = (
-            previous is not None
-            and abs(s.chainage_start_m - previous.chainage_end_m) <= _ADJACENT_TOL_M
-        )
-        if run and (s.is_ok or s.status != run[0].status or not touching):
-            rows.append(_unmeasured_run_row(run))
-            run = []
-        previous = s
+    for i, s in enumerate(sections):
+        if i in run_at:
+            rows.append(_unmeasured_run_row(sections[run_at[i].start : run_at[i].stop]))
         if not s.is_ok:
-            run.append(s)
             continue
         flagged = _is_flagged_at(defects, s)
         in_metres = s.chainage_start_m / APPENDIX_SAMPLE_EVERY_M
-        on_metre = abs(in_metres - round(in_metres)) <= _ADJACENT_TOL_M
+        on_metre = abs(in_metres - round(in_metres)) <= ADJACENT_TOL_M
         if flagged or on_metre:
             rows.append(_section_row(s, flagged))
-    if run:
-        rows.append(_unmeasured_run_row(run))
     return rows, False
 
 
@@ -389,9 +386,7 @@ def _section_at(sections: Sequence[SectionMeasures], chainage_m: float) -> Secti
         (
             s
             for s in sections
-            if s.chainage_start_m - _ADJACENT_TOL_M
-            <= chainage_m
-            < s.chainage_end_m - _ADJACENT_TOL_M
+            if s.chainage_start_m - ADJACENT_TOL_M <= chainage_m < s.chainage_end_m - ADJACENT_TOL_M
         ),
         None,
     )
@@ -444,12 +439,8 @@ def _peak_blockage_in(
     inside = [
         s for s in sections if start_m <= 0.5 * (s.chainage_start_m + s.chainage_end_m) < end_m
     ]
-    values = [s.blockage_ratio for s in inside if s.is_ok and _finite(s.blockage_ratio)]
-    return (max(values) if values else None), any(not s.is_ok for s in inside)
-
-
-def _years_between(later: datetime, earlier: datetime) -> float:
-    return (later - earlier).total_seconds() / (365.25 * 86400.0)
+    peak = peak_blockage(inside)
+    return (None if peak is None else peak.blockage_ratio), any(not s.is_ok for s in inside)
 
 
 def _inspection_summary_row(
@@ -460,10 +451,9 @@ def _inspection_summary_row(
     *,
     current: bool,
 ) -> dict[str, Any]:
-    ok = [s for s in sections if s.is_ok and _finite(s.blockage_ratio)]
     total_m = sum(_length_m(s) for s in sections)
     ok_m = sum(_length_m(s) for s in sections if s.is_ok)
-    peak = max(ok, key=lambda s: s.blockage_ratio or 0.0, default=None)
+    peak = peak_blockage(sections)
     grades = [s.grade for s in sections if s.is_ok and s.grade is not None]
     return {
         "inspection_id": str(inspection_id),
@@ -505,26 +495,26 @@ def _trend(
     ]
     # Each defect of this inspection, and the largest blockage over its span in each earlier
     # inspection: comparing spans, not single sections, tolerates the few centimetres by which
-    # two scans' chainages can disagree.
+    # two scans' chainages can disagree. Its growth per year is the one definition
+    # (pipescan.core.trends.growth_per_year) over this and the earlier inspections shown.
     columns = shown[:3]
+    dates = [inp.inspected_at] + [h.inspected_at for h in shown]
     changes = []
     for number, d in enumerate(defects, start=1):
-        now, _ = _peak_blockage_in(sections, d.chainage_start_m, d.chainage_end_m)
+        span = (d.chainage_start_m, d.chainage_end_m)
+        now, _ = _peak_blockage_in(sections, *span)
+        peaks = [now] + [_peak_blockage_in(h.sections, *span)[0] for h in shown]
         cells = []
         for h in columns:
-            value, partly = _peak_blockage_in(h.sections, d.chainage_start_m, d.chainage_end_m)
+            value, partly = _peak_blockage_in(h.sections, *span)
             text = fmt_pct(value, unit=False) if value is not None else NOT_MEASURED
             if value is not None and partly:
                 text += "*"
             cells.append(text)
-        previous, _ = _peak_blockage_in(shown[0].sections, d.chainage_start_m, d.chainage_end_m)
-        years = _years_between(inp.inspected_at, shown[0].inspected_at)
-        if _finite(now) and _finite(previous):
-            change = now - previous
-            change_text = f"{change * 100.0:+.1f}"
-            rate_text = f"{change * 100.0 / years:+.1f}" if years > 0.05 else "–"
-        else:
-            change_text = rate_text = NOT_MEASURED
+        previous = peaks[1]
+        change_text = fmt_points(now - previous if _finite(now) and _finite(previous) else None)
+        growth = growth_per_year(dates, peaks)
+        rate_text = fmt_points(growth) if growth is not None else "–"
         changes.append(
             {
                 "number": number,
@@ -558,6 +548,7 @@ def _trend(
         "shown_count": len(shown),
         "earlier_count": len(earlier),
         "any_partly": any("*" in c for row in changes for c in row["earlier"]),
+        "min_days_apart": round(MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0),
     }
 
 
@@ -661,6 +652,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
 
     # The worst measured sections by blockage.
     with_blockage = [s for s in ok if _finite(s.blockage_ratio)]
+    blockage = blockage_summary(sections)
     worst_sections = sorted(
         with_blockage, key=lambda s: (-(s.blockage_ratio or 0.0), s.chainage_start_m)
     )[:WORST_SECTIONS]
@@ -683,7 +675,6 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
             }
         )
 
-    peak = max(with_blockage, key=lambda s: s.blockage_ratio or 0.0, default=None)
     graded_ok = [s.grade for s in ok if s.grade is not None]
     summary = {
         "section_count": len(sections),
@@ -701,13 +692,9 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "unmeasured_share": fmt_pct(
             unmeasured_length_m / total_length_m if total_length_m else None, 0
         ),
-        "max_blockage": fmt_pct(peak.blockage_ratio) if peak else NOT_MEASURED,
-        "max_blockage_at": fmt_m(peak.chainage_start_m) if peak else NOT_MEASURED,
-        "mean_blockage": fmt_pct(
-            sum(s.blockage_ratio or 0.0 for s in with_blockage) / len(with_blockage)
-            if with_blockage
-            else None
-        ),
+        "max_blockage": fmt_pct(blockage.peak_blockage_ratio),
+        "max_blockage_at": fmt_m(blockage.peak_chainage_m),
+        "mean_blockage": fmt_pct(blockage.mean_blockage_ratio),
         "worst_grade": str(min(graded_ok)) if graded_ok else "not graded",
         "defect_count": len(defects),
         "flagged_length": fmt_m(sum(d.chainage_end_m - d.chainage_start_m for d in defects), 1),

@@ -1,9 +1,12 @@
 """The network summary: a set of inspections (e.g. one scheduled run), a line per pipe,
-ranked by worst condition and by growth since each pipe's previous inspection.
+ranked by worst condition and by growth.
 
 As for the inspection report, the caller gathers plain inputs (:class:`NetworkInput`) and
 :func:`build_network_context` formats them; ratios become percentages only here, and a figure
-that was not measured reads "not measured".
+that was not measured reads "not measured". A pipe's largest blockage and its growth per year
+are the core's one definitions (:func:`pipescan.core.summary.peak_blockage`,
+:func:`pipescan.core.trends.growth_per_year`), the same figures as ``pipescan worst --by
+growth`` and ``pipescan trend`` give.
 """
 
 from __future__ import annotations
@@ -15,27 +18,44 @@ from datetime import datetime
 from typing import Any
 
 from pipescan.core.model import SectionMeasures
+from pipescan.core.summary import peak_blockage
+from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
 from pipescan.reports.context import (
-    NOT_MEASURED,
     NOT_RECORDED,
     TableCitation,
     _finite,
     fmt_datetime,
     fmt_m,
     fmt_pct,
+    fmt_points,
 )
 
-__all__ = ["NetworkInput", "PipeInspection", "PipeSummary", "build_network_context", "summarise"]
+__all__ = [
+    "EarlierScan",
+    "NetworkInput",
+    "PipeInspection",
+    "PipeSummary",
+    "build_network_context",
+    "summarise",
+]
 
-# Matched sections must start at the same chainage to the millimetre.
-_MM = 1000.0
+
+@dataclass(frozen=True)
+class EarlierScan:
+    """An earlier scan of a pipe (one per archive): when, and its peak blockage (None when
+    nothing was measured), as stored with the inspection."""
+
+    inspection_id: int | str
+    inspected_at: datetime
+    peak_blockage_ratio: float | None
 
 
 @dataclass(frozen=True)
 class PipeInspection:
-    """One pipe's inspection in a network summary, with its previous inspection if any.
+    """One pipe's inspection in a network summary, with the pipe's earlier scans.
 
-    ``sections`` and ``previous_sections`` need no contours.
+    ``sections`` need no contours. ``earlier`` are the asset's earlier scans (each archive
+    once), in date order; the last is the previous inspection.
     """
 
     asset_id: str
@@ -47,9 +67,11 @@ class PipeInspection:
     inspected_at: datetime
     sections: Sequence[SectionMeasures]
     defect_count: int
-    previous_inspection_id: int | str | None = None
-    previous_inspected_at: datetime | None = None
-    previous_sections: Sequence[SectionMeasures] = ()
+    earlier: Sequence[EarlierScan] = ()
+
+    @property
+    def previous(self) -> EarlierScan | None:
+        return self.earlier[-1] if self.earlier else None
 
 
 @dataclass(frozen=True)
@@ -70,10 +92,9 @@ class NetworkInput:
 class PipeSummary:
     """The figures of one pipe's line (fractions and metres; None when not measured).
 
-    ``growth_ratio`` is the largest increase of blockage at one chainage since the previous
-    inspection, over sections measured in both (matched on their start chainage, to the
-    millimetre), and ``growth_at_m`` where; ``growth_per_year_ratio`` divides it by the years
-    between the two inspections.
+    ``growth_per_year_ratio`` is the pipe's growth: the growth per year of its peak blockage
+    over the earlier scans and this one (:func:`pipescan.core.trends.growth_per_year`).
+    ``change_ratio`` is the peak blockage now less the previous inspection's.
     """
 
     pipe: PipeInspection
@@ -83,18 +104,8 @@ class PipeSummary:
     max_blockage_ratio: float | None
     max_blockage_at_m: float | None
     previous_max_blockage_ratio: float | None
-    growth_ratio: float | None
-    growth_at_m: float | None
+    change_ratio: float | None
     growth_per_year_ratio: float | None
-
-
-def _peak(sections: Sequence[SectionMeasures]) -> tuple[float | None, float | None]:
-    measured = [s for s in sections if s.is_ok and _finite(s.blockage_ratio)]
-    if not measured:
-        return None, None
-    # Ties go to the upstream section.
-    best = min(measured, key=lambda s: (-(s.blockage_ratio or 0.0), s.chainage_start_m))
-    return best.blockage_ratio, best.chainage_start_m
 
 
 def summarise(pipe: PipeInspection) -> PipeSummary:
@@ -102,49 +113,29 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
     length_m = sum(s.chainage_end_m - s.chainage_start_m for s in pipe.sections)
     measured_m = sum(s.chainage_end_m - s.chainage_start_m for s in pipe.sections if s.is_ok)
     grades = [s.grade for s in pipe.sections if s.is_ok and s.grade is not None]
-    peak, peak_at = _peak(pipe.sections)
-    previous_peak, _ = _peak(pipe.previous_sections)
-    growth = growth_at = per_year = None
-    if pipe.previous_sections:
-        before = {
-            round(s.chainage_start_m * _MM): s.blockage_ratio
-            for s in pipe.previous_sections
-            if s.is_ok and _finite(s.blockage_ratio)
-        }
-        changes = [
-            (s.blockage_ratio - before[key], s.chainage_start_m)  # type: ignore[operator]
-            for s in pipe.sections
-            if s.is_ok
-            and _finite(s.blockage_ratio)
-            and (key := round(s.chainage_start_m * _MM)) in before
-        ]
-        if changes:
-            growth, growth_at = max(changes, key=lambda c: (c[0], -c[1]))
-            if pipe.previous_inspected_at is not None:
-                years = (pipe.inspected_at - pipe.previous_inspected_at).total_seconds() / (
-                    365.25 * 86400.0
-                )
-                per_year = growth / years if years > 0.05 else None
+    peak = peak_blockage(pipe.sections)
+    peak_ratio = None if peak is None else peak.blockage_ratio
+    previous = pipe.previous
+    previous_peak = None if previous is None else previous.peak_blockage_ratio
+    growth = growth_per_year(
+        [e.inspected_at for e in pipe.earlier] + [pipe.inspected_at],
+        [e.peak_blockage_ratio for e in pipe.earlier] + [peak_ratio],
+    )
     return PipeSummary(
         pipe=pipe,
         length_m=length_m,
         measured_length_m=measured_m,
         worst_grade=min(grades) if grades else None,
-        max_blockage_ratio=peak,
-        max_blockage_at_m=peak_at,
+        max_blockage_ratio=peak_ratio,
+        max_blockage_at_m=None if peak is None else peak.chainage_start_m,
         previous_max_blockage_ratio=previous_peak,
-        growth_ratio=growth,
-        growth_at_m=growth_at,
-        growth_per_year_ratio=per_year,
+        change_ratio=(
+            peak_ratio - previous_peak
+            if peak_ratio is not None and previous_peak is not None
+            else None
+        ),
+        growth_per_year_ratio=growth,
     )
-
-
-def _points(ratio: float | None) -> str:
-    """A change of a ratio in percentage points, signed (``+3.2``)."""
-    if not _finite(ratio):
-        return NOT_MEASURED
-    text = f"{ratio * 100.0:+.1f}"
-    return "0.0" if text in ("+0.0", "-0.0") else text
 
 
 def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
@@ -174,16 +165,18 @@ def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
         else "",
         "defects": str(pipe.defect_count),
         "previous_at": (
-            fmt_datetime(pipe.previous_inspected_at)[:10]
-            if pipe.previous_inspected_at is not None
+            fmt_datetime(pipe.previous.inspected_at)[:10]
+            if pipe.previous is not None
             else "first inspection"
         ),
         "previous_max_blockage": fmt_pct(p.previous_max_blockage_ratio, unit=False)
-        if pipe.previous_sections
+        if pipe.previous is not None
         else "–",
-        "growth": _points(p.growth_ratio),
-        "growth_at": fmt_m(p.growth_at_m, unit=False) if p.growth_at_m is not None else "",
-        "growth_per_year": _points(p.growth_per_year_ratio),
+        "inspections": str(len(pipe.earlier) + 1),
+        "change": fmt_points(p.change_ratio),
+        "growth_per_year": (
+            fmt_points(p.growth_per_year_ratio) if p.growth_per_year_ratio is not None else "–"
+        ),
     }
 
 
@@ -194,8 +187,9 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
     -------
     dict
         ``by_grade`` (every pipe, worst condition first: worst grade, then largest blockage;
-        ungraded pipes last), ``by_growth`` (pipes with a previous inspection, fastest growth
-        first), ``first_inspections`` (asset ids without one), ``totals`` and ``grade_counts``.
+        ungraded pipes last), ``by_growth`` (pipes with a growth figure, fastest first),
+        ``first_inspections`` (asset ids without an earlier scan), ``without_growth`` (asset
+        ids with one but no growth figure), ``totals`` and ``grade_counts``.
     """
     summaries = [summarise(p) for p in inp.pipes]
     by_grade = sorted(
@@ -206,8 +200,11 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
             p.pipe.asset_id,
         ),
     )
-    with_growth = [p for p in summaries if p.growth_ratio is not None]
-    by_growth = sorted(with_growth, key=lambda p: (-(p.growth_ratio or 0.0), p.pipe.asset_id))
+    # The order of ``pipescan worst --by growth``: fastest growth first, then by asset id.
+    with_growth = [p for p in summaries if p.growth_per_year_ratio is not None]
+    by_growth = sorted(
+        with_growth, key=lambda p: (-(p.growth_per_year_ratio or 0.0), p.pipe.asset_id)
+    )
     total_m = sum(p.length_m for p in summaries)
     measured_m = sum(p.measured_length_m for p in summaries)
     dates = [p.pipe.inspected_at for p in summaries]
@@ -244,12 +241,16 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
                 for p in summaries
                 if p.worst_grade is not None and p.worst_grade <= inp.flag_grade
             ),
-            "with_previous": len(with_growth),
+            "with_previous": sum(1 for p in summaries if p.pipe.earlier),
             "ungraded": ungraded,
         },
         "grade_counts": grade_counts,
         "flag_grade": inp.flag_grade,
+        "min_days_apart": round(MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0),
         "by_grade": [_row(i, p, inp.flag_grade) for i, p in enumerate(by_grade, start=1)],
         "by_growth": [_row(i, p, inp.flag_grade) for i, p in enumerate(by_growth, start=1)],
-        "first_inspections": sorted(p.pipe.asset_id for p in summaries if p.growth_ratio is None),
+        "first_inspections": sorted(p.pipe.asset_id for p in summaries if not p.pipe.earlier),
+        "without_growth": sorted(
+            p.pipe.asset_id for p in summaries if p.pipe.earlier and p.growth_per_year_ratio is None
+        ),
     }

@@ -1,6 +1,6 @@
 """Write a simulated scan to disk as a scan archive, with its ground truth beside it.
 
-The archive is an ordinary scan archive (DESIGN.md, "Scan archive"): ``inspection.toml`` and
+The archive is an ordinary scan archive (docs/archive.md): ``inspection.toml`` and
 ``frames/NNNNNN.npy``. The ground truth sits in ``ground_truth/``, which archive readers
 ignore:
 
@@ -9,7 +9,7 @@ ignore:
 - ``sections.csv``: one :class:`~pipescan.simulator.scan.TrueSection` per row (0.1 m sections).
 - ``scene.toml``: the generator, the seed, ``T_world_pipe`` and every scenario parameter.
 
-TOML is written by the small writer below (no extra dependency); ``tomllib`` reads it back.
+TOML is written with tomli-w; ``tomllib`` reads it back.
 The archive is written into a temporary sibling directory and renamed into place at the end,
 so a crash never leaves half an archive under ``out_dir``.
 """
@@ -18,17 +18,16 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import math
 import os
 import shutil
 import tempfile
 import tomllib
 from collections.abc import Callable, Mapping
-from datetime import date, datetime
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+import tomli_w
 
 from pipescan.core.errors import ArchiveError
 from pipescan.simulator.scan import (
@@ -58,91 +57,27 @@ SECTION_COLUMNS = tuple(f.name for f in dataclasses.fields(TrueSection))
 _SCENE = Path("ground_truth") / "scene.toml"
 
 
-# --------------------------------------------------------------------------- TOML writer
+# --------------------------------------------------------------------------- TOML
 
 
-def _toml_key(key: str) -> str:
-    if key and all(ch.isalnum() or ch in "_-" for ch in key):
-        return key
-    return _toml_string(key)
-
-
-def _toml_string(text: str) -> str:
-    out = ['"']
-    for ch in text:
-        if ch == '"':
-            out.append('\\"')
-        elif ch == "\\":
-            out.append("\\\\")
-        elif ch == "\n":
-            out.append("\\n")
-        elif ch == "\t":
-            out.append("\\t")
-        elif ord(ch) < 0x20 or ord(ch) == 0x7F:
-            out.append(f"\\u{ord(ch):04x}")
-        else:
-            out.append(ch)
-    out.append('"')
-    return "".join(out)
-
-
-def _toml_value(value: Any) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, int | np.integer):
-        return str(int(value))
-    if isinstance(value, float | np.floating):
-        v = float(value)
-        if math.isnan(v):
-            return "nan"
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)  # shortest repr that round-trips; valid TOML (1e-05, 0.1, 3.0)
-    if isinstance(value, str):
-        return _toml_string(value)
-    if isinstance(value, datetime | date):
-        return value.isoformat()
+def _plain(value: Any) -> Any:
+    # tomli-w takes Python's own types: numpy scalars and arrays become numbers and lists, and
+    # None (TOML has no null) is left out of tables.
+    if isinstance(value, Mapping):
+        return {k: _plain(v) for k, v in value.items() if v is not None}
     if isinstance(value, list | tuple | np.ndarray):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    raise TypeError(f"cannot write {type(value).__name__} as TOML: {value!r}")
-
-
-def _is_table_array(value: Any) -> bool:
-    return (
-        isinstance(value, list | tuple)
-        and len(value) > 0
-        and all(isinstance(v, Mapping) for v in value)
-    )
+        return [_plain(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    return value
 
 
 def dumps_toml(doc: Mapping[str, Any]) -> str:
-    """Serialise a mapping to TOML: scalars, arrays, tables and arrays of tables.
+    """Serialise a mapping to TOML (with tomli-w); ``None`` values are left out.
 
-    ``None`` values are left out (TOML has no null). Raises ``TypeError`` for other types.
+    Raises ``TypeError`` for values TOML cannot hold.
     """
-    lines: list[str] = []
-
-    def emit(table: Mapping[str, Any], prefix: str) -> None:
-        nested: list[tuple[str, Any]] = []
-        for key, value in table.items():
-            if value is None:
-                continue
-            if isinstance(value, Mapping) or _is_table_array(value):
-                nested.append((key, value))
-            else:
-                lines.append(f"{_toml_key(key)} = {_toml_value(value)}")
-        for key, value in nested:
-            name = f"{prefix}{_toml_key(key)}"
-            if isinstance(value, Mapping):
-                lines.extend(["", f"[{name}]"])
-                emit(value, name + ".")
-            else:
-                for item in value:
-                    lines.extend(["", f"[[{name}]]"])
-                    emit(item, name + ".")
-
-    emit(doc, "")
-    return "\n".join(lines).lstrip("\n") + "\n"
+    return tomli_w.dumps(_plain(doc))
 
 
 # --------------------------------------------------------------------------- writing

@@ -21,10 +21,10 @@ from pipescan.core.model import Defect, SectionMeasures
 from pipescan.storage.database.db import connect
 from pipescan.storage.database.repository import (
     InspectionRecord,
+    find_inspection,
     get_defects,
     get_inspection,
     get_sections,
-    list_inspections,
 )
 from pipescan.storage.input.metadata import INSPECTION_FILE
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
@@ -156,14 +156,9 @@ def stored_inspection_id(
     """
     engine = connect(database_url)
     try:
-        matches = [
-            r.id
-            for r in list_inspections(engine, asset_id)
-            if r.content_hash == content_hash and r.params_hash == params_hash
-        ]
+        return find_inspection(engine, asset_id, content_hash, params_hash)
     finally:
         engine.dispose()
-    return max(matches, default=None)
 
 
 @task(name="find-stored-inspection", **IO_RETRY_OPTIONS)

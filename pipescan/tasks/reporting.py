@@ -16,14 +16,19 @@ from pipescan.reports.context import (
     build_context,
     fmt_datetime,
 )
-from pipescan.reports.network import NetworkInput, PipeInspection, build_network_context
+from pipescan.reports.network import (
+    EarlierScan,
+    NetworkInput,
+    PipeInspection,
+    build_network_context,
+)
 from pipescan.reports.render import render_network_pdf, render_pdf
 from pipescan.storage.database.db import connect
-from pipescan.storage.database.report_queries import (
+from pipescan.storage.database.queries import (
     defect_counts,
     earlier_inspections,
+    earlier_scans,
     network_inspections,
-    previous_inspections,
     section_profiles,
 )
 from pipescan.storage.database.repository import get_defects, get_inspection, get_sections
@@ -109,19 +114,18 @@ def load_network_input(
     inspection_ids: list[int] | None = None,
 ) -> NetworkInput:
     """Gather a network summary's input: the latest selected inspection of each asset, with
-    the asset's previous inspection for growth."""
+    the asset's earlier scans (their stored peak blockage) for its growth."""
     engine = connect(database_url)
     try:
         records = network_inspections(engine, since=since, inspection_ids=inspection_ids)
-        previous = previous_inspections(engine, records)
-        ids = [r.id for r in records] + [p.id for p in previous.values()]
+        ids = [r.id for r in records]
+        history = earlier_scans(engine, ids)
         profiles = section_profiles(engine, ids)
-        counts = defect_counts(engine, [r.id for r in records])
+        counts = defect_counts(engine, ids)
     finally:
         engine.dispose()
     pipes = []
     for r in records:
-        before = previous.get(r.id)
         pipes.append(
             PipeInspection(
                 asset_id=r.asset_id,
@@ -133,9 +137,10 @@ def load_network_input(
                 inspected_at=r.inspected_at,
                 sections=profiles[r.id],
                 defect_count=counts[r.id],
-                previous_inspection_id=before.id if before else None,
-                previous_inspected_at=before.inspected_at if before else None,
-                previous_sections=profiles[before.id] if before else (),
+                earlier=[
+                    EarlierScan(e.id, e.inspected_at, e.peak_blockage_ratio)
+                    for e in reversed(history[r.id])
+                ],
             )
         )
     first = records[0].params if records else {}

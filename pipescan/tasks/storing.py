@@ -6,9 +6,8 @@ from pathlib import Path
 
 from prefect import task
 
-from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures
 from pipescan.storage.database.db import connect
-from pipescan.storage.database.repository import save_inspection
+from pipescan.storage.database.repository import InspectionToSave, save_inspection
 from pipescan.storage.input.archive import open_archive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.tasks.inspection import StagedArchive
@@ -41,42 +40,10 @@ def stage_archive(
 
 
 @task(name="save-results", **IO_RETRY_OPTIONS)
-def save_results(
-    database_url: str,
-    *,
-    meta: InspectionMeta,
-    archive_uri: str,
-    content_hash: str,
-    params: dict,
-    software_version: str,
-    sections: list[SectionMeasures],
-    defects: list[Defect],
-    frame_quality: list[FrameQuality],
-    registration: dict,
-    threshold_table: str,
-    point_count: int,
-    frame_count: int,
-    scanned_length_m: float,
-) -> int:
+def save_results(database_url: str, inspection: InspectionToSave) -> int:
     """Write the inspection and all its rows in one transaction; returns its id."""
     engine = connect(database_url)
     try:
-        return save_inspection(
-            engine,
-            meta=meta,
-            archive_uri=archive_uri,
-            content_hash=content_hash,
-            params=params,
-            software_version=software_version,
-            sections=sections,
-            defects=defects,
-            frame_quality=frame_quality,
-            registration=registration,
-            status="ok" if any(s.is_ok for s in sections) else "unmeasured",
-            threshold_table=threshold_table,
-            point_count=point_count,
-            frame_count=frame_count,
-            scanned_length_m=scanned_length_m,
-        )
+        return save_inspection(engine, inspection)
     finally:
         engine.dispose()

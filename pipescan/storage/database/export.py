@@ -1,7 +1,7 @@
 """Export stored sections and defects as CSV or JSON Lines, for asset systems and GIS.
 
 Rows are streamed from the database in batches, so an export of a whole network does not
-have to fit in memory. Column names are the names used end to end (DESIGN.md). A figure that
+have to fit in memory. Column names are the names used end to end (docs/measures.md). A figure that
 was not measured is an empty CSV cell (``null`` in JSON), never 0; so are the figures of a
 section whose status is not ``ok`` (its coverage and point count stay, as the reason).
 """

@@ -28,6 +28,7 @@ from sqlalchemy.orm import Session
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.core.sanitize import strip_credentials
+from pipescan.core.summary import blockage_summary
 from pipescan.storage.database.db import StorageError, session_scope
 from pipescan.storage.database.models import (
     Asset,
@@ -43,19 +44,21 @@ __all__ = [
     "InspectionRecord",
     "InspectionToSave",
     "TrendPoint",
-    "blockage_summary",
     "canonical_params_json",
+    "find_inspection",
     "get_defects",
     "get_frame_quality",
     "get_inspection",
     "get_section_trend",
     "get_sections",
+    "inspection_records",
     "latest_inspection_id",
     "list_assets",
     "list_inspections",
     "m_to_mm",
     "mm_to_m",
     "params_hash",
+    "record_statement",
     "save_inspection",
     "save_inspections",
 ]
@@ -235,7 +238,6 @@ def _section_where(section: SectionMeasures) -> str:
 
 # Status members and their plain string values alike map to the plain string.
 _STATUS_VALUES: dict[str, str] = {status: status.value for status in SectionStatus}
-_OK = SectionStatus.OK.value
 _isfinite = math.isfinite
 
 
@@ -479,37 +481,15 @@ _SECTION_COPY_TYPES: dict[str, str] = {
 }
 
 
-def blockage_summary(rows: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """The blockage summary of an inspection's section rows (as written to ``sections``).
-
-    Only measured sections count: status ``ok`` with a blockage ratio. NULL blockage is never
-    read as 0.
-
-    Returns
-    -------
-    dict
-        ``measured_section_count``, ``mean_blockage_ratio``, ``peak_blockage_ratio`` and
-        ``peak_chainage_start_mm`` (the first section at the peak), the last three None when
-        no section was measured.
-    """
-    measured = [
-        (r["blockage_ratio"], r["chainage_start_mm"])
-        for r in rows
-        if r["status"] == _OK and r["blockage_ratio"] is not None
-    ]
-    if not measured:
-        return {
-            "measured_section_count": 0,
-            "mean_blockage_ratio": None,
-            "peak_blockage_ratio": None,
-            "peak_chainage_start_mm": None,
-        }
-    peak_ratio, peak_mm = max(measured, key=lambda m: (m[0], -m[1]))
+def _summary_columns(sections: Sequence[SectionMeasures]) -> dict[str, Any]:
+    # The inspection's blockage summary columns, by the core's one definition.
+    summary = blockage_summary(sections)
+    peak_m = summary.peak_chainage_m
     return {
-        "measured_section_count": len(measured),
-        "mean_blockage_ratio": math.fsum(m[0] for m in measured) / len(measured),
-        "peak_blockage_ratio": peak_ratio,
-        "peak_chainage_start_mm": peak_mm,
+        "measured_section_count": summary.measured_section_count,
+        "mean_blockage_ratio": summary.mean_blockage_ratio,
+        "peak_blockage_ratio": summary.peak_blockage_ratio,
+        "peak_chainage_start_mm": None if peak_m is None else m_to_mm(peak_m),
     }
 
 
@@ -588,35 +568,12 @@ def _check_unique(keys: list[int], what: str, unit: str) -> None:
         seen.add(key)
 
 
-def save_inspection(
-    engine: Engine,
-    *,
-    meta: InspectionMeta,
-    archive_uri: str,
-    content_hash: str,
-    params: Mapping[str, Any],
-    software_version: str,
-    sections: Sequence[SectionMeasures],
-    defects: Sequence[Defect],
-    frame_quality: Sequence[FrameQuality] = (),
-    registration: Mapping[str, Any] | None = None,
-    status: str = "ok",
-    threshold_table: str = "",
-    point_count: int = 0,
-    frame_count: int = 0,
-    scanned_length_m: float = 0.0,
-) -> int:
-    """Store one processed inspection, replacing an earlier save of the same work.
+@dataclass(frozen=True)
+class InspectionToSave:
+    """One processed inspection to store: what a flow hands to :func:`save_inspection`.
 
-    In one transaction: the asset is inserted or updated from ``meta``; any inspection of the
-    same asset with the same ``content_hash`` and parameter hash is deleted (with its
-    sections, defects and frame quality); the inspection and all its rows are inserted. If
-    anything fails, the database is left as it was.
-
-    Parameters
+    Attributes
     ----------
-    engine
-        From ``pipescan.storage.database.db.connect``.
     meta
         The archive's metadata. A naive ``inspected_at`` is taken as UTC. A NaN
         ``nominal_diameter_m`` (non-circular pipe) is stored as NULL.
@@ -642,41 +599,7 @@ def save_inspection(
         Name of the grading table the grades come from.
     point_count, frame_count, scanned_length_m
         Size of the scan: points and frames read, and the chainage length covered, in metres.
-
-    Returns
-    -------
-    int
-        The new inspection's id (a new id also when it replaced an earlier save).
-
-    Raises
-    ------
-    StorageError
-        If a value cannot be stored (non-finite chainages or coverage, duplicate chainages,
-        unknown status, parameters without a JSON form) or the database refuses the write;
-        nothing is written then.
     """
-    item = InspectionToSave(
-        meta=meta,
-        archive_uri=archive_uri,
-        content_hash=content_hash,
-        params=params,
-        software_version=software_version,
-        sections=sections,
-        defects=defects,
-        frame_quality=frame_quality,
-        registration=registration,
-        status=status,
-        threshold_table=threshold_table,
-        point_count=point_count,
-        frame_count=frame_count,
-        scanned_length_m=scanned_length_m,
-    )
-    return save_inspections(engine, [item])[0]
-
-
-@dataclass(frozen=True)
-class InspectionToSave:
-    """One inspection to store: the arguments of :func:`save_inspection`, as one value."""
 
     meta: InspectionMeta
     archive_uri: str
@@ -692,6 +615,36 @@ class InspectionToSave:
     point_count: int = 0
     frame_count: int = 0
     scanned_length_m: float = 0.0
+
+
+def save_inspection(engine: Engine, inspection: InspectionToSave) -> int:
+    """Store one processed inspection, replacing an earlier save of the same work.
+
+    In one transaction: the asset is inserted or updated from ``inspection.meta``; any
+    inspection of the same asset with the same ``content_hash`` and parameter hash is deleted
+    (with its sections, defects and frame quality); the inspection and all its rows are
+    inserted. If anything fails, the database is left as it was.
+
+    Parameters
+    ----------
+    engine
+        From ``pipescan.storage.database.db.connect``.
+    inspection
+        What to store (see :class:`InspectionToSave`).
+
+    Returns
+    -------
+    int
+        The new inspection's id (a new id also when it replaced an earlier save).
+
+    Raises
+    ------
+    StorageError
+        If a value cannot be stored (non-finite chainages or coverage, duplicate chainages,
+        unknown status, parameters without a JSON form) or the database refuses the write;
+        nothing is written then.
+    """
+    return save_inspections(engine, [inspection])[0]
 
 
 @dataclass(frozen=True)
@@ -736,7 +689,7 @@ def _prepare(item: InspectionToSave) -> _Prepared:
         "scanned_length_m": _require_finite(item.scanned_length_m, "scanned_length_m", where),
         "registration_json": registration_json,
         "threshold_table": item.threshold_table,
-        **blockage_summary(section_rows),
+        **_summary_columns(item.sections),
     }
     return _Prepared(
         where=where,
@@ -829,19 +782,33 @@ def save_inspections(engine: Engine, inspections: Iterable[InspectionToSave]) ->
 # Reading
 
 
-def _section_count_column() -> sa.ScalarSelect[int]:
-    return (
-        sa.select(sa.func.count())
-        .where(Section.inspection_id == Inspection.id)
-        .correlate(Inspection)
-        .scalar_subquery()
+def record_statement(ids: Any = None) -> sa.Select[Any]:
+    """Inspection, asset and section count of the inspections ``ids`` selects (a select of
+    inspection ids, or a list; None for all), for :func:`inspection_records`.
+
+    The section counts come from one grouped count over those inspections' sections (a range
+    of the sections' primary key each), joined in: not a subquery run again for every row.
+    """
+    counted = sa.select(Section.inspection_id, sa.func.count().label("section_count"))
+    statement = sa.select(Inspection, Asset).join(Asset, Inspection.asset_id == Asset.asset_id)
+    if ids is not None:
+        counted = counted.where(Section.inspection_id.in_(ids))
+        statement = statement.where(Inspection.id.in_(ids))
+    counts = counted.group_by(Section.inspection_id).subquery("section_counts")
+    return statement.add_columns(sa.func.coalesce(counts.c.section_count, 0)).outerjoin(
+        counts, counts.c.inspection_id == Inspection.id
     )
+
+
+def inspection_records(session: Session, statement: sa.Select[Any]) -> list[InspectionRecord]:
+    """The records of a :func:`record_statement`, in its order."""
+    return [_inspection_record(i, a, n) for i, a, n in session.execute(statement).all()]
 
 
 def _no_inspection(inspection_id: int) -> StorageError:
     return StorageError(
         f"no inspection with id {inspection_id}",
-        hint="list the stored inspections and their ids with list_inspections()",
+        hint="list the stored inspections and their ids with `pipescan inspections`",
     )
 
 
@@ -883,15 +850,14 @@ def list_assets(engine: Engine) -> list[AssetRecord]:
 
 def list_inspections(engine: Engine, asset_id: str | None = None) -> list[InspectionRecord]:
     """The stored inspections, of one asset or of all, by asset, date and id."""
-    statement = (
-        sa.select(Inspection, Asset, _section_count_column())
-        .join(Asset, Inspection.asset_id == Asset.asset_id)
-        .order_by(Inspection.asset_id, Inspection.inspected_at, Inspection.id)
-    )
+    ids = None
     if asset_id is not None:
-        statement = statement.where(Inspection.asset_id == asset_id)
+        ids = sa.select(Inspection.id).where(Inspection.asset_id == asset_id)
+    statement = record_statement(ids).order_by(
+        Inspection.asset_id, Inspection.inspected_at, Inspection.id
+    )
     with session_scope(engine) as session:
-        return [_inspection_record(i, a, n) for i, a, n in session.execute(statement).all()]
+        return inspection_records(session, statement)
 
 
 def get_inspection(engine: Engine, inspection_id: int) -> InspectionRecord:
@@ -902,16 +868,25 @@ def get_inspection(engine: Engine, inspection_id: int) -> InspectionRecord:
     StorageError
         If there is no inspection with that id.
     """
-    statement = (
-        sa.select(Inspection, Asset, _section_count_column())
-        .join(Asset, Inspection.asset_id == Asset.asset_id)
-        .where(Inspection.id == inspection_id)
+    with session_scope(engine) as session:
+        found = inspection_records(session, record_statement([inspection_id]))
+        if not found:
+            raise _no_inspection(inspection_id)
+        return found[0]
+
+
+def find_inspection(
+    engine: Engine, asset_id: str, content_hash: str, params_hash: str
+) -> int | None:
+    """The id of the inspection with this identity (asset, archive content, parameters), or
+    None. Saving an identity again replaces the earlier inspection, so there is at most one."""
+    statement = sa.select(sa.func.max(Inspection.id)).where(
+        Inspection.asset_id == asset_id,
+        Inspection.content_hash == content_hash,
+        Inspection.params_hash == params_hash,
     )
     with session_scope(engine) as session:
-        row = session.execute(statement).one_or_none()
-        if row is None:
-            raise _no_inspection(inspection_id)
-        return _inspection_record(*row)
+        return session.scalar(statement)
 
 
 def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:

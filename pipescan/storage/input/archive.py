@@ -1,5 +1,5 @@
 """Open scan archives: a directory, a ``.zip``, a ``.tar`` or ``.tar.gz``, locally or at an
-fsspec URL, laid out as the archive contract in DESIGN.md says.
+fsspec URL, laid out as the archive contract (docs/archive.md) says.
 
 :func:`open_archive` copies a remote archive and extracts a file archive into a temporary
 directory (:mod:`pipescan.storage.input.extract`: streaming, under the input limits, refusing

@@ -123,7 +123,7 @@ class _FrameEntry(BaseModel):
 
 
 class InspectionDocument(BaseModel):
-    """The schema of ``inspection.toml`` (see the archive contract in DESIGN.md).
+    """The schema of ``inspection.toml`` (the archive contract: docs/archive.md).
 
     ``nominal_diameter_m`` is optional here because it is required only for circular
     pipes; :func:`parse_inspection_toml` enforces that, and the ``[[frames]]`` consistency,

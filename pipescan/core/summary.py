@@ -1,0 +1,176 @@
+"""Figures of an inspection's sections taken together: which sections touch, and the blockage
+summary (measured sections, mean and peak).
+
+Each figure has this one definition; the database, the reports, the flows and the CLI call it.
+
+- **Measured** means status ``ok`` with a finite blockage ratio. An unmeasured section is never
+  a blockage of 0: it is left out.
+- **Peak blockage** is the largest measured blockage ratio, at the start chainage of its
+  section; on a tie, the upstream section (the smaller chainage).
+- **Touching** sections: one starts where the other ends, within :data:`ADJACENT_TOL_M`.
+  Chainages are sums of 0.1 m steps, so exact float equality would split runs on rounding
+  noise.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol, TypeVar
+
+from pipescan.core.model import SectionMeasures
+
+__all__ = [
+    "ADJACENT_TOL_M",
+    "BlockagePeak",
+    "BlockageSummary",
+    "adjacent_runs",
+    "blockage_summary",
+    "measured_blockage",
+    "peak_blockage",
+    "touches",
+]
+
+ADJACENT_TOL_M = 1e-6
+"""Sections whose chainage intervals meet within this distance (metres) touch."""
+
+
+class _Interval(Protocol):
+    @property
+    def chainage_start_m(self) -> float: ...
+
+    @property
+    def chainage_end_m(self) -> float: ...
+
+
+_S = TypeVar("_S", bound=_Interval)
+
+
+def touches(end_m: float, start_m: float) -> bool:
+    """Whether an interval starting at ``start_m`` continues one ending at ``end_m``.
+
+    >>> touches(0.30000000000000004, 0.3), touches(0.3, 0.4)
+    (True, False)
+    """
+    return abs(start_m - end_m) <= ADJACENT_TOL_M
+
+
+def adjacent_runs(
+    sections: Sequence[_S],
+    keep: Sequence[bool] | None = None,
+    *,
+    same: Callable[[_S], Any] | None = None,
+) -> list[range]:
+    """Runs of touching sections: the one way sections are merged into spans.
+
+    Parameters
+    ----------
+    sections
+        In chainage order (anything with ``chainage_start_m`` and ``chainage_end_m``).
+    keep
+        One flag per section: only sections flagged True join runs, and any other section
+        ends a run. Default: every section.
+    same
+        Optionally, a key that must be equal along a run (e.g. the status).
+
+    Returns
+    -------
+    list of range
+        The index ranges of the runs, in order: ``sections[run.start : run.stop]``.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace as S
+    >>> spans = [S(chainage_start_m=a, chainage_end_m=a + 0.1) for a in (0.0, 0.1, 0.2, 0.5)]
+    >>> adjacent_runs(spans), adjacent_runs(spans, [True, False, True, True])
+    ([range(0, 3), range(3, 4)], [range(0, 1), range(2, 3), range(3, 4)])
+    """
+    flags = [True] * len(sections) if keep is None else list(keep)
+    if len(flags) != len(sections):
+        raise ValueError(f"keep has {len(flags)} flags for {len(sections)} sections")
+    runs: list[range] = []
+    start: int | None = None
+    for i, s in enumerate(sections):
+        joins = (
+            start is not None
+            and flags[i]
+            and touches(sections[i - 1].chainage_end_m, s.chainage_start_m)
+            and (same is None or same(s) == same(sections[i - 1]))
+        )
+        if joins:
+            continue
+        if start is not None:
+            runs.append(range(start, i))
+        start = i if flags[i] else None
+    if start is not None:
+        runs.append(range(start, len(sections)))
+    return runs
+
+
+def measured_blockage(section: SectionMeasures) -> float | None:
+    """The section's blockage ratio if it was measured (status ``ok``, finite); else None."""
+    value = section.blockage_ratio
+    if not section.is_ok or value is None or not math.isfinite(value):
+        return None
+    return float(value)
+
+
+@dataclass(frozen=True)
+class BlockagePeak:
+    """The largest measured blockage of a set of sections, and the start chainage of its
+    section (metres)."""
+
+    blockage_ratio: float
+    chainage_start_m: float
+
+
+def peak_blockage(sections: Sequence[SectionMeasures]) -> BlockagePeak | None:
+    """The peak blockage of sections (see the module's definition); None if none is measured.
+
+    >>> from pipescan.core.model import SectionStatus
+    >>> def section(start_m, blockage, status=SectionStatus.OK):
+    ...     return SectionMeasures(start_m, start_m + 0.1, 0.2, status, 900, 1.0,
+    ...                            blockage_ratio=blockage)
+    >>> peak_blockage([section(0.3, 0.2), section(0.1, 0.2), section(0.2, 0.9, "low_coverage")])
+    BlockagePeak(blockage_ratio=0.2, chainage_start_m=0.1)
+    """
+    best: BlockagePeak | None = None
+    for s in sections:
+        value = measured_blockage(s)
+        if value is None:
+            continue
+        if (
+            best is None
+            or value > best.blockage_ratio
+            or (value == best.blockage_ratio and s.chainage_start_m < best.chainage_start_m)
+        ):
+            best = BlockagePeak(value, s.chainage_start_m)
+    return best
+
+
+@dataclass(frozen=True)
+class BlockageSummary:
+    """An inspection's blockage summary, over its measured sections only.
+
+    ``mean_blockage_ratio``, ``peak_blockage_ratio`` and ``peak_chainage_m`` are None when no
+    section was measured.
+    """
+
+    measured_section_count: int
+    mean_blockage_ratio: float | None
+    peak_blockage_ratio: float | None
+    peak_chainage_m: float | None
+
+
+def blockage_summary(sections: Sequence[SectionMeasures]) -> BlockageSummary:
+    """How many sections were measured, their mean blockage and the peak (see
+    :func:`peak_blockage`)."""
+    values = [v for s in sections if (v := measured_blockage(s)) is not None]
+    peak = peak_blockage(sections)
+    return BlockageSummary(
+        measured_section_count=len(values),
+        mean_blockage_ratio=math.fsum(values) / len(values) if values else None,
+        peak_blockage_ratio=None if peak is None else peak.blockage_ratio,
+        peak_chainage_m=None if peak is None else peak.chainage_start_m,
+    )
