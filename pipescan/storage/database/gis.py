@@ -40,7 +40,7 @@ from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import growth_per_year
 from pipescan.storage.database.db import StorageError, session_scope
 from pipescan.storage.database.models import Inspection, NetworkPipe
-from pipescan.storage.database.network import asset_geometries
+from pipescan.storage.database.network import asset_geometries, gis_ids
 from pipescan.storage.database.queries import (
     defect_counts,
     earlier_scans,
@@ -92,9 +92,11 @@ def _resolve_asset(engine: Engine, asset_id: str) -> str:
     with session_scope(engine) as session:
         if session.scalar(sa.select(sa.func.count()).where(Inspection.asset_id == asset_id)):
             return asset_id
-        ref = session.scalar(sa.select(NetworkPipe.asset_ref).where(NetworkPipe.gis_id == asset_id))
-    if ref is not None:
-        return ref
+        imported = session.scalar(sa.select(sa.func.count()).where(NetworkPipe.gis_id == asset_id))
+    if imported:
+        named = [a for a, gis_id in gis_ids(engine).items() if gis_id == asset_id]
+        if named:
+            return named[0]
     raise StorageError(
         f"no inspection of asset {asset_id!r}",
         field="asset",

@@ -134,8 +134,8 @@ START_CODE = ObservationCode(
 END_CODE = ObservationCode(
     "BCE",
     "end node",
-    "the last observation, at the survey's last station, of the 123 pipe inspections that "
-    "were not abandoned (the other 10 end with BDC)",
+    "the last observation of the 123 pipe inspections that were not abandoned (the other 10 "
+    "end with BDC), at the largest station of the survey in 122 of them",
 )
 
 _MEASURE_WORDS = {

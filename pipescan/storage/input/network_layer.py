@@ -82,7 +82,7 @@ def read_network_layer(
         raise LayerError(
             "node fields are given as a pair",
             file=where,
-            field=to_field if from_field is None else from_field,
+            field="--from-node-field" if from_field is None else "--to-node-field",
             hint="give both --from-node-field and --to-node-field, or neither",
         )
     try:
