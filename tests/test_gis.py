@@ -608,3 +608,18 @@ def test_cli_network_import_and_export(network, tmp_path: Path) -> None:
         assert result.exit_code == 2, result.output
         lines = result.output.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("error:") and message in lines[0]
+
+
+def test_isybau_names_an_imported_pipe_by_its_gis_id(network, tmp_path: Path) -> None:
+    from datetime import date
+
+    from pipescan.storage.database.isybau import IsybauHeader, export_isybau, validation_errors
+
+    engine, _ = network
+    out = tmp_path / "sw2.xml"
+    result = export_isybau(engine, out, IsybauHeader(date(2026, 12, 1)), asset_id="SW-2")
+    assert len(result.inspection_ids) == 2  # both scans of MH2-MH3
+    document = out.read_bytes()
+    assert validation_errors(document) == []
+    assert document.count(b"<Objektbezeichnung>SW-2</Objektbezeichnung>") == 2
+    assert b"asset MH2-MH3" in document  # the remarks keep pipescan's asset id

@@ -154,6 +154,7 @@ def export_gis_command(
                 asset_id=asset,
                 with_sections=sections,
             )
+            names = gis_names(engine, sorted(result.length_notes))
         finally:
             engine.dispose()
     except PipescanError as exc:
@@ -163,7 +164,7 @@ def export_gis_command(
     paths = ", ".join(str(p) for p in result.paths)
     typer.echo(f"wrote {paths} ({result.crs}): {counts}", err=True)
     for asset_id, note in sorted(result.length_notes.items()):
-        typer.echo(f"  {escape_control(asset_id)}: {note}", err=True)
+        typer.echo(f"  {escape_control(pipe_label(asset_id, names))}: {note}", err=True)
     if result.without_geometry:
         shown = ", ".join(escape_control(a) for a in result.without_geometry[:10])
         more = len(result.without_geometry) - 10

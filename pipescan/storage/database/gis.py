@@ -26,7 +26,6 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from pipescan.core.errors import PipescanError
@@ -39,8 +38,8 @@ from pipescan.core.network import (
 from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import growth_per_year
 from pipescan.storage.database.db import StorageError, session_scope
-from pipescan.storage.database.models import Inspection, NetworkPipe
-from pipescan.storage.database.network import asset_geometries, gis_ids
+from pipescan.storage.database.models import Inspection
+from pipescan.storage.database.network import asset_geometries, resolve_asset
 from pipescan.storage.database.queries import (
     defect_counts,
     earlier_scans,
@@ -87,23 +86,6 @@ class GisExport:
     length_notes: dict[str, str]
 
 
-def _resolve_asset(engine: Engine, asset_id: str) -> str:
-    """An asset id, or the GIS id of an imported pipe that stands for a stored asset."""
-    with session_scope(engine) as session:
-        if session.scalar(sa.select(sa.func.count()).where(Inspection.asset_id == asset_id)):
-            return asset_id
-        imported = session.scalar(sa.select(sa.func.count()).where(NetworkPipe.gis_id == asset_id))
-    if imported:
-        named = [a for a, gis_id in gis_ids(engine).items() if gis_id == asset_id]
-        if named:
-            return named[0]
-    raise StorageError(
-        f"no inspection of asset {asset_id!r}",
-        field="asset",
-        hint="list the assets with `pipescan assets` (a GIS id of an imported layer works too)",
-    )
-
-
 def select_inspections(
     engine: Engine, *, inspection_id: int | None = None, asset_id: str | None = None
 ) -> list[InspectionRecord]:
@@ -116,7 +98,7 @@ def select_inspections(
         Unknown ids, or an inspection of another asset than the one given.
     """
     if asset_id is not None:
-        asset_id = _resolve_asset(engine, asset_id)
+        asset_id = resolve_asset(engine, asset_id)
     if inspection_id is not None:
         record = get_inspection(engine, inspection_id)
         if asset_id is not None and record.asset_id != asset_id:

@@ -44,7 +44,7 @@ from pipescan.core.model import Defect
 from pipescan.core.summary import worst_grade
 from pipescan.storage.database.db import session_scope
 from pipescan.storage.database.models import Inspection, Section
-from pipescan.storage.database.network import gis_ids
+from pipescan.storage.database.network import gis_ids, resolve_asset
 from pipescan.storage.database.queries import section_profiles
 from pipescan.storage.database.repository import (
     InspectionRecord,
@@ -222,9 +222,10 @@ def _positions(defect: Defect) -> dict[str, Any]:
     return {"position_from": start, "position_to": end}
 
 
-def _clock_words(defect: Defect) -> str:
+def _clock_words(defect: Defect, *, coded: bool = True) -> str:
     if defect.clock_from_h is None or defect.clock_to_h is None:
-        return "clock position not determined, so PositionVon/PositionBis are left out"
+        left_out = ", so PositionVon/PositionBis are left out" if coded else ""
+        return "clock position not determined" + left_out
     return f"clock {defect.clock_from_h:.1f} to {defect.clock_to_h:.1f} h"
 
 
@@ -305,9 +306,9 @@ def _describe(inspection: IsybauInspection) -> _Pipe:
             _station(c, direction, offset) for c in (defect.chainage_start_m, defect.chainage_end_m)
         )
         words = _MEASURE_WORDS.get(defect.measure, defect.measure + " {} %")
-        figures = (
-            words.format(_percent(defect.peak_value))
-            + f" (Quantifizierung1) at chainage {defect.peak_chainage_m:.2f} m"
+        peak = words.format(_percent(defect.peak_value))
+        rest = (
+            f" at chainage {defect.peak_chainage_m:.2f} m"
             + (
                 f", cross-section lost {_percent(defect.peak_blockage_ratio)} %"
                 if defect.peak_blockage_ratio is not None and defect.measure != "blockage_ratio"
@@ -318,17 +319,18 @@ def _describe(inspection: IsybauInspection) -> _Pipe:
         if code is None:
             pipe.remarks.append(
                 f"Not coded as an observation (EN 13508-2 {defect.code}: its use in ISYBAU "
-                f"could not be checked against the published example): {figures}, chainage "
+                f"could not be checked against the published example): {peak}{rest}, chainage "
                 f"{defect.chainage_start_m:.2f}-{defect.chainage_end_m:.2f} m (stations "
-                f"{a:.2f}-{b:.2f}), {_clock_words(defect)}"
+                f"{a:.2f}-{b:.2f}), {_clock_words(defect, coded=False)}"
             )
             continue
         if defect.peak_value < 0 or not math.isfinite(defect.peak_value):
             quantity = None
-            figures += "; Quantifizierung1 left out (the figure is not a loss)"
+            figures = f"{peak}{rest}; Quantifizierung1 left out (the figure is not a loss)"
         else:
             quantity = _decimal(100.0 * defect.peak_value, "Quantifizierung1", where, limit=9999)
             quantity = f"{float(quantity):.1f}"
+            figures = f"{peak} (Quantifizierung1){rest}"
         comment = f"pipescan: {code.label}, {figures}; {_clock_words(defect)}"
         positions = _positions(defect)
         length = defect.chainage_end_m - defect.chainage_start_m
@@ -574,6 +576,8 @@ def load_isybau_inspections(
     """One inspection, or every inspection of an asset (by date), ready for
     :func:`build_isybau`.
 
+    ``asset_id`` may be the GIS id of an imported pipe.
+
     Raises
     ------
     StorageError
@@ -581,8 +585,6 @@ def load_isybau_inspections(
     IsybauError
         Neither, or an inspection of another asset than the one given.
     """
-    from pipescan.storage.database.db import StorageError
-
     if inspection_id is not None:
         records = [get_inspection(engine, inspection_id)]
         if asset_id is not None and records[0].asset_id != asset_id:
@@ -592,12 +594,7 @@ def load_isybau_inspections(
                 hint="give --inspection or --asset, or both of the same pipe",
             )
     elif asset_id is not None:
-        records = list_inspections(engine, asset_id)
-        if not records:
-            raise StorageError(
-                f"no inspection of asset {asset_id!r}",
-                hint="list the assets with `pipescan assets`",
-            )
+        records = list_inspections(engine, resolve_asset(engine, asset_id))
     else:
         raise IsybauError(
             "say which inspection to export", hint="give --inspection ID or --asset ID"

@@ -26,7 +26,7 @@ from pipescan.core.network import (
     orient,
 )
 from pipescan.storage.database.db import StorageError, session_scope
-from pipescan.storage.database.models import Asset, NetworkPipe
+from pipescan.storage.database.models import Asset, Inspection, NetworkPipe
 
 __all__ = [
     "NetworkImport",
@@ -35,6 +35,7 @@ __all__ = [
     "gis_ids",
     "import_network_layer",
     "placements",
+    "resolve_asset",
 ]
 
 _CHUNK = 500
@@ -258,3 +259,27 @@ def placements(engine: Engine, reaches: dict[str, float | None]) -> dict[str, Pl
             note = length_note(reach, geometry.line.length_m)
         found[asset_id] = Placement(None if geometry is None else geometry.gis_id, note)
     return found
+
+
+def resolve_asset(engine: Engine, name: str) -> str:
+    """The asset a user names: an asset id with inspections, or the GIS id of an imported pipe
+    that stands for one.
+
+    Raises
+    ------
+    StorageError
+        When it is neither.
+    """
+    with session_scope(engine) as session:
+        if session.scalar(sa.select(sa.func.count()).where(Inspection.asset_id == name)):
+            return name
+        imported = session.scalar(sa.select(sa.func.count()).where(NetworkPipe.gis_id == name))
+    if imported:
+        named = sorted(a for a, gis_id in gis_ids(engine).items() if gis_id == name)
+        if named:
+            return named[0]
+    raise StorageError(
+        f"no inspection of asset {name!r}",
+        field="asset",
+        hint="list the assets with `pipescan assets` (a GIS id of an imported layer works too)",
+    )
