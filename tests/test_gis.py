@@ -562,6 +562,11 @@ def test_what_cannot_be_exported(network, tmp_path: Path) -> None:
     with pytest.raises(db.StorageError, match="no inspection of asset 'NOPE'"):
         export_gis(engine, tmp_path / "x.gpkg", asset_id="NOPE")
     assert not (tmp_path / "x.gpkg").exists()
+    with pytest.raises(GisError, match="its folder does not exist"):
+        export_gis(engine, tmp_path / "missing" / "x.gpkg", asset_id="SW-1")
+    (tmp_path / "afile").write_text("")
+    with pytest.raises(GisError, match="is a file"):
+        export_gis(engine, tmp_path / "afile", asset_id="SW-1", fmt="geojson")
 
 
 def test_reports_name_pipes_by_gis_id_and_note_lengths(network) -> None:

@@ -466,6 +466,18 @@ def test_cli_export_isybau(engine_with_inspection, tmp_path: Path) -> None:
         assert not target.exists()
 
 
+def test_an_unwritable_target_is_one_line(engine_with_inspection, tmp_path: Path) -> None:
+    engine, inspection_id = engine_with_inspection
+    target = tmp_path / "no-such-folder" / "x.xml"
+    result = CliRunner().invoke(
+        app,
+        ["export", "isybau", "--inspection", str(inspection_id), "-o", str(target),
+         "--db", str(engine.url)],
+    )  # fmt: skip
+    assert result.exit_code == 2
+    assert result.output.strip().startswith("error: file") and "cannot write" in result.output
+
+
 def test_an_inspection_stored_without_its_direction(engine_with_inspection, tmp_path) -> None:
     engine, inspection_id = engine_with_inspection
     with engine.begin() as connection:

@@ -298,7 +298,7 @@ def _features(
                     **common,
                     chainage_start_m=s.chainage_start_m,
                     chainage_end_m=s.chainage_end_m,
-                    status=str(s.status.value if hasattr(s.status, "value") else s.status),
+                    status=s.status.value,
                     blockage_ratio=_measured(s, s.blockage_ratio),
                     deposit_height_ratio=_measured(s, s.deposit_height_ratio),
                     deformation_ratio=_measured(s, s.deformation_ratio),
@@ -427,7 +427,35 @@ def export_gis(
     )
 
 
+def _check_target(out: Path, fmt: GisFormat) -> None:
+    where = str(out)
+    if fmt == "gpkg" and (out.is_dir() or not out.parent.is_dir()):
+        raise GisError(
+            "is a folder" if out.is_dir() else "its folder does not exist",
+            file=where,
+            hint="give the GeoPackage file to write, in an existing folder",
+        )
+    if fmt == "geojson" and out.exists() and not out.is_dir():
+        raise GisError(
+            "is a file; GeoJSON is written as a folder of one file per layer",
+            file=where,
+            hint="give a folder (it is created if missing)",
+        )
+
+
 def _write(out: Path, layers: Sequence[_Layer], *, fmt: GisFormat, crs: str) -> tuple[Path, ...]:
+    from pyogrio.errors import DataSourceError
+
+    _check_target(out, fmt)
+    try:
+        return _write_files(out, layers, fmt=fmt, crs=crs)
+    except (OSError, DataSourceError) as exc:
+        raise GisError(f"cannot write: {exc}", file=str(out), hint="nothing was written") from exc
+
+
+def _write_files(
+    out: Path, layers: Sequence[_Layer], *, fmt: GisFormat, crs: str
+) -> tuple[Path, ...]:
     # Everything goes to temporary files next to the target, which replace it at the end: a
     # failed export leaves nothing half-written.
     if fmt == "gpkg":

@@ -668,6 +668,12 @@ def export_isybau(
     try:
         tmp.write_bytes(document)
         tmp.replace(out_path)
+    except OSError as exc:
+        raise IsybauError(
+            f"cannot write: {exc.strerror or exc}",
+            file=str(out_path),
+            hint="give a file in an existing folder you may write to; nothing was written",
+        ) from exc
     finally:
         tmp.unlink(missing_ok=True)
     pipes = [_describe(i) for i in inspections]
