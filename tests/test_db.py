@@ -28,7 +28,7 @@ from pipescan.storage.database import db, repository
 from pipescan.storage.database.models import Base
 from tests.conftest import is_sqlite
 
-TABLES = {"assets", "inspections", "sections", "defects", "frame_quality"}
+TABLES = {"assets", "inspections", "sections", "defects", "frame_quality", "network_pipes"}
 NOMINAL_DIAMETER_M = 0.6
 NOMINAL_AREA_M2 = math.pi * NOMINAL_DIAMETER_M**2 / 4
 
@@ -178,6 +178,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
     assert files == [
         "2026_11_23_0001_initial_schema.py",
         "2026_11_23_1620_inspection_blockage_summary.py",
+        "2026_12_01_1530_network_pipes_and_survey_geometry.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -291,7 +292,7 @@ def test_upgrade_downgrade_upgrade_with_data(engine: sa.Engine) -> None:
 
 
 def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
-    # Down one step and up again: the summary columns are dropped, then filled in from the
+    # Down below the summary and up again: the summary columns are dropped, then filled in from the
     # sections by the migration, to exactly what save_inspection wrote.
     measured = save(engine)
     unmeasured = save(
@@ -304,7 +305,8 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
     assert written[0][3] == pytest.approx(1 - (0.27 / 0.3) ** 2)
     assert written[0][4] == 300
 
-    db.downgrade(engine, "-1")
+    # To the revision before the summary (later migrations go down with it).
+    db.downgrade(engine, "c5e1a9f40b21")
     columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
     assert "peak_blockage_ratio" not in columns
     assert count_rows(engine, "sections") == 6

@@ -33,7 +33,9 @@ app = typer.Typer(
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-export_app = typer.Typer(help="Export stored results (CSV or JSON lines).", no_args_is_help=True)
+export_app = typer.Typer(
+    help="Export stored results (CSV, JSON lines, ISYBAU XML, GIS layers).", no_args_is_help=True
+)
 db_app = typer.Typer(help="Database schema management.", no_args_is_help=True)
 app.add_typer(export_app, name="export")
 app.add_typer(db_app, name="db")

@@ -68,6 +68,7 @@ def _export(fn, asset, inspection, output, db) -> None:
 @app.command()
 def assets(db: DbOption = None) -> None:
     """List the pipe assets in the database."""
+    from pipescan.cli.exchange import gis_names, pipe_label
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.repository import list_assets
 
@@ -75,6 +76,7 @@ def assets(db: DbOption = None) -> None:
         engine = connect(_db_url(db))
         try:
             rows = list_assets(engine)
+            names = gis_names(engine)
         finally:
             engine.dispose()
     except PipescanError as exc:
@@ -86,7 +88,8 @@ def assets(db: DbOption = None) -> None:
         last = a.last_inspected_at.date().isoformat() if a.last_inspected_at else "-"
         size = f"DN {1000 * a.nominal_diameter_m:.0f}" if a.nominal_diameter_m else "DN ?"
         typer.echo(
-            f"{escape_control(a.asset_id):24} {escape_control(a.upstream_node or '-'):>10} -> "
+            f"{escape_control(pipe_label(a.asset_id, names)):24} "
+            f"{escape_control(a.upstream_node or '-'):>10} -> "
             f"{escape_control(a.downstream_node or '-'):10} "
             f"{size:8} {a.pipe_shape:10} {a.material or '-':10} "
             f"{a.inspection_count} inspections, last {last}"
@@ -99,6 +102,7 @@ def inspections(
     db: DbOption = None,
 ) -> None:
     """List stored inspections, with their measured sections and blockage."""
+    from pipescan.cli.exchange import gis_names, pipe_label
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.repository import list_inspections
 
@@ -106,6 +110,7 @@ def inspections(
         engine = connect(_db_url(db))
         try:
             rows = list_inspections(engine, asset_id=asset)
+            names = gis_names(engine, sorted({r.asset_id for r in rows}))
         finally:
             engine.dispose()
     except PipescanError as exc:
@@ -118,7 +123,8 @@ def inspections(
         # Rows stored before credentials were stripped, or ids with control characters,
         # still print safely.
         typer.echo(
-            f"{r.id:6}  {escape_control(r.asset_id):24} {r.inspected_at.isoformat():26} "
+            f"{r.id:6}  {escape_control(pipe_label(r.asset_id, names)):24} "
+            f"{r.inspected_at.isoformat():26} "
             f"{r.measured_section_count:5}/{r.section_count:<5} measured  peak {peak:>7}  "
             f"{r.status:10} {escape_control(strip_credentials(r.archive_uri))}"
         )

@@ -285,6 +285,7 @@ def worst(
     db: DbOption = None,
 ) -> None:
     """The network's worst pipes, by blockage growth per year or by current blockage."""
+    from pipescan.cli.exchange import gis_names, pipe_label
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.trends import worst_assets
 
@@ -292,13 +293,18 @@ def worst(
         engine = connect(_db_url(db))
         try:
             rows = worst_assets(engine, by=by.value, limit=limit, since=_since(since))
+            names = gis_names(engine, [r.asset_id for r in rows])
         finally:
             engine.dispose()
     except PipescanError as exc:
         _fail(exc)
         return
     if as_json:
-        typer.echo(json.dumps([_ranking_json(r) for r in rows], indent=2))
+        typer.echo(
+            json.dumps(
+                [_ranking_json(r) | {"gis_id": names.get(r.asset_id)} for r in rows], indent=2
+            )
+        )
         return
     if not rows:
         from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR
@@ -309,13 +315,13 @@ def worst(
         typer.echo(f"no pipe has {needs} with measured sections yet")
         return
     typer.echo(
-        f"{'#':>3}  {'asset':24} {'insp':>4}  {'last':10}  {'peak':>7}  {'at m':>7}  "
+        f"{'#':>3}  {'pipe':24} {'insp':>4}  {'last':10}  {'peak':>7}  {'at m':>7}  "
         f"{'mean':>7}  {'peak/yr':>12}  {'mean/yr':>12}"
     )
     for rank, r in enumerate(rows, 1):
         at = "-" if r.current_peak_chainage_m is None else f"{r.current_peak_chainage_m:.2f}"
         typer.echo(
-            f"{rank:>3}  {r.asset_id:24} {r.inspection_count:>4}  "
+            f"{rank:>3}  {pipe_label(r.asset_id, names):24} {r.inspection_count:>4}  "
             f"{r.last_inspected_at.date().isoformat():10}  "
             f"{_pct(r.current_peak_blockage_ratio):>7}  {at:>7}  "
             f"{_pct(r.current_mean_blockage_ratio):>7}  {_rate(r.peak_change_per_year):>12}  "

@@ -93,5 +93,10 @@ class GradingError(PipescanError):
     """A threshold table is malformed or unknown."""
 
 
+class LayerError(PipescanError):
+    """A GIS layer cannot be imported: unreadable, a field missing, ids missing or repeated,
+    geometry that is not one line per pipe, or no usable CRS."""
+
+
 class OptionError(PipescanError):
     """A processing option names something pipescan does not know (e.g. a contour method)."""

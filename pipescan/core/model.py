@@ -33,7 +33,12 @@ class FrameRef:
 
 @dataclass(frozen=True)
 class InspectionMeta:
-    """The validated content of ``inspection.toml``."""
+    """The validated content of ``inspection.toml``.
+
+    ``upstream_node_xyz`` and ``downstream_node_xyz`` are the nodes' positions ``(x, y)`` or
+    ``(x, y, z)`` in the coordinate reference system ``crs`` (e.g. ``"EPSG:25832"``), given
+    together or not at all (docs/archive.md).
+    """
 
     asset_id: str
     inspected_at: datetime
@@ -45,6 +50,9 @@ class InspectionMeta:
     material: str | None = None
     pipe_shape: str = "circular"
     frames: tuple[FrameRef, ...] = ()
+    upstream_node_xyz: tuple[float, ...] | None = None
+    downstream_node_xyz: tuple[float, ...] | None = None
+    crs: str | None = None
 
     @property
     def nominal_area_m2(self) -> float:
@@ -108,6 +116,8 @@ class Defect:
     peak_value: float
     peak_blockage_ratio: float | None
     grade: int | None
+    clock_from_h: float | None = None
+    clock_to_h: float | None = None
 
 
 @dataclass(frozen=True)

@@ -7,6 +7,8 @@ Each figure has this one definition; the database, the reports, the flows and th
   a blockage of 0: it is left out.
 - **Peak blockage** is the largest measured blockage ratio, at the start chainage of its
   section; on a tie, the upstream section (the smaller chainage).
+- **A pipe's condition class** (its worst grade) is the worst (smallest) class of its measured
+  sections; None when none was graded. See :func:`worst_grade`.
 - **Touching** sections: one starts where the other ends, within :data:`ADJACENT_TOL_M`.
   Chainages are sums of 0.1 m steps, so exact float equality would split runs on rounding
   noise.
@@ -30,6 +32,7 @@ __all__ = [
     "measured_blockage",
     "peak_blockage",
     "touches",
+    "worst_grade",
 ]
 
 ADJACENT_TOL_M = 1e-6
@@ -147,6 +150,20 @@ def peak_blockage(sections: Sequence[SectionMeasures]) -> BlockagePeak | None:
         ):
             best = BlockagePeak(value, s.chainage_start_m)
     return best
+
+
+def worst_grade(sections: Sequence[SectionMeasures]) -> int | None:
+    """The worst condition class (0 worst ... 4 best) of the ``ok`` sections; None if none
+    was graded.
+
+    >>> from pipescan.core.model import SectionStatus
+    >>> def section(grade, status=SectionStatus.OK):
+    ...     return SectionMeasures(0.0, 0.1, 0.2, status, 900, 1.0, grade=grade)
+    >>> worst_grade([section(3), section(1), section(0, "low_coverage"), section(None)])
+    1
+    """
+    grades = [s.grade for s in sections if s.is_ok and s.grade is not None]
+    return min(grades) if grades else None
 
 
 @dataclass(frozen=True)

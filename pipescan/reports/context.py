@@ -144,6 +144,9 @@ class ReportInput:
     history
         Earlier inspections of the same asset, any order; a trend page is added when there
         is at least one.
+    gis_id, length_note
+        The pipe's id in an imported network layer, and the words saying that the scan's
+        reach and the pipe's GIS length disagree (None when unknown or when they agree).
     """
 
     asset_id: str
@@ -169,6 +172,8 @@ class ReportInput:
     pipe_class: str = "rigid"
     pipe_class_reason: str = ""
     history: Sequence[EarlierInspection] = ()
+    gis_id: str | None = None
+    length_note: str | None = None
 
 
 # --- formatting -----------------------------------------------------------------------
@@ -607,6 +612,8 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "archive_uri": strip_credentials(inp.archive_uri),
         "software_version": inp.software_version,
         "generated_at": fmt_datetime(inp.generated_at),
+        "gis_id": inp.gis_id,
+        "length_note": inp.length_note,
     }
     table = {"name": inp.threshold_table.name, "source": inp.threshold_table.source}
 

@@ -18,7 +18,7 @@ from datetime import datetime
 from typing import Any
 
 from pipescan.core.model import SectionMeasures
-from pipescan.core.summary import peak_blockage
+from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
 from pipescan.reports.context import (
     NOT_RECORDED,
@@ -55,7 +55,9 @@ class PipeInspection:
     """One pipe's inspection in a network summary, with the pipe's earlier scans.
 
     ``sections`` need no contours. ``earlier`` are the asset's earlier scans (each archive
-    once), in date order; the last is the previous inspection.
+    once), in date order; the last is the previous inspection. ``gis_id`` is the pipe's id in
+    an imported network layer; ``length_note`` says when the scan's reach and the pipe's GIS
+    length disagree.
     """
 
     asset_id: str
@@ -68,6 +70,13 @@ class PipeInspection:
     sections: Sequence[SectionMeasures]
     defect_count: int
     earlier: Sequence[EarlierScan] = ()
+    gis_id: str | None = None
+    length_note: str | None = None
+
+    @property
+    def name(self) -> str:
+        """What the report calls the pipe: its GIS id when a network layer was imported."""
+        return self.gis_id or self.asset_id
 
     @property
     def previous(self) -> EarlierScan | None:
@@ -112,7 +121,6 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
     """The figures of one pipe's line in the network summary."""
     length_m = sum(s.chainage_end_m - s.chainage_start_m for s in pipe.sections)
     measured_m = sum(s.chainage_end_m - s.chainage_start_m for s in pipe.sections if s.is_ok)
-    grades = [s.grade for s in pipe.sections if s.is_ok and s.grade is not None]
     peak = peak_blockage(pipe.sections)
     peak_ratio = None if peak is None else peak.blockage_ratio
     previous = pipe.previous
@@ -125,7 +133,7 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
         pipe=pipe,
         length_m=length_m,
         measured_length_m=measured_m,
-        worst_grade=min(grades) if grades else None,
+        worst_grade=worst_grade(pipe.sections),
         max_blockage_ratio=peak_ratio,
         max_blockage_at_m=None if peak is None else peak.chainage_start_m,
         previous_max_blockage_ratio=previous_peak,
@@ -144,6 +152,10 @@ def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
     return {
         "rank": rank,
         "asset_id": pipe.asset_id,
+        "pipe": pipe.name,
+        "asset_note": (
+            f"asset {pipe.asset_id}" if pipe.gis_id and pipe.gis_id != pipe.asset_id else ""
+        ),
         "nodes": nodes or NOT_RECORDED,
         "size": (
             f"DN {round(pipe.nominal_diameter_m * 1000)}"
@@ -197,14 +209,12 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
         key=lambda p: (
             p.worst_grade if p.worst_grade is not None else 99,
             -(p.max_blockage_ratio if p.max_blockage_ratio is not None else -math.inf),
-            p.pipe.asset_id,
+            p.pipe.name,
         ),
     )
     # The order of ``pipescan worst --by growth``: fastest growth first, then by asset id.
     with_growth = [p for p in summaries if p.growth_per_year_ratio is not None]
-    by_growth = sorted(
-        with_growth, key=lambda p: (-(p.growth_per_year_ratio or 0.0), p.pipe.asset_id)
-    )
+    by_growth = sorted(with_growth, key=lambda p: (-(p.growth_per_year_ratio or 0.0), p.pipe.name))
     total_m = sum(p.length_m for p in summaries)
     measured_m = sum(p.measured_length_m for p in summaries)
     dates = [p.pipe.inspected_at for p in summaries]
@@ -249,8 +259,13 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
         "min_days_apart": round(MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0),
         "by_grade": [_row(i, p, inp.flag_grade) for i, p in enumerate(by_grade, start=1)],
         "by_growth": [_row(i, p, inp.flag_grade) for i, p in enumerate(by_growth, start=1)],
-        "first_inspections": sorted(p.pipe.asset_id for p in summaries if not p.pipe.earlier),
+        "first_inspections": sorted(p.pipe.name for p in summaries if not p.pipe.earlier),
         "without_growth": sorted(
-            p.pipe.asset_id for p in summaries if p.pipe.earlier and p.growth_per_year_ratio is None
+            p.pipe.name for p in summaries if p.pipe.earlier and p.growth_per_year_ratio is None
         ),
+        "length_notes": [
+            {"pipe": p.pipe.name, "note": p.pipe.length_note}
+            for p in sorted(summaries, key=lambda p: p.pipe.name)
+            if p.pipe.length_note
+        ],
     }

@@ -24,6 +24,7 @@ from pipescan.reports.network import (
 )
 from pipescan.reports.render import render_network_pdf, render_pdf
 from pipescan.storage.database.db import connect
+from pipescan.storage.database.network import placements
 from pipescan.storage.database.queries import (
     defect_counts,
     earlier_inspections,
@@ -68,6 +69,8 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         ids = [e.id for e in earlier]
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
+        reach = max((sec.chainage_end_m for sec in sections), default=None)
+        placement = placements(engine, {rec.asset_id: reach})[rec.asset_id]
     finally:
         engine.dispose()
     params = rec.params or {}
@@ -95,6 +98,8 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         flag_grade=params.get("flag_grade", 2),
         pipe_class=params.get("pipe_class", "rigid"),
         pipe_class_reason=params.get("pipe_class_reason", "set for the run"),
+        gis_id=placement.gis_id,
+        length_note=placement.length_note,
         history=[
             EarlierInspection(
                 inspection_id=e.id,
@@ -122,6 +127,13 @@ def load_network_input(
         history = earlier_scans(engine, ids)
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
+        placed = placements(
+            engine,
+            {
+                r.asset_id: max((sec.chainage_end_m for sec in profiles[r.id]), default=None)
+                for r in records
+            },
+        )
     finally:
         engine.dispose()
     pipes = []
@@ -141,6 +153,8 @@ def load_network_input(
                     EarlierScan(e.id, e.inspected_at, e.peak_blockage_ratio)
                     for e in reversed(history[r.id])
                 ],
+                gis_id=placed[r.asset_id].gis_id,
+                length_note=placed[r.asset_id].length_note,
             )
         )
     first = records[0].params if records else {}

@@ -100,6 +100,10 @@ class Asset(Base):
     nominal_diameter_m: Mapped[float | None] = mapped_column(sa.Float())
     pipe_shape: Mapped[str] = mapped_column(sa.String())
     material: Mapped[str | None] = mapped_column(sa.String())
+    # The nodes' positions, [x, y] or [x, y, z] in ``crs``, from the metadata (all or none).
+    upstream_node_xyz: Mapped[list[float] | None] = mapped_column(sa.JSON(none_as_null=True))
+    downstream_node_xyz: Mapped[list[float] | None] = mapped_column(sa.JSON(none_as_null=True))
+    crs: Mapped[str | None] = mapped_column(sa.String())
 
     inspections: Mapped[list[Inspection]] = relationship(
         back_populates="asset", passive_deletes=True
@@ -141,6 +145,10 @@ class Inspection(Base):
     scanned_length_m: Mapped[float] = mapped_column(sa.Float())
     registration_json: Mapped[dict[str, Any] | None] = mapped_column(sa.JSON())
     threshold_table: Mapped[str] = mapped_column(sa.String())
+    # The survey's direction ("downstream" or "upstream") and the chainage of its start, from
+    # the metadata; NULL for inspections stored before they were kept.
+    direction: Mapped[str | None] = mapped_column(sa.String())
+    chainage_offset_m: Mapped[float | None] = mapped_column(sa.Float())
     # Blockage summary of the inspection's *measured* sections (status ok, blockage known),
     # written with the sections, so that network-wide rankings (``trends.worst_assets``) read
     # one row per inspection instead of every section. NULL when no section was measured.
@@ -216,6 +224,34 @@ class DefectRow(Base):
     grade: Mapped[int | None] = mapped_column(sa.Integer())
 
     inspection: Mapped[Inspection] = relationship(back_populates="defects")
+
+
+class NetworkPipe(Base):
+    """One pipe of a network layer imported from a GIS (``pipescan network import``).
+
+    ``gis_id`` is the layer's id of the pipe. It stands for the pipescan asset whose id is
+    ``asset_ref`` or, failing that, whose upstream and downstream nodes are ``from_node`` and
+    ``to_node`` (either way round): matched when read, so that a layer imported once serves
+    the inspections stored after it too. ``line_json`` is the line's vertices
+    ``[[x, y(, z)], ...]`` in ``crs``, in the layer's (digitised) order; ``length_m`` is its
+    length along them, in the CRS's units (metres).
+    """
+
+    __tablename__ = "network_pipes"
+    __table_args__ = (
+        sa.CheckConstraint("length_m > 0", name="length_positive"),
+        sa.Index(None, "from_node", "to_node"),
+    )
+
+    gis_id: Mapped[str] = mapped_column(sa.String(), primary_key=True)
+    asset_ref: Mapped[str] = mapped_column(sa.String(), unique=True)
+    from_node: Mapped[str | None] = mapped_column(sa.String())
+    to_node: Mapped[str | None] = mapped_column(sa.String())
+    crs: Mapped[str] = mapped_column(sa.String())
+    line_json: Mapped[str] = mapped_column(sa.Text())
+    length_m: Mapped[float] = mapped_column(sa.Float())
+    source: Mapped[str] = mapped_column(sa.String())
+    imported_at: Mapped[datetime] = mapped_column(UTCDateTime(), default=utc_now)
 
 
 class FrameQualityRow(Base):

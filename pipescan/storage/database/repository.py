@@ -76,6 +76,9 @@ class InspectionRecord:
     The blockage summary covers the *measured* sections only (status ``ok`` with a blockage
     ratio): how many there are, their mean and peak ``blockage_ratio`` and the start chainage
     of the (first) peak section. The three figures are None when no section was measured.
+
+    ``direction`` (``"downstream"`` or ``"upstream"``) and ``chainage_offset_m`` are the
+    survey's, from its metadata; None for an inspection stored before pipescan kept them.
     """
 
     id: int
@@ -103,6 +106,8 @@ class InspectionRecord:
     mean_blockage_ratio: float | None = None
     peak_blockage_ratio: float | None = None
     peak_chainage_m: float | None = None
+    direction: str | None = None
+    chainage_offset_m: float | None = None
 
 
 @dataclass(frozen=True)
@@ -395,6 +400,8 @@ def _inspection_record(
             if inspection.peak_chainage_start_mm is None
             else mm_to_m(inspection.peak_chainage_start_mm)
         ),
+        direction=inspection.direction,
+        chainage_offset_m=inspection.chainage_offset_m,
     )
 
 
@@ -414,10 +421,18 @@ def _asset_values(metas: Iterable[InspectionMeta]) -> list[dict[str, Any]]:
             "nominal_diameter_m": _finite_or_none(meta.nominal_diameter_m),
             "pipe_shape": meta.pipe_shape,
             "material": meta.material,
+            "upstream_node_xyz": _position(meta.upstream_node_xyz),
+            "downstream_node_xyz": _position(meta.downstream_node_xyz),
+            "crs": meta.crs,
         }
         known = merged.setdefault(meta.asset_id, values)
         known.update((k, v) for k, v in values.items() if v is not None)
     return [merged[a] for a in sorted(merged)]
+
+
+def _position(xyz: Sequence[float] | None) -> list[float] | None:
+    # A node position as stored (a JSON list); the metadata parser checked it is finite.
+    return None if xyz is None else [float(v) for v in xyz]
 
 
 def _upsert_assets(session: Session, metas: Iterable[InspectionMeta]) -> None:
@@ -441,6 +456,15 @@ def _upsert_assets(session: Session, metas: Iterable[InspectionMeta]) -> None:
                     ),
                     "pipe_shape": new.pipe_shape,
                     "material": sa.func.coalesce(new.material, Asset.material),
+                    # The positions and their CRS go together: a metadata without them
+                    # keeps the known ones, one with them replaces all three.
+                    **{
+                        name: sa.case(
+                            (new.crs.is_(None), getattr(Asset, name)),
+                            else_=getattr(new, name),
+                        )
+                        for name in ("upstream_node_xyz", "downstream_node_xyz", "crs")
+                    },
                 },
             )
             session.execute(statement)
@@ -689,6 +713,8 @@ def _prepare(item: InspectionToSave) -> _Prepared:
         "scanned_length_m": _require_finite(item.scanned_length_m, "scanned_length_m", where),
         "registration_json": registration_json,
         "threshold_table": item.threshold_table,
+        "direction": meta.direction,
+        "chainage_offset_m": _require_finite(meta.chainage_offset_m, "chainage_offset_m", where),
         **_summary_columns(item.sections),
     }
     return _Prepared(

@@ -51,6 +51,15 @@ and must stay within the 255 bytes a file system allows."""
 MAX_FILE_CHARS = 1024
 """Longest ``[[frames]]`` file path (as long as an archive member path may be)."""
 
+MAX_COORDINATE = 1.0e8
+"""Largest node coordinate accepted, in the CRS's units. Projected coordinates in metres stay
+below 1e7 (a UTM northing, with a zone prefix); anything larger is a unit or a typing error."""
+
+MIN_NODE_DISTANCE_M = 0.1
+"""Node positions closer together than this cannot be the two ends of a pipe."""
+
+_CRS_PATTERN = r"^[A-Za-z][A-Za-z0-9_-]{0,15}:[A-Za-z0-9_.-]{1,32}$"
+
 ODOMETER_TOLERANCE_M = 0.05
 """How far the cable counter may step back between frames (slack, jitter) before the
 ``[[frames]]`` order is taken to be wrong."""
@@ -84,6 +93,22 @@ NameText = Annotated[
     str, StringConstraints(min_length=1, max_length=MAX_NAME_CHARS), AfterValidator(_printable)
 ]
 """An asset id, node name, material or shape: 1-64 printable characters."""
+
+
+def _authority_code(value: str) -> str:
+    if re.fullmatch(_CRS_PATTERN, value):
+        return value
+    raise PydanticCustomError(
+        "crs_not_a_code",
+        "{value} is not an authority code such as EPSG:25832",
+        {"value": _short_repr(value), "hint": _HINTS["crs"]},
+    )
+
+
+CrsText = Annotated[
+    str, StringConstraints(max_length=MAX_NAME_CHARS), AfterValidator(_authority_code)
+]
+"""A coordinate reference system as an authority code, e.g. ``EPSG:25832``."""
 
 FileText = Annotated[
     str, StringConstraints(min_length=1, max_length=MAX_FILE_CHARS), AfterValidator(_printable)
@@ -147,6 +172,28 @@ class InspectionDocument(BaseModel):
     material: NameText | None = None
     pipe_shape: NameText = "circular"
     frames: list[_FrameEntry] = Field(default_factory=list)
+    upstream_node_xyz: list[float] | None = None
+    downstream_node_xyz: list[float] | None = None
+    crs: CrsText | None = None
+
+    @field_validator("upstream_node_xyz", "downstream_node_xyz")
+    @classmethod
+    def _node_position(cls, value: list[float] | None) -> tuple[float, ...] | None:
+        if value is None:
+            return None
+        if len(value) not in (2, 3):
+            raise PydanticCustomError(
+                "node_xyz_length",
+                "a node position has 2 or 3 coordinates [x, y] or [x, y, z], got {value}",
+                {"value": list(value), "hint": _HINTS["node_xyz"]},
+            )
+        if any(abs(v) > MAX_COORDINATE for v in value):
+            raise PydanticCustomError(
+                "node_xyz_range",
+                "a coordinate is larger than {limit} in magnitude, got {value}",
+                {"value": list(value), "limit": f"{MAX_COORDINATE:g}", "hint": _HINTS["node_xyz"]},
+            )
+        return tuple(float(v) for v in value)
 
     @field_validator("inspected_at", mode="before")
     @classmethod
@@ -312,6 +359,7 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
             hint=_missing_hint("nominal_diameter_m", raw),
         )
     frames = _check_frames(doc.frames, fail)
+    _check_node_positions(doc, fail)
     return InspectionMeta(
         asset_id=doc.asset_id,
         inspected_at=doc.inspected_at,
@@ -325,7 +373,53 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         material=doc.material,
         pipe_shape=doc.pipe_shape,
         frames=frames,
+        upstream_node_xyz=_as_position(doc.upstream_node_xyz),
+        downstream_node_xyz=_as_position(doc.downstream_node_xyz),
+        crs=doc.crs,
     )
+
+
+def _as_position(value: Sequence[float] | None) -> tuple[float, ...] | None:
+    return None if value is None else tuple(value)
+
+
+def _check_node_positions(doc: InspectionDocument, fail: Any) -> None:
+    """Node positions come as a pair with their CRS, in the same dimension, apart."""
+    up, down = doc.upstream_node_xyz, doc.downstream_node_xyz
+    if up is None and down is None:
+        if doc.crs is not None:
+            raise fail(
+                "crs is given without node positions",
+                "crs",
+                hint="add upstream_node_xyz and downstream_node_xyz, or leave crs out",
+            )
+        return
+    if up is None or down is None:
+        missing = "upstream_node_xyz" if up is None else "downstream_node_xyz"
+        raise fail(
+            "required field is missing: node positions are given as a pair",
+            missing,
+            hint="give both upstream_node_xyz and downstream_node_xyz, or neither",
+        )
+    if len(up) != len(down):
+        raise fail(
+            f"has {len(down)} coordinates but upstream_node_xyz has {len(up)}",
+            "downstream_node_xyz",
+            hint="give both nodes as [x, y] or both as [x, y, z]",
+        )
+    if doc.crs is None:
+        raise fail(
+            "required field is missing: node positions need their coordinate reference system",
+            "crs",
+            hint='add crs = "EPSG:25832" (the code of the network\'s CRS)',
+        )
+    if math.dist(up, down) < MIN_NODE_DISTANCE_M:
+        raise fail(
+            f"is {math.dist(up, down):.3g} from upstream_node_xyz: the two ends of a pipe "
+            f"must be at least {MIN_NODE_DISTANCE_M:g} apart",
+            "downstream_node_xyz",
+            hint="check the two positions (and that they are in the CRS's units, metres)",
+        )
 
 
 def _check_frames(entries: Sequence[_FrameEntry], fail: Any) -> tuple[FrameRef, ...]:
@@ -417,6 +511,9 @@ _CUSTOM_ERROR_TYPES = {
     "time_without_date",
     "zero_gravity",
     "gravity_length",
+    "node_xyz_length",
+    "node_xyz_range",
+    "crs_not_a_code",
 }
 
 _HINTS = {
@@ -426,11 +523,18 @@ _HINTS = {
     "chainage_offset_m": "give the distance in metres from the upstream node to the scan start",
     "asset_id": 'write the pipe asset id, e.g. asset_id = "MH1042-MH1043"',
     "file": 'give the frame file relative to the archive root, e.g. "frames/000001.npy"',
+    "node_xyz": (
+        "give the node's position in the network's CRS, e.g. "
+        'upstream_node_xyz = [512345.2, 5803210.7, 41.3], with crs = "EPSG:25832"'
+    ),
+    "crs": 'write the CRS as an authority code, e.g. crs = "EPSG:25832"',
     "gravity": (
         "gravity = [gx, gy, gz] is the IMU's gravity direction in the sensor frame "
         "(any length but zero), e.g. gravity = [0.05, 0.0, -1.0]"
     ),
 }
+
+_HINTS["upstream_node_xyz"] = _HINTS["downstream_node_xyz"] = _HINTS["node_xyz"]
 
 
 def _dotted(loc: Sequence[int | str]) -> str:
