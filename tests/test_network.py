@@ -8,12 +8,8 @@ import pytest
 import sqlalchemy as sa
 
 from pipescan.core.errors import ArchiveError, GeometryError, MetadataError, RegistrationError
-from pipescan.flows.network import (
-    ArchiveOutcome,
-    absolute_database_url,
-    progress_line,
-    worst_pipes,
-)
+from pipescan.flows.database import absolute_database_url
+from pipescan.flows.network import ArchiveOutcome, progress_line, worst_pipes
 from pipescan.storage.database.db import StorageError
 from pipescan.tasks.network import StoreError, archive_label, find_archives
 from pipescan.tasks.retries import is_transient_io_error

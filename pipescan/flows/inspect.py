@@ -23,6 +23,8 @@ from pipescan.core.registration import (
     registration_summary,
 )
 from pipescan.core.sections import plan_windows
+from pipescan.flows.database import run_database_url
+from pipescan.settings import get_settings
 from pipescan.storage.database.repository import params_hash
 from pipescan.storage.scratch import create_run_dir, remove_workspace
 from pipescan.tasks.inspection import (
@@ -103,13 +105,17 @@ def stored_params(params: InspectionParams, pipe_class: str, pipe_class_reason: 
 @flow(name="inspect-archive")
 def inspect_archive(
     archive: str,
-    database_url: str = "sqlite:///pipescan.db",
     report_path: str | None = None,
     params: InspectionParams | None = None,
-    work_dir: str = ".pipescan-work",
+    work_dir: str | None = None,
     reuse_stored: bool = False,
 ) -> InspectionSummary:
     """Register, section, measure, grade and store one scan archive; optionally render its PDF.
+
+    The database is the one of the settings where the flow runs (``PIPESCAN_DATABASE_URL``, or
+    :func:`pipescan.settings.use_settings`), never a parameter: Prefect keeps a run's
+    parameters where anyone with access to its UI sees them. ``work_dir`` None: the
+    ``PIPESCAN_WORK_DIR`` setting.
 
     Nothing is written to the database unless every stage succeeded; the sections, defects and
     registration quality are then written in one transaction.
@@ -119,8 +125,10 @@ def inspect_archive(
     (``reused=True``). This is what lets a network run resume after a crash.
     """
     started = time.perf_counter()
+    settings = get_settings()
+    database_url = run_database_url(settings)
     params = params or InspectionParams()
-    run_dir = create_run_dir(Path(work_dir))
+    run_dir = create_run_dir(Path(work_dir or settings.work_dir))
     try:
         staged = stage_archive(archive, run_dir)
         meta = staged.meta
