@@ -6,10 +6,17 @@ from __future__ import annotations
 import fsspec
 import pytest
 import sqlalchemy as sa
+from typer.testing import CliRunner
 
+from pipescan.cli import app
 from pipescan.core.errors import ArchiveError, GeometryError, MetadataError, RegistrationError
 from pipescan.flows.database import absolute_database_url
-from pipescan.flows.network import ArchiveOutcome, progress_line, worst_pipes
+from pipescan.flows.network import (
+    ArchiveOutcome,
+    progress_line,
+    refuse_password_in_url,
+    worst_pipes,
+)
 from pipescan.storage.database.db import StorageError
 from pipescan.tasks.network import StoreError, archive_label, find_archives
 from pipescan.tasks.retries import is_transient_io_error
@@ -165,3 +172,27 @@ def test_settings_give_the_inspection_parameters(monkeypatch):
     monkeypatch.setenv("PIPESCAN_GRID_K", "2")
     with pytest.raises(ValueError, match="grid_k"):
         Settings()
+
+
+# --- no password in a parameter Prefect keeps ---------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["inspect-network", "s3://AKIAKEY:Sup3r-Secret@bucket/2026-11"],
+        ["inspect", "s3://AKIAKEY:Sup3r-Secret@bucket/2026-11/MH1-MH2.zip"],
+        ["deploy", "--store", "s3://AKIAKEY:Sup3r-Secret@bucket/x", "--cron", "0 2 * * *"],
+    ],
+)
+def test_a_url_with_a_password_is_refused_before_it_becomes_a_parameter(args):
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    [line] = result.output.strip().splitlines()
+    assert "URL s3://AKIAKEY:***@bucket/" in line and "holds a password" in line
+    assert "Sup3r-Secret" not in result.output
+
+
+def test_urls_without_a_password_pass():
+    for url in ("/data/scans", "s3://bucket/x", "ftp://user@host/x", "memory://a/b"):
+        refuse_password_in_url(url)

@@ -83,11 +83,16 @@ def inspect_network_command(
     start.
     """
     from pipescan.cli.scan import _inspection_params
-    from pipescan.flows.network import format_network_summary, inspect_network
+    from pipescan.flows.network import (
+        format_network_summary,
+        inspect_network,
+        refuse_password_in_url,
+    )
     from pipescan.settings import use_settings
 
     _keep_failed_runs_off_the_console()
     try:
+        refuse_password_in_url(store)
         # The database is a setting of this process, not a flow parameter (Prefect would keep
         # it, password and all, with the run).
         with use_settings(database_url=db):
@@ -166,7 +171,7 @@ def deploy(
     environment.
     """
     from pipescan.flows.deploy import RETRY_PARAMETER, deploy_network_inspection
-    from pipescan.flows.network import absolute_location
+    from pipescan.flows.network import absolute_location, refuse_password_in_url
     from pipescan.tasks.network import EmptyStoreError, find_archives
 
     parameters: dict = {}
@@ -175,6 +180,7 @@ def deploy(
     if concurrency:
         parameters["concurrency"] = concurrency
     try:
+        refuse_password_in_url(store)
         shown_url = _deploy_database_check(db)
         try:
             found = len(find_archives(absolute_location(store)))

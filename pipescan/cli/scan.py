@@ -54,6 +54,7 @@ def _inspection_params(contour: str | None, registration: str | None):
 def _run_inspection(archive: str, db_url: str, report: Path | None, params):
     from pipescan.flows.database import checked_database_url
     from pipescan.flows.inspect import inspect_archive
+    from pipescan.flows.network import refuse_password_in_url
     from pipescan.flows.runners import make_task_runner
     from pipescan.settings import use_settings
 
@@ -61,6 +62,7 @@ def _run_inspection(archive: str, db_url: str, report: Path | None, params):
     flow = inspect_archive.with_options(task_runner=make_task_runner(s.task_runner, s.workers))
     # The database is a setting of this process, never a flow parameter (Prefect keeps those);
     # it is checked before the archive is processed.
+    refuse_password_in_url(archive, "archive")  # a flow parameter: Prefect keeps it
     with use_settings(database_url=db_url):
         checked_database_url()
         return flow(

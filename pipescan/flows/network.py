@@ -21,6 +21,7 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field
 from datetime import datetime
 from pathlib import Path
+from urllib.parse import urlsplit
 
 from prefect import flow, get_run_logger, tags, task
 from prefect.futures import as_completed
@@ -148,6 +149,34 @@ def absolute_location(location: str) -> str:
     if "://" in location:
         return location
     return str(Path(location).expanduser().resolve())
+
+
+def refuse_password_in_url(location: str, what: str = "store") -> None:
+    """Refuse a URL with a password in it (``s3://KEY:SECRET@bucket/...``) before it becomes a
+    flow or deployment parameter, which Prefect keeps and shows.
+
+    Raises
+    ------
+    PipescanError
+        Naming the URL without its password.
+    """
+    if "://" not in location:
+        return
+    parts = urlsplit(location)
+    try:
+        password = parts.password
+    except ValueError:  # an unparseable port: not ours to judge
+        return
+    if password is None:
+        return
+    shown = location.replace(f":{password}@", ":***@", 1)
+    raise PipescanError(
+        f"the {what} URL {shown} holds a password, which Prefect would keep with the run's "
+        "parameters",
+        hint="give the credentials to the machines that read it instead: for s3://, "
+        "AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY or ~/.aws/credentials, see "
+        "docs/operations.md",
+    )
 
 
 def _api_url_for_workers(uses_dask: bool) -> str | None:
