@@ -83,6 +83,7 @@ def inspect_network_command(
     start.
     """
     from pipescan.cli.scan import _inspection_params
+    from pipescan.flows.database import checked_database_url
     from pipescan.flows.network import (
         format_network_summary,
         inspect_network,
@@ -94,8 +95,10 @@ def inspect_network_command(
     try:
         refuse_password_in_url(store)
         # The database is a setting of this process, not a flow parameter (Prefect would keep
-        # it, password and all, with the run).
+        # it, password and all, with the run). Checked here too, before a temporary Prefect
+        # server is started for the run: a bad database is an error in a second or two.
         with use_settings(database_url=db):
+            checked_database_url()
             summary = inspect_network(
                 store=store,
                 params=_inspection_params(contour, registration),
@@ -170,7 +173,13 @@ def deploy(
     password: each worker reads PIPESCAN_DATABASE_URL (and PIPESCAN_REPORTS_DIR...) from its own
     environment.
     """
-    from pipescan.flows.deploy import RETRY_PARAMETER, deploy_network_inspection
+    from pipescan.flows.deploy import (
+        CANCELLING_AFTER_S,
+        MAX_ATTEMPTS,
+        RETRY_PARAMETER,
+        SILENT_AFTER_S,
+        deploy_network_inspection,
+    )
     from pipescan.flows.network import absolute_location, refuse_password_in_url
     from pipescan.tasks.network import EmptyStoreError, find_archives
 
@@ -203,13 +212,15 @@ def deploy(
         f"  runs inspect-network over {info.parameters['store']} "
         f"({found} archives there now)\n"
         f"  schedule: cron {info.cron!r} ({info.timezone}){' PAUSED' if paused else ''}\n"
-        f"  recovery automations: {', '.join(repr(a) for a in info.automations)}\n"
-        f"  start a worker (under systemd or another supervisor) with this environment:\n"
-        f"    PREFECT_API_URL={info.api_url}\n"
-        f"    PIPESCAN_DATABASE_URL={shown_url}\n"
-        f"    PIPESCAN_REPORTS_DIR=/absolute/folder/for/network/reports\n"
-        f"    prefect worker start --pool {info.work_pool}\n"
-        f"  run it now:          prefect deployment run '{full}'\n"
+        f"  recovery: a run silent for {SILENT_AFTER_S} s is marked Crashed, a crashed run is "
+        f"retried ({MAX_ATTEMPTS} attempts in all), a run Cancelling for {CANCELLING_AFTER_S} s "
+        f"is marked Cancelled\n"
+        f"    (automations {', '.join(repr(a) for a in info.automations)})\n"
+        f"  start workers, under systemd or another supervisor, with this environment "
+        f"(docs/operations.md):\n"
+        + "".join(f"    {line}\n" for line in _worker_environment(info.api_url, shown_url))
+        + f"    prefect worker start --pool {info.work_pool}\n"
+        f"  run now:               prefect deployment run '{full}'\n"
         f"  re-inspect everything: prefect deployment run '{full}' "
         f"--param {RETRY_PARAMETER}=false"
     )
@@ -219,6 +230,21 @@ def deploy(
             fg=typer.colors.YELLOW,
             err=True,
         )
+
+
+def _worker_environment(api_url: str, shown_url: str) -> list[str]:
+    """What a worker's environment must hold, as far as this shell knows it."""
+    from pipescan.settings import get_settings
+
+    settings = get_settings()
+    reports = settings.reports_dir.expanduser()
+    lines = [f"PREFECT_API_URL={api_url}", f"PIPESCAN_DATABASE_URL={shown_url}"]
+    if settings.database_password_block:
+        lines.append(f"PIPESCAN_DATABASE_PASSWORD_BLOCK={settings.database_password_block}")
+    lines.append(
+        f"PIPESCAN_REPORTS_DIR={reports if reports.is_absolute() else '/an/absolute/folder'}"
+    )
+    return lines
 
 
 def _deploy_database_check(db: str | None) -> str:
@@ -233,7 +259,7 @@ def _deploy_database_check(db: str | None) -> str:
     """
     from sqlalchemy.engine import make_url
 
-    from pipescan.flows.database import WORKER_HINT, is_relative_sqlite
+    from pipescan.flows.database import is_relative_sqlite
     from pipescan.settings import database_url, get_settings, use_settings
     from pipescan.storage.database.db import StorageError, check_database
 
@@ -244,8 +270,9 @@ def _deploy_database_check(db: str | None) -> str:
                 "no database named: scheduled runs would write to a pipescan.db in the "
                 "worker's temporary folder",
                 field="PIPESCAN_DATABASE_URL",
-                hint="pass --db or set PIPESCAN_DATABASE_URL to the database the workers will "
-                f"use, to check it; then {WORKER_HINT}",
+                hint="pass --db URL or set PIPESCAN_DATABASE_URL: the database the workers will "
+                "use is checked now, not stored; they need it in their own environment "
+                "(docs/operations.md)",
             )
         url = database_url(settings)
     if is_relative_sqlite(url):

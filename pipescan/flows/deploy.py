@@ -78,8 +78,8 @@ def _api_url() -> str:
 
     url = PREFECT_API_URL.value()
     start = (
-        "start one with 'prefect server start --host 127.0.0.1 --port 4200' and set "
-        "PREFECT_API_URL=http://127.0.0.1:4200/api (docs/operations.md)"
+        "start one: prefect server start --host 127.0.0.1 --port 4200, with "
+        "PREFECT_API_URL=http://127.0.0.1:4200/api; see docs/operations.md"
     )
     if not url:
         raise DeploymentError(
