@@ -91,7 +91,17 @@ def _settled(server: PrefectServer, run_id: str, db: Path, archives: int) -> boo
         return False
     network, subflows = _runs(server, run_id)
     active = [r for r in subflows if r["state_type"] in ACTIVE_STATES]
-    return network["state_type"] == "COMPLETED" and not active
+    # Task-run states reach the server's database through its event pipeline, a moment after
+    # the flow run's: wait for them too.
+    return network["state_type"] == "COMPLETED" and not active and not _active_task_runs(server)
+
+
+def _active_task_runs(server: PrefectServer) -> int:
+    return server.call(
+        "POST",
+        "/task_runs/count",
+        {"task_runs": {"state": {"type": {"any_": sorted(ACTIVE_STATES)}}}},
+    )
 
 
 def run_scenario(
@@ -203,11 +213,7 @@ def run_scenario(
             network_run_type=network["state_type"],
             subflow_states=dict(Counter(r["state_name"] for r in subflows)),
             active_subflows=sum(r["state_type"] in ACTIVE_STATES for r in subflows),
-            active_task_runs=server.call(
-                "POST",
-                "/task_runs/count",
-                {"task_runs": {"state": {"type": {"any_": sorted(ACTIVE_STATES)}}}},
-            ),
+            active_task_runs=_active_task_runs(server),
             timeline=timeline,
         )
     finally:
