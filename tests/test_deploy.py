@@ -164,6 +164,7 @@ def test_prefects_own_list_commands_work_against_the_server(server, deployed):
         outputs[command[0]] = run.stdout
         assert run.returncode == 0, run.stdout + run.stderr
         assert "422" not in run.stdout + run.stderr
+    print(outputs["flow-run"])  # shown with pytest -s
     assert "inspect-network" in outputs["flow-run"] and "SCHEDULED" in outputs["flow-run"]
     assert "inspect-network/network-nightly" in outputs["deployment"]
     assert POOL in outputs["work-pool"]
