@@ -13,6 +13,7 @@ from pipescan.core.errors import ArchiveError, GeometryError, MetadataError, Reg
 from pipescan.flows.database import absolute_database_url
 from pipescan.flows.network import (
     ArchiveOutcome,
+    network_report_name,
     progress_line,
     refuse_password_in_url,
     worst_pipes,
@@ -196,3 +197,63 @@ def test_a_url_with_a_password_is_refused_before_it_becomes_a_parameter(args):
 def test_urls_without_a_password_pass():
     for url in ("/data/scans", "s3://bucket/x", "ftp://user@host/x", "memory://a/b"):
         refuse_password_in_url(url)
+
+
+# --- the database of a run: from the settings where it runs ------------------------------------
+
+
+def test_use_settings_sets_settings_for_its_block_only(monkeypatch):
+    from pipescan.settings import get_settings, use_settings
+
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", "sqlite:////env.db")
+    with use_settings(database_url="sqlite:////given.db", work_dir=None):
+        assert get_settings().database_url == "sqlite:////given.db"
+        with use_settings(step_m=0.2):  # nested: adds to the outer block
+            assert (get_settings().database_url, get_settings().step_m) == (
+                "sqlite:////given.db",
+                0.2,
+            )
+    assert get_settings().database_url == "sqlite:////env.db"
+
+
+def test_a_scheduled_run_refuses_a_database_the_worker_would_lose(monkeypatch, tmp_path):
+    from pipescan.flows import database
+    from pipescan.settings import Settings
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(database, "in_deployment", lambda: True)
+    with pytest.raises(StorageError, match="no database for this scheduled run") as implicit:
+        database.run_database_url(Settings())
+    assert implicit.value.field == "PIPESCAN_DATABASE_URL"
+    with pytest.raises(StorageError, match="relative SQLite path"):
+        database.run_database_url(Settings(database_url="sqlite:///network.db"))
+    url = "postgresql+psycopg://pipescan:pw@db/pipescan"
+    assert database.run_database_url(Settings(database_url=url)) == url
+    # Outside a deployment the default is the command's working folder, as always.
+    monkeypatch.setattr(database, "in_deployment", lambda: False)
+    assert database.run_database_url(Settings()) == f"sqlite:///{tmp_path / 'pipescan.db'}"
+
+
+def test_the_flows_take_no_database_url_parameter():
+    from pipescan.flows.inspect import inspect_archive
+    from pipescan.flows.network import inspect_network
+
+    for flow in (inspect_archive, inspect_network):
+        assert not any("database" in name for name in flow.parameters.properties), flow.name
+
+
+def test_network_reports_are_named_by_date_and_run(monkeypatch, tmp_path):
+    from datetime import datetime
+
+    from pipescan.core.errors import PipescanError
+    from pipescan.flows import network
+
+    when = datetime(2026, 11, 24, 2, 0)
+    assert network_report_name("cerise-lemming", when) == "network-2026-11-24-cerise-lemming.pdf"
+    assert network_report_name("../a b", when) == "network-2026-11-24-a-b.pdf"
+    assert network_report_name(None, when) == "network-2026-11-24-run.pdf"
+    # A scheduled run with a relative reports folder would write into its temporary folder.
+    monkeypatch.setattr(network, "in_deployment", lambda: True)
+    with pytest.raises(PipescanError, match="PIPESCAN_REPORTS_DIR"):
+        network._network_report_out(None, tmp_path.relative_to(tmp_path.parent))
+    assert network._network_report_out(str(tmp_path / "n.pdf"), tmp_path) == tmp_path / "n.pdf"
