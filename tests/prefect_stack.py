@@ -110,12 +110,18 @@ class PrefectServer:
     # --- REST -------------------------------------------------------------------------------
 
     def call(self, method: str, path: str, body: Any = None, *, attempts: int = 5) -> Any:
-        """A REST call; a busy server's 503 (its SQLite locked) is retried, as Prefect's
-        client does."""
+        """A REST call; a busy server's 503 (its SQLite locked) or timeout is retried, as
+        Prefect's client does."""
         for attempt in range(attempts):
-            response = httpx.request(method, f"{self.url}{path}", json=body, timeout=30)
-            if response.status_code != 503 or attempt == attempts - 1:
-                break
+            last = attempt == attempts - 1
+            try:
+                response = httpx.request(method, f"{self.url}{path}", json=body, timeout=30)
+            except httpx.TransportError:
+                if last:
+                    raise
+            else:
+                if response.status_code != 503 or last:
+                    break
             time.sleep(2**attempt)
         response.raise_for_status()
         return response.json() if response.content else None
