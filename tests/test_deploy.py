@@ -26,6 +26,7 @@ from pipescan.flows.deploy import (
     HEARTBEAT_S,
     MAX_ATTEMPTS,
     RECOVERY_TAG,
+    RETRY_AFTER_S,
     SILENT_AFTER_S,
 )
 from pipescan.settings import Settings, database_url
@@ -120,12 +121,17 @@ def test_the_deployment_holds_no_database_and_ships_its_recovery(server, deploye
     assert trigger["match_related"]["prefect.resource.id"] == f"prefect.tag.{RECOVERY_TAG}"
     assert silent["actions"][0]["state"] == "CRASHED"
     trigger = retry["trigger"]
-    assert trigger["posture"] == "Reactive" and trigger["expect"] == ["prefect.flow-run.Crashed"]
+    assert (trigger["posture"], trigger["within"]) == ("Proactive", RETRY_AFTER_S)
+    assert trigger["after"] == ["prefect.flow-run.Crashed"]
+    assert trigger["expect"] == ["prefect.flow-run.*"]  # any sign of life ends the wait
     assert trigger["match"]["prefect.run-count"] == [str(n) for n in range(MAX_ATTEMPTS)]
     assert trigger["match_related"]["prefect.resource.id"] == (
         f"prefect.deployment.{deployment['id']}"
     )
-    assert (retry["actions"][0]["state"], retry["actions"][0]["force"]) == ("SCHEDULED", True)
+    assert (retry["actions"][0]["state"], retry["actions"][0]["name"]) == (
+        "SCHEDULED",
+        "AwaitingRetry",
+    )
     assert cancelling["trigger"]["within"] == CANCELLING_AFTER_S
     assert cancelling["actions"][0]["state"] == "CANCELLED"
 

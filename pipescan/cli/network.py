@@ -176,6 +176,7 @@ def deploy(
     from pipescan.flows.deploy import (
         CANCELLING_AFTER_S,
         MAX_ATTEMPTS,
+        RETRY_AFTER_S,
         RETRY_PARAMETER,
         SILENT_AFTER_S,
         deploy_network_inspection,
@@ -213,8 +214,8 @@ def deploy(
         f"({found} archives there now)\n"
         f"  schedule: cron {info.cron!r} ({info.timezone}){' PAUSED' if paused else ''}\n"
         f"  recovery: a run silent for {SILENT_AFTER_S} s is marked Crashed, a crashed run is "
-        f"retried ({MAX_ATTEMPTS} attempts in all), a run Cancelling for {CANCELLING_AFTER_S} s "
-        f"is marked Cancelled\n"
+        f"retried after {RETRY_AFTER_S} s ({MAX_ATTEMPTS} attempts in all), a run Cancelling "
+        f"for {CANCELLING_AFTER_S} s is marked Cancelled\n"
         f"    (automations {', '.join(repr(a) for a in info.automations)})\n"
         f"  start workers, under systemd or another supervisor, with this environment "
         f"(docs/operations.md):\n"

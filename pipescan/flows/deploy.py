@@ -15,9 +15,9 @@ Recovery uses Prefect's own means (docs/operations.md):
 - automation "crash silent runs": a run of a deployment (tag :data:`RECOVERY_TAG`, which the
   network run passes on to its sub-flows) that sends no heartbeat and no final state for
   :data:`SILENT_AFTER_S` seconds is marked Crashed: its process or host died;
-- automation "retry crashed runs": a crashed run of the deployment is scheduled again, at most
-  :data:`MAX_ATTEMPTS` attempts in all, and the next worker finishes it (archives already
-  stored are reused);
+- automation "retry crashed runs": a run of the deployment still Crashed :data:`RETRY_AFTER_S`
+  seconds after its crash is scheduled again, at most :data:`MAX_ATTEMPTS` attempts in all, and
+  the next worker finishes it (archives already stored are reused);
 - automation "end stuck cancellations": a run Cancelling for :data:`CANCELLING_AFTER_S`
   seconds without a process to stop is marked Cancelled.
 """
@@ -40,6 +40,8 @@ SILENT_AFTER_S = 3 * HEARTBEAT_S
 """A run with no heartbeat for this long is taken for dead (three missed heartbeats)."""
 MAX_ATTEMPTS = 3
 """Attempts of a scheduled run, the first included, before a crash is left to a person."""
+RETRY_AFTER_S = 30
+"""A crashed run is scheduled again when it has stayed Crashed this long."""
 CANCELLING_AFTER_S = 120
 """A run still Cancelling after this long has no process left to stop."""
 RETRY_PARAMETER = "reuse_stored"
@@ -170,10 +172,10 @@ def recovery_automations(deployment_id: str, deployment_name: str) -> list:
     )
     retry = Automation(
         name=f"pipescan: retry crashed runs of {deployment_name}",
-        description=f"A crashed run of {deployment_name} is scheduled again, up to "
-        f"{MAX_ATTEMPTS} attempts; archives already stored are reused.",
+        description=f"A run of {deployment_name} still Crashed {RETRY_AFTER_S} s after its "
+        f"crash is scheduled again, up to {MAX_ATTEMPTS} attempts; archives already stored "
+        "are reused.",
         trigger=EventTrigger(
-            expect={"prefect.flow-run.Crashed"},
             match={
                 "prefect.resource.id": "prefect.flow-run.*",
                 # The run count of the attempt that crashed (0: it crashed before running).
@@ -183,15 +185,22 @@ def recovery_automations(deployment_id: str, deployment_name: str) -> list:
                 "prefect.resource.id": f"prefect.deployment.{deployment_id}",
                 "prefect.resource.role": "deployment",
             },
-            posture=Posture.Reactive,
+            # Not at once: a Prefect 3.8 worker reports a crashed process twice, a few
+            # seconds apart, and a retry between the two reports would be crashed by the
+            # second. A repeated Crashed starts the wait again; any other state (a retry by
+            # hand, a cancellation) ends it.
+            after={"prefect.flow-run.Crashed"},
+            expect={"prefect.flow-run.*"},
+            for_each={"prefect.resource.id"},
+            posture=Posture.Proactive,
             threshold=1,
+            within=timedelta(seconds=RETRY_AFTER_S),
         ),
         actions=[
             ChangeFlowRunState(
                 state=StateType.SCHEDULED,
                 name="AwaitingRetry",
                 message="crashed: scheduled again by pipescan's recovery automation",
-                force=True,
             )
         ],
     )
