@@ -53,6 +53,11 @@ def server(tmp_path_factory):
     try:
         yield server
     finally:
+        # Send the events this process emitted to the server (deployments, blocks) while it
+        # still listens, instead of retrying against a closed port at exit.
+        from prefect.events.worker import EventsWorker
+
+        EventsWorker.drain_all(timeout=30)
         server.stop()
 
 
