@@ -43,6 +43,7 @@ from pipescan.core.registration import plan_chunks  # noqa: E402
 from pipescan.core.sections import plan_windows  # noqa: E402
 from pipescan.flows.inspect import InspectionParams  # noqa: E402
 from pipescan.flows.network import inspect_network  # noqa: E402
+from pipescan.settings import use_settings  # noqa: E402
 from pipescan.tasks.inspection import (  # noqa: E402
     bucket_points,
     fit_pipe_axis,
@@ -118,16 +119,16 @@ def dask_wall_s(
         # Warm the workers (imports of Open3D, Prefect, pipescan) outside the timing.
         client.run(lambda: __import__("pipescan.flows.inspect"))
         started = time.perf_counter()
-        summary = inspect_network(
-            store=str(store),
-            database_url=f"sqlite:///{work / f'dask{n_workers}.db'}",
-            work_dir=str(work / f"scratch{n_workers}"),
-            concurrency=concurrency,
-            dask_address=cluster.scheduler_address,
-            workers=threads_per_archive,
-            write_network_report=False,
-            reuse_stored=False,
-        )
+        with use_settings(database_url=f"sqlite:///{work / f'dask{n_workers}.db'}"):
+            summary = inspect_network(
+                store=str(store),
+                work_dir=str(work / f"scratch{n_workers}"),
+                concurrency=concurrency,
+                dask_address=cluster.scheduler_address,
+                workers=threads_per_archive,
+                write_network_report=False,
+                reuse_stored=False,
+            )
         return time.perf_counter() - started, summary.counts
 
 

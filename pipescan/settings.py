@@ -1,12 +1,17 @@
 """Settings, read only by the CLI and the flows (``PIPESCAN_`` environment variables or ``.env``).
 
-Everything below the flows takes explicit arguments.
+Everything below the flows takes explicit arguments. The flows read the settings of the process
+they run in (a deployment's runs: the worker's), so that no database URL or secret travels as a
+flow parameter; :func:`use_settings` sets some for the code it wraps (the CLI's ``--db``).
 """
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import Field, SecretStr
 from pydantic_settings import BaseSettings, SettingsConfigDict
@@ -24,6 +29,11 @@ class Settings(BaseSettings):
     database_url: str = Field(
         "sqlite:///pipescan.db",
         description="SQLAlchemy URL; a SQLite file by default, postgresql+psycopg://... at scale",
+    )
+    database_password_block: str | None = Field(
+        None,
+        description="name of a Prefect Secret block holding the database password, which "
+        "replaces any password in database_url (docs/operations.md)",
     )
     work_dir: Path = Field(
         Path(".pipescan-work"), description="scratch space for extracted archives and buckets"
@@ -93,5 +103,57 @@ class Settings(BaseSettings):
         return InputLimits.from_settings(self)
 
 
+_OVERRIDES: ContextVar[dict[str, Any] | None] = ContextVar("pipescan_settings", default=None)
+
+
 def get_settings() -> Settings:
-    return Settings()
+    """The settings: ``PIPESCAN_*`` variables and ``.env``, under any :func:`use_settings`."""
+    return Settings(**(_OVERRIDES.get() or {}))
+
+
+@contextmanager
+def use_settings(**values: Any) -> Iterator[None]:
+    """Within the block (and the flows, sub-flows and thread-pool tasks it starts), these
+    settings replace the environment's; ``None`` values are left out.
+
+    >>> with use_settings(database_url="sqlite:////tmp/x.db"):
+    ...     get_settings().database_url
+    'sqlite:////tmp/x.db'
+    """
+    given = {k: v for k, v in values.items() if v is not None}
+    token = _OVERRIDES.set((_OVERRIDES.get() or {}) | given)
+    try:
+        yield
+    finally:
+        _OVERRIDES.reset(token)
+
+
+def database_url(settings: Settings | None = None) -> str:
+    """The database URL of these settings, with the password of the Prefect ``Secret`` block
+    named by ``database_password_block`` (loaded from the Prefect API) if one is named.
+
+    Raises
+    ------
+    PipescanError
+        The block cannot be loaded (no such block, no Prefect API).
+    """
+    settings = settings or get_settings()
+    if not settings.database_password_block:
+        return settings.database_url
+    from sqlalchemy.engine import make_url
+
+    from pipescan.core.errors import PipescanError
+
+    name = settings.database_password_block
+    try:
+        from prefect.blocks.system import Secret
+
+        password = str(Secret.load(name).get())  # type: ignore[union-attr]
+    except Exception as exc:  # a missing block is a ValueError; no API, an httpx error
+        raise PipescanError(
+            f"cannot load the database password from the Prefect Secret block {name!r}: {exc}",
+            field="PIPESCAN_DATABASE_PASSWORD_BLOCK",
+            hint=f"create it with: prefect block create secret (name {name!r}), or unset it",
+        ) from exc
+    url = make_url(settings.database_url).set(password=password)
+    return url.render_as_string(hide_password=False)

@@ -1,216 +1,361 @@
 """``pipescan deploy`` against a real Prefect server (``prefect server start`` on loopback, started
-and stopped here): the deployment, its work pool and its cron schedule exist, and the server's
-scheduler plans runs at the scheduled times."""
+and stopped here): the deployment holds no database URL, ships its recovery automations, checks
+the server, the store and the database first; Prefect's own CLI works against the server; a
+worker runs the deployment with its own settings and nothing secret reaches Prefect."""
 
 from __future__ import annotations
 
+import json
 import os
-import signal
-import socket
+import re
+import sqlite3
 import subprocess
-import sys
 import time
-import urllib.request
-from contextlib import suppress
+from contextlib import contextmanager
 from datetime import UTC
 from pathlib import Path
 
 import pytest
 from prefect.settings import PREFECT_API_URL, temporary_settings
+from sqlalchemy.engine import make_url
 from typer.testing import CliRunner
 
 from pipescan.cli import app
-from pipescan.storage.database.db import connect
+from pipescan.flows.deploy import (
+    CANCELLING_AFTER_S,
+    HEARTBEAT_S,
+    MAX_ATTEMPTS,
+    RECOVERY_TAG,
+    RETRY_AFTER_S,
+    SILENT_AFTER_S,
+)
+from pipescan.settings import Settings, database_url
+from pipescan.storage.database.db import connect, upgrade
 from pipescan.storage.database.repository import list_inspections
 from tests.netstore import asset_id, write_store
+from tests.pg_cluster import free_port
+from tests.prefect_stack import PREFECT, PrefectServer, Worker
 
 pytestmark = pytest.mark.e2e
 
-PREFECT = str(Path(sys.executable).parent / "prefect")
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def _base_env(home: Path) -> dict[str, str]:
-    env = {
-        k: v for k, v in os.environ.items() if not k.startswith(("PREFECT_API_URL", "PIPESCAN_"))
-    }
-    return env | {"PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
+POOL = "pipescan-test"
 
 
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
-    """A Prefect server on 127.0.0.1 with its own home and database; yields its API URL."""
-    home = tmp_path_factory.mktemp("prefect-home")
-    port = _free_port()
-    env = _base_env(home) | {
-        # Plan runs within a second of a deployment's creation, not at the next minute.
-        "PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "1",
-        "PREFECT_UI_ENABLED": "false",
-    }
-    log = (home / "server.log").open("w")
-    proc = subprocess.Popen(
-        [PREFECT, "server", "start", "--host", "127.0.0.1", "--port", str(port), "--no-ui"],
-        env=env,
-        stdout=log,
-        stderr=subprocess.STDOUT,
-        start_new_session=True,
+    """A Prefect server on 127.0.0.1 with its own home and database."""
+    # The scheduler plans runs within a second of a deployment's creation.
+    server = PrefectServer(
+        tmp_path_factory.mktemp("prefect-home"),
+        env={"PREFECT_SERVER_SERVICES_SCHEDULER_LOOP_SECONDS": "1"},
     )
-    url = f"http://127.0.0.1:{port}/api"
+    server.start()
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            assert proc.poll() is None, (home / "server.log").read_text()[-3000:]
-            assert time.monotonic() < deadline, "the Prefect server did not start in 120 s"
-            with (
-                suppress(OSError),
-                urllib.request.urlopen(f"{url}/health", timeout=2) as response,
-            ):
-                if response.status == 200:
-                    break
-            time.sleep(0.5)
-        yield url, home
+        yield server
     finally:
-        with suppress(ProcessLookupError):
-            os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
-        log.close()
+        # Send the events this process emitted to the server (deployments, blocks) while it
+        # still listens, instead of retrying against a closed port at exit.
+        from prefect.events.worker import EventsWorker
+
+        EventsWorker.drain_all(timeout=30)
+        server.stop()
 
 
-def _deploy(server, tmp_path, *extra: str):
-    """``pipescan deploy`` in this process (no interpreter start-up), against the server."""
-    url, home = server
-    (tmp_path / "store").mkdir(exist_ok=True)
-    env = _base_env(home) | {"PREFECT_API_URL": url}
-    db_url = f"sqlite:///{tmp_path / 'network.db'}"
-    args = ["deploy", "--store", "store", "--db", db_url, "--pool", "pipescan-test", *extra]
-    cwd = Path.cwd()
-    os.chdir(tmp_path)
+@contextmanager
+def _on(server: PrefectServer):
+    with temporary_settings({PREFECT_API_URL: server.url}):
+        yield
+
+
+def _deploy(server: PrefectServer | None, cwd: Path, *args: str, db: str | None = None):
+    """``pipescan deploy`` in this process (no interpreter start-up), from ``cwd``."""
+    env = {"PIPESCAN_DATABASE_URL": db} if db else {}
+    here = Path.cwd()
+    os.chdir(cwd)
     try:
-        with temporary_settings({PREFECT_API_URL: url}):
-            result = CliRunner().invoke(app, args)
+        with temporary_settings({PREFECT_API_URL: server.url if server else None}):
+            return CliRunner().invoke(app, ["deploy", "--pool", POOL, *args], env=env)
     finally:
-        os.chdir(cwd)
-    return result, env, db_url
+        os.chdir(here)
 
 
-def _read(url: str, name: str = "inspect-network/network-nightly"):
-    from prefect.client.orchestration import get_client
+@pytest.fixture(scope="module")
+def deployed(server, tmp_path_factory):
+    """A store of one archive, a migrated SQLite database, and ``pipescan deploy`` (given a
+    relative store); returns (deploy result, folder, database URL)."""
+    root = tmp_path_factory.mktemp("deployed")
+    write_store(root / "store", 1)
+    db = f"sqlite:///{root / 'network.db'}"
+    upgrade(db)
+    result = _deploy(
+        server, root, "--store", "store", "--cron", "0 2 * * *", "--concurrency", "3", db=db
+    )
+    return result, root, db
 
-    with temporary_settings({PREFECT_API_URL: url}), get_client(sync_client=True) as client:
-        return client.read_deployment_by_name(name), client.read_work_pool("pipescan-test")
 
-
-def test_deploy_creates_a_cron_scheduled_deployment_on_the_server(server, tmp_path):
-    # The store is given relative: it is stored absolute, as the worker runs elsewhere.
-    result, _, db_url = _deploy(server, tmp_path, "--cron", "0 2 * * *", "--concurrency", "3")
+def test_the_deployment_holds_no_database_and_ships_its_recovery(server, deployed):
+    result, root, _ = deployed
     assert result.exit_code == 0, result.output[-3000:]
     assert "prefect worker start --pool pipescan-test" in result.stdout
-    assert "cron '0 2 * * *' (UTC)" in result.stdout
+    assert "PIPESCAN_DATABASE_URL=sqlite:///" in result.stdout  # what the workers need
+    assert "--param reuse_stored=false" in result.stdout  # how to force a full re-run
 
-    deployment, pool = _read(server[0])
-    assert deployment.entrypoint == "pipescan.flows.network.inspect_network"
-    assert deployment.work_pool_name == "pipescan-test"
-    assert pool.type == "process"
-    assert deployment.parameters == {
-        "store": str(tmp_path / "store"),
-        "database_url": db_url,
-        "concurrency": 3,
-        "work_dir": str(tmp_path / ".pipescan-work"),
-        "network_report_path": str(tmp_path / "reports" / "network-report.pdf"),
+    deployment = server.deployment("inspect-network/network-nightly")
+    assert deployment["entrypoint"] == "pipescan.flows.network.inspect_network"
+    assert deployment["work_pool_name"] == POOL
+    # The store, stored absolute (the worker runs elsewhere); no database, no local folder.
+    assert deployment["parameters"] == {"store": str(root / "store"), "concurrency": 3}
+    assert deployment["job_variables"] == {
+        "stream_output": False,
+        "env": {"PREFECT_FLOWS_HEARTBEAT_FREQUENCY": str(HEARTBEAT_S)},
     }
-    [schedule] = deployment.schedules
-    assert schedule.active
-    assert schedule.schedule.cron == "0 2 * * *"
-    assert schedule.schedule.timezone == "UTC"
+    assert RECOVERY_TAG in deployment["tags"]
+    [schedule] = deployment["schedules"]
+    assert schedule["active"] and schedule["schedule"]["cron"] == "0 2 * * *"
+    assert schedule["schedule"]["timezone"] == "UTC"
 
-    # Deploying again updates the same deployment: the new schedule replaces the old one.
-    again, _, _ = _deploy(server, tmp_path, "--cron", "30 3 * * 1", "--timezone", "Europe/Zurich")
+    automations = _automations(server)
+    silent = automations["pipescan: crash silent runs"]
+    retry = automations["pipescan: retry crashed runs of inspect-network/network-nightly"]
+    cancelling = automations["pipescan: end stuck cancellations"]
+    assert all(a["enabled"] for a in (silent, retry, cancelling))
+    trigger = silent["trigger"]
+    assert (trigger["posture"], trigger["within"]) == ("Proactive", SILENT_AFTER_S)
+    assert trigger["after"] == ["prefect.flow-run.heartbeat"]
+    assert "prefect.flow-run.heartbeat" in trigger["expect"]
+    assert trigger["match_related"]["prefect.resource.id"] == f"prefect.tag.{RECOVERY_TAG}"
+    assert silent["actions"][0]["state"] == "CRASHED"
+    trigger = retry["trigger"]
+    assert (trigger["posture"], trigger["within"]) == ("Proactive", RETRY_AFTER_S)
+    assert trigger["after"] == ["prefect.flow-run.Crashed"]
+    assert trigger["expect"] == ["prefect.flow-run.*"]  # any sign of life ends the wait
+    assert trigger["match"]["prefect.run-count"] == [str(n) for n in range(MAX_ATTEMPTS)]
+    assert trigger["match_related"]["prefect.resource.id"] == (
+        f"prefect.deployment.{deployment['id']}"
+    )
+    assert (retry["actions"][0]["state"], retry["actions"][0]["name"]) == (
+        "SCHEDULED",
+        "AwaitingRetry",
+    )
+    assert cancelling["trigger"]["within"] == CANCELLING_AFTER_S
+    assert cancelling["actions"][0]["state"] == "CANCELLED"
+
+    # Deploying again updates the same deployment and the same automations.
+    again = _deploy(
+        server,
+        root,
+        *("--store", "store", "--cron", "30 3 * * 1", "--timezone", "Europe/Zurich"),
+        db=deployed[2],
+    )
     assert again.exit_code == 0, again.output[-3000:]
-    updated, _ = _read(server[0])
-    assert updated.id == deployment.id
-    assert [(s.schedule.cron, s.schedule.timezone) for s in updated.schedules] == [
+    updated = server.deployment("inspect-network/network-nightly")
+    assert updated["id"] == deployment["id"]
+    assert [(s["schedule"]["cron"], s["schedule"]["timezone"]) for s in updated["schedules"]] == [
         ("30 3 * * 1", "Europe/Zurich")
     ]
+    names = [a["name"] for a in server.call("POST", "/automations/filter", {"limit": 100})]
+    assert sorted(names) == sorted(automations)
+
+
+def _automations(server: PrefectServer) -> dict[str, dict]:
+    return {a["name"]: a for a in server.call("POST", "/automations/filter", {"limit": 100})}
+
+
+def test_prefects_own_list_commands_work_against_the_server(server, deployed):
+    assert deployed[0].exit_code == 0
+    deadline = time.monotonic() + 30  # the scheduler plans the cron runs
+    while not server.flow_runs() and time.monotonic() < deadline:
+        time.sleep(0.5)
+    env = server.client_env() | {"COLUMNS": "200"}
+    outputs = {}
+    for command in (["flow-run", "ls"], ["deployment", "ls"], ["work-pool", "ls"]):
+        run = subprocess.run(
+            [PREFECT, *command], env=env, capture_output=True, text=True, timeout=120
+        )
+        outputs[command[0]] = run.stdout
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert "422" not in run.stdout + run.stderr
+    print(outputs["flow-run"])  # shown with pytest -s
+    assert "inspect-network" in outputs["flow-run"] and "SCHEDULED" in outputs["flow-run"]
+    assert "inspect-network/network-nightly" in outputs["deployment"]
+    assert POOL in outputs["work-pool"]
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "no server",
+        "no PREFECT_API_URL",
+        "no database",
+        "relative SQLite",
+        "unreachable database",
+        "no store",
+        "bad cron",
+    ],
+)
+def test_deploy_says_what_is_missing_in_one_line(server, tmp_path, case):
+    (tmp_path / "store").mkdir()
+    db = f"sqlite:///{tmp_path / 'ok.db'}"
+    args = {"store": str(tmp_path / "store"), "cron": "0 2 * * *"}
+    on: PrefectServer | None = server
+    expected = {
+        "no server": "no Prefect server answers at PREFECT_API_URL=http://127.0.0.1:",
+        "no PREFECT_API_URL": "PREFECT_API_URL is not set",
+        "no database": "no database named",
+        "relative SQLite": "relative SQLite path",
+        "unreachable database": "cannot open database postgresql+psycopg://pipescan:***@",
+        "no store": "the store does not exist",
+        "bad cron": "invalid schedule 'nightly'",
+    }[case]
+    if case == "no server":
+        on = PrefectServer(tmp_path / "down")  # never started: nothing listens on its port
+    elif case == "no PREFECT_API_URL":
+        on = None
+    elif case == "no database":
+        db = ""
+    elif case == "relative SQLite":
+        db = "sqlite:///network.db"
+    elif case == "unreachable database":
+        db = f"postgresql+psycopg://pipescan:secret@127.0.0.1:{free_port()}/pipescan"
+    elif case == "no store":
+        args["store"] = str(tmp_path / "missing")
+    elif case == "bad cron":
+        args["cron"] = "nightly"
+    result = _deploy(on, tmp_path, "--store", args["store"], "--cron", args["cron"], db=db)
+    assert result.exit_code == 2, result.output
+    [line] = result.output.strip().splitlines()
+    assert line.startswith("error: ") and expected in line, line
+    if case == "no server":
+        assert "prefect server start" in line  # what to start
+    assert "secret" not in result.output
+
+
+def test_a_secret_block_gives_the_database_password(server):
+    from prefect.blocks.system import Secret
+
+    with _on(server):
+        Secret(value="s3cr3t/pw").save("pipescan-test-db-password", overwrite=True)
+        settings = Settings(
+            database_url="postgresql+psycopg://pipescan@db.example/pipescan",
+            database_password_block="pipescan-test-db-password",
+        )
+        url = make_url(database_url(settings))
+        assert (url.username, url.password, url.host) == ("pipescan", "s3cr3t/pw", "db.example")
+        missing = Settings(database_url="sqlite:////x.db", database_password_block="nope")
+        with pytest.raises(Exception, match="PIPESCAN_DATABASE_PASSWORD_BLOCK"):
+            database_url(missing)
 
 
 @pytest.mark.slow
 def test_the_servers_scheduler_plans_runs_at_the_cron_times(server, tmp_path):
-    from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import DeploymentFilter, DeploymentFilterId
-    from prefect.client.schemas.sorting import FlowRunSort
-
-    result, _, _ = _deploy(server, tmp_path, "--cron", "0 2 * * *", "--name", "planned")
+    write_store(tmp_path / "store", 1)
+    db = f"sqlite:///{tmp_path / 'network.db'}"
+    result = _deploy(
+        server, tmp_path, "--store", "store", "--cron", "0 2 * * *", "--name", "planned", db=db
+    )
     assert result.exit_code == 0, result.output[-3000:]
-    deployment, _ = _read(server[0], "inspect-network/planned")
-    with temporary_settings({PREFECT_API_URL: server[0]}), get_client(sync_client=True) as client:
-        deadline = time.monotonic() + 20
-        while True:
-            runs = client.read_flow_runs(
-                deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment.id])),
-                sort=FlowRunSort.EXPECTED_START_TIME_ASC,
-                limit=20,
-            )
-            if runs or time.monotonic() > deadline:
-                break
-            time.sleep(0.5)
+    deployment = server.deployment("inspect-network/planned")
+    deadline = time.monotonic() + 20
+    while True:
+        runs = [r for r in server.flow_runs() if r["deployment_id"] == deployment["id"]]
+        if runs or time.monotonic() > deadline:
+            break
+        time.sleep(0.5)
     assert runs, "the scheduler planned no run within 20 s"
+    from datetime import datetime
+
     for run in runs:
-        assert run.state.is_scheduled()
-        start = run.expected_start_time.astimezone(UTC)
+        assert run["state_type"] == "SCHEDULED"
+        start = datetime.fromisoformat(run["expected_start_time"]).astimezone(UTC)
         assert (start.hour, start.minute) == (2, 0)
-        assert run.parameters["store"] == str(tmp_path / "store")
+        assert run["parameters"]["store"] == str(tmp_path / "store")
 
 
 @pytest.mark.slow
-def test_a_worker_picks_up_a_run_of_the_deployment(server, tmp_path):
+def test_a_worker_runs_the_deployment_with_its_own_settings_and_no_secret_reaches_prefect(
+    server, postgres_url, tmp_path
+):
     write_store(tmp_path / "store", 1)
-    result, env, db_url = _deploy(server, tmp_path, "--cron", "0 2 * * *", "--name", "worked")
-    assert result.exit_code == 0, result.output[-3000:]
-    run = subprocess.run(
-        [PREFECT, "deployment", "run", "inspect-network/worked"],
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
-    assert run.returncode == 0, run.stdout + run.stderr
-    worker = subprocess.run(
-        [PREFECT, "worker", "start", "--pool", "pipescan-test", "--run-once"],
-        env=env,
-        cwd=tmp_path,
-        capture_output=True,
-        text=True,
-        timeout=400,
-    )
-    assert worker.returncode == 0, worker.stdout[-3000:] + worker.stderr[-3000:]
-    # What the run did, not what the worker printed: whether the flow run's logs reach the
-    # worker's output depends on Prefect's log settings.
-    engine = connect(db_url)
+    upgrade(postgres_url)
+    marker = "Pw-Zq7-not-for-prefect"  # trust authentication ignores it, Prefect must not see it
+    secret_url = make_url(postgres_url).set(password=marker).render_as_string(hide_password=False)
+    deployed = _deploy(
+        server, tmp_path, "--store", "store", "--cron", "0 2 * * *", "--name", "worked",
+        db=secret_url,
+    )  # fmt: skip
+    assert deployed.exit_code == 0, deployed.output[-3000:]
+    assert marker not in deployed.output and ":***@" in deployed.output
+
+    # A worker whose environment names no database: the run fails at once, saying so.
+    bare = Worker(POOL, server.client_env(), tmp_path / "bare", tmp_path).start()
+    try:
+        failed = _wait(server, server.run_deployment("inspect-network/worked"))
+    finally:
+        bare.stop()
+    assert failed["state_type"] == "FAILED", failed
+    assert "no database for this scheduled run" in failed["state"]["message"]
+    assert "PIPESCAN_DATABASE_URL" in failed["state"]["message"]
+
+    # A worker with its settings: the run stores the inspection where they say, writes a
+    # network report named by date and run, and logs its progress in Prefect.
+    reports = tmp_path / "reports"
+    env = server.client_env() | {
+        "PIPESCAN_DATABASE_URL": secret_url,
+        "PIPESCAN_REPORTS_DIR": str(reports),
+        "PIPESCAN_WORK_DIR": str(tmp_path / "work"),
+    }
+    worker = Worker(POOL, env, tmp_path / "worker", tmp_path).start()
+    try:
+        done = _wait(server, server.run_deployment("inspect-network/worked"))
+        assert done["state_type"] == "COMPLETED", (done, worker.log()[-3000:])
+        # Forcing a full re-run: the documented parameter, through Prefect's own CLI.
+        forced = subprocess.run(
+            [PREFECT, "deployment", "run", "inspect-network/worked", "--param",
+             "reuse_stored=false"],
+            env=server.client_env(), capture_output=True, text=True, timeout=120,
+        )  # fmt: skip
+        assert forced.returncode == 0, forced.stdout + forced.stderr
+        [forced_id] = re.findall(r"UUID: ([0-9a-f-]{36})", forced.stdout)
+        again = _wait(server, forced_id)
+        assert again["state_type"] == "COMPLETED", (again, worker.log()[-3000:])
+    finally:
+        worker.stop()
+    engine = connect(postgres_url)
     try:
         [stored] = list_inspections(engine)
     finally:
         engine.dispose()
     assert stored.asset_id == asset_id(0)
+    assert sorted(p.name for p in reports.iterdir()) == sorted(
+        f"network-{r['expected_start_time'][:10]}-{r['name']}.pdf" for r in (done, again)
+    )
+    assert any("[1/1] MH0-MH1 inspected in" in m for m in _logs(server, done["id"]))
+    assert any("[1/1] MH0-MH1 inspected in" in m for m in _logs(server, again["id"]))
+    assert again["parameters"]["reuse_stored"] is False
+
+    # Nothing of the database URL anywhere in Prefect's database: parameters, logs, events.
+    dump = "\n".join(sqlite3.connect(server.home / "prefect.db").iterdump())
+    assert marker not in dump
+    assert json.dumps(server.deployment("inspect-network/worked")).count(marker) == 0
 
 
-def test_a_bad_cron_line_or_no_server_is_a_clear_error(tmp_path):
-    # Both are refused before any request: no server is needed to see them.
-    with temporary_settings({PREFECT_API_URL: "http://127.0.0.1:9/api"}):
-        bad = CliRunner().invoke(app, ["deploy", "--store", str(tmp_path), "--cron", "nightly"])
-    assert bad.exit_code == 2
-    assert "invalid schedule 'nightly'" in bad.output
-    with temporary_settings({PREFECT_API_URL: None}):
-        nowhere = CliRunner().invoke(
-            app, ["deploy", "--store", str(tmp_path), "--cron", "0 2 * * *"]
+def _wait(server: PrefectServer, run_id: str, timeout: float = 300) -> dict:
+    deadline = time.monotonic() + timeout
+    while True:
+        run = server.call("GET", f"/flow_runs/{run_id}")
+        if run["state_type"] in ("COMPLETED", "FAILED", "CRASHED", "CANCELLED"):
+            return run
+        assert time.monotonic() < deadline, f"the run is still {run['state_name']}"
+        time.sleep(1)
+
+
+def _logs(server: PrefectServer, run_id: str) -> list[str]:
+    deadline = time.monotonic() + 30  # logs reach the API in batches
+    while True:
+        logs = server.call(
+            "POST", "/logs/filter", {"logs": {"flow_run_id": {"any_": [run_id]}}, "limit": 200}
         )
-    assert nowhere.exit_code == 2
-    assert "no Prefect server" in nowhere.output and "PREFECT_API_URL" in nowhere.output
+        messages = [entry["message"] for entry in logs]
+        if any("network run over" in m for m in messages) or time.monotonic() > deadline:
+            return messages
+        time.sleep(1)

@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from pipescan.cli import app
 from pipescan.flows.inspect import InspectionParams, inspect_archive
+from pipescan.settings import use_settings
 from pipescan.simulator.archive import read_ground_truth, write_simulated_archive
 from pipescan.simulator.scan import get_scenario, simulate_scan
 
@@ -37,13 +38,13 @@ def archive(tmp_path_factory):
 def inspected(prefect, archive, tmp_path_factory):
     work = tmp_path_factory.mktemp("run")
     db_url = f"sqlite:///{work / 'pipescan.db'}"
-    summary = inspect_archive(
-        archive=str(archive),
-        database_url=db_url,
-        report_path=str(work / "report.pdf"),
-        params=InspectionParams(chunk_frames=50),
-        work_dir=str(work / "scratch"),
-    )
+    with use_settings(database_url=db_url):  # the database is a setting, not a flow parameter
+        summary = inspect_archive(
+            archive=str(archive),
+            report_path=str(work / "report.pdf"),
+            params=InspectionParams(chunk_frames=50),
+            work_dir=str(work / "scratch"),
+        )
     return summary, db_url, work
 
 

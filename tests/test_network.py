@@ -6,19 +6,24 @@ from __future__ import annotations
 import fsspec
 import pytest
 import sqlalchemy as sa
+from typer.testing import CliRunner
 
+from pipescan.cli import app
 from pipescan.core.errors import (
     ArchiveError,
     FetchError,
     GeometryError,
     MetadataError,
+    PipescanError,
     RegistrationError,
     ScratchSpaceError,
 )
+from pipescan.flows.database import absolute_database_url
 from pipescan.flows.network import (
     ArchiveOutcome,
-    absolute_database_url,
+    network_report_name,
     progress_line,
+    refuse_password_in_url,
     worst_pipes,
 )
 from pipescan.storage.database.db import StorageError
@@ -181,3 +186,93 @@ def test_settings_give_the_inspection_parameters(monkeypatch):
     monkeypatch.setenv("PIPESCAN_GRID_K", "2")
     with pytest.raises(ValueError, match="grid_k"):
         Settings()
+
+
+# --- no password in a parameter Prefect keeps ---------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["inspect-network", "s3://AKIAKEY:Sup3r-Secret@bucket/2026-11"],
+        ["inspect", "s3://AKIAKEY:Sup3r-Secret@bucket/2026-11/MH1-MH2.zip"],
+        ["deploy", "--store", "s3://AKIAKEY:Sup3r-Secret@bucket/x", "--cron", "0 2 * * *"],
+    ],
+)
+def test_a_url_with_a_password_is_refused_before_it_becomes_a_parameter(args):
+    result = CliRunner().invoke(app, args)
+    assert result.exit_code == 2, result.output
+    [line] = result.output.strip().splitlines()
+    assert "URL s3://bucket/" in line and "holds a secret" in line
+    assert "Sup3r-Secret" not in result.output and "AKIAKEY" not in result.output
+
+
+def test_a_presigned_url_is_refused_too():
+    with pytest.raises(PipescanError, match="holds a secret") as err:
+        refuse_password_in_url("https://host/x.zip?versionId=4&X-Amz-Signature=abc123")
+    assert "abc123" not in str(err.value)
+
+
+def test_urls_without_a_password_pass():
+    for url in ("/data/scans", "s3://bucket/x", "ftp://user@host/x", "memory://a/b"):
+        refuse_password_in_url(url)
+
+
+# --- the database of a run: from the settings where it runs ------------------------------------
+
+
+def test_use_settings_sets_settings_for_its_block_only(monkeypatch):
+    from pipescan.settings import get_settings, use_settings
+
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", "sqlite:////env.db")
+    with use_settings(database_url="sqlite:////given.db", work_dir=None):
+        assert get_settings().database_url == "sqlite:////given.db"
+        with use_settings(step_m=0.2):  # nested: adds to the outer block
+            assert (get_settings().database_url, get_settings().step_m) == (
+                "sqlite:////given.db",
+                0.2,
+            )
+    assert get_settings().database_url == "sqlite:////env.db"
+
+
+def test_a_scheduled_run_refuses_a_database_the_worker_would_lose(monkeypatch, tmp_path):
+    from pipescan.flows import database
+    from pipescan.settings import Settings
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(database, "in_deployment", lambda: True)
+    with pytest.raises(StorageError, match="no database for this scheduled run") as implicit:
+        database.run_database_url(Settings())
+    assert implicit.value.field == "PIPESCAN_DATABASE_URL"
+    with pytest.raises(StorageError, match="relative SQLite path"):
+        database.run_database_url(Settings(database_url="sqlite:///network.db"))
+    url = "postgresql+psycopg://pipescan:pw@db/pipescan"
+    assert database.run_database_url(Settings(database_url=url)) == url
+    # Outside a deployment the default is the command's working folder, as always.
+    monkeypatch.setattr(database, "in_deployment", lambda: False)
+    assert database.run_database_url(Settings()) == f"sqlite:///{tmp_path / 'pipescan.db'}"
+
+
+def test_the_flows_take_no_database_url_parameter():
+    from pipescan.flows.inspect import inspect_archive
+    from pipescan.flows.network import inspect_network
+
+    for flow in (inspect_archive, inspect_network):
+        assert not any("database" in name for name in flow.parameters.properties), flow.name
+
+
+def test_network_reports_are_named_by_date_and_run(monkeypatch, tmp_path):
+    from datetime import datetime
+
+    from pipescan.core.errors import PipescanError
+    from pipescan.flows import network
+
+    when = datetime(2026, 11, 24, 2, 0)
+    assert network_report_name("cerise-lemming", when) == "network-2026-11-24-cerise-lemming.pdf"
+    assert network_report_name("../a b", when) == "network-2026-11-24-a-b.pdf"
+    assert network_report_name(None, when) == "network-2026-11-24-run.pdf"
+    # A scheduled run with a relative reports folder would write into its temporary folder.
+    monkeypatch.setattr(network, "in_deployment", lambda: True)
+    with pytest.raises(PipescanError, match="PIPESCAN_REPORTS_DIR"):
+        network._network_report_out(None, tmp_path.relative_to(tmp_path.parent))
+    assert network._network_report_out(str(tmp_path / "n.pdf"), tmp_path) == tmp_path / "n.pdf"

@@ -44,8 +44,11 @@ def cluster():
         yield cluster, client
 
 
-def test_tasks_run_on_both_dask_workers_with_small_inputs_and_results(cluster, tmp_path):
+def test_tasks_run_on_both_dask_workers_with_small_inputs_and_results(
+    cluster, tmp_path, monkeypatch
+):
     cluster, client = cluster
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", f"sqlite:///{tmp_path / 'dask.db'}")
     root = tmp_path / "store"
     paths = write_store(root, 2)
     sizes = ResultSizes()
@@ -53,7 +56,6 @@ def test_tasks_run_on_both_dask_workers_with_small_inputs_and_results(cluster, t
     with prefect_test_harness(server_startup_timeout=60), get_task_stream(client) as stream:
         summary = inspect_network(
             store=str(root),
-            database_url=f"sqlite:///{tmp_path / 'dask.db'}",
             work_dir=str(tmp_path / "work"),
             concurrency=2,
             dask_address=cluster.scheduler_address,

@@ -65,6 +65,9 @@ def test_a_killed_network_run_resumes_without_redoing_finished_archives(tmp_path
     env |= {
         "PREFECT_HOME": str(tmp_path / "prefect-home"),  # its own ephemeral API database
         "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        # Its temporary API server migrates a new database first: on a loaded machine that
+        # takes longer than Prefect's default 20 s.
+        "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "120",
         "PIPESCAN_WORK_DIR": str(tmp_path / "work"),
     }
     log = (tmp_path / "killed.log").open("w")

@@ -138,18 +138,16 @@ def test_runs_leave_every_input_form_unchanged(
         if outcome == "ok"
         else "sqlite:////proc/pipescan-no-such-dir/x.db"
     )
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", db)
     params = InspectionParams(chunk_frames=200)
     for name, (given, _) in [*forms.items(), ("memory://", (MEMORY_URL, None))]:
         if outcome == "ok":
-            summary = inspect_archive(
-                archive=given, database_url=db, params=params, work_dir=str(work)
-            )
+            summary = inspect_archive(archive=given, params=params, work_dir=str(work))
             assert summary.section_count > 0, name
         else:
             with pytest.raises(Exception):  # noqa: B017 - any failure; what matters is below
                 inspect_archive(
                     archive=given,
-                    database_url=db,
                     params=params,
                     work_dir=str(work),
                     reuse_stored=True,

@@ -74,7 +74,9 @@ def _settings():
 
 
 def _db_url(db: str | None) -> str:
-    return db or _settings().database_url
+    from pipescan.settings import database_url  # with a Prefect Secret block's password
+
+    return db or database_url(_settings())
 
 
 def _setup_logging(verbose: bool) -> None:

@@ -11,7 +11,7 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import ContourOption, DbOption, _db_url, _fail, _settings, app
+from pipescan.cli._app import ContourOption, DbOption, _fail, app
 from pipescan.core.errors import PipescanError
 
 DaskOption = Annotated[
@@ -83,22 +83,33 @@ def inspect_network_command(
     start.
     """
     from pipescan.cli.scan import _inspection_params
-    from pipescan.flows.network import format_network_summary, inspect_network
+    from pipescan.flows.database import checked_database_url
+    from pipescan.flows.network import (
+        format_network_summary,
+        inspect_network,
+        refuse_password_in_url,
+    )
+    from pipescan.settings import use_settings
 
     _keep_failed_runs_off_the_console()
     try:
-        summary = inspect_network(
-            store=store,
-            database_url=_db_url(db),
-            params=_inspection_params(contour, registration),
-            concurrency=concurrency,
-            dask_address=dask,
-            workers=workers,
-            reports_dir=str(reports) if reports else None,
-            network_report_path=str(network_report) if network_report else None,
-            write_network_report=not no_network_report,
-            reuse_stored=not force,
-        )
+        refuse_password_in_url(store)
+        # The database is a setting of this process, not a flow parameter (Prefect would keep
+        # it, password and all, with the run). Checked here too, before a temporary Prefect
+        # server is started for the run: a bad database is an error in a second or two.
+        with use_settings(database_url=db):
+            checked_database_url()
+            summary = inspect_network(
+                store=store,
+                params=_inspection_params(contour, registration),
+                concurrency=concurrency,
+                dask_address=dask,
+                workers=workers,
+                reports_dir=str(reports) if reports else None,
+                network_report_path=str(network_report) if network_report else None,
+                write_network_report=not no_network_report,
+                reuse_stored=not force,
+            )
     except (PipescanError, ValueError) as exc:
         _fail(exc)
     if as_json:
@@ -142,36 +153,49 @@ def deploy(
         str, typer.Option(help="The Prefect work pool (a process pool; created if missing).")
     ] = "pipescan",
     timezone: Annotated[str, typer.Option(help="Time zone of the cron line (IANA).")] = "UTC",
-    db: DbOption = None,
+    db: Annotated[
+        str | None,
+        typer.Option(
+            "--db",
+            help="The database the workers use, to check it now; it is not stored in the "
+            "deployment (env PIPESCAN_DATABASE_URL; required, one way or the other).",
+        ),
+    ] = None,
     dask: DaskOption = None,
     concurrency: ConcurrencyOption = None,
-    network_report: Annotated[
-        Path | None,
-        typer.Option(help="Where each run writes the network report (default in reports/)."),
-    ] = None,
     paused: Annotated[bool, typer.Option(help="Create the schedule paused.")] = False,
 ) -> None:
-    """Create (or update) a Prefect deployment that runs inspect-network on a schedule.
+    """Create (or update) a Prefect deployment that runs inspect-network on a schedule, with the
+    automations that recover its runs after a crash (docs/operations.md).
 
-    Needs a Prefect server: 'prefect server start', then PREFECT_API_URL=http://HOST:4200/api.
-
-    A worker runs the scheduled runs: 'prefect worker start --pool pipescan'.
+    Checks first that the Prefect server answers, that the store exists, and that the database
+    is reachable, migrated and writable. The deployment holds neither the database URL nor any
+    password: each worker reads PIPESCAN_DATABASE_URL (and PIPESCAN_REPORTS_DIR...) from its own
+    environment.
     """
-    from pipescan.flows.deploy import deploy_network_inspection
+    from pipescan.flows.deploy import (
+        CANCELLING_AFTER_S,
+        MAX_ATTEMPTS,
+        RETRY_AFTER_S,
+        RETRY_PARAMETER,
+        SILENT_AFTER_S,
+        deploy_network_inspection,
+    )
+    from pipescan.flows.network import absolute_location, refuse_password_in_url
+    from pipescan.tasks.network import EmptyStoreError, find_archives
 
-    # The database and where files go are fixed now, as absolute paths: a process worker runs
-    # each flow run in a temporary folder, where relative defaults would be lost.
-    settings = _settings()
-    parameters: dict = {
-        "database_url": _db_url(db),
-        "work_dir": str(settings.work_dir),
-        "network_report_path": str(network_report or settings.reports_dir / "network-report.pdf"),
-    }
+    parameters: dict = {}
     if dask:
         parameters["dask_address"] = dask
     if concurrency:
         parameters["concurrency"] = concurrency
     try:
+        refuse_password_in_url(store)
+        shown_url = _deploy_database_check(db)
+        try:
+            found = len(find_archives(absolute_location(store)))
+        except EmptyStoreError:
+            found = 0
         info = deploy_network_inspection(
             store,
             cron,
@@ -181,14 +205,83 @@ def deploy(
             parameters=parameters,
             paused=paused,
         )
-    except (PipescanError, ValueError) as exc:
+    except (PipescanError, ValueError, OSError) as exc:
         _fail(exc)
+    full = f"{info.flow_name}/{info.name}"
     typer.echo(
-        f"deployment {info.flow_name}/{info.name} ({info.deployment_id}) on {info.api_url}\n"
-        f"  runs inspect-network over {info.parameters['store']}\n"
+        f"deployment {full} ({info.deployment_id}) on {info.api_url}\n"
+        f"  runs inspect-network over {info.parameters['store']} "
+        f"({found} archives there now)\n"
         f"  schedule: cron {info.cron!r} ({info.timezone}){' PAUSED' if paused else ''}\n"
-        f"  work pool: {info.work_pool}; start a worker with:\n"
-        f"    prefect worker start --pool {info.work_pool}\n"
-        f"  run it now with:\n"
-        f"    prefect deployment run '{info.flow_name}/{info.name}'"
+        f"  recovery: a run silent for {SILENT_AFTER_S} s is marked Crashed, a crashed run is "
+        f"retried after {RETRY_AFTER_S} s ({MAX_ATTEMPTS} attempts in all), a run Cancelling "
+        f"for {CANCELLING_AFTER_S} s is marked Cancelled\n"
+        f"    (automations {', '.join(repr(a) for a in info.automations)})\n"
+        f"  start workers, under systemd or another supervisor, with this environment "
+        f"(docs/operations.md):\n"
+        + "".join(f"    {line}\n" for line in _worker_environment(info.api_url, shown_url))
+        + f"    prefect worker start --pool {info.work_pool}\n"
+        f"  run now:               prefect deployment run '{full}'\n"
+        f"  re-inspect everything: prefect deployment run '{full}' "
+        f"--param {RETRY_PARAMETER}=false"
     )
+    if not found:
+        typer.secho(
+            f"warning: the store holds no archive yet: {info.parameters['store']}",
+            fg=typer.colors.YELLOW,
+            err=True,
+        )
+
+
+def _worker_environment(api_url: str, shown_url: str) -> list[str]:
+    """What a worker's environment must hold, as far as this shell knows it."""
+    from pipescan.settings import get_settings
+
+    settings = get_settings()
+    reports = settings.reports_dir.expanduser()
+    lines = [f"PREFECT_API_URL={api_url}", f"PIPESCAN_DATABASE_URL={shown_url}"]
+    if settings.database_password_block:
+        lines.append(f"PIPESCAN_DATABASE_PASSWORD_BLOCK={settings.database_password_block}")
+    lines.append(
+        f"PIPESCAN_REPORTS_DIR={reports if reports.is_absolute() else '/an/absolute/folder'}"
+    )
+    return lines
+
+
+def _deploy_database_check(db: str | None) -> str:
+    """Check the database the workers are to use; its URL as shown (password hidden).
+
+    Raises
+    ------
+    StorageError
+        No database named (the implicit ./pipescan.db would be the worker's temporary
+        folder), a relative SQLite path, or a database that is unreachable, not migrated or
+        read-only.
+    """
+    from sqlalchemy.engine import make_url
+
+    from pipescan.flows.database import is_relative_sqlite
+    from pipescan.settings import database_url, get_settings, use_settings
+    from pipescan.storage.database.db import StorageError, check_database
+
+    with use_settings(database_url=db):
+        settings = get_settings()
+        if "database_url" not in settings.model_fields_set:
+            raise StorageError(
+                "no database named: scheduled runs would write to a pipescan.db in the "
+                "worker's temporary folder",
+                field="PIPESCAN_DATABASE_URL",
+                hint="pass --db URL or set PIPESCAN_DATABASE_URL: the database the workers will "
+                "use is checked now, not stored; they need it in their own environment "
+                "(docs/operations.md)",
+            )
+        url = database_url(settings)
+    if is_relative_sqlite(url):
+        raise StorageError(
+            f"{url} is a relative SQLite path, which each worker would resolve in its own "
+            "temporary folder",
+            field="PIPESCAN_DATABASE_URL",
+            hint="give an absolute path: sqlite:////srv/pipescan/pipescan.db",
+        )
+    check_database(url)
+    return make_url(db or settings.database_url).render_as_string(hide_password=True)

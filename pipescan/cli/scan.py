@@ -63,18 +63,25 @@ def _inspection_params(contour: str | None, registration: str | None):
 
 
 def _run_inspection(archive: str, db_url: str, report: Path | None, params):
+    from pipescan.flows.database import checked_database_url
     from pipescan.flows.inspect import inspect_archive
+    from pipescan.flows.network import refuse_password_in_url
     from pipescan.flows.runners import make_task_runner
+    from pipescan.settings import use_settings
 
     s = _settings()
     flow = inspect_archive.with_options(task_runner=make_task_runner(s.task_runner, s.workers))
-    return flow(
-        archive=archive,
-        database_url=db_url,
-        report_path=str(report) if report else None,
-        params=params,
-        work_dir=str(s.work_dir),
-    )
+    # The database is a setting of this process, never a flow parameter (Prefect keeps those);
+    # it is checked before the archive is processed.
+    refuse_password_in_url(archive, "archive")  # a flow parameter: Prefect keeps it
+    with use_settings(database_url=db_url):
+        checked_database_url()
+        return flow(
+            archive=archive,
+            report_path=str(report) if report else None,
+            params=params,
+            work_dir=str(s.work_dir),
+        )
 
 
 def _print_summary(summary) -> None:

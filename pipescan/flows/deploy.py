@@ -1,21 +1,51 @@
-"""Scheduled network runs: a Prefect deployment of ``inspect-network`` on a cron schedule.
+"""Scheduled network runs: a Prefect deployment of ``inspect-network`` on a cron schedule, with
+the automations that let a run survive the death of its worker or host.
 
 The deployment lives on a Prefect server (``PREFECT_API_URL``) and points at the flow by its
 module path (``pipescan.flows.network.inspect_network``), so any machine where pipescan is
 installed can run it: a worker started with ``prefect worker start --pool <pool>`` polls the
-pool, and at each scheduled time runs the flow in a new process, with that machine's
-``PIPESCAN_*`` settings for whatever the deployment's parameters leave out.
+pool, and at each scheduled time runs the flow in a new process with that machine's
+``PIPESCAN_*`` settings. The deployment holds no database URL, no password and no local path
+other than the store: those are the worker's.
+
+Recovery uses Prefect's own means (docs/operations.md):
+
+- the flow-run process emits a heartbeat every :data:`HEARTBEAT_S` seconds, and does not write
+  to the worker's pipe (``stream_output`` off), so it finishes its run when the worker dies;
+- automation "crash silent runs": a run of a deployment (tag :data:`RECOVERY_TAG`, which the
+  network run passes on to its sub-flows) that sends no heartbeat and no final state for
+  :data:`SILENT_AFTER_S` seconds is marked Crashed: its process or host died;
+- automation "retry crashed runs": a run of the deployment still Crashed :data:`RETRY_AFTER_S`
+  seconds after its crash is scheduled again, at most :data:`MAX_ATTEMPTS` attempts in all, and
+  the next worker finishes it (archives already stored are reused);
+- automation "end stuck cancellations": a run Cancelling for :data:`CANCELLING_AFTER_S`
+  seconds without a process to stop is marked Cancelled.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from datetime import timedelta
 from typing import Any
 
 from pipescan.core.errors import PipescanError
-from pipescan.flows.network import absolute_database_url, absolute_location, inspect_network
+from pipescan.flows.network import absolute_location, inspect_network
 
 DEFAULT_WORK_POOL = "pipescan"
+RECOVERY_TAG = "pipescan-scheduled"
+"""Tag of a deployment's runs, passed on to their sub-flows: the automations act on these."""
+HEARTBEAT_S = 30
+"""Seconds between a flow run's heartbeats (Prefect's minimum)."""
+SILENT_AFTER_S = 3 * HEARTBEAT_S
+"""A run with no heartbeat for this long is taken for dead (three missed heartbeats)."""
+MAX_ATTEMPTS = 3
+"""Attempts of a scheduled run, the first included, before a crash is left to a person."""
+RETRY_AFTER_S = 30
+"""A crashed run is scheduled again when it has stayed Crashed this long."""
+CANCELLING_AFTER_S = 120
+"""A run still Cancelling after this long has no process left to stop."""
+RETRY_PARAMETER = "reuse_stored"
+"""The parameter that, set to false, makes a run process every archive again."""
 
 
 class DeploymentError(PipescanError):
@@ -34,19 +64,39 @@ class DeploymentInfo:
     timezone: str
     parameters: dict[str, Any]
     api_url: str
+    automations: list[str] = field(default_factory=list)
 
 
 def _api_url() -> str:
+    """The Prefect server's API, checked to answer.
+
+    Raises
+    ------
+    DeploymentError
+        No ``PREFECT_API_URL``, or nothing answers there.
+    """
+    import httpx
     from prefect.settings import PREFECT_API_URL
 
     url = PREFECT_API_URL.value()
+    start = (
+        "start one: prefect server start --host 127.0.0.1 --port 4200, with "
+        "PREFECT_API_URL=http://127.0.0.1:4200/api; see docs/operations.md"
+    )
     if not url:
         raise DeploymentError(
-            "no Prefect server to create the deployment on",
-            hint="start one with 'prefect server start' and set "
-            "PREFECT_API_URL=http://127.0.0.1:4200/api (a deployment on the temporary "
-            "server of a single run would vanish with it)",
+            "no Prefect server to create the deployment on: PREFECT_API_URL is not set",
+            hint=f"{start}; a deployment on the temporary server of a single run would "
+            "vanish with it",
         )
+    try:
+        response = httpx.get(f"{url.rstrip('/')}/health", timeout=10)
+        response.raise_for_status()
+    except httpx.HTTPError as exc:
+        raise DeploymentError(
+            f"no Prefect server answers at PREFECT_API_URL={url} ({type(exc).__name__}: {exc})",
+            hint=start,
+        ) from exc
     return url
 
 
@@ -76,6 +126,127 @@ def ensure_work_pool(name: str, pool_type: str = "process") -> bool:
     return False
 
 
+def job_variables() -> dict[str, Any]:
+    """The process worker's settings for a deployment's runs.
+
+    ``stream_output`` off: the flow-run process writes its output to no pipe of the worker, so
+    it finishes its run when the worker is killed (its logs are in Prefect). Heartbeats every
+    :data:`HEARTBEAT_S` seconds feed the "crash silent runs" automation. Nothing here is
+    secret: job variables are shown in the UI.
+    """
+    return {
+        "stream_output": False,
+        "env": {"PREFECT_FLOWS_HEARTBEAT_FREQUENCY": str(HEARTBEAT_S)},
+    }
+
+
+def recovery_automations(deployment_id: str, deployment_name: str) -> list:
+    """The three automations of :mod:`this module's doc <pipescan.flows.deploy>`."""
+    from prefect.automations import Automation
+    from prefect.client.schemas.objects import StateType
+    from prefect.events.actions import ChangeFlowRunState
+    from prefect.events.schemas.automations import EventTrigger, Posture
+
+    tagged = {"prefect.resource.id": f"prefect.tag.{RECOVERY_TAG}", "prefect.resource.role": "tag"}
+    final = {f"prefect.flow-run.{s}" for s in ("Completed", "Failed", "Cancelled", "Crashed")}
+    silent = Automation(
+        name="pipescan: crash silent runs",
+        description=f"A scheduled pipescan run (tag {RECOVERY_TAG}) that sends no heartbeat "
+        f"for {SILENT_AFTER_S} s is marked Crashed: its process or host died.",
+        trigger=EventTrigger(
+            match={"prefect.resource.id": "prefect.flow-run.*"},
+            match_related=tagged,
+            after={"prefect.flow-run.heartbeat"},
+            expect={"prefect.flow-run.heartbeat", "prefect.flow-run.Cancelling", *final},
+            for_each={"prefect.resource.id"},
+            posture=Posture.Proactive,
+            threshold=1,
+            within=timedelta(seconds=SILENT_AFTER_S),
+        ),
+        actions=[
+            ChangeFlowRunState(
+                state=StateType.CRASHED,
+                message=f"no heartbeat for {SILENT_AFTER_S} s: the run's process or host died",
+            )
+        ],
+    )
+    retry = Automation(
+        name=f"pipescan: retry crashed runs of {deployment_name}",
+        description=f"A run of {deployment_name} still Crashed {RETRY_AFTER_S} s after its "
+        f"crash is scheduled again, up to {MAX_ATTEMPTS} attempts; archives already stored "
+        "are reused.",
+        trigger=EventTrigger(
+            match={
+                "prefect.resource.id": "prefect.flow-run.*",
+                # The run count of the attempt that crashed (0: it crashed before running).
+                "prefect.run-count": [str(n) for n in range(MAX_ATTEMPTS)],
+            },
+            match_related={
+                "prefect.resource.id": f"prefect.deployment.{deployment_id}",
+                "prefect.resource.role": "deployment",
+            },
+            # Not at once: a Prefect 3.8 worker reports a crashed process twice, a few
+            # seconds apart, and a retry between the two reports would be crashed by the
+            # second. A repeated Crashed starts the wait again; any other state (a retry by
+            # hand, a cancellation) ends it.
+            after={"prefect.flow-run.Crashed"},
+            expect={"prefect.flow-run.*"},
+            for_each={"prefect.resource.id"},
+            posture=Posture.Proactive,
+            threshold=1,
+            within=timedelta(seconds=RETRY_AFTER_S),
+        ),
+        actions=[
+            ChangeFlowRunState(
+                state=StateType.SCHEDULED,
+                name="AwaitingRetry",
+                message="crashed: scheduled again by pipescan's recovery automation",
+            )
+        ],
+    )
+    cancelling = Automation(
+        name="pipescan: end stuck cancellations",
+        description=f"A scheduled pipescan run still Cancelling after {CANCELLING_AFTER_S} s "
+        "has no process left to stop: it is marked Cancelled.",
+        trigger=EventTrigger(
+            match={"prefect.resource.id": "prefect.flow-run.*"},
+            match_related=tagged,
+            after={"prefect.flow-run.Cancelling"},
+            expect=final,
+            for_each={"prefect.resource.id"},
+            posture=Posture.Proactive,
+            threshold=1,
+            within=timedelta(seconds=CANCELLING_AFTER_S),
+        ),
+        actions=[
+            ChangeFlowRunState(
+                state=StateType.CANCELLED,
+                message=f"still Cancelling after {CANCELLING_AFTER_S} s with no process to "
+                "stop: cancelled by pipescan's recovery automation",
+                force=True,
+            )
+        ],
+    )
+    return [silent, retry, cancelling]
+
+
+def ensure_automations(automations: list) -> list[str]:
+    """Create each automation, or update the one of the same name; their names."""
+    from prefect.automations import Automation
+
+    names = []
+    for automation in automations:
+        try:
+            existing = Automation.read(name=automation.name)
+        except ValueError:  # none of that name
+            automation.create()
+        else:
+            automation.id = existing.id
+            automation.update()
+        names.append(automation.name)
+    return names
+
+
 def deploy_network_inspection(
     store: str,
     cron: str,
@@ -86,7 +257,8 @@ def deploy_network_inspection(
     parameters: dict[str, Any] | None = None,
     paused: bool = False,
 ) -> DeploymentInfo:
-    """Create or update the deployment that runs ``inspect-network`` over ``store`` on ``cron``.
+    """Create or update the deployment that runs ``inspect-network`` over ``store`` on ``cron``,
+    and its recovery automations.
 
     Parameters
     ----------
@@ -97,18 +269,21 @@ def deploy_network_inspection(
     name, work_pool
         The deployment and its (process) work pool, created if missing.
     parameters
-        Further ``inspect_network`` parameters (``database_url``, ``dask_address``,
-        ``concurrency``, ``network_report_path``...); local paths are stored absolute. Those
-        left out come from the worker's ``PIPESCAN_*`` settings at run time.
+        Further ``inspect_network`` parameters (``dask_address``, ``concurrency``...). The
+        database, work folder and reports folder are not among them: the worker's settings
+        give them.
     paused
         Create the schedule paused.
 
     Raises
     ------
     DeploymentError
-        No ``PREFECT_API_URL``, an invalid cron line or time zone, or an unusable pool.
+        No Prefect server, an invalid cron line or time zone, an unusable pool, or the server
+        refused the deployment or an automation.
     """
+    import httpx
     from prefect.deployments.runner import EntrypointType
+    from prefect.exceptions import PrefectException
     from prefect.schedules import Cron
 
     api_url = _api_url()
@@ -121,29 +296,33 @@ def deploy_network_inspection(
             hint='use five cron fields, e.g. "0 2 * * *", and an IANA time zone such as UTC',
         ) from exc
     params = {"store": absolute_location(store), **(parameters or {})}
-    # A process worker runs each flow run in a temporary folder: a relative path would point
-    # into it, and be lost with it.
-    if params.get("database_url"):
-        params["database_url"] = absolute_database_url(params["database_url"])
-    for key in ("work_dir", "network_report_path", "reports_dir"):
-        if params.get(key):
-            params[key] = absolute_location(str(params[key]))
-    ensure_work_pool(work_pool)
-    # to_deployment + apply, not flow.deploy(): in Prefect 3.8.8 deploy() asks the server for
-    # the pool's online workers with a request the server refuses (422).
-    deployment = inspect_network.to_deployment(
-        name=name,
-        schedules=[schedule],
-        parameters=params,
-        paused=paused,
-        work_pool_name=work_pool,
-        entrypoint_type=EntrypointType.MODULE_PATH,
-        description=f"Inspect every scan archive of {params['store']} on '{cron}' ({timezone}).",
-        tags=["pipescan", "network"],
-    )
-    deployment_id = deployment.apply(work_pool_name=work_pool)
+    try:
+        ensure_work_pool(work_pool)
+        # to_deployment + apply, not flow.deploy(), which would also try to build and push
+        # code: the deployment points at the installed module.
+        deployment = inspect_network.to_deployment(
+            name=name,
+            schedules=[schedule],
+            parameters=params,
+            paused=paused,
+            work_pool_name=work_pool,
+            job_variables=job_variables(),
+            entrypoint_type=EntrypointType.MODULE_PATH,
+            description=f"Inspect every scan archive of {params['store']} on '{cron}' "
+            f"({timezone}).",
+            tags=["pipescan", "network", RECOVERY_TAG],
+        )
+        deployment_id = str(deployment.apply(work_pool_name=work_pool))
+        full_name = f"{inspect_network.name}/{name}"
+        automations = ensure_automations(recovery_automations(deployment_id, full_name))
+    except (PrefectException, httpx.HTTPError) as exc:
+        raise DeploymentError(
+            f"the Prefect server at {api_url} refused the deployment: {exc}",
+            hint="check that the server is as new as this Prefect client "
+            "(pip show prefect on both)",
+        ) from exc
     return DeploymentInfo(
-        deployment_id=str(deployment_id),
+        deployment_id=deployment_id,
         name=name,
         flow_name=inspect_network.name,
         work_pool=work_pool,
@@ -151,4 +330,5 @@ def deploy_network_inspection(
         timezone=timezone,
         parameters=params,
         api_url=api_url,
+        automations=automations,
     )

@@ -25,6 +25,7 @@ from pipescan.core.registration import (
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows
 from pipescan.core.summary import peak_blockage
+from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
@@ -107,13 +108,17 @@ def stored_params(params: InspectionParams, pipe_class: str, pipe_class_reason: 
 @flow(name="inspect-archive")
 def inspect_archive(
     archive: str,
-    database_url: str = "sqlite:///pipescan.db",
     report_path: str | None = None,
     params: InspectionParams | None = None,
-    work_dir: str = ".pipescan-work",
+    work_dir: str | None = None,
     reuse_stored: bool = False,
 ) -> InspectionSummary:
     """Register, section, measure, grade and store one scan archive; optionally render its PDF.
+
+    The database is the one of the settings where the flow runs (``PIPESCAN_DATABASE_URL``, or
+    :func:`pipescan.settings.use_settings`), never a parameter: Prefect keeps a run's
+    parameters where anyone with access to its UI sees them. ``work_dir`` None: the
+    ``PIPESCAN_WORK_DIR`` setting.
 
     Nothing is written to the database unless every stage succeeded; the sections, defects and
     registration quality are then written in one transaction.
@@ -123,8 +128,10 @@ def inspect_archive(
     (``reused=True``). This is what lets a network run resume after a crash.
     """
     started = time.perf_counter()
+    settings = get_settings()
+    database_url = run_database_url(settings)
     params = params or InspectionParams()
-    run_dir = start_run_dir(Path(work_dir))
+    run_dir = start_run_dir(Path(work_dir or settings.work_dir))
     try:
         staged = stage_archive(archive, run_dir, get_settings().input_limits())
         meta = staged.meta

@@ -15,29 +15,33 @@ copy of each inspection.
 from __future__ import annotations
 
 import logging
+import re
 import time
 from contextlib import nullcontext
 from dataclasses import dataclass, field
+from datetime import datetime
 from pathlib import Path
+from urllib.parse import urlsplit
 
-from prefect import flow, get_run_logger, task
+from prefect import flow, get_run_logger, tags, task
 from prefect.futures import as_completed
+from prefect.runtime import flow_run
 from prefect.settings import PREFECT_API_URL, temporary_settings
 from prefect.task_runners import ThreadPoolTaskRunner
-from sqlalchemy.engine import make_url
 
 from pipescan.core.contour.grid import GridParams
 from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
-from pipescan.core.sanitize import strip_credentials
+from pipescan.core.sanitize import REDACTED, strip_credentials
+from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
+from pipescan.flows.recovery import close_earlier_attempts
 from pipescan.flows.runners import make_task_runner
+from pipescan.settings import get_settings, use_settings
 from pipescan.tasks.network import IO_RETRY_OPTIONS, archive_label, discover_archives
 
 log = logging.getLogger("pipescan")
-
-NETWORK_REPORT_NAME = "network-report.pdf"
 
 
 @dataclass(frozen=True)
@@ -148,18 +152,33 @@ def absolute_location(location: str) -> str:
     return str(Path(location).expanduser().resolve())
 
 
-def absolute_database_url(database_url: str) -> str:
-    """A SQLite URL with a relative file made absolute; any other URL unchanged."""
-    url = make_url(database_url)
-    database = url.database or ""
-    if (
-        url.get_backend_name() != "sqlite"
-        or database in ("", ":memory:")
-        or database.startswith("file:")
-        or Path(database).is_absolute()
-    ):
-        return database_url
-    return url.set(database=str(Path(database).resolve())).render_as_string(hide_password=False)
+def refuse_password_in_url(location: str, what: str = "store") -> None:
+    """Refuse a URL with a secret in it (``s3://KEY:SECRET@bucket/...``, or a pre-signed
+    ``?X-Amz-Signature=...``) before it becomes a flow or deployment parameter, which Prefect
+    keeps and shows.
+
+    Raises
+    ------
+    PipescanError
+        Naming the URL without its secrets.
+    """
+    if "://" not in location:
+        return
+    try:
+        password = urlsplit(location).password
+    except ValueError:  # an unparseable port: not ours to judge
+        password = None
+    shown = strip_credentials(location)
+    secret_query = f"={REDACTED}" in shown and f"={REDACTED}" not in location
+    if password is None and not secret_query:
+        return
+    raise PipescanError(
+        f"the {what} URL {shown} holds a secret, which Prefect would keep with the run's "
+        "parameters",
+        hint="give the credentials to the machines that read it instead: for s3://, "
+        "AWS_ACCESS_KEY_ID and AWS_SECRET_ACCESS_KEY or ~/.aws/credentials, see "
+        "docs/operations.md",
+    )
 
 
 def _api_url_for_workers(uses_dask: bool) -> str | None:
@@ -270,20 +289,23 @@ def inspect_one_archive(
     ``failed`` outcome instead of stopping the network run.
 
     On Dask, this task is the unit sent to a worker: an archive path in, a small outcome out.
+    The database URL is a task argument (Prefect keeps no task arguments; a Dask worker gets it
+    with the task) and reaches the sub-flow as a setting, never as a flow parameter.
     """
     started = time.perf_counter()
     subflow = inspect_archive.with_options(
         flow_run_name=label, task_runner=make_task_runner(runner_kind, workers)
     )
     try:
-        summary = subflow(
-            archive=archive,
-            database_url=database_url,
-            report_path=report_path,
-            params=params,
-            work_dir=work_dir,
-            reuse_stored=reuse_stored,
-        )
+        # The network run resolved the URL (and any Secret block's password) already.
+        with use_settings(database_url=database_url, database_password_block=""):
+            summary = subflow(
+                archive=archive,
+                report_path=report_path,
+                params=params,
+                work_dir=work_dir,
+                reuse_stored=reuse_stored,
+            )
     except Exception as exc:
         return ArchiveOutcome(
             archive=strip_credentials(archive),
@@ -299,7 +321,6 @@ def inspect_one_archive(
 @flow(name="inspect-network")
 def inspect_network(
     store: str,
-    database_url: str | None = None,
     params: InspectionParams | None = None,
     work_dir: str | None = None,
     concurrency: int | None = None,
@@ -314,44 +335,61 @@ def inspect_network(
 ) -> NetworkSummary:
     """Inspect every archive of a store; end with a network summary (and the network report).
 
+    The database is the one of the settings where the flow runs (``PIPESCAN_DATABASE_URL``,
+    with ``PIPESCAN_DATABASE_PASSWORD_BLOCK``; :func:`pipescan.settings.use_settings`), never
+    a parameter. It is checked once (reachable, migrated, writable) before any archive.
+
     Parameters
     ----------
     store
         A local directory or fsspec URL holding the archives (see
         :func:`pipescan.tasks.network.find_archives`).
-    database_url, work_dir, concurrency, dask_address, task_runner, workers
-        None: from the settings (``PIPESCAN_DATABASE_URL``, ``PIPESCAN_WORK_DIR``,
-        ``PIPESCAN_NETWORK_CONCURRENCY``, ``PIPESCAN_DASK_ADDRESS``, ``PIPESCAN_TASK_RUNNER``,
-        ``PIPESCAN_WORKERS``) of the process that runs the flow, e.g. a deployment's worker.
-        ``concurrency`` archives are processed at once (default 2, or on Dask the cluster's
-        worker threads). With a Dask address, each archive is one task on the cluster (whose
-        workers must see the store, the work folder and the database); within an archive,
-        its chunk and window tasks run on a local pool (``task_runner``: threads or
-        processes) of ``workers``.
+    work_dir, concurrency, dask_address, task_runner, workers
+        None: from the settings (``PIPESCAN_WORK_DIR``, ``PIPESCAN_NETWORK_CONCURRENCY``,
+        ``PIPESCAN_DASK_ADDRESS``, ``PIPESCAN_TASK_RUNNER``, ``PIPESCAN_WORKERS``) of the
+        process that runs the flow, e.g. a deployment's worker. ``concurrency`` archives are
+        processed at once (default 2, or on Dask the cluster's worker threads). With a Dask
+        address, each archive is one task on the cluster (whose workers must see the store,
+        the work folder and the database); within an archive, its chunk and window tasks run
+        on a local pool (``task_runner``: threads or processes) of ``workers``.
     params
         None: from the settings, as ``pipescan inspect`` does.
     reports_dir
         If given, each inspection's PDF report is written there as ``<archive>.pdf``.
     network_report_path, write_network_report
-        Where to write the network report (default ``<reports_dir setting>/network-report.pdf``)
-        when this pipescan can render one.
+        Where to write the network report when this pipescan can render one; default
+        ``<PIPESCAN_REPORTS_DIR>/network-<date>-<run name>.pdf``, so that each run keeps its own.
     reuse_stored
-        Skip (and summarise) archives already stored with the same content and parameters.
+        Skip (and summarise) archives already stored with the same content and parameters;
+        False processes every archive again (each inspection is still stored once).
     worst_count
         How many of the worst pipes the summary lists.
 
     Raises
     ------
+    StorageError
+        The database is unreachable, not migrated or refuses writes; or, in a scheduled run,
+        the worker names no database (one error, before any archive).
     StoreError
         The store does not exist or holds no archive. A failing archive does not raise.
     """
-    from pipescan.settings import get_settings
-
     started = time.perf_counter()
+    run_log = get_run_logger()
+    if flow_run.run_count > 1:  # retried after a crash (pipescan.flows.deploy)
+        closed = close_earlier_attempts(flow_run.id, flow_run.name)
+        _progress(
+            run_log,
+            f"attempt {flow_run.run_count} of this run: {closed[0]} sub-flow and {closed[1]} "
+            "task runs of the earlier attempts marked Crashed"
+            + ("; archives already stored are reused" if reuse_stored else ""),
+        )
     s = get_settings()
-    database_url = absolute_database_url(database_url or s.database_url)
+    database_url = checked_database_url(s)
     params = params or params_from_settings(s)
     work_dir = absolute_location(str(work_dir or s.work_dir))
+    report_out = (
+        _network_report_out(network_report_path, s.reports_dir) if write_network_report else None
+    )
     dask_address = dask_address or s.dask_address
     runner_kind = task_runner or s.task_runner
     if runner_kind == "dask":  # the chunk and window tasks run beside their archive's task
@@ -374,13 +412,17 @@ def inspect_network(
     api_url = _api_url_for_workers(bool(dask_address))
     settings = temporary_settings({PREFECT_API_URL: api_url}) if api_url else nullcontext()
     outcomes: dict[str, ArchiveOutcome] = {}
-    with settings, pool:
+    # The sub-flows carry this run's tags (a deployment's), which its recovery automations
+    # look for (pipescan.flows.deploy).
+    with settings, pool, tags(*(flow_run.tags or [])):
         if not concurrency:
             concurrency = s.network_concurrency or (
                 sum(pool.client.nthreads().values()) if dask_address else 2
             )
-        log.info(
-            f"{total} archives in {strip_credentials(store)}; {concurrency} at a time on {executor}"
+        _progress(
+            run_log,
+            f"{total} archives in {strip_credentials(store)}; "
+            f"{concurrency} at a time on {executor}",
         )
         queue = list(zip(archives, labels, strict=True))
         pending: dict = {}
@@ -408,17 +450,14 @@ def inspect_network(
             outcome = finished.result()
             outcomes[pending.pop(finished)] = outcome
             line = progress_line(len(outcomes), total, outcome)
-            (log.warning if outcome.status == "failed" else log.info)(line)
+            _progress(run_log, line, failed=outcome.status == "failed")
 
     ordered = [outcomes[a] for a in archives]
     counts = {k: sum(o.status == k for o in ordered) for k in ("inspected", "reused", "failed")}
     report_path = report_error = None
     ids = [o.inspection_id for o in ordered if o.inspection_id is not None]
-    if write_network_report and ids:
-        out = Path(
-            absolute_location(network_report_path or str(s.reports_dir / NETWORK_REPORT_NAME))
-        )
-        report_path, report_error = _write_network_report(database_url, out, ids)
+    if report_out is not None and ids:
+        report_path, report_error = _write_network_report(database_url, report_out, ids)
     summary = NetworkSummary(
         store=strip_credentials(store),
         executor=executor,
@@ -429,10 +468,46 @@ def inspect_network(
         network_report_error=report_error,
         counts=counts,
     )
-    run_log = get_run_logger()
     for line in format_network_summary(summary):
         run_log.info(line)
     return summary
+
+
+def _progress(run_log, line: str, *, failed: bool = False) -> None:
+    """A progress line: to the run's log in Prefect (its UI shows how far a run is, also for a
+    scheduled run) and to the ``pipescan`` logger (the CLI's stderr)."""
+    level = logging.WARNING if failed else logging.INFO
+    run_log.log(level, line)
+    log.log(level, line)
+
+
+def network_report_name(run_name: str | None, when: datetime) -> str:
+    """The network report's file name for a run: by date and run, so that each run keeps its
+    own, e.g. ``network-2026-11-24-cerise-lemming.pdf``."""
+    run = re.sub(r"[^A-Za-z0-9_.-]+", "-", run_name or "run").strip("-.") or "run"
+    return f"network-{when:%Y-%m-%d}-{run}.pdf"
+
+
+def _network_report_out(explicit: str | None, reports_dir: Path) -> Path:
+    """Where this run writes its network report.
+
+    Raises
+    ------
+    PipescanError
+        In a scheduled run with a relative reports folder: it would be resolved in the run's
+        temporary folder and deleted with it.
+    """
+    if explicit:
+        return Path(absolute_location(explicit))
+    if in_deployment() and not reports_dir.expanduser().is_absolute():
+        raise PipescanError(
+            f"the worker's reports folder {str(reports_dir)!r} is relative, which a scheduled "
+            "run would resolve in its temporary folder",
+            field="PIPESCAN_REPORTS_DIR",
+            hint="set it to an absolute folder in the worker's environment (docs/operations.md)",
+        )
+    name = network_report_name(flow_run.name, flow_run.scheduled_start_time)
+    return Path(absolute_location(str(reports_dir))) / name
 
 
 def _unique_labels(archives: list[str]) -> list[str]:

@@ -37,6 +37,10 @@ class StoreError(PipescanError):
     """A store of archives is missing, unreadable or holds no archive."""
 
 
+class EmptyStoreError(StoreError):
+    """The store exists but holds no archive (yet)."""
+
+
 # --- the store --------------------------------------------------------------------------------
 
 
@@ -118,7 +122,7 @@ def find_archives(store: str) -> list[str]:
         [d for d in archive_dirs if not inside_archive_dir(d)] + archive_files, key=_natural_key
     )
     if not found:
-        raise StoreError(
+        raise EmptyStoreError(
             "the store holds no scan archive",
             archive=store,
             hint="a store holds folders with an inspection.toml, or .zip/.tar/.tar.gz files",

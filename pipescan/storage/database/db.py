@@ -101,9 +101,11 @@ def create_engine_for(url: str | URL) -> Engine:
             return engine
         return sa.create_engine(parsed, pool_pre_ping=True)
     except (ImportError, sa.exc.NoSuchModuleError) as exc:
+        hint = "install the driver named in the URL, e.g. pip install 'psycopg[binary]'"
+        if parsed.drivername == "postgresql":  # SQLAlchemy's default is psycopg2, not psycopg 3
+            hint = "pipescan uses psycopg 3: write the URL as postgresql+psycopg://..."
         raise StorageError(
-            f"no database driver for {_display_url(parsed)}: {exc}",
-            hint="install the driver named in the URL, e.g. pip install 'psycopg[binary]'",
+            f"no database driver for {_display_url(parsed)}: {exc}", hint=hint
         ) from exc
 
 
@@ -277,9 +279,14 @@ def _engine_from(url_or_engine: str | URL | Engine) -> Iterator[Engine]:
         engine.dispose()
 
 
+def _one_line(exc: BaseException | None) -> str:
+    """A driver's message on one line (psycopg's span several)."""
+    return " ".join(str(exc).split())
+
+
 def _cannot_open(engine: Engine, exc: sa.exc.DBAPIError) -> StorageError:
     return StorageError(
-        f"cannot open database {_display_url(engine.url)}: {exc.orig}",
+        f"cannot open database {_display_url(engine.url)}: {_one_line(exc.orig)}",
         hint="check the URL, that the server is running and that you may connect",
     )
 
@@ -401,3 +408,29 @@ def _ensure_at_head(engine: Engine) -> None:
         f"pipescan {__version__} needs {head}",
         hint="run `pipescan db upgrade` on this database (back it up first)",
     )
+
+
+def check_database(url: str | URL) -> None:
+    """Check that a database is reachable, at the current schema revision and writable, as
+    one check before a run starts work (a new SQLite file is created and migrated here).
+
+    Writability is probed with a no-op update of the schema revision, rolled back: it fails on
+    a read-only file, a read-only transaction or replica, and a user without write rights.
+
+    Raises
+    ------
+    StorageError
+        Naming the database (without its password) and what to do.
+    """
+    engine = connect(url)
+    try:
+        with engine.connect() as connection, connection.begin() as transaction:
+            connection.execute(sa.text("UPDATE alembic_version SET version_num = version_num"))
+            transaction.rollback()
+    except sa.exc.DBAPIError as exc:
+        raise StorageError(
+            f"database {_display_url(engine.url)} refuses writes: {_one_line(exc.orig)}",
+            hint="check the file's or the user's write permissions, and that it is no replica",
+        ) from exc
+    finally:
+        engine.dispose()

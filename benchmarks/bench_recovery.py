@@ -1,0 +1,62 @@
+"""Crash recovery of a scheduled network run: the kill matrix.
+
+For each scenario (``worker``, ``flow``, ``both``, ``server``; see ``tests/kill_matrix.py``) a
+fresh Prefect server, ``pipescan deploy``, a worker and a run of the deployment over a store of
+simulated archives processed one at a time; once the first inspection is stored, a SIGKILL.
+Then nobody does anything (a killed worker or server is started again after 5 s, as a
+supervisor would) until every archive has its inspection and no run is active.
+
+Prints, per scenario: the final state of the network run and its sub-flows, the inspections
+stored (and distinct identities), and the seconds from the kill until the work was finished.
+
+Usage::
+
+    python benchmarks/bench_recovery.py                    # 4 archives, every scenario
+    python benchmarks/bench_recovery.py --scenarios both --archives 3 --time-limit 300
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from tests.kill_matrix import SCENARIOS, format_outcome, run_scenario
+from tests.netstore import write_store
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--archives", type=int, default=4)
+    parser.add_argument("--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS))
+    parser.add_argument("--time-limit", type=float, default=600, help="seconds after the kill")
+    parser.add_argument("--keep", action="store_true", help="keep the run folders (logs)")
+    args = parser.parse_args()
+
+    root = Path(tempfile.mkdtemp(prefix="bench-recovery-"))
+    store = root / "store"
+    write_store(store, args.archives)
+    print(f"{args.archives} archives, one at a time; runs under {root}", flush=True)
+    for scenario in args.scenarios:
+        started = time.monotonic()
+        outcome = run_scenario(
+            scenario, root / scenario, store, args.archives, time_limit_s=args.time_limit
+        )
+        print(format_outcome(outcome), flush=True)
+        for line in outcome.timeline:
+            print(f"    {line}", flush=True)
+        print(f"    (scenario took {time.monotonic() - started:.0f} s)", flush=True)
+    if not args.keep:
+        import shutil
+
+        shutil.rmtree(root, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()

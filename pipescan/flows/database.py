@@ -1,0 +1,94 @@
+"""The database a flow run writes to: from the settings of the process it runs in.
+
+No database URL is a flow parameter: Prefect stores a run's parameters (and copies them to its
+sub-flows) where its UI and API show them, and a URL may hold a password. A flow reads
+``PIPESCAN_DATABASE_URL`` (and, if named, the password in a Prefect ``Secret`` block) where it
+runs: a deployment's runs on the worker that runs them, ``pipescan inspect --db`` through
+:func:`pipescan.settings.use_settings`.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from sqlalchemy.engine import make_url
+
+from pipescan.settings import Settings, database_url, get_settings
+from pipescan.storage.database.db import StorageError, check_database
+
+WORKER_HINT = (
+    "set PIPESCAN_DATABASE_URL (an absolute SQLite path or postgresql+psycopg://...) in the "
+    "environment of the Prefect worker, see docs/operations.md"
+)
+
+
+def absolute_database_url(url: str) -> str:
+    """A SQLite URL with a relative file made absolute; any other URL unchanged."""
+    parsed = make_url(url)
+    if not is_relative_sqlite(url):
+        return url
+    return parsed.set(database=str(Path(parsed.database or "").resolve())).render_as_string(
+        hide_password=False
+    )
+
+
+def is_relative_sqlite(url: str) -> bool:
+    parsed = make_url(url)
+    database = parsed.database or ""
+    return not (
+        parsed.get_backend_name() != "sqlite"
+        or database in ("", ":memory:")
+        or database.startswith("file:")
+        or Path(database).is_absolute()
+    )
+
+
+def in_deployment() -> bool:
+    """True inside a run of a Prefect deployment (started by a worker)."""
+    from prefect.runtime import deployment
+
+    return deployment.id is not None
+
+
+def run_database_url(settings: Settings | None = None) -> str:
+    """The database of this run, with a relative SQLite file made absolute.
+
+    Raises
+    ------
+    StorageError
+        In a deployment's run, when the worker's settings name no database or a relative SQLite
+        file: the worker runs each flow in a temporary folder, where such a file would be
+        created and lost.
+    PipescanError
+        The password's ``Secret`` block cannot be loaded.
+    """
+    settings = settings or get_settings()
+    url = database_url(settings)
+    if in_deployment():
+        if "database_url" not in settings.model_fields_set:
+            raise StorageError(
+                "no database for this scheduled run: the worker's settings name none",
+                field="PIPESCAN_DATABASE_URL",
+                hint=WORKER_HINT,
+            )
+        if is_relative_sqlite(url):
+            raise StorageError(
+                f"the worker's database {make_url(url)!r} is a relative SQLite path, which a "
+                "scheduled run would resolve in its temporary folder",
+                field="PIPESCAN_DATABASE_URL",
+                hint=WORKER_HINT,
+            )
+    return absolute_database_url(url)
+
+
+def checked_database_url(settings: Settings | None = None) -> str:
+    """:func:`run_database_url`, checked once: reachable, migrated and writable.
+
+    Raises
+    ------
+    StorageError
+        What is wrong with the database, in one line.
+    """
+    url = run_database_url(settings)
+    check_database(url)
+    return url

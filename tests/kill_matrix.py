@@ -1,0 +1,242 @@
+"""Crash a scheduled network run and watch whether it finishes without a person.
+
+One scenario: a fresh Prefect server, ``pipescan deploy``, a worker whose environment names
+the database, a run of the deployment over a store of archives (one at a time), and, once the
+first inspection is stored and the next archive's sub-flow is running, a crash:
+
+- ``worker``: SIGKILL of the worker process alone; a supervisor starts it again;
+- ``flow``: SIGKILL of the flow-run process alone (the worker lives on);
+- ``both``: SIGKILL of both at once, as a host crash; the worker is started again;
+- ``server``: SIGKILL of the Prefect server; it is started again on the same database.
+
+Then it waits, doing nothing a person would do, until every archive has its inspection and no
+run is left active, or a time limit passes. Used by ``tests/test_crash_recovery.py`` and
+``benchmarks/bench_recovery.py``.
+"""
+
+from __future__ import annotations
+
+import shutil
+import signal
+import sqlite3
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from tests.prefect_stack import ACTIVE_STATES, PrefectServer, Worker, run_pipescan
+
+SCENARIOS = ("worker", "flow", "both", "server")
+RESTART_DELAY_S = 5.0
+"""How long a supervisor (systemd's RestartSec) takes to start a killed process again."""
+DEPLOYMENT = "inspect-network/network-nightly"
+POOL = "pipescan"
+
+
+@dataclass
+class Outcome:
+    """What became of one scenario."""
+
+    scenario: str
+    archives: int
+    stored_at_kill: int
+    inspections: int
+    distinct_identities: int
+    finished_after_s: float | None
+    """Seconds from the kill until every archive was stored and no run was active; None when
+    that did not happen within the time limit."""
+    network_run: str
+    """Final state (name) of the network run, with its run count."""
+    network_run_type: str
+    subflow_states: dict[str, int]
+    """Sub-flow runs by final state name."""
+    active_subflows: int
+    active_task_runs: int
+    """Task runs left Running or Pending (the tasks of a dead process)."""
+    timeline: list[str] = field(default_factory=list)
+
+
+def stored(db: Path) -> tuple[int, int]:
+    """(inspections, distinct (asset, content, parameters) identities) in a SQLite file."""
+    if not db.exists():
+        return 0, 0
+    try:
+        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=10) as con:
+            row = con.execute(
+                "SELECT COUNT(*), COUNT(DISTINCT asset_id || content_hash || params_hash) "
+                "FROM inspections"
+            ).fetchone()
+    except sqlite3.OperationalError:  # not migrated yet, or locked for longer than 10 s
+        return 0, 0
+    return int(row[0]), int(row[1])
+
+
+def _runs(server: PrefectServer, run_id: str) -> tuple[dict, list[dict]]:
+    """The network run made for the scenario, and every sub-flow run. (The runs that the
+    schedule plans for the coming nights are left out.)"""
+    runs = server.flow_runs()
+    [network] = [r for r in runs if r["id"] == run_id]
+    return network, [r for r in runs if r["parent_task_run_id"] is not None]
+
+
+def _subflow_running(server: PrefectServer) -> bool:
+    return any(
+        r["parent_task_run_id"] is not None and r["state_type"] == "RUNNING"
+        for r in server.flow_runs()
+    )
+
+
+def _settled(server: PrefectServer, run_id: str, db: Path, archives: int) -> bool:
+    if stored(db)[0] < archives:
+        return False
+    network, subflows = _runs(server, run_id)
+    active = [r for r in subflows if r["state_type"] in ACTIVE_STATES]
+    # Task-run states reach the server's database through its event pipeline, a moment after
+    # the flow run's: wait for them too.
+    return network["state_type"] == "COMPLETED" and not active and not _active_task_runs(server)
+
+
+def _active_task_runs(server: PrefectServer) -> int:
+    return server.call(
+        "POST",
+        "/task_runs/count",
+        {"task_runs": {"state": {"type": {"any_": sorted(ACTIVE_STATES)}}}},
+    )
+
+
+def run_scenario(
+    scenario: str,
+    root: Path,
+    store: Path,
+    archives: int,
+    *,
+    time_limit_s: float = 600,
+    worker_env: dict[str, str] | None = None,
+) -> Outcome:
+    """Run one scenario under ``root`` (a fresh folder) over ``store``; see the module doc."""
+    assert scenario in SCENARIOS, scenario
+    root.mkdir(parents=True)
+    server = PrefectServer(root / "prefect").start()
+    worker: Worker | None = None
+    db = root / "network.db"
+    env = server.client_env() | {
+        "PIPESCAN_DATABASE_URL": f"sqlite:///{db}",
+        "PIPESCAN_WORK_DIR": str(root / "work"),
+        "PIPESCAN_REPORTS_DIR": str(root / "reports"),
+        **(worker_env or {}),
+    }
+    timeline: list[str] = []
+    started = time.monotonic()
+
+    def note(what: str) -> None:
+        timeline.append(f"{time.monotonic() - started:6.1f} s  {what}")
+
+    try:
+        upgraded = run_pipescan(["db", "upgrade"], env, root)
+        assert upgraded.returncode == 0, upgraded.stderr
+        deployed = run_pipescan(
+            [
+                "deploy",
+                "--store",
+                str(store),
+                "--cron",
+                "0 2 * * *",
+                "--pool",
+                POOL,
+                "--concurrency",
+                "1",
+            ],
+            env,
+            root,
+        )
+        assert deployed.returncode == 0, deployed.stdout + deployed.stderr
+        worker = Worker(POOL, env, root / "worker-cwd", root).start()
+        run_id = server.run_deployment(DEPLOYMENT)
+        note("run created")
+        # The crash comes when one archive is stored and the next one's sub-flow is running.
+        deadline = time.monotonic() + 300
+        while stored(db)[0] < 1 or not _subflow_running(server):
+            assert time.monotonic() < deadline, "nothing stored in 300 s:\n" + worker.log()[-3000:]
+            time.sleep(0.2)
+        at_kill = stored(db)[0]
+        flow_pids = worker.flow_processes()
+        assert flow_pids, "no flow-run process under the worker"
+        killed = time.monotonic()
+        note(f"{at_kill} stored; killing {scenario}")
+        if scenario in ("worker", "both"):
+            worker.kill()
+        if scenario in ("flow", "both"):
+            for pid in flow_pids:
+                _kill(pid)
+        if scenario == "server":
+            server.stop(signal.SIGKILL)
+        time.sleep(RESTART_DELAY_S)
+        if scenario in ("worker", "both"):
+            worker.start()
+            note("worker started again")
+        if scenario == "server":
+            server.start()
+            note("server started again")
+
+        finished: float | None = None
+        last = ""
+        while time.monotonic() - killed < time_limit_s:
+            try:
+                settled = _settled(server, run_id, db, archives)
+                network, subflows = _runs(server, run_id)
+            except Exception as exc:  # the server may be busy or restarting
+                note(f"server unreachable: {type(exc).__name__}")
+                time.sleep(2)
+                continue
+            now = (
+                f"{stored(db)[0]} stored; run {network['state_name']} "
+                f"(run count {network['run_count']}); "
+                f"sub-flows {dict(Counter(r['state_name'] for r in subflows))}"
+            )
+            if now != last:
+                note(now)
+                last = now
+            if settled:
+                finished = time.monotonic() - killed
+                break
+            time.sleep(2)
+        network, subflows = _runs(server, run_id)
+        count, distinct = stored(db)
+        return Outcome(
+            scenario=scenario,
+            archives=archives,
+            stored_at_kill=at_kill,
+            inspections=count,
+            distinct_identities=distinct,
+            finished_after_s=finished,
+            network_run=f"{network['state_name']} (run count {network['run_count']})",
+            network_run_type=network["state_type"],
+            subflow_states=dict(Counter(r["state_name"] for r in subflows)),
+            active_subflows=sum(r["state_type"] in ACTIVE_STATES for r in subflows),
+            active_task_runs=_active_task_runs(server),
+            timeline=timeline,
+        )
+    finally:
+        if worker is not None:
+            worker.stop()
+        server.stop()
+        (root / "worker.log").write_text(worker.log() if worker else "")
+        shutil.rmtree(root / "work", ignore_errors=True)
+
+
+def _kill(pid: int) -> None:
+    import os
+    from contextlib import suppress
+
+    with suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+
+
+def format_outcome(o: Outcome) -> str:
+    finished = f"{o.finished_after_s:.0f} s" if o.finished_after_s is not None else "not finished"
+    return (
+        f"{o.scenario:<7} stored at kill {o.stored_at_kill}/{o.archives}; "
+        f"finished: {finished}; inspections {o.inspections} "
+        f"({o.distinct_identities} distinct); network run: {o.network_run}; "
+        f"sub-flows: {o.subflow_states}; task runs left active: {o.active_task_runs}"
+    )
