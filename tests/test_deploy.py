@@ -203,7 +203,7 @@ def test_deploy_says_what_is_missing_in_one_line(server, tmp_path, case):
         "no PREFECT_API_URL": "PREFECT_API_URL is not set",
         "no database": "no database named",
         "relative SQLite": "relative SQLite path",
-        "unreachable database": "cannot open database postgresql+psycopg://pipescan:***@",
+        "unreachable database": "cannot open database postgresql+psycopg://127.0.0.1:",
         "no store": "the store does not exist",
         "bad cron": "invalid schedule 'nightly'",
     }[case]

@@ -203,7 +203,7 @@ def test_an_unreachable_database_is_one_error_before_any_archive(prefect, tmp_pa
     result = CliRunner().invoke(app, ["inspect-network", missing, "--db", url])
     assert result.exit_code == 2, result.output
     [line] = result.output.strip().splitlines()
-    assert line.startswith("error: cannot open database postgresql+psycopg://pipescan:***@")
+    assert line.startswith("error: cannot open database postgresql+psycopg://127.0.0.1:")
     assert "secret" not in result.output
 
 

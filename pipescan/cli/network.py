@@ -94,6 +94,7 @@ def inspect_network_command(
     _keep_failed_runs_off_the_console()
     try:
         refuse_password_in_url(store)
+        params = _inspection_params(contour, registration)  # options first: they cost nothing
         # The database is a setting of this process, not a flow parameter (Prefect would keep
         # it, password and all, with the run). Checked here too, before a temporary Prefect
         # server is started for the run: a bad database is an error in a second or two.
@@ -101,7 +102,7 @@ def inspect_network_command(
             checked_database_url()
             summary = inspect_network(
                 store=store,
-                params=_inspection_params(contour, registration),
+                params=params,
                 concurrency=concurrency,
                 dask_address=dask,
                 workers=workers,
