@@ -162,7 +162,9 @@ def trend(
 ) -> None:
     """Blockage at each chainage across an asset's inspections, and its change per year.
 
-    Surveys are aligned by cross-correlation; change per year is a Theil-Sen slope.
+    Surveys are aligned by cross-correlation; change per year is a Theil-Sen slope. A change
+    smaller than two surveys of an unchanged pipe differ by (2 percentage points over the
+    surveys' span; docs/measures.md) is "no significant change".
     """
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.trends import asset_trend
