@@ -75,9 +75,12 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     db_url = f"sqlite:///{tmp_path / 'net.db'}"
     rendered = []
 
-    def fake_network_report(database_url, out_path, *, since=None, inspection_ids=None):
+    def fake_network_report(database_url, out_path, *, since=None, inspection_ids=None, failed=()):
         rendered.append((database_url, out_path, inspection_ids))
+        reported_failures.extend(failed)
         return out_path
+
+    reported_failures = []
 
     monkeypatch.setattr(
         "pipescan.tasks.reporting.render_network_report", fake_network_report, raising=False
@@ -114,10 +117,12 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     ids = [by_asset[asset_id(i)] for i in (0, 1)]
     assert rendered == [(db_url, tmp_path / "network.pdf", ids)]
     assert first.network_report_path == str(tmp_path / "network.pdf")
+    # The report lists the archive that failed, with its one-line reason.
+    assert [(f.label, f.reason) for f in reported_failures] == [("MH99-BAD", failed.error)]
 
     # Started again: nothing is processed twice, nothing is stored twice; and a network
     # report that fails is recorded, not fatal.
-    def broken(database_url, out_path, *, since=None, inspection_ids=None):
+    def broken(database_url, out_path, *, since=None, inspection_ids=None, failed=()):
         raise RuntimeError("no fonts")
 
     monkeypatch.setattr("pipescan.tasks.reporting.render_network_report", broken)
