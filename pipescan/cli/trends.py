@@ -382,7 +382,7 @@ def _trend_figure(result: AssetTrend, cell: int | None):
         top.legend(
             fontsize="small",
             ncols=min(count, 3),
-            loc="upper left",
+            loc="best",
             title="earlier surveys drawn wider, beneath",
             title_fontsize="x-small",
         )
@@ -463,7 +463,7 @@ def _plot_cell(axis, result: AssetTrend, cell: int, verdict: str) -> None:
     if rate is not None:
         title += f": {_rate(rate)}, {verdict}"
     axis.set_title(title)
-    axis.legend(fontsize="small", loc="upper left")
+    axis.legend(fontsize="small", loc="best")
     axis.grid(alpha=0.3)
 
 
