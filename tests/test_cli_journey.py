@@ -236,6 +236,8 @@ def test_exports_refuse_an_unknown_inspection_or_asset(tmp_path, stored):
         assert run.stdout == ""
     listing = cli("inspections", "--asset", "NOPE", "--db", stored, cwd=tmp_path)
     assert "no asset 'NOPE'" in listing.one_line_error()
+    report = cli("report", "--inspection", "999", "--db", stored, cwd=tmp_path)
+    assert "`pipescan inspections`" in report.one_line_error()  # a command, not a Python call
 
 
 def test_an_export_creates_its_folder_and_files_follow_the_umask(tmp_path, stored):

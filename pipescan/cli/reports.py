@@ -41,6 +41,18 @@ def _parse_ids(text: str | None) -> list[int] | None:
         ) from None
 
 
+def _require_inspection(url: str, inspection_id: int) -> None:
+    """An unknown inspection id is reported before the renderer and Prefect are loaded."""
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.repository import get_inspection
+
+    engine = connect(url)
+    try:
+        get_inspection(engine, inspection_id)
+    finally:
+        engine.dispose()
+
+
 def _smtp_config(settings):
     from pipescan.tasks.delivery import SmtpConfig
 
@@ -103,6 +115,8 @@ def report(
     try:
         settings = _settings()
         url = _stored_db_url(db)
+        if inspection is not None:
+            _require_inspection(url, inspection)
         # Prefect comes with these: after the checks, so that a mistake is reported at once.
         from pipescan.tasks import reporting
         from pipescan.tasks.delivery import (
