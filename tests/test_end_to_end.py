@@ -157,5 +157,7 @@ def test_bad_archive_fails_cleanly_and_writes_nothing(prefect, tmp_path):
     result = CliRunner().invoke(app, ["inspect", str(bad), "--db", db_url])
     assert result.exit_code == 2
     assert "inspection.toml" in result.output and "inspected_at" in result.output
+    # Nothing written: not even the database was created.
+    assert not (tmp_path / "p.db").exists()
     listing = CliRunner().invoke(app, ["inspections", "--db", db_url])
-    assert "no inspections" in listing.stdout
+    assert listing.exit_code == 2 and "no database at" in listing.output

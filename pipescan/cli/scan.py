@@ -156,20 +156,24 @@ def _effects(assignments: list[str], ideal: bool):
     return dataclasses.replace(base, **values)  # type: ignore[arg-type]
 
 
-def _checked_settings(contour: str | None, registration: str | None):
-    """The settings, with every choice a run names checked against what this pipescan has:
-    the contour method, the registration method and engine, the threshold table (the pipe
-    class and the rest are checked as settings). A wrong one is one line, before Prefect
-    starts."""
+def _check_contour(settings, contour: str | None) -> None:
     from pipescan.core.contour import CONTOUR_METHODS
 
-    settings = _settings()
     method = contour or settings.contour_method
     if method not in CONTOUR_METHODS:
         given = f"--contour {contour!r}" if contour else f"PIPESCAN_CONTOUR_METHOD={method!r}"
         raise OptionError(
             f"{given} is not a contour method", hint=f"use one of: {', '.join(CONTOUR_METHODS)}"
         )
+
+
+def _checked_settings(contour: str | None, registration: str | None):
+    """The settings, with every choice a run names checked against what this pipescan has:
+    the contour method, the registration method and engine, the threshold table (the pipe
+    class and the rest are checked as settings). A wrong one is one line, before Prefect
+    starts."""
+    settings = _settings()
+    _check_contour(settings, contour)
     from pipescan.core.registration import REGISTRATION_METHODS, RegistrationParams
 
     reg = registration or settings.registration_method
@@ -289,7 +293,8 @@ def inspect(
     """
     try:
         settings = _settings()
-        _check_archive(archive, settings)
+        _check_contour(settings, contour)  # cheap: before the archive
+        _check_archive(archive, settings)  # before the checks that load scipy
         params = _inspection_params(contour, registration, _checked_settings(contour, registration))
         summary = _run_inspection(archive, _db_url(db), report, params)
     except PipescanError as exc:
