@@ -303,3 +303,12 @@ def test_simulate_sets_asset_date_and_grows_deposits(tmp_path):
         line = cli("simulate", str(tmp_path / "x"), *args, cwd=tmp_path).one_line_error()
         assert expected in line
     assert not (tmp_path / "x").exists()
+
+
+def test_a_network_report_of_nothing_is_an_error_not_an_empty_pdf(tmp_path):
+    url = f"sqlite:///{tmp_path / 'empty.db'}"
+    connect(url).dispose()  # a migrated database without inspections
+    run = cli("report", "--network", "--db", url, "-o", str(tmp_path / "n.pdf"), cwd=tmp_path)
+    assert run.code == 2 and len(run.lines) == 1, run.stderr
+    assert "no inspection to report on in the database" in run.lines[0]
+    assert not (tmp_path / "n.pdf").exists()
