@@ -316,12 +316,17 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
     assert migrated[0][2] == pytest.approx(written[0][2], rel=1e-12)
     assert migrated[0][3:] == written[0][3:]
     assert migrated[1] == written[1]
-    # SQLite's AUTOINCREMENT survived the table copy: replacing the newest inspection does
-    # not hand its id to the replacement.
+    # A re-save of the same work keeps its id.
     replacement = save(
         engine, content_hash="sha256:none", sections=[make_sections()[-1]], defects=[]
     )
-    assert replacement > unmeasured
+    assert replacement == unmeasured
+    # SQLite's AUTOINCREMENT survived the table copy: the newest inspection's id, once it is
+    # deleted, is not handed to the next one.
+    with engine.begin() as connection:
+        connection.execute(sa.text("DELETE FROM inspections WHERE id = :id"), {"id": unmeasured})
+    later = save(engine, content_hash="sha256:later", sections=[make_sections()[-1]], defects=[])
+    assert later > unmeasured
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:
@@ -451,19 +456,32 @@ def test_params_hash_is_canonical() -> None:
         repository.params_hash({"x": float("nan")})
 
 
-def test_resaving_the_same_archive_and_params_replaces(engine: sa.Engine) -> None:
+def test_resaving_the_same_archive_and_params_replaces_under_the_same_id(
+    engine: sa.Engine,
+) -> None:
     first = save(engine)
+    other = save(engine, content_hash="sha256:other")
     # Fewer sections the second time: leftovers of the first save would show.
     second = save(engine, sections=make_sections(3), archive_uri="/moved/run1.zip")
-    assert count_rows(engine, "inspections") == 1
-    assert count_rows(engine, "sections") == 3
-    assert count_rows(engine, "defects") == len(DEFECTS)
-    assert count_rows(engine, "frame_quality") == len(FRAME_QUALITY)
-    assert second != first
-    assert [r.id for r in repository.list_inspections(engine)] == [second]
-    assert repository.get_inspection(engine, second).archive_uri == "/moved/run1.zip"
-    with pytest.raises(db.StorageError, match=f"no inspection with id {first}"):
-        repository.get_sections(engine, first)
+    assert count_rows(engine, "inspections") == 2
+    assert count_rows(engine, "sections") == 3 + len(make_sections())
+    assert count_rows(engine, "defects") == 2 * len(DEFECTS)
+    assert count_rows(engine, "frame_quality") == 2 * len(FRAME_QUALITY)
+    # Reports and exports quote the id: the re-saved inspection keeps it.
+    assert second == first
+    assert [r.id for r in repository.list_inspections(engine)] == [first, other]
+    assert repository.get_inspection(engine, first).archive_uri == "/moved/run1.zip"
+    assert repository.get_sections(engine, first) == make_sections(3)
+    # A batch that re-saves one inspection and adds another: each gets its right id.
+    ids = repository.save_inspections(
+        engine,
+        [
+            item(content_hash="sha256:third"),
+            item(content_hash="sha256:other", sections=make_sections(2)),
+        ],
+    )
+    assert ids[1] == other and ids[0] > other
+    assert repository.get_sections(engine, other) == make_sections(2)
 
 
 def test_other_params_or_archive_add_an_inspection(engine: sa.Engine) -> None:
@@ -529,7 +547,7 @@ def test_save_inspections_in_one_transaction(engine: sa.Engine) -> None:
     ]
     ids = repository.save_inspections(engine, batch)
     assert len(set(ids)) == 4
-    assert replaced not in ids
+    assert ids[2] == replaced  # a replaced save keeps its id
     # Each id holds its own item's rows.
     for inspection_id, it in zip(ids, batch, strict=True):
         record = repository.get_inspection(engine, inspection_id)

@@ -264,5 +264,5 @@ def test_cli_report_deliver(smtp_server, tmp_path, monkeypatch):
     assert result.exit_code == 0, result.output
     (_, to, message) = inbox.messages[-1]
     assert to == ["asset-team@utility.example", "me@x.example"]
-    assert message["Subject"].strip().startswith("Network condition summary: 1 pipes")
+    assert message["Subject"].strip().startswith("Network condition summary: 1 pipe,")
     fsspec.filesystem("memory").rm("/pipescan-cli", recursive=True)

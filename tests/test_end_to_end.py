@@ -133,13 +133,19 @@ def test_cli_report_and_json_summary(inspected, archive, tmp_path):
     )
     assert result.exit_code == 0, result.output
     assert out.read_bytes().startswith(b"%PDF")
-    # Re-inspecting the same archive with the same parameters replaces, never duplicates.
+    # Re-inspecting the same archive with the same parameters replaces, never duplicates,
+    # and keeps the inspection's id: the report of that id still works.
     again = CliRunner().invoke(app, ["inspect", str(archive), "--db", db_url, "--json"])
     assert again.exit_code == 0, again.output
     payload = json.loads(again.stdout[again.stdout.index("{") :])
     assert payload["asset_id"] == summary.asset_id
+    assert payload["inspection_id"] == summary.inspection_id
     listing = CliRunner().invoke(app, ["inspections", "--db", db_url])
     assert listing.stdout.count(summary.asset_id) == 1
+    result = CliRunner().invoke(
+        app, ["report", "--inspection", str(summary.inspection_id), "-o", str(out), "--db", db_url]
+    )
+    assert result.exit_code == 0, result.output
 
 
 def test_bad_archive_fails_cleanly_and_writes_nothing(prefect, tmp_path):
@@ -152,5 +158,7 @@ def test_bad_archive_fails_cleanly_and_writes_nothing(prefect, tmp_path):
     result = CliRunner().invoke(app, ["inspect", str(bad), "--db", db_url])
     assert result.exit_code == 2
     assert "inspection.toml" in result.output and "inspected_at" in result.output
+    # Nothing written: not even the database was created.
+    assert not (tmp_path / "p.db").exists()
     listing = CliRunner().invoke(app, ["inspections", "--db", db_url])
-    assert "no inspections" in listing.stdout
+    assert listing.exit_code == 2 and "no database at" in listing.output

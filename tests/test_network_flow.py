@@ -84,9 +84,12 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     monkeypatch.setenv("PIPESCAN_DATABASE_URL", db_url)
     rendered = []
 
-    def fake_network_report(database_url, out_path, *, since=None, inspection_ids=None):
+    def fake_network_report(database_url, out_path, *, since=None, inspection_ids=None, failed=()):
         rendered.append((database_url, out_path, inspection_ids))
+        reported_failures.extend(failed)
         return out_path
+
+    reported_failures = []
 
     monkeypatch.setattr(
         "pipescan.tasks.reporting.render_network_report", fake_network_report, raising=False
@@ -131,10 +134,12 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     logged = _logged(first_state)
     assert sum(f"[{n}/3]" in line for line in logged for n in (1, 2, 3)) == 3, logged
     assert any("[" in line and "MH99-BAD FAILED" in line for line in logged), logged
+    # The report lists the archive that failed, with its one-line reason.
+    assert [(f.label, f.reason) for f in reported_failures] == [("MH99-BAD", failed.error)]
 
     # Started again: nothing is processed twice, nothing is stored twice; and a network
     # report that fails is recorded, not fatal.
-    def broken(database_url, out_path, *, since=None, inspection_ids=None):
+    def broken(database_url, out_path, *, since=None, inspection_ids=None, failed=()):
         raise RuntimeError("no fonts")
 
     monkeypatch.setattr("pipescan.tasks.reporting.render_network_report", broken)

@@ -36,6 +36,13 @@ def _stored(db_path) -> dict[str, int]:
     return dict(rows)
 
 
+def _created(db_path) -> dict[str, str]:
+    """asset id -> when its inspection was saved (a re-processed archive keeps its id, not
+    this)."""
+    with sqlite3.connect(f"file:{db_path}?mode=ro", uri=True, timeout=5) as con:
+        return dict(con.execute("SELECT asset_id, created_at FROM inspections").fetchall())
+
+
 def _command(store, db_url) -> list[str]:
     return [
         sys.executable,
@@ -93,6 +100,7 @@ def test_a_killed_network_run_resumes_without_redoing_finished_archives(tmp_path
             os.killpg(run.pid, signal.SIGKILL)  # what it started (its temporary server)
         log.close()
     before = _stored(db_path)
+    saved_before = _created(db_path)
     assert KILL_AFTER_STORED <= len(before) < ARCHIVES, f"not killed mid-way: {before}"
 
     resumed = subprocess.run(
@@ -115,8 +123,9 @@ def test_a_killed_network_run_resumes_without_redoing_finished_archives(tmp_path
     after = _stored(db_path)
     assert sorted(after) == [asset_id(i) for i in range(ARCHIVES)]
     for asset, inspection_id in before.items():
-        # Not redone: a re-processed archive would have replaced its row with a new id.
+        # Not redone: a re-processed archive would have been saved again.
         assert after[asset] == inspection_id
+        assert _created(db_path)[asset] == saved_before[asset]
         assert outcomes[asset]["status"] == "reused"
     for asset in set(after) - set(before):
         assert outcomes[asset]["status"] == "inspected"

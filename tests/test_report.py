@@ -27,8 +27,15 @@ from pipescan.reports import (
 )
 from pipescan.reports.charts import blockage_chart_svg, cross_section_svg
 from pipescan.reports.context import APPENDIX_ALL_MAX_SECTIONS, fmt_pct
-from pipescan.reports.network import EarlierScan, NetworkInput, PipeInspection, summarise
+from pipescan.reports.network import (
+    EarlierScan,
+    FailedArchive,
+    NetworkInput,
+    PipeInspection,
+    summarise,
+)
 from pipescan.reports.sample import Feature, sample_input, sample_sections
+from pipescan.tasks.reporting import network_message
 
 pypdf = pytest.importorskip("pypdf")
 
@@ -340,7 +347,8 @@ def test_trend_compares_each_defect_with_earlier_inspections():
     obstacle = trend["changes"][0]
     # Peak blockage over 2.00-2.50 m: 31.0 % now, 15.5 % two years before.
     assert (obstacle["now"], obstacle["earlier"], obstacle["change"]) == ("31.0", ["15.5"], "+15.5")
-    assert obstacle["rate"] == "+7.7"  # points per year over 2.0 years (15.5 / 2.0 = 7.75)
+    # points per year over 2.0 years (15.5 / 2.0 = 7.75): a change, not noise
+    assert obstacle["rate"] == {"value": "+7.7", "note": ""}
     text = pdf_text(render_pdf(with_history, Path(tempfile.mkdtemp()) / "trend.pdf"))
     assert "Trend: this inspection against earlier ones" in text
     assert "2022-05-13" in text and "+15.5" in text
@@ -455,6 +463,31 @@ def test_network_summary_ranks_by_grade_and_by_growth(tmp_path):
     # growth per year, inspections, change, largest blockage now and before, worst class
     assert re.search(r"1 B1-B2 .*?\+5\.0 2 \+10\.0 12\.0 2\.0 3", text), text[:4000]
     assert "Inspected for the first time (no growth figure): C1-C2" in text
+    # A1-A2 grew 1 point in 2 years, D1-D2 not at all: within what two surveys of an
+    # unchanged pipe differ by, and worded so.
+    assert re.search(r"2 A1-A2 .*?\+0\.5 ?no significant change ?2 \+1\.0", text), text
+    assert re.search(r"3 D1-D2 .*?0\.0 ?no significant change ?2 0\.0", text), text
+
+
+def test_network_summary_lists_the_archives_that_failed(tmp_path):
+    reason = (
+        "archive site9.zip, file inspection.toml, field 'nominal_diameter_m': 500 looks like "
+        "millimetres: write 0.5"
+    )
+    inp = NetworkInput(
+        pipes=[_pipe("A1-A2", 0.25, 0.24)],
+        generated_at=datetime(2025, 6, 2, tzinfo=UTC),
+        software_version="0.1.0",
+        failed=[FailedArchive("site9", reason), FailedArchive("site12", "archive site12: x")],
+    )
+    text = re.sub(r"\s+", " ", pdf_text(render_network_pdf(inp, tmp_path / "net.pdf")))
+    assert "1 pipe inspected 2025-06-01; 2 archives failed" in text
+    section = text[text.index("Archives that failed") : text.index("Pipes ranked by condition")]
+    assert "site9 " + reason in section and "site12 archive site12: x" in section
+    subject, body = network_message(inp)
+    assert subject.startswith("Network condition summary: 1 pipe,")
+    assert "2 archives failed (nothing stored):\n  site9: " + reason in body
+    assert "1 pipe inspected" in body and "1 pipes" not in body
 
 
 # --- from the database -------------------------------------------------------------------

@@ -436,13 +436,17 @@ def test_cli_trend(
     out = run("trend", "P1", "--db", db_url)
     assert "P1 (? -> ?, DN 600, circular): 4 inspections" in out
     assert f"chainages are those of inspection {pipe[-1]}" in out
-    assert "peak blockage +4.93 pt/yr" in out
+    assert "peak blockage  +4.93 pt/yr (+14.8 pp over 3.0 years): growing" in out
     lines = out.splitlines()
     header = next(i for i, line in enumerate(lines) if line.lstrip().startswith("chainage m"))
     table = lines[header + 1 :]
     assert len(table) == 207  # 20 m, widened by the offsets applied (-0.3 ... +0.4 m)
     row = next(line for line in table if line.split()[0] == "12.00")
-    assert row.split()[-1] == f"{100 * true_change_per_year(np.array(12.05)):+.2f}"
+    assert row.split()[5] == f"{100 * true_change_per_year(np.array(12.05)):+.2f}"
+    assert row.split()[6] == "growing"
+    # Where nothing grows, the noise of the surveys is worded as such, never as a rate alone.
+    assert "no significant change" in out
+    assert "-0.0 " not in out and "-0.00 " not in out
 
     out = run("trend", "P1", "--chainage", "10.5", "--db", db_url)
     assert "at chainage 10.50-10.60 m:" in out
@@ -470,16 +474,20 @@ def test_cli_worst_assets_inspections(
 ) -> None:
     out = run("worst", "--db", db_url)
     lines = out.splitlines()
-    assert [line.split()[1] for line in lines[1:]] == ["B", "A", "E"]
-    assert "+10.00 pt/yr" in lines[1]
+    assert [line.split()[1] for line in lines[1:4]] == ["B", "A", "E"]
+    assert "+10.00 pt/yr" in lines[1] and lines[1].endswith("growing")
+    assert lines[4].startswith("(peak change: under 2 pp")
     data = json.loads(run("worst", "--by", "current", "--limit", "2", "--json", "--db", db_url))
     assert [r["asset_id"] for r in data] == ["C", "A"]
     assert data[0]["current_peak_blockage_ratio"] == pytest.approx(0.6)
 
     assets = run("assets", "--db", db_url).splitlines()
-    assert [line.split()[0] for line in assets] == ["A", "B", "C", "D", "E"]
-    inspections = run("inspections", "--asset", "D", "--db", db_url)
-    assert "0/10    measured  peak       -" in inspections
+    assert assets[0].split()[0] == "asset"  # a header row
+    assert [line.split()[0] for line in assets[1:]] == ["A", "B", "C", "D", "E"]
+    assert "1 inspection," in assets[1] or "inspections," in assets[1]
+    inspections = run("inspections", "--asset", "D", "--db", db_url).splitlines()
+    assert inspections[0].split()[:4] == ["id", "asset", "inspected", "measured"]
+    assert inspections[1].split()[3:5] == ["0/10", "-"]
 
 
 def test_cli_db_upgrade_and_current(db_url: str) -> None:
@@ -496,3 +504,94 @@ def test_cli_db_upgrade_and_current(db_url: str) -> None:
         result = CliRunner().invoke(app, ["worst", "--db", db_url])
         assert result.exit_code == 2
         assert "pipescan db upgrade" in result.output
+
+
+# ---------------------------------------------------------------------------------------------
+# Trend plots that show change, not noise
+
+
+def _two_identical_surveys() -> trends.AssetTrend:
+    """Two surveys a year apart of an unchanged pipe: 23.49 % at 3.8 m, read 0.005 pp apart."""
+    rng = np.random.default_rng(5)
+    profile = np.where(np.abs(np.arange(40) - 38) < 3, 0.2349, 0.004)
+    values = np.vstack([profile, profile + rng.normal(0, 0.00005, profile.size)])
+    times = [T0, T0 + YEAR]
+    surveys = tuple(
+        trends.SurveyAlignment(
+            inspection_id=i + 1,
+            inspected_at=t,
+            offset_m=0.0,
+            correlation=None if i else 1.0,
+            is_reference=bool(i),
+            measured_section_count=values.shape[1],
+            mean_blockage_ratio=float(values[i].mean()),
+            peak_blockage_ratio=float(values[i].max()),
+            peak_chainage_m=3.8,
+        )
+        for i, t in enumerate(times)
+    )
+    slopes = core_trends.robust_slopes(np.array([core_trends.years(t) for t in times]), values)
+    return trends.AssetTrend(
+        asset_id="SAME-1",
+        upstream_node=None,
+        downstream_node=None,
+        nominal_diameter_m=0.5,
+        pipe_shape="circular",
+        material=None,
+        step_m=STEP_M,
+        surveys=surveys,
+        chainage_start_m=np.arange(40) * STEP_M,
+        blockage_ratio=values,
+        section_status=np.full(values.shape, "ok", dtype=object),
+        change_per_year=slopes,
+        measured_count=np.full(40, 2),
+        mean_change_per_year=None,
+        peak_change_per_year=core_trends.growth_per_year(
+            times, [s.peak_blockage_ratio for s in surveys]
+        ),
+    )
+
+
+def test_the_trend_plot_of_an_unchanged_pipe_shows_no_change() -> None:
+    import matplotlib.pyplot as plt
+
+    from pipescan.cli.trends import _MIN_SPAN_PCT, _trend_figure
+
+    result = _two_identical_surveys()
+    figure = _trend_figure(result, result.cell_at(3.8))
+    try:
+        top, middle, bottom = figure.axes[:3]
+        for axis in (top, middle, bottom):
+            assert axis.yaxis.get_offset_text().get_text() == ""  # never "+2.349e1"
+        for axis in (top, bottom):  # blockage: from 0, at least a few points tall
+            low, high = axis.get_ylim()
+            assert low <= 0 and high - low >= _MIN_SPAN_PCT and high > 23.49
+        # The change per year: the band of no significant change (2 pp over 1 year) and
+        # more, so a 0.01 pt/yr wobble is a sliver in grey, not a cliff in red.
+        low, high = middle.get_ylim()
+        band = 100 * core_trends.SIGNIFICANT_CHANGE_RATIO / 1.0
+        assert -low == pytest.approx(high) and high >= 1.5 * band
+        bars = [p for p in middle.containers[0] if p.get_height() != 0]
+        assert bars and {p.get_facecolor()[:3] for p in bars} == {(0x9A / 255,) * 3}
+        assert "no significant change" in bottom.get_title()
+        # The earlier survey is drawn wider, beneath: visible although the two coincide.
+        earlier, later = top.get_lines()[:2]
+        assert earlier.get_linewidth() > later.get_linewidth() + 1
+        assert earlier.get_zorder() < later.get_zorder()
+    finally:
+        plt.close(figure)
+
+
+def test_trend_text_words_noise_as_no_significant_change(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from pipescan.cli import trends as cli_trends
+
+    result = _two_identical_surveys()
+    printed: list[str] = []
+    monkeypatch.setattr(cli_trends.typer, "echo", lambda text="", **_: printed.append(text))
+    cli_trends._print_trend(result, result.cell_at(3.8))
+    text = "\n".join(printed)
+    assert "peak blockage  " in text and "no significant change" in text
+    assert "growing" not in text and "shrinking" not in text
+    assert "-0.0" not in text

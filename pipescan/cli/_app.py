@@ -2,15 +2,28 @@
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
 import sys
+import traceback
 from enum import StrEnum
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Any, NoReturn
 
 import typer
+from typer.core import TyperGroup
 
+try:  # typer 0.2x carries its own copy of click
+    from typer._click import exceptions as click_errors
+    from typer._click.utils import PacifyFlushWrapper
+except ImportError:  # pragma: no cover - older typer, on click itself
+    from click import exceptions as click_errors  # type: ignore[no-redef]
+    from click.utils import PacifyFlushWrapper  # type: ignore[no-redef]
+
+import pipescan
 from pipescan.core.contour import CONTOUR_METHODS, DEFAULT_CONTOUR_METHOD
+from pipescan.core.errors import OptionError, PipescanError
 
 # Prefect reads its settings at import: set ours before any import of it.
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
@@ -26,8 +39,97 @@ _RUN_LOGGERS = (
 )
 for _name in _RUN_LOGGERS:
     os.environ.setdefault(_name, "CRITICAL")
+# Prefect waits 20 s for its temporary API server, which a busy machine (a network run's
+# workers on all cores) can miss: the run would fail before it starts.
+os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "90")
+
+_DEBUG = {"on": False}
+"""Set by ``--debug``."""
+
+
+def _debugging() -> bool:
+    """``--debug`` or ``PIPESCAN_DEBUG=1``: expected errors show their traceback too."""
+    env = os.environ.get("PIPESCAN_DEBUG", "").strip().lower()
+    return _DEBUG["on"] or env in ("1", "true", "yes", "on")
+
+
+def _error_line(text: str) -> None:
+    typer.secho(f"error: {text}", fg=typer.colors.RED, err=True)
+
+
+class _PipescanGroup(TyperGroup):
+    """The top-level command: every error a user can cause is one line on stderr.
+
+    - A :class:`PipescanError` (bad archive, bad option, unknown inspection, ...) and a usage
+      error (a bad option value, a missing argument) print ``error: ...`` and exit with 2;
+      with ``--debug`` or ``PIPESCAN_DEBUG=1`` the traceback comes first.
+    - Anything else is a bug: its traceback, then a line saying how to report it; exit 1.
+    """
+
+    def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        if not standalone_mode:
+            return super().main(*args, standalone_mode=False, **kwargs)
+        try:
+            code = super().main(*args, standalone_mode=False, **kwargs)
+        except click_errors.NoArgsIsHelpError as exc:
+            exc.show()  # the help text itself
+            sys.exit(exc.exit_code)
+        except click_errors.UsageError as exc:
+            where = exc.ctx.command_path if exc.ctx is not None else "pipescan"
+            _error_line(f"{exc.format_message()} (see `{where} --help`)")
+            sys.exit(2)
+        except click_errors.ClickException as exc:
+            _error_line(exc.format_message())
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            typer.echo("aborted", err=True)
+            sys.exit(1)
+        except PipescanError as exc:
+            if _debugging():
+                traceback.print_exception(exc)
+            _error_line(str(exc))
+            sys.exit(2)
+        except OSError as exc:
+            if exc.errno == errno.EPIPE:  # output piped into `head`: not an error
+                sys.stdout = PacifyFlushWrapper(sys.stdout)  # type: ignore[assignment]
+                sys.exit(1)
+            _unexpected(exc)
+        except Exception as exc:
+            expected = _prefect_did_not_start(exc)
+            if expected is None:
+                _unexpected(exc)
+            if _debugging():
+                traceback.print_exception(exc)
+            _error_line(str(expected))
+            sys.exit(2)
+        sys.exit(code if isinstance(code, int) else 0)
+
+
+def _prefect_did_not_start(exc: BaseException) -> OptionError | None:
+    """Prefect's failure to start its temporary API server, as one line: it is the machine's
+    state (busy), not a bug, and the user can act on it."""
+    if not (isinstance(exc, RuntimeError) and "ephemeral Prefect API server" in str(exc)):
+        return None
+    return OptionError(
+        "Prefect's temporary API server did not start in time (the machine may be busy)",
+        hint="raise PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS (90 s now), or run "
+        "`prefect server start` and set PREFECT_API_URL",
+    )
+
+
+def _unexpected(exc: BaseException) -> NoReturn:
+    traceback.print_exception(exc)
+    typer.secho(
+        f"pipescan {pipescan.__version__} failed unexpectedly: this is a bug. Please report it "
+        "with the command you ran and the traceback above.",
+        fg=typer.colors.RED,
+        err=True,
+    )
+    sys.exit(1)
+
 
 app = typer.Typer(
+    cls=_PipescanGroup,
     help="Measure the inside of underground pipes from LiDAR scans.",
     no_args_is_help=True,
     add_completion=False,
@@ -55,6 +157,14 @@ ContourOption = Annotated[
     ),
 ]
 
+RegistrationOption = Annotated[
+    str | None,
+    typer.Option(
+        help="Registration method: gicp, point_to_plane or the paper's point_to_point "
+        "(env PIPESCAN_REGISTRATION_METHOD; default gicp; docs/registration.md)."
+    ),
+]
+
 
 class Scenario(StrEnum):
     paper = "paper"
@@ -68,15 +178,63 @@ class ExportFormat(StrEnum):
 
 
 def _settings():
+    """The settings, or one line naming the variable that is wrong (a pydantic error would be
+    a page of traceback)."""
+    from pydantic import ValidationError
+
     from pipescan.settings import get_settings
 
-    return get_settings()
+    try:
+        return get_settings()
+    except ValidationError as exc:
+        first = exc.errors()[0]
+        name = "PIPESCAN_" + "_".join(str(part) for part in first["loc"]).upper()
+        raise OptionError(
+            f"{name}={first.get('input')!r}: {first['msg']}",
+            hint="fix it in the environment or in .env",
+        ) from None
 
 
 def _db_url(db: str | None) -> str:
     from pipescan.settings import database_url  # with a Prefect Secret block's password
 
     return db or database_url(_settings())
+
+
+def _stored_db_url(db: str | None) -> str:
+    """The database URL for a command that only reads: a SQLite file that does not exist is
+    refused (``connect`` would create an empty one, and the command would then report on
+    nothing), naming the URL and where it came from. A server database is checked by
+    ``connect`` (which refuses one without pipescan's tables)."""
+    from sqlalchemy.engine import make_url
+
+    from pipescan.settings import Settings
+
+    url = _db_url(db)
+    try:
+        parsed = make_url(url)
+    except Exception:  # connect() says what is wrong with the URL
+        return url
+    database = parsed.database or ""
+    if (
+        parsed.get_backend_name() != "sqlite"
+        or database in ("", ":memory:")
+        or database.startswith("file:")
+        or Path(database).expanduser().exists()
+    ):
+        return url
+    if db:
+        origin = "--db"
+    elif url != Settings.model_fields["database_url"].default:
+        origin = "PIPESCAN_DATABASE_URL"
+    else:
+        origin = "the default: no --db and no PIPESCAN_DATABASE_URL"
+    shown = parsed.render_as_string(hide_password=True)
+    raise OptionError(
+        f"no database at {shown} ({origin}): {Path(database).expanduser().resolve()} "
+        "does not exist",
+        hint="give the database `pipescan inspect` wrote with --db or PIPESCAN_DATABASE_URL",
+    )
 
 
 def _setup_logging(verbose: bool) -> None:
@@ -92,9 +250,11 @@ def _setup_logging(verbose: bool) -> None:
     logger.propagate = False
 
 
-def _fail(exc: Exception) -> None:
-    typer.secho(f"error: {exc}", fg=typer.colors.RED, err=True)
-    raise typer.Exit(code=2)
+def _fail(exc: Exception) -> NoReturn:
+    """Stop the command with an expected error: one line, exit code 2 (see _PipescanGroup)."""
+    if isinstance(exc, PipescanError):
+        raise exc
+    raise OptionError(str(exc)) from exc
 
 
 @app.callback()
@@ -102,5 +262,11 @@ def main(
     verbose: Annotated[
         bool, typer.Option("--verbose", "-v", help="Show Prefect's own logs.")
     ] = False,
+    debug: Annotated[
+        bool,
+        typer.Option("--debug", help="Show the traceback of every error (env PIPESCAN_DEBUG=1)."),
+    ] = False,
 ) -> None:
+    if debug:
+        _DEBUG["on"] = True
     _setup_logging(verbose)

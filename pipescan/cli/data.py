@@ -8,9 +8,19 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, ExportFormat, _db_url, _fail, app, db_app, export_app
-from pipescan.core.errors import PipescanError
+from pipescan.cli._app import (
+    DbOption,
+    ExportFormat,
+    _db_url,
+    _fail,
+    _stored_db_url,
+    app,
+    db_app,
+    export_app,
+)
+from pipescan.core.errors import OptionError, PipescanError
 from pipescan.core.sanitize import escape_control, strip_credentials
+from pipescan.core.wording import plural
 
 AssetOption = Annotated[str | None, typer.Option(help="Only this asset.")]
 InspectionOption = Annotated[int | None, typer.Option(help="Only this inspection id.")]
@@ -52,17 +62,56 @@ def _export(fn, asset, inspection, output, db) -> None:
     from pipescan.storage.database.db import connect
 
     try:
-        engine = connect(_db_url(db))
-        if output is None:
-            n = fn(engine, sys.stdout, asset_id=asset, inspection_id=inspection)
-        else:
-            tmp = output.with_name(output.name + ".tmp")
-            with tmp.open("w", newline="", encoding="utf-8") as fh:
-                n = fn(engine, fh, asset_id=asset, inspection_id=inspection)
-            tmp.replace(output)
-            typer.echo(f"wrote {n} rows to {output}", err=True)
+        engine = connect(_stored_db_url(db))
+        try:
+            _check_selection(engine, asset, inspection)
+            if output is None:
+                n = fn(engine, sys.stdout, asset_id=asset, inspection_id=inspection)
+            else:
+                n = _write_atomically(
+                    output, lambda fh: fn(engine, fh, asset_id=asset, inspection_id=inspection)
+                )
+        finally:
+            engine.dispose()
     except PipescanError as exc:
         _fail(exc)
+    if output is not None:
+        typer.echo(f"wrote {plural(n, 'row')} to {output}", err=True)
+    elif n == 0:
+        typer.echo("no rows: the database holds no inspections yet", err=True)
+
+
+def _check_selection(engine, asset: str | None, inspection: int | None) -> None:
+    """An unknown inspection or asset is an error, not an empty export."""
+    from pipescan.storage.database.repository import get_inspection, require_asset
+
+    if inspection is not None:
+        record = get_inspection(engine, inspection)
+        if asset is not None and record.asset_id != asset:
+            raise OptionError(
+                f"inspection {inspection} is of asset {record.asset_id!r}, not {asset!r}",
+                hint="give one of --asset and --inspection, or both of one inspection",
+            )
+    elif asset is not None:
+        require_asset(engine, asset)
+
+
+def _write_atomically(output: Path, write) -> int:
+    """Write through a temporary file beside ``output`` (its folder created), renamed into
+    place at the end: an interrupted export leaves no half-written file under the name."""
+    tmp = output.with_name(f".{output.name}.part")
+    try:
+        output.parent.mkdir(parents=True, exist_ok=True)
+        with tmp.open("w", newline="", encoding="utf-8") as fh:
+            n = write(fh)
+        tmp.replace(output)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise OptionError(f"cannot write {output}: {exc.strerror or exc}") from exc
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return n
 
 
 @app.command()
@@ -73,7 +122,7 @@ def assets(db: DbOption = None) -> None:
     from pipescan.storage.database.repository import list_assets
 
     try:
-        engine = connect(_db_url(db))
+        engine = connect(_stored_db_url(db))
         try:
             rows = list_assets(engine)
             names = gis_names(engine)
@@ -81,9 +130,13 @@ def assets(db: DbOption = None) -> None:
             engine.dispose()
     except PipescanError as exc:
         _fail(exc)
-        return
     if not rows:
         typer.echo("no assets yet: run `pipescan inspect ARCHIVE` first")
+        return
+    typer.echo(
+        f"{'asset':24} {'upstream':>10}    {'downstream':10} {'size':8} {'shape':10} "
+        f"{'material':10} inspections"
+    )
     for a in rows:
         last = a.last_inspected_at.date().isoformat() if a.last_inspected_at else "-"
         size = f"DN {1000 * a.nominal_diameter_m:.0f}" if a.nominal_diameter_m else "DN ?"
@@ -91,8 +144,8 @@ def assets(db: DbOption = None) -> None:
             f"{escape_control(pipe_label(a.asset_id, names)):24} "
             f"{escape_control(a.upstream_node or '-'):>10} -> "
             f"{escape_control(a.downstream_node or '-'):10} "
-            f"{size:8} {a.pipe_shape:10} {a.material or '-':10} "
-            f"{a.inspection_count} inspections, last {last}"
+            f"{size:8} {a.pipe_shape:10} {escape_control(a.material or '-'):10} "
+            f"{plural(a.inspection_count, 'inspection')}, last {last}"
         )
 
 
@@ -101,23 +154,29 @@ def inspections(
     asset: AssetOption = None,
     db: DbOption = None,
 ) -> None:
-    """List stored inspections, with their measured sections and blockage."""
+    """List stored inspections: measured sections of all, peak blockage, status, archive."""
     from pipescan.cli.exchange import gis_names, pipe_label
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.repository import list_inspections
+    from pipescan.storage.database.repository import list_inspections, require_asset
 
     try:
-        engine = connect(_db_url(db))
+        engine = connect(_stored_db_url(db))
         try:
+            if asset is not None:
+                require_asset(engine, asset)
             rows = list_inspections(engine, asset_id=asset)
             names = gis_names(engine, sorted({r.asset_id for r in rows}))
         finally:
             engine.dispose()
     except PipescanError as exc:
         _fail(exc)
-        return
     if not rows:
-        typer.echo("no inspections yet")
+        typer.echo("no inspections yet: run `pipescan inspect ARCHIVE` first")
+        return
+    typer.echo(
+        f"{'id':>6}  {'asset':24} {'inspected':26} {'measured':>11}  {'peak':>7}  "
+        f"{'status':10} archive"
+    )
     for r in rows:
         peak = "-" if r.peak_blockage_ratio is None else f"{100 * r.peak_blockage_ratio:.1f} %"
         # Rows stored before credentials were stripped, or ids with control characters,
@@ -125,7 +184,7 @@ def inspections(
         typer.echo(
             f"{r.id:6}  {escape_control(pipe_label(r.asset_id, names)):24} "
             f"{r.inspected_at.isoformat():26} "
-            f"{r.measured_section_count:5}/{r.section_count:<5} measured  peak {peak:>7}  "
+            f"{f'{r.measured_section_count}/{r.section_count}':>11}  {peak:>7}  "
             f"{r.status:10} {escape_control(strip_credentials(r.archive_uri))}"
         )
 

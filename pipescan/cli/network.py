@@ -11,7 +11,13 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import ContourOption, DbOption, _fail, app
+from pipescan.cli._app import (
+    ContourOption,
+    DbOption,
+    RegistrationOption,
+    _fail,
+    app,
+)
 from pipescan.core.errors import PipescanError
 
 DaskOption = Annotated[
@@ -70,9 +76,7 @@ def inspect_network_command(
         bool, typer.Option("--json", help="Print a machine-readable summary.")
     ] = False,
     contour: ContourOption = None,
-    registration: Annotated[
-        str | None, typer.Option(help="point_to_plane or point_to_point (the paper's).")
-    ] = None,
+    registration: RegistrationOption = None,
 ) -> None:
     """Inspect every archive of a store: one sub-flow per archive, a few at a time.
 

@@ -9,8 +9,8 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, _db_url, _fail, _settings, app
-from pipescan.core.errors import PipescanError
+from pipescan.cli._app import DbOption, _fail, _settings, _stored_db_url, app
+from pipescan.core.errors import OptionError, PipescanError
 
 
 def _parse_since(text: str | None) -> datetime | None:
@@ -39,6 +39,18 @@ def _parse_ids(text: str | None) -> list[int] | None:
             f"{text!r} is not a comma-separated list of inspection ids (e.g. 3,4,7)",
             param_hint="--inspections",
         ) from None
+
+
+def _require_inspection(url: str, inspection_id: int) -> None:
+    """An unknown inspection id is reported before the renderer and Prefect are loaded."""
+    from pipescan.storage.database.db import connect
+    from pipescan.storage.database.repository import get_inspection
+
+    engine = connect(url)
+    try:
+        get_inspection(engine, inspection_id)
+    finally:
+        engine.dispose()
 
 
 def _smtp_config(settings):
@@ -95,22 +107,25 @@ def report(
     db: DbOption = None,
 ) -> None:
     """Render a PDF report: one inspection's condition report, or a network summary."""
-    from pipescan.tasks import reporting
-    from pipescan.tasks.delivery import (
-        deliver_report,
-        load_recipients,
-        report_file_name,
-        safe_name,
-    )
-
     if (inspection is None) == (not network):
-        raise typer.BadParameter("give either --inspection ID or --network", param_hint="report")
+        _fail(OptionError("give either --inspection ID or --network"))
     if not network and (since or inspections):
-        raise typer.BadParameter("--since and --inspections go with --network")
-    settings = _settings()
-    url = _db_url(db)
+        _fail(OptionError("--since and --inspections go with --network"))
     extra = [a.strip() for a in email or [] if a.strip()]
     try:
+        settings = _settings()
+        url = _stored_db_url(db)
+        if inspection is not None:
+            _require_inspection(url, inspection)
+        # Prefect comes with these: after the checks, so that a mistake is reported at once.
+        from pipescan.tasks import reporting
+        from pipescan.tasks.delivery import (
+            deliver_report,
+            load_recipients,
+            report_file_name,
+            safe_name,
+        )
+
         with tempfile.TemporaryDirectory(prefix="pipescan-report-") as scratch:
             # Without -o, a delivered report is rendered to scratch space and written only to
             # the reports location; an undelivered one goes to reports_dir.
@@ -121,6 +136,12 @@ def report(
                 inp = reporting.load_network_input(
                     url, since=_parse_since(since), inspection_ids=_parse_ids(inspections)
                 )
+                if not inp.pipes:
+                    raise OptionError(
+                        "no inspection to report on"
+                        + (f" since {since}" if since else " in the database"),
+                        hint="list them with `pipescan inspections`",
+                    )
                 name = f"network-summary_{inp.generated_at:%Y-%m-%d}.pdf"
                 path = render_network_pdf(inp, output or default_dir / name)
                 subject, body = reporting.network_message(inp)

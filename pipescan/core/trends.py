@@ -16,6 +16,12 @@ commands, the per-inspection report's trend page, the network report):
   no chainage alignment, and it does not pick the largest of many noisy differences (the
   largest change at any one chainage grows with the noise and the pipe's length, even between
   two identical surveys).
+- **A change is significant** only when it is larger than what two surveys of an unchanged
+  pipe disagree by: the growth per year times the years between the first and the last
+  survey that measured the figure must exceed :data:`SIGNIFICANT_CHANGE_RATIO` (at one
+  chainage, plus what the chainage repeatability gives on a steep profile:
+  :func:`change_thresholds`). Anything smaller is "no significant change", in words and in
+  plots. See :func:`is_significant`.
 - **Chainages of different surveys are aligned** before they are compared chainage by
   chainage. A crawler's cable counter and the chainage origin differ a little between surveys,
   so the same deposit can sit at 37.2 m in one and 37.5 m in the next. Each profile is
@@ -36,13 +42,19 @@ from datetime import UTC, datetime
 import numpy as np
 
 __all__ = [
+    "CHAINAGE_REPEATABILITY_M",
     "DEFAULT_MAX_OFFSET_M",
     "MIN_CORRELATION",
     "MIN_OVERLAP_SECTIONS",
     "MIN_YEARS_APART",
+    "NO_SIGNIFICANT_CHANGE",
     "SECONDS_PER_YEAR",
+    "SIGNIFICANT_CHANGE_RATIO",
+    "change_thresholds",
     "estimate_offset",
     "growth_per_year",
+    "is_significant",
+    "measured_span_years",
     "rasterise",
     "robust_slope",
     "robust_slopes",
@@ -65,6 +77,32 @@ MIN_CORRELATION = 0.5
 
 MIN_OVERLAP_SECTIONS = 10
 """Measured sections two profiles must share at a shift for it to be considered."""
+
+SIGNIFICANT_CHANGE_RATIO = 0.02
+"""The smallest change of a blockage ratio between surveys that is a change and not noise:
+2 percentage points over the years the surveys span.
+
+A measured section's blockage is within 1 pp of the truth in the accuracy sweeps (largest
+error 0.94 pp over six seeds, README), so two surveys of an unchanged pipe can read it up to
+2 pp apart whatever their errors. The repeatability sweep (``python
+benchmarks/bench_repeatability.py``: five surveys of one unchanged pipe, sensor and crawler
+effects drawn at random around realistic values) stays inside that, but for one fault: one
+section read up to 1.5 pp apart (95 % of pairs within 0.6 pp), the peak blockage up to 0.07 pp
+apart; the scan's last section, which one survey read at 8.2 % where the truth is 0, is the
+exception (docs/measures.md).
+"""
+
+CHAINAGE_REPEATABILITY_M = 0.03
+"""How far apart two aligned surveys of one pipe can still place the same section: 3 cm.
+
+Where the blockage profile is steep (a deposit's ramp, an obstacle's face), that shift alone
+changes the reading at a chainage by the profile's slope times it; :func:`change_thresholds`
+adds that to :data:`SIGNIFICANT_CHANGE_RATIO`. The repeatability sweep
+(``benchmarks/bench_repeatability.py``) found shifts of up to 2.5 cm on a deposit's ramp.
+"""
+
+NO_SIGNIFICANT_CHANGE = "no significant change"
+"""How every output words a change that :func:`is_significant` finds to be noise."""
 
 _EPOCH = datetime(1970, 1, 1, tzinfo=UTC)
 
@@ -301,3 +339,103 @@ def shift(profile: np.ndarray, lag: int) -> np.ndarray:
     else:
         out[:lag] = profile[-lag:]
     return out
+
+
+def measured_span_years(times_yr: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """Years between the first and the last sample of each series that is present.
+
+    Parameters
+    ----------
+    times_yr : (N,) float array
+        Sample times, in years.
+    values : (N, K) float array
+        ``K`` series; NaN marks a missing sample.
+
+    Returns
+    -------
+    (K,) float64 array
+        ``max(t) - min(t)`` over each series' present samples; 0 where fewer than two.
+
+    Examples
+    --------
+    >>> measured_span_years(np.array([0.0, 1.0, 3.0]), np.array([[1.0], [np.nan], [2.0]]))
+    array([3.])
+    """
+    times_yr = np.asarray(times_yr, dtype=np.float64)
+    present = np.isfinite(np.asarray(values, dtype=np.float64))
+    if present.size == 0:
+        return np.zeros(present.shape[1] if present.ndim == 2 else 0)
+    t = times_yr[:, None]
+    latest = np.where(present, t, -np.inf).max(axis=0)
+    earliest = np.where(present, t, np.inf).min(axis=0)
+    return np.where(present.sum(axis=0) >= 2, latest - earliest, 0.0)
+
+
+def is_significant(
+    change_per_year: float | None,
+    span_years: float,
+    *,
+    threshold_ratio: float = SIGNIFICANT_CHANGE_RATIO,
+) -> bool | None:
+    """Whether a growth per year is a change rather than noise: over the years the surveys
+    span, it must add up to more than ``threshold_ratio`` (:data:`SIGNIFICANT_CHANGE_RATIO`).
+
+    Parameters
+    ----------
+    change_per_year
+        Growth per year (:func:`growth_per_year`), ratio per year; None when there is none.
+    span_years
+        Years between the first and the last survey that measured the figure.
+
+    Returns
+    -------
+    bool or None
+        None when there is no growth figure.
+
+    Examples
+    --------
+    >>> is_significant(0.0011, 2.0)  # +0.11 points a year over two years: noise
+    False
+    >>> is_significant(0.03, 2.0), is_significant(-0.015, 2.0), is_significant(None, 2.0)
+    (True, True, None)
+    """
+    if change_per_year is None or not math.isfinite(change_per_year):
+        return None
+    return abs(change_per_year) * span_years > threshold_ratio
+
+
+def change_thresholds(values: np.ndarray, step_m: float) -> np.ndarray:
+    """The change at each chainage cell below which it is no significant change: the
+    :data:`SIGNIFICANT_CHANGE_RATIO`, plus the steepest slope of any survey's profile there
+    times :data:`CHAINAGE_REPEATABILITY_M` (on a ramp, a centimetre of chainage is a change
+    of reading).
+
+    Parameters
+    ----------
+    values : (N, K) float array
+        The surveys' aligned blockage ratios on one chainage grid; NaN where unmeasured.
+    step_m
+        The grid's cell length, metres.
+
+    Returns
+    -------
+    (K,) float64 array
+        Ratios; pass each as ``threshold_ratio`` to :func:`is_significant`.
+
+    Examples
+    --------
+    >>> flat_then_ramp = np.array([[0.0, 0.0, 0.0, 0.1, 0.2]])
+    >>> change_thresholds(flat_then_ramp, 0.1).round(3)
+    array([0.02 , 0.02 , 0.035, 0.05 , 0.05 ])
+    """
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim != 2 or values.shape[1] == 0:
+        return np.full(values.shape[-1] if values.ndim else 0, SIGNIFICANT_CHANGE_RATIO)
+    if values.shape[1] == 1:
+        slope = np.zeros(values.shape)
+    else:
+        slope = np.abs(np.gradient(values, step_m, axis=1))  # NaN next to a gap: ignored
+    with np.errstate(all="ignore"):
+        steepest = np.nanmax(np.where(np.isfinite(slope), slope, -np.inf), axis=0)
+    steepest = np.where(np.isfinite(steepest), steepest, 0.0)
+    return SIGNIFICANT_CHANGE_RATIO + steepest * CHAINAGE_REPEATABILITY_M

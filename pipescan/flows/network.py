@@ -34,10 +34,12 @@ from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
 from pipescan.core.sanitize import REDACTED, strip_credentials
+from pipescan.core.wording import plural
 from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
 from pipescan.flows.recovery import close_earlier_attempts
 from pipescan.flows.runners import make_task_runner
+from pipescan.reports.network import FailedArchive
 from pipescan.settings import get_settings, use_settings
 from pipescan.tasks.network import IO_RETRY_OPTIONS, archive_label, discover_archives
 
@@ -219,14 +221,15 @@ def progress_line(done: int, total: int, outcome: ArchiveOutcome) -> str:
         if outcome.max_blockage_chainage_m is not None
         else ""
     )
-    return f"{head} {what}: asset {outcome.asset_id}, {outcome.defect_count} defects{worst}"
+    defects = plural(outcome.defect_count or 0, "defect")
+    return f"{head} {what}: asset {outcome.asset_id}, {defects}{worst}"
 
 
 def format_network_summary(summary: NetworkSummary) -> list[str]:
     """The network summary as text lines (printed by the CLI, logged to the Prefect run)."""
     c = summary.counts
     lines = [
-        f"network run over {summary.store}: {len(summary.outcomes)} archives "
+        f"network run over {summary.store}: {plural(len(summary.outcomes), 'archive')} "
         f"in {summary.wall_time_s:.1f} s on {summary.executor}",
         f"  {c.get('inspected', 0)} inspected, {c.get('reused', 0)} reused (already stored), "
         f"{c.get('failed', 0)} failed",
@@ -239,7 +242,7 @@ def format_network_summary(summary: NetworkSummary) -> list[str]:
         for rank, o in enumerate(summary.worst, 1):
             lines.append(
                 f"    {rank}. {o.asset_id}  {_pct(o.max_blockage_ratio)} at "
-                f"{o.max_blockage_chainage_m:.1f} m, {o.defect_count} defects "
+                f"{o.max_blockage_chainage_m:.1f} m, {plural(o.defect_count or 0, 'defect')} "
                 f"(inspection {o.inspection_id}, {o.label})"
             )
     if summary.network_report_path:
@@ -250,9 +253,10 @@ def format_network_summary(summary: NetworkSummary) -> list[str]:
 
 
 def _write_network_report(
-    database_url: str, out_path: Path, inspection_ids: list[int]
+    database_url: str, out_path: Path, inspection_ids: list[int], failed: list[ArchiveOutcome]
 ) -> tuple[str | None, str | None]:
-    """Render the network report if this pipescan has one; returns (path, error)."""
+    """Render the network report (listing the ``failed`` archives with their reasons) if
+    this pipescan has one; returns (path, error)."""
     from pipescan.tasks import reporting
 
     render = getattr(reporting, "render_network_report", None)
@@ -262,7 +266,12 @@ def _write_network_report(
     # A task of the run, so that the UI shows it; it writes a file, so I/O is retried.
     render_task = task(render, name="network-report", **IO_RETRY_OPTIONS)
     try:
-        written = render_task(database_url, out_path, inspection_ids=inspection_ids)
+        written = render_task(
+            database_url,
+            out_path,
+            inspection_ids=inspection_ids,
+            failed=[FailedArchive(o.label, o.error or "failed") for o in failed],
+        )
     except Exception as exc:  # the inspections are stored; a report failure must not hide that
         log.warning("the network report failed: %s", exc)
         return None, f"{type(exc).__name__}: {exc}"
@@ -457,7 +466,8 @@ def inspect_network(
     report_path = report_error = None
     ids = [o.inspection_id for o in ordered if o.inspection_id is not None]
     if report_out is not None and ids:
-        report_path, report_error = _write_network_report(database_url, report_out, ids)
+        failed = [o for o in ordered if o.status == "failed"]
+        report_path, report_error = _write_network_report(database_url, report_out, ids, failed)
     summary = NetworkSummary(
         store=strip_credentials(store),
         executor=executor,

@@ -38,6 +38,8 @@ _STYLE: dict[str, Any] = {
     "axes.spines.top": False,
     "axes.spines.right": False,
     "hatch.linewidth": 0.6,
+    # Never "+2.349e1" above an axis: a reader takes the tick labels at their word.
+    "axes.formatter.useoffset": False,
 }
 
 
@@ -492,7 +494,9 @@ def trend_chart_svg(
     """Blockage by chainage in this inspection and earlier ones, as an SVG document.
 
     Each inspection is a line through its measured sections' middles; where a section was
-    not measured the line breaks (no figure, never zero). This inspection's defects are shaded.
+    not measured the line breaks (no figure, never zero). Earlier inspections are drawn wider
+    and beneath, so that one that reads the same as a later one stays visible. This
+    inspection's defects are shaded.
 
     Parameters
     ----------
@@ -517,19 +521,23 @@ def trend_chart_svg(
             )
         values: list[float] = [threshold_pct * 1.5]
         lows: list[float] = [0.0]
+        # Older inspections are drawn wider, beneath the newer ones: where two inspections
+        # read the same, the older still shows as a band around the newer line.
         for number, (text, earlier_sections) in reversed(list(enumerate(earlier))):
             xs, ys = _profile_xy(earlier_sections)
             ax.plot(
                 xs,
                 ys,
                 color=_TREND_COLOURS[number % len(_TREND_COLOURS)],
-                lw=0.9,
+                lw=1.2 + 1.6 * (number + 1),
+                alpha=0.8,
+                solid_capstyle="butt",
                 label=text,
                 zorder=2 + (len(earlier) - number) * 0.1,
             )
             values += [y for y in ys if math.isfinite(y)]
         xs, ys = _profile_xy(sections)
-        ax.plot(xs, ys, color=_COLOUR_MEASURED, lw=1.6, label=label, zorder=3)
+        ax.plot(xs, ys, color=_COLOUR_MEASURED, lw=1.2, label=label, zorder=3)
         finite = [y for y in ys if math.isfinite(y)]
         values += finite
         lows += [min(finite, default=0.0)]

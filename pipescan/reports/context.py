@@ -19,7 +19,15 @@ from pipescan.core.grading import ThresholdTable, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.summary import ADJACENT_TOL_M, adjacent_runs, blockage_summary, peak_blockage
-from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
+from pipescan.core.trends import (
+    MIN_YEARS_APART,
+    NO_SIGNIFICANT_CHANGE,
+    SECONDS_PER_YEAR,
+    SIGNIFICANT_CHANGE_RATIO,
+    growth_per_year,
+    is_significant,
+    years_between,
+)
 
 __all__ = [
     "APPENDIX_ALL_MAX_SECTIONS",
@@ -200,6 +208,26 @@ def fmt_points(ratio: float | None) -> str:
         return NOT_MEASURED
     text = f"{ratio * 100.0:+.1f}"
     return "0.0" if text in ("+0.0", "-0.0") else text
+
+
+def fmt_growth(ratio_per_year: float | None, span_years: float) -> dict[str, str]:
+    """A growth per year for a table cell: ``{"value": "+3.2", "note": ""}``, with the note
+    ``"no significant change"`` when, over the ``span_years`` the inspections cover, it is
+    within the measurement's noise (:func:`pipescan.core.trends.is_significant`); the value
+    is ``"–"`` without a growth figure."""
+    if ratio_per_year is None or not math.isfinite(ratio_per_year):
+        return {"value": "–", "note": ""}
+    significant = is_significant(ratio_per_year, span_years)
+    return {
+        "value": fmt_points(ratio_per_year),
+        "note": "" if significant else NO_SIGNIFICANT_CHANGE,
+    }
+
+
+def measured_span_years(dates: Sequence[datetime], values: Sequence[float | None]) -> float:
+    """Years between the first and the last date whose value was measured (0 if under two)."""
+    seen = [d for d, v in zip(dates, values, strict=True) if _finite(v)]
+    return years_between(max(seen), min(seen)) if len(seen) >= 2 else 0.0
 
 
 def fmt_m(value_m: float | None, digits: int = 2, *, unit: bool = True) -> str:
@@ -519,7 +547,7 @@ def _trend(
         previous = peaks[1]
         change_text = fmt_points(now - previous if _finite(now) and _finite(previous) else None)
         growth = growth_per_year(dates, peaks)
-        rate_text = fmt_points(growth) if growth is not None else "–"
+        rate_text = fmt_growth(growth, measured_span_years(dates, peaks))
         changes.append(
             {
                 "number": number,
@@ -554,6 +582,7 @@ def _trend(
         "earlier_count": len(earlier),
         "any_partly": any("*" in c for row in changes for c in row["earlier"]),
         "min_days_apart": round(MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0),
+        "significant_points": f"{100 * SIGNIFICANT_CHANGE_RATIO:g}",
     }
 
 

@@ -19,19 +19,27 @@ from typing import Any
 
 from pipescan.core.model import SectionMeasures
 from pipescan.core.summary import peak_blockage, worst_grade
-from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
+from pipescan.core.trends import (
+    MIN_YEARS_APART,
+    SECONDS_PER_YEAR,
+    SIGNIFICANT_CHANGE_RATIO,
+    growth_per_year,
+)
 from pipescan.reports.context import (
     NOT_RECORDED,
     TableCitation,
     _finite,
     fmt_datetime,
+    fmt_growth,
     fmt_m,
     fmt_pct,
     fmt_points,
+    measured_span_years,
 )
 
 __all__ = [
     "EarlierScan",
+    "FailedArchive",
     "NetworkInput",
     "PipeInspection",
     "PipeSummary",
@@ -84,8 +92,18 @@ class PipeInspection:
 
 
 @dataclass(frozen=True)
+class FailedArchive:
+    """An archive of the run that failed (nothing was stored for it): its label in the run
+    and the one-line reason."""
+
+    label: str
+    reason: str
+
+
+@dataclass(frozen=True)
 class NetworkInput:
-    """Everything a network summary needs."""
+    """Everything a network summary needs. ``failed`` are the archives of the run the summary
+    covers that failed (a summary of the database alone has none)."""
 
     pipes: Sequence[PipeInspection]
     generated_at: datetime
@@ -95,6 +113,7 @@ class NetworkInput:
     threshold_tables: Sequence[TableCitation] = ()
     since: datetime | None = None
     title: str = "Network condition summary"
+    failed: Sequence[FailedArchive] = ()
 
 
 @dataclass(frozen=True)
@@ -102,8 +121,10 @@ class PipeSummary:
     """The figures of one pipe's line (fractions and metres; None when not measured).
 
     ``growth_per_year_ratio`` is the pipe's growth: the growth per year of its peak blockage
-    over the earlier scans and this one (:func:`pipescan.core.trends.growth_per_year`).
-    ``change_ratio`` is the peak blockage now less the previous inspection's.
+    over the earlier scans and this one (:func:`pipescan.core.trends.growth_per_year`);
+    ``growth_span_years`` the years between the first and the last of them that measured a
+    peak (what says whether the growth is significant). ``change_ratio`` is the peak blockage
+    now less the previous inspection's.
     """
 
     pipe: PipeInspection
@@ -115,6 +136,7 @@ class PipeSummary:
     previous_max_blockage_ratio: float | None
     change_ratio: float | None
     growth_per_year_ratio: float | None
+    growth_span_years: float = 0.0
 
 
 def summarise(pipe: PipeInspection) -> PipeSummary:
@@ -125,10 +147,9 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
     peak_ratio = None if peak is None else peak.blockage_ratio
     previous = pipe.previous
     previous_peak = None if previous is None else previous.peak_blockage_ratio
-    growth = growth_per_year(
-        [e.inspected_at for e in pipe.earlier] + [pipe.inspected_at],
-        [e.peak_blockage_ratio for e in pipe.earlier] + [peak_ratio],
-    )
+    dates = [e.inspected_at for e in pipe.earlier] + [pipe.inspected_at]
+    peaks = [e.peak_blockage_ratio for e in pipe.earlier] + [peak_ratio]
+    growth = growth_per_year(dates, peaks)
     return PipeSummary(
         pipe=pipe,
         length_m=length_m,
@@ -143,6 +164,7 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
             else None
         ),
         growth_per_year_ratio=growth,
+        growth_span_years=measured_span_years(dates, peaks),
     )
 
 
@@ -186,9 +208,7 @@ def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
         else "–",
         "inspections": str(len(pipe.earlier) + 1),
         "change": fmt_points(p.change_ratio),
-        "growth_per_year": (
-            fmt_points(p.growth_per_year_ratio) if p.growth_per_year_ratio is not None else "–"
-        ),
+        "growth_per_year": fmt_growth(p.growth_per_year_ratio, p.growth_span_years),
     }
 
 
@@ -201,7 +221,8 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
         ``by_grade`` (every pipe, worst condition first: worst grade, then largest blockage;
         ungraded pipes last), ``by_growth`` (pipes with a growth figure, fastest first),
         ``first_inspections`` (asset ids without an earlier scan), ``without_growth`` (asset
-        ids with one but no growth figure), ``totals`` and ``grade_counts``.
+        ids with one but no growth figure), ``failed`` (the run's archives that failed, with
+        their reasons), ``totals`` and ``grade_counts``.
     """
     summaries = [summarise(p) for p in inp.pipes]
     by_grade = sorted(
@@ -257,8 +278,10 @@ def build_network_context(inp: NetworkInput) -> dict[str, Any]:
         "grade_counts": grade_counts,
         "flag_grade": inp.flag_grade,
         "min_days_apart": round(MIN_YEARS_APART * SECONDS_PER_YEAR / 86400.0),
+        "significant_points": f"{100 * SIGNIFICANT_CHANGE_RATIO:g}",
         "by_grade": [_row(i, p, inp.flag_grade) for i, p in enumerate(by_grade, start=1)],
         "by_growth": [_row(i, p, inp.flag_grade) for i, p in enumerate(by_growth, start=1)],
+        "failed": [{"label": f.label, "reason": f.reason} for f in inp.failed],
         "first_inspections": sorted(p.pipe.name for p in summaries if not p.pipe.earlier),
         "without_growth": sorted(
             p.pipe.name for p in summaries if p.pipe.earlier and p.growth_per_year_ratio is None

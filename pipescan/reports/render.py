@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
-import tempfile
+import secrets
 from functools import cache
 from pathlib import Path
 from urllib.parse import urlsplit
@@ -122,9 +122,7 @@ def _write_pdf(html: str, out_path: Path) -> Path:
     from weasyprint import HTML
 
     out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(
-        prefix=f".{out_path.name}.", suffix=".part", dir=out_path.parent
-    )
+    fd, tmp_name = _create_part_file(out_path)
     try:
         with os.fdopen(fd, "wb") as tmp:
             HTML(
@@ -138,3 +136,15 @@ def _write_pdf(html: str, out_path: Path) -> Path:
             os.unlink(tmp_name)
         raise
     return out_path
+
+
+def _create_part_file(out_path: Path) -> tuple[int, str]:
+    """A new, uniquely named file beside ``out_path`` with the mode any file the user writes
+    gets (0666 less the umask), not ``mkstemp``'s 0600: a report is shared like a CSV."""
+    for _ in range(100):
+        name = str(out_path.parent / f".{out_path.name}.{secrets.token_hex(4)}.part")
+        try:
+            return os.open(name, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666), name
+        except FileExistsError:
+            continue
+    raise FileExistsError(f"no free temporary name beside {out_path}")  # pragma: no cover

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -9,6 +10,7 @@ from prefect import task
 
 import pipescan
 from pipescan.core.grading import load_table
+from pipescan.core.wording import plural
 from pipescan.reports.context import (
     EarlierInspection,
     ReportInput,
@@ -18,6 +20,7 @@ from pipescan.reports.context import (
 )
 from pipescan.reports.network import (
     EarlierScan,
+    FailedArchive,
     NetworkInput,
     PipeInspection,
     build_network_context,
@@ -117,9 +120,11 @@ def load_network_input(
     *,
     since: datetime | None = None,
     inspection_ids: list[int] | None = None,
+    failed: Sequence[FailedArchive] = (),
 ) -> NetworkInput:
     """Gather a network summary's input: the latest selected inspection of each asset, with
-    the asset's earlier scans (their stored peak blockage) for its growth."""
+    the asset's earlier scans (their stored peak blockage) for its growth, and the run's
+    archives that ``failed``."""
     engine = connect(database_url)
     try:
         records = network_inspections(engine, since=since, inspection_ids=inspection_ids)
@@ -167,6 +172,7 @@ def load_network_input(
         flag_grade=first.get("flag_grade", 2),
         threshold_tables=[_citation(name) for name in table_names],
         since=since,
+        failed=list(failed),
     )
 
 
@@ -182,6 +188,7 @@ def render_network_report(
     *,
     since: datetime | None = None,
     inspection_ids: list[int] | None = None,
+    failed: Sequence[FailedArchive] = (),
 ) -> Path:
     """Render the network summary PDF of a set of inspections.
 
@@ -196,6 +203,8 @@ def render_network_report(
     inspection_ids
         Only these inspections (e.g. those of one network run); with neither filter, the
         latest inspection of every asset.
+    failed
+        The run's archives that failed, listed with their reasons.
 
     Returns
     -------
@@ -207,7 +216,9 @@ def render_network_report(
     StorageError
         If an id in ``inspection_ids`` is not stored.
     """
-    inp = load_network_input(database_url, since=since, inspection_ids=inspection_ids)
+    inp = load_network_input(
+        database_url, since=since, inspection_ids=inspection_ids, failed=failed
+    )
     return render_network_pdf(inp, out_path)
 
 
@@ -253,21 +264,31 @@ def network_message(inp: NetworkInput) -> tuple[str, str]:
     ctx = build_network_context(inp)
     totals = ctx["totals"]
     subject = (
-        f"Network condition summary: {totals['pipes']} pipes, "
+        f"Network condition summary: {plural(totals['pipes'], 'pipe')}, "
         f"{totals['flagged_pipes']} with sections of class {inp.flag_grade} or worse"
     )
     lines = [
-        f"{totals['pipes']} pipes inspected {totals['first_date']} to {totals['last_date']}.",
+        f"{plural(totals['pipes'], 'pipe')} inspected {totals['first_date']} to "
+        f"{totals['last_date']}.",
         f"Defects: {totals['defects']}. Pipes flagged: {totals['flagged_pipes']}.",
         "",
         "Worst five pipes:",
         *(
             f"  {r['rank']}. {r['asset_id']}: class {r['worst_grade']}, largest blockage "
             f"{r['max_blockage']}{'' if r['max_blockage'] == 'not measured' else ' %'}, "
-            f"{r['defects']} defects"
+            f"{plural(int(r['defects']), 'defect')}"
             for r in ctx["by_grade"][:5]
         ),
         "",
+        *(
+            [
+                f"{plural(len(inp.failed), 'archive')} failed (nothing stored):",
+                *(f"  {f.label}: {f.reason}" for f in inp.failed),
+                "",
+            ]
+            if inp.failed
+            else []
+        ),
         "The full summary is attached.",
     ]
     return subject, "\n".join(line.replace("\u00a0", " ") for line in lines) + "\n"

@@ -59,6 +59,7 @@ __all__ = [
     "mm_to_m",
     "params_hash",
     "record_statement",
+    "require_asset",
     "save_inspection",
     "save_inspections",
 ]
@@ -647,7 +648,8 @@ def save_inspection(engine: Engine, inspection: InspectionToSave) -> int:
     In one transaction: the asset is inserted or updated from ``inspection.meta``; any
     inspection of the same asset with the same ``content_hash`` and parameter hash is deleted
     (with its sections, defects and frame quality); the inspection and all its rows are
-    inserted. If anything fails, the database is left as it was.
+    inserted, under the replaced inspection's id if there was one. If anything fails, the
+    database is left as it was.
 
     Parameters
     ----------
@@ -659,7 +661,8 @@ def save_inspection(engine: Engine, inspection: InspectionToSave) -> int:
     Returns
     -------
     int
-        The new inspection's id (a new id also when it replaced an earlier save).
+        The inspection's id: the id of the earlier save when it replaced one (the same
+        archive and parameters keep their id), a new one otherwise.
 
     Raises
     ------
@@ -741,17 +744,40 @@ def _write(session: Session, prepared: Sequence[_Prepared]) -> list[int]:
     last = {tuple(p.identity.values()): index for index, p in enumerate(prepared)}
     kept = sorted(last.values())
     keys = sa.tuple_(Inspection.asset_id, Inspection.content_hash, Inspection.params_hash)
+    # A re-save of the same work keeps the id it was stored under: reports, exports and
+    # e-mails quote it, and it still names the same archive processed the same way.
+    stored_ids: dict[tuple[str, ...], int] = {}
     for chunk in _chunks(list(last), 300):
+        found = session.execute(
+            sa.select(
+                Inspection.asset_id, Inspection.content_hash, Inspection.params_hash, Inspection.id
+            ).where(keys.in_(chunk))
+        ).all()
+        stored_ids.update({(a, c, p): i for a, c, p, i in found})
         session.execute(
             sa.delete(Inspection).where(keys.in_(chunk)),
             execution_options={"synchronize_session": False},
         )
     now = utc_now()
-    inserted = session.connection().execute(
-        sa.insert(Inspection).returning(Inspection.id, sort_by_parameter_order=True),
-        [{**prepared[k].identity, **prepared[k].values, "created_at": now} for k in kept],
-    )
-    new_ids = dict(zip(kept, inserted.scalars().all(), strict=True))
+
+    def row(k: int) -> dict[str, Any]:
+        return {**prepared[k].identity, **prepared[k].values, "created_at": now}
+
+    def stored_id(k: int) -> int | None:
+        return stored_ids.get(tuple(prepared[k].identity.values()))
+
+    new_ids = {k: i for k in kept if (i := stored_id(k)) is not None}
+    if new_ids:
+        session.connection().execute(
+            sa.insert(Inspection), [{**row(k), "id": i} for k, i in new_ids.items()]
+        )
+    fresh = [k for k in kept if k not in new_ids]
+    if fresh:
+        inserted = session.connection().execute(
+            sa.insert(Inspection).returning(Inspection.id, sort_by_parameter_order=True),
+            [row(k) for k in fresh],
+        )
+        new_ids.update(zip(fresh, inserted.scalars().all(), strict=True))
     _insert_sections(session, [(new_ids[k], prepared[k].section_rows) for k in kept])
     _insert_defects(session, [(new_ids[k], prepared[k].defect_rows) for k in kept])
     _insert_frame_quality(session, [(new_ids[k], prepared[k].quality_rows) for k in kept])
@@ -777,7 +803,7 @@ def save_inspections(engine: Engine, inspections: Iterable[InspectionToSave]) ->
     Returns
     -------
     list of int
-        The new inspections' ids, in order.
+        The inspections' ids, in order (a replaced save keeps its id).
 
     Raises
     ------
@@ -841,6 +867,23 @@ def _no_inspection(inspection_id: int) -> StorageError:
 def _require_inspection(session: Session, inspection_id: int) -> None:
     if session.get(Inspection, inspection_id) is None:
         raise _no_inspection(inspection_id)
+
+
+def require_asset(engine: Engine, asset_id: str) -> None:
+    """Check that an asset is stored.
+
+    Raises
+    ------
+    StorageError
+        If there is no asset with that id.
+    """
+    with session_scope(engine) as session:
+        if session.get(Asset, asset_id) is None:
+            raise StorageError(
+                f"no asset {asset_id!r} in the database",
+                field="asset_id",
+                hint="list the stored assets with `pipescan assets`",
+            )
 
 
 def list_assets(engine: Engine) -> list[AssetRecord]:
