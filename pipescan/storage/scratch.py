@@ -25,6 +25,7 @@ import numpy as np
 import psutil
 
 from pipescan.core.axis import PipeAxis
+from pipescan.core.npyheader import read_npy_header
 from pipescan.core.sections import ChainageWindow
 
 RUN_MARKER = ".pipescan-run"
@@ -202,7 +203,16 @@ def read_window_offsets(bucket_root: Path, window: ChainageWindow) -> np.ndarray
     files = sorted(window_dir(bucket_root, window).glob("*.npy"))
     if not files:
         return np.empty((0, 3), dtype=np.float32)
-    return np.concatenate([np.load(f) for f in files])
+    return np.concatenate([_read_npy(f) for f in files])
+
+
+def _read_npy(path: Path) -> np.ndarray:
+    """One scratch file pipescan wrote itself, read with the header parsed under
+    :mod:`pipescan.core.npyheader`'s lock (windows are read from several threads)."""
+    with path.open("rb") as fh:
+        shape, fortran, dtype = read_npy_header(fh)
+        data = np.fromfile(fh, dtype=dtype, count=int(np.prod(shape)))
+    return data.reshape(shape, order="F" if fortran else "C")
 
 
 def remove_workspace(path: Path) -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipescan.core.npyheader import read_npy_header
 from pipescan.storage.input.readers._common import Where, file_size, require_bytes
 
 SUFFIXES = (".npy",)
@@ -19,16 +20,9 @@ _FORMAT_ERRORS = (ValueError, OSError, EOFError, TypeError, SyntaxError, KeyErro
 
 def _header(path: Path, where: Where) -> tuple[tuple[int, ...], bool, np.dtype, int]:
     """Shape, Fortran order, dtype and the offset of the data."""
-    fmt = np.lib.format
     try:
         with path.open("rb") as fh:
-            version = fmt.read_magic(fh)
-            if version == (1, 0):
-                shape, fortran, dtype = fmt.read_array_header_1_0(fh)
-            elif version in ((2, 0), (3, 0)):
-                shape, fortran, dtype = fmt.read_array_header_2_0(fh)
-            else:
-                raise ValueError(f"unknown .npy version {version}")
+            shape, fortran, dtype = read_npy_header(fh)
             offset = fh.tell()
     except _FORMAT_ERRORS as exc:
         raise where.corrupt(f"cannot read .npy: {exc}") from exc
