@@ -37,10 +37,21 @@ def simulate(
     list_effects: Annotated[
         bool, typer.Option(help="List the effects with their defaults, and exit.")
     ] = False,
+    water_depth: Annotated[
+        float | None,
+        typer.Option(help="Water in the invert, as a share of the diameter (e.g. 0.1)."),
+    ] = None,
+    layout: Annotated[
+        str | None,
+        typer.Option(
+            help="frames (one file per frame) or cloud (one registered cloud.laz with GPS "
+            "time); default: cloud for ring and static, frames otherwise."
+        ),
+    ] = None,
 ) -> None:
     """Simulate a crawler LiDAR scan of a pipe and write it as a scan archive with ground truth.
 
-    Every sensor and crawler effect (range noise, spurious returns, mixed pixels, vibration, odometer scale error and slip, IMU noise and dropouts) is on at a realistic default.
+    Scenarios: paper, clean, long (a forward-looking Livox HAP-like sensor), ring (a 2D ring profiler, about 300 points a section, 15 mm noise), static (a terrestrial scanner at three stations). Every sensor and crawler effect (range noise, spurious returns, mixed pixels, vibration, odometer scale error and slip, IMU noise and dropouts) is on at a realistic default.
     """  # noqa: E501
     from pipescan.simulator.archive import write_simulated_archive
     from pipescan.simulator.scan import Effects, get_scenario, simulate_scan
@@ -52,9 +63,14 @@ def simulate(
     if out is None:
         _fail(ValueError("simulate needs OUT, the directory to write the archive to"))
         return
+    from pipescan.simulator.sensors import WaterLevel
+
     overrides: dict[str, object] = {"travel_m": travel_m} if travel_m is not None else {}
     try:
-        overrides["effects"] = _effects(effect or [], ideal)
+        if effect or ideal:
+            overrides["effects"] = _effects(effect or [], ideal, get_scenario(scenario.value))
+        if water_depth is not None:
+            overrides["water"] = WaterLevel(depth_ratio=water_depth)
         scan = simulate_scan(get_scenario(scenario.value, **overrides), seed=seed)
         total = len(scan.times_s)
         started = time.perf_counter()
@@ -63,7 +79,7 @@ def simulate(
             if done == of or done % max(1, of // 10) == 0:
                 logging.getLogger("pipescan").info("simulated %d/%d frames", done, of)
 
-        path = write_simulated_archive(scan, out, progress=progress)
+        path = write_simulated_archive(scan, out, progress=progress, layout=layout)
     except (PipescanError, ValueError) as exc:
         _fail(exc)
     typer.echo(
@@ -72,12 +88,13 @@ def simulate(
     )
 
 
-def _effects(assignments: list[str], ideal: bool):
-    """Effects from ``NAME=VALUE`` strings (ValueError naming the bad one)."""
+def _effects(assignments: list[str], ideal: bool, scenario=None):
+    """Effects from ``NAME=VALUE`` strings over the scenario's own (ValueError naming the
+    bad one)."""
     from pipescan.simulator.scan import Effects
 
     fields = {f.name: f for f in dataclasses.fields(Effects)}
-    base = Effects.ideal() if ideal else Effects()
+    base = Effects.ideal() if ideal else (scenario.effects if scenario else Effects())
     values: dict[str, object] = {}
     for text in assignments:
         name, sep, raw = text.partition("=")
