@@ -59,6 +59,7 @@ class SectionStatus(StrEnum):
     TOO_FEW_POINTS = "too_few_points"
     OUTSIDE_SCAN = "outside_scan"
     NO_CONTOUR = "no_contour"
+    INVERT_UNDER_WATER = "invert_under_water"
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,14 @@ class SectionMeasures:
     deformation_ratio: float | None = None
     deposit_height_ratio: float | None = None
     grade: int | None = None
+    # The 95 % uncertainty (half-width, ±) of each figure, as a ratio like the figure.
+    blockage_uncertainty_ratio: float | None = None
+    ovality_uncertainty_ratio: float | None = None
+    deformation_uncertainty_ratio: float | None = None
+    deposit_height_uncertainty_ratio: float | None = None
+    # Depth of water in the invert over the nominal diameter: 0 when the invert was seen dry,
+    # None when it could not be told.
+    water_depth_ratio: float | None = None
     contour_m: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property

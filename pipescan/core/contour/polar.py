@@ -217,6 +217,7 @@ def polar_profile(
     layer_gap_m: float = 0.03,
     min_layer_points: int = 3,
     min_cell_share: float = 0.25,
+    min_bin_share: float = 0.0,
 ) -> PolarProfile:
     """Robust radius per angle bin, judged along the section's length.
 
@@ -258,6 +259,10 @@ def polar_profile(
         noise).
     min_layer_points : int
         Points each layer needs, so that a few stray returns cannot make a layer.
+    min_bin_share : float
+        A bin holding fewer than this share of the median count of the section's bins with
+        points is unseen (for sparse sections cut into few sub-slices, where the sub-slice
+        vote cannot tell a few leaked points from a seen wall). 0: no such test.
 
     Returns
     -------
@@ -300,6 +305,10 @@ def polar_profile(
     typical = np.median(per_cell, axis=1, keepdims=True)  # not the max: a face is dense
     near_per_bin[per_cell < min_cell_share * typical] = np.nan
     seen = np.isfinite(near_per_bin).sum(axis=1) >= min_slices
+    if min_bin_share > 0:
+        per_bin = per_cell.sum(axis=1)
+        if (per_bin > 0).any():
+            seen &= per_bin >= min_bin_share * float(np.median(per_bin[per_bin > 0]))
     radii = np.full(bins, np.nan)
     far_radii = np.full(bins, np.nan)
     if seen.any():
