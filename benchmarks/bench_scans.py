@@ -11,7 +11,8 @@ Kinds: dense frames (the forward-looking sensor, `paper` scenario), a 2D ring pr
 axis tilted 20°). Points are placed with the true poses (registration is not what is measured
 here), the axis is fitted as the flow fits it, and for clouds the start is found as the flow
 finds it. "Fully seen" sections are those the ground truth says nothing hid (no shadow, no
-water) and that its rays hit all round (every 10° arc). Every figure is printed; nothing is asserted (the tests do that on smaller cases).
+water) and that its rays hit all round (every 10° arc). Every figure is printed; nothing is
+asserted (the tests do that on smaller cases).
 """
 
 from __future__ import annotations

@@ -55,10 +55,11 @@ def detect_water(
     """Find water in a section's invert.
 
     The candidate is the run of bins around straight down that hold no points or only a
-    sparse line of them (:data:`SPARSE_BIN_SHARE` of the seen bins' median count). It is water when the wall on both
-    sides of it stops at the same height (within ``max(3 σ, 2 cm)`` plus one bin's rise),
-    below the axis; the level is the median height of the points found on the chord when
-    there are at least three, lying flat, or else the mean height where the wall stops.
+    sparse line of them (:data:`SPARSE_BIN_SHARE` of the seen bins' median count). It is
+    water when the wall on both sides of it stops at the same height (within
+    ``max(3 σ, 2 cm)`` plus one bin's rise), below the axis; the level is the median
+    height of the points found on the chord when there are at least three, lying flat, or
+    else the mean height where the wall stops.
 
     Parameters
     ----------
