@@ -25,7 +25,7 @@ from alembic.script import ScriptDirectory
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage.database import db, repository
-from pipescan.storage.database.models import Base
+from pipescan.storage.database.models import Base, Inspection, Section
 from tests.conftest import is_sqlite
 
 TABLES = {"assets", "inspections", "sections", "defects", "frame_quality"}
@@ -178,6 +178,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
     assert files == [
         "2026_11_23_0001_initial_schema.py",
         "2026_11_23_1620_inspection_blockage_summary.py",
+        "2026_12_01_1600_uncertainty_water_start_source.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -304,7 +305,7 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
     assert written[0][3] == pytest.approx(1 - (0.27 / 0.3) ** 2)
     assert written[0][4] == 300
 
-    db.downgrade(engine, "-1")
+    db.downgrade(engine, "c5e1a9f40b21")  # the schema before the blockage summary
     columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
     assert "peak_blockage_ratio" not in columns
     assert count_rows(engine, "sections") == 6
@@ -320,6 +321,41 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
         engine, content_hash="sha256:none", sections=[make_sections()[-1]], defects=[]
     )
     assert replacement > unmeasured
+
+
+def test_uncertainty_and_water_migration_with_data(engine: sa.Engine) -> None:
+    # Down one step: the uncertainty, water and start-source columns go, the sections stay;
+    # up again: they come back empty for what was stored without them.
+    inspection_id = save(engine)
+    with engine.connect() as connection:
+        before = connection.execute(
+            sa.select(Section.chainage_start_mm, Section.blockage_ratio).order_by(
+                Section.chainage_start_mm
+            )
+        ).all()
+    db.downgrade(engine, "-1")
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("sections")}
+    assert "blockage_uncertainty_ratio" not in columns
+    assert "water_depth_ratio" not in columns
+    inspection_columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
+    assert "start_source" not in inspection_columns
+    assert count_rows(engine, "sections") == len(before)
+    db.upgrade(engine)
+    with engine.connect() as connection:
+        after = connection.execute(
+            sa.select(
+                Section.chainage_start_mm,
+                Section.blockage_ratio,
+                Section.blockage_uncertainty_ratio,
+                Section.water_depth_ratio,
+            ).order_by(Section.chainage_start_mm)
+        ).all()
+        source = connection.execute(
+            sa.select(Inspection.start_source).where(Inspection.id == inspection_id)
+        ).scalar_one()
+    assert [tuple(r[:2]) for r in after] == [tuple(r) for r in before]
+    assert all(r[2] is None and r[3] is None for r in after)
+    assert source is None
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:

@@ -170,6 +170,10 @@ def _print_summary(summary) -> None:
             f"at {summary.max_blockage_chainage_m:.1f} m"
         )
     typer.echo(f"  {summary.defect_count} defects flagged")
+    if summary.start_source:
+        from pipescan.core.start import START_SOURCES
+
+        typer.echo(f"  scan start: {START_SOURCES.get(summary.start_source, summary.start_source)}")
     reg = summary.registration
     if reg.get("frames"):
         typer.echo(

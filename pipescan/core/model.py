@@ -32,8 +32,23 @@ class FrameRef:
 
 
 @dataclass(frozen=True)
+class RosTopics:
+    """The ``[ros]`` table of ``inspection.toml``: which topics of a ROS bag hold the frames
+    (``sensor_msgs/PointCloud2``), the odometry (``nav_msgs/Odometry``) and the IMU
+    (``sensor_msgs/Imu``). None: found by message type."""
+
+    points_topic: str | None = None
+    odometry_topic: str | None = None
+    imu_topic: str | None = None
+
+
+@dataclass(frozen=True)
 class InspectionMeta:
-    """The validated content of ``inspection.toml``."""
+    """The validated content of ``inspection.toml``.
+
+    ``start_xyz`` is the sensor's first position in a registered cloud's frame (where its
+    scan starts: docs/archive.md); ``ros`` names a bag's topics.
+    """
 
     asset_id: str
     inspected_at: datetime
@@ -45,6 +60,8 @@ class InspectionMeta:
     material: str | None = None
     pipe_shape: str = "circular"
     frames: tuple[FrameRef, ...] = ()
+    start_xyz: tuple[float, float, float] | None = None
+    ros: RosTopics | None = None
 
     @property
     def nominal_area_m2(self) -> float:

@@ -58,6 +58,7 @@ from pipescan.storage.input.pointfiles import (
     POINT_SUFFIXES,
     is_point_file,
     point_suffix,
+    read_point_time,
     read_points,
 )
 
@@ -259,6 +260,28 @@ class ScanArchive:
             kind="cloud",
             limits=self.limits,
         )
+
+    def read_cloud_time(self) -> np.ndarray | None:
+        """Each point of the registered cloud's capture time, ``(N,)`` seconds, in the order
+        of :meth:`read_cloud`; None when the file holds no time (or all points the same).
+
+        Raises
+        ------
+        PointFileError
+            The cloud's time is corrupt or not finite.
+        """
+        self._check_open()
+        if self.cloud_member is None:
+            return None
+        time_s = read_point_time(
+            self.root / self.cloud_member,
+            archive=self.name,
+            member=self.cloud_member,
+            limits=self.limits,
+        )
+        if time_s is None or len(time_s) == 0 or float(np.ptp(time_s)) == 0.0:
+            return None
+        return time_s
 
     def close(self) -> None:
         """Remove the temporary extraction, if any. Safe to call more than once."""

@@ -33,7 +33,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from pipescan.core.errors import MetadataError
-from pipescan.core.model import FrameRef, InspectionMeta
+from pipescan.core.model import FrameRef, InspectionMeta, RosTopics
 
 INSPECTION_FILE = "inspection.toml"
 
@@ -122,6 +122,16 @@ class _FrameEntry(BaseModel):
         return (value[0] / norm, value[1] / norm, value[2] / norm)
 
 
+class _RosTable(BaseModel):
+    """The ``[ros]`` table: a bag's topics."""
+
+    model_config = ConfigDict(extra="ignore", str_strip_whitespace=True)
+
+    points_topic: FileText | None = None
+    odometry_topic: FileText | None = None
+    imu_topic: FileText | None = None
+
+
 class InspectionDocument(BaseModel):
     """The schema of ``inspection.toml`` (the archive contract: docs/archive.md).
 
@@ -147,6 +157,19 @@ class InspectionDocument(BaseModel):
     material: NameText | None = None
     pipe_shape: NameText = "circular"
     frames: list[_FrameEntry] = Field(default_factory=list)
+    start_xyz: list[float] | None = None
+    ros: _RosTable | None = None
+
+    @field_validator("start_xyz")
+    @classmethod
+    def _three(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and len(value) != 3:
+            raise PydanticCustomError(
+                "start_xyz_length",
+                "start_xyz must have 3 components [x, y, z], got {value}",
+                {"value": list(value), "hint": _HINTS["start_xyz"]},
+            )
+        return value
 
     @field_validator("inspected_at", mode="before")
     @classmethod
@@ -325,6 +348,12 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         material=doc.material,
         pipe_shape=doc.pipe_shape,
         frames=frames,
+        start_xyz=None
+        if doc.start_xyz is None
+        else (doc.start_xyz[0], doc.start_xyz[1], doc.start_xyz[2]),
+        ros=None
+        if doc.ros is None
+        else RosTopics(doc.ros.points_topic, doc.ros.odometry_topic, doc.ros.imu_topic),
     )
 
 
@@ -419,6 +448,7 @@ _CUSTOM_ERROR_TYPES = {
     "time_without_date",
     "zero_gravity",
     "gravity_length",
+    "start_xyz_length",
 }
 
 _HINTS = {
@@ -428,6 +458,9 @@ _HINTS = {
     "chainage_offset_m": "give the distance in metres from the upstream node to the scan start",
     "asset_id": 'write the pipe asset id, e.g. asset_id = "MH1042-MH1043"',
     "file": 'give the frame file relative to the archive root, e.g. "frames/000001.npy"',
+    "start_xyz": (
+        "start_xyz = [x, y, z] is the sensor's first position in the cloud's frame, metres"
+    ),
     "gravity": (
         "gravity = [gx, gy, gz] is the IMU's gravity direction in the sensor frame "
         "(any length but zero), e.g. gravity = [0.05, 0.0, -1.0]"
