@@ -95,6 +95,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         flag_grade=params.get("flag_grade", 2),
         pipe_class=params.get("pipe_class", "rigid"),
         pipe_class_reason=params.get("pipe_class_reason", "set for the run"),
+        start_source=rec.start_source,
         history=[
             EarlierInspection(
                 inspection_id=e.id,
