@@ -22,7 +22,7 @@ from types import ModuleType
 
 import numpy as np
 
-from pipescan.storage.input.readers import ascii, las, npy, pcd, ply
+from pipescan.storage.input.readers import ascii, e57, las, npy, pcd, ply
 from pipescan.storage.input.readers._common import Where
 
 __all__ = ["FORMATS", "READERS", "PointFormat", "Where"]
@@ -62,6 +62,7 @@ FORMATS: tuple[PointFormat, ...] = (
     PointFormat.from_module("PCD", pcd),
     PointFormat.from_module("NumPy .npy", npy),
     PointFormat.from_module("ASCII x y z", ascii),
+    PointFormat.from_module("E57", e57),
 )
 """Every format pipescan reads: a new one is one module above and one line here."""
 
