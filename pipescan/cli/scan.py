@@ -44,8 +44,9 @@ def simulate(
     layout: Annotated[
         str | None,
         typer.Option(
-            help="frames (one file per frame) or cloud (one registered cloud.laz with GPS "
-            "time); default: cloud for ring and static, frames otherwise."
+            help="frames (one file per frame), cloud (one registered cloud.laz with GPS "
+            "time) or bag (a ROS 1 bag: PointCloud2, odometry, IMU); default: cloud for ring "
+            "and static, frames otherwise."
         ),
     ] = None,
 ) -> None:

@@ -305,6 +305,9 @@ def measure_section(
             wall_radius_m,
             nominal_diameter_m,
             sigma_m,
+            min_coverage_ratio=params.min_coverage_ratio,
+            max_gap_deg=params.max_gap_deg,
+            surface_points=raw_used,
         )
     if water is not None:
         # The wall under water was not seen; a sparse line on the surface is not a contour.

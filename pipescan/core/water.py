@@ -15,9 +15,13 @@ import numpy as np
 
 from pipescan.core.uncertainty import unseen_runs
 
-SPARSE_BIN_SHARE = 0.1
-"""A bin holding under this share of the section's median bin count holds only stray returns
-(a water surface returns a few per cent of the rays that reach it)."""
+MIN_SURFACE_POINTS = 3
+"""Points on the chord that make it a seen water surface."""
+
+SPARSE_BIN_SHARE = 1.0 / 3.0
+"""A bin holding under this share of the section's median bin count holds only a sparse line
+of returns (a water surface returns a share of the rays that reach it, fewer the more
+grazing); a surface seen as densely as the wall is a deposit's top, and counts as one."""
 
 
 @dataclass(frozen=True)
@@ -51,15 +55,19 @@ def detect_water(
     wall_radius_m: float,
     nominal_diameter_m: float,
     sigma_m: float,
+    *,
+    min_coverage_ratio: float = 0.9,
+    max_gap_deg: float = 20.0,
+    surface_points: np.ndarray | None = None,
 ) -> WaterLevel | None:
     """Find water in a section's invert.
 
     The candidate is the run of bins around straight down that hold no points or only a
     sparse line of them (:data:`SPARSE_BIN_SHARE` of the seen bins' median count). It is
     water when the wall on both sides of it stops at the same height (within
-    ``max(3 σ, 2 cm)`` plus one bin's rise), below the axis; the level is the median
-    height of the points found on the chord when there are at least three, lying flat, or
-    else the mean height where the wall stops.
+    ``max(3 σ, 2 cm)`` plus one bin's rise), below the axis, and at least
+    :data:`MIN_SURFACE_POINTS` points lie on the chord at that height (within the same
+    tolerance): the level is their median height.
 
     Parameters
     ----------
@@ -72,6 +80,12 @@ def detect_water(
     nominal_diameter_m : float
     sigma_m : float
         The section's residual spread (1σ).
+    min_coverage_ratio, max_gap_deg : float
+        The rest of the wall must be seen as a measured section's is: at least this share,
+        with no other unseen arc longer than this.
+    surface_points : (M, 2+) float, optional
+        Where to look for the surface's returns: the section's points before stray-point
+        removal (default ``points``).
 
     Returns
     -------
@@ -90,6 +104,13 @@ def detect_water(
     run = next(r for r in unseen_runs(~candidate) if down in set(r.tolist()))
     if len(run) < 2 or len(run) > bins // 2:
         return None
+    # Only the invert is missing: the rest of the wall is seen as a measured section's is (a
+    # forward-looking sensor's first metre misses the crown too, and is no water).
+    rest = np.ones(bins, dtype=bool)
+    rest[run] = False
+    other_gaps = [len(r) for r in unseen_runs(seen | ~rest)]
+    if other_gaps and max(other_gaps) * 360.0 / bins > max(max_gap_deg, 2 * 360.0 / bins):
+        return None
     left, right = (run[0] - 1) % bins, (run[-1] + 1) % bins
     xy = np.asarray(points, dtype=np.float64)[:, :2]
     ang = np.mod(np.arctan2(xy[:, 1], xy[:, 0]), 2.0 * math.pi)
@@ -97,23 +118,42 @@ def detect_water(
     rad = np.hypot(xy[:, 0], xy[:, 1])
     at_wall = np.abs(rad - wall_radius_m) <= max(3.0 * sigma_m, 0.01)
     edges = []
-    for b in (left, right):
+    for b, away in ((left, -1), (right, 1)):
+        # The wall beside the run: its nearest bin, or the next one when that holds nothing.
         near = at_wall & (b_idx == b)
+        if not near.any():
+            near = at_wall & (b_idx == (b + away) % bins)
         if not near.any():
             return None
         edges.append(float(xy[near, 1].min()))
     tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(dtheta)
     if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
         return None
-    in_run = np.isin(b_idx, run) & (rad < wall_radius_m - max(3.0 * sigma_m, 0.01))
-    surface_y = xy[in_run, 1]
-    from_surface = False
-    level = 0.5 * (edges[0] + edges[1])
-    if len(surface_y) >= 3:
-        centre = float(np.median(surface_y))
-        flat = 1.4826 * float(np.median(np.abs(surface_y - centre)))
-        if flat <= max(3.0 * sigma_m, 0.01) and abs(centre - level) <= tolerance:
-            level, from_surface = centre, True
+    # The chord must be seen: a few points lying flat on the water's surface. A view that
+    # merely stops short of the invert (a forward-looking sensor's first metre, a shadow)
+    # leaves no such line.
+    # Its returns are sparse, so they are looked for among all the section's points (stray
+    # removal drops most of them), near the level where the wall stops.
+    raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
+    raw_ang = np.mod(np.arctan2(raw[:, 1], raw[:, 0]), 2.0 * math.pi)
+    raw_bin = np.minimum((raw_ang / dtheta).astype(np.int64), bins - 1)
+    raw_rad = np.hypot(raw[:, 0], raw[:, 1])
+    edge_level = 0.5 * (edges[0] + edges[1])
+    on_chord = (
+        np.isin(raw_bin, run)
+        & (raw_rad < wall_radius_m - max(3.0 * sigma_m, 0.01))
+        & (np.abs(raw[:, 1] - edge_level) <= tolerance)
+    )
+    surface_y = raw[on_chord, 1]
+    if len(surface_y) < MIN_SURFACE_POINTS:
+        return None
+    # Then only the points close to their median: stray returns in the window do not count.
+    level = float(np.median(surface_y))
+    surface_y = surface_y[np.abs(surface_y - level) <= max(3.0 * sigma_m, 0.02)]
+    if len(surface_y) < MIN_SURFACE_POINTS:
+        return None
+    level = float(np.median(surface_y))
+    from_surface = True
     depth = (level + wall_radius_m) / nominal_diameter_m
     if depth <= 0:
         return None

@@ -114,7 +114,7 @@ def _inspection_doc(scan: SimulatedScan, layout: str = "frames") -> dict[str, An
             for f in meta.frames
         ],
     }
-    if layout == "cloud":
+    if layout != "frames":  # a cloud has none, a bag holds its own
         del doc["frames"]
     return doc
 
@@ -153,6 +153,7 @@ def write_simulated_archive(
     progress: Callable[[int, int], None] | None = None,
     layout: str | None = None,
     cloud_name: str = "cloud.laz",
+    bag_name: str = "scan.bag",
 ) -> Path:
     """Write ``scan`` as a scan archive directory with its ground truth.
 
@@ -169,10 +170,14 @@ def write_simulated_archive(
         ``"frames"`` (one point file per frame, sensor coordinates) or ``"cloud"`` (one
         registered cloud, ``cloud_name``, in the world frame placed with the true poses, each
         point's capture time stored with it); default ``"cloud"`` for the ring profiler and
-        the static scanner, ``"frames"`` otherwise.
+        the static scanner, ``"frames"`` otherwise;
+        ``"bag"`` writes the frames as a ROS bag, ``bag_name`` (:func:`write_simulated_bag`).
     cloud_name
         File name of the cloud; its suffix picks the format (one that holds time: ``.laz``,
-        ``.las``, ``.ply``, ``.pcd``).
+        ``.las``, ``.ply``, ``.pcd``, ``.e57``).
+    bag_name
+        ``scan.bag`` (ROS 1), or a name ending ``.db3`` or ``.mcap`` for a ROS 2 bag folder of
+        that storage.
 
     Returns
     -------
@@ -187,8 +192,8 @@ def write_simulated_archive(
     out_dir = Path(out_dir)
     if layout is None:
         layout = "frames" if scan.scenario.sensor is None else "cloud"
-    if layout not in ("frames", "cloud"):
-        raise ValueError(f"layout must be 'frames' or 'cloud', got {layout!r}")
+    if layout not in ("frames", "cloud", "bag"):
+        raise ValueError(f"layout must be 'frames', 'cloud' or 'bag', got {layout!r}")
     if out_dir.exists() and not out_dir.is_dir():
         raise ArchiveError(
             "exists and is not a directory", archive=str(out_dir), hint="choose another path"
@@ -212,6 +217,8 @@ def write_simulated_archive(
                 np.save(tmp / scan.meta.frames[frame.index].file, frame.points_sensor)
                 if progress is not None:
                     progress(frame.index + 1, total)
+        elif layout == "bag":
+            write_simulated_bag(scan, tmp / bag_name, progress=progress)
         else:
             points, time_s = world_cloud(scan, progress=progress)
             write_points(tmp / cloud_name, points, time_s=time_s)
@@ -227,6 +234,45 @@ def write_simulated_archive(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out_dir
+
+
+def write_simulated_bag(
+    scan: SimulatedScan, path: Path, *, progress: Callable[[int, int], None] | None = None
+) -> Path:
+    """Write the scan's frames as a ROS bag: PointCloud2 frames in the sensor frame at their
+    capture times, odometry (the odometer's reading along x) and IMU readings (the specific
+    force against the measured gravity, 9.81 m/s², one per frame) when the scan has them.
+
+    ``path`` ending ``.bag`` is a ROS 1 bag; ``.db3`` or ``.mcap`` a ROS 2 bag folder named
+    without the suffix, holding that storage.
+    """
+    from pipescan.storage.input.bags import write_bag
+
+    t0_ns = 1_700_000_000 * 10**9
+
+    def ns(t_s: float) -> int:
+        return t0_ns + round(t_s * 1e9)
+
+    def frames():
+        for frame in scan.frames():
+            if progress is not None:
+                progress(frame.index + 1, len(scan))
+            yield ns(frame.time_s), frame.points_sensor
+
+    # Odometry and IMU just before each frame, so that the frame's period holds them.
+    odometry = [
+        (ns(float(t)) - 1000, (float(o), 0.0, 0.0))
+        for t, o in zip(scan.times_s, scan.odometer_m, strict=True)
+    ]
+    imu = [
+        (ns(float(scan.times_s[i])) - 1000, tuple(-9.81 * np.asarray(g)))
+        for i in range(len(scan))
+        if (g := scan.gravity(i)) is not None
+    ]
+    suffix = Path(path).suffix
+    storage = {".bag": "rosbag1", ".db3": "sqlite3", ".mcap": "mcap"}[suffix]
+    target = Path(path) if storage == "rosbag1" else Path(path).with_suffix("")
+    return write_bag(target, frames(), odometry=odometry, imu=imu, storage=storage)
 
 
 def world_cloud(

@@ -1250,8 +1250,10 @@ class SimulatedScan:
             range_m = self._returned_ranges(i, T[:3, 3], dirs_pipe, range_m, surface)
         if s.water is not None:
             # Most rays that reach the water give no return (specular, or absorbed below).
-            lost = np.random.default_rng((self.seed, 20, i)).random(range_m.size)
-            lost = (surface == SURFACE_WATER) & (lost >= s.water.surface_return_ratio)
+            # Turbid water scatters diffusely: returns fall off with the cosine of incidence.
+            draw = np.random.default_rng((self.seed, 20, i)).random(range_m.size)
+            share = s.water.surface_return_ratio * np.abs(dirs_pipe[:, 2])
+            lost = (surface == SURFACE_WATER) & (draw >= share)
             range_m = np.where(lost, np.inf, range_m)
         keep = np.isfinite(range_m) & (range_m >= s.blind_zone_m) & (range_m <= s.max_range_m)
         points = (dirs_sensor[keep] * range_m[keep, None]).astype(np.float32)

@@ -110,12 +110,13 @@ class WaterLevel:
     """Water in the invert, ``depth_ratio`` of the nominal diameter deep, over
     ``[start_m, end_m]`` along the axis (default: everywhere).
 
-    ``surface_return_ratio`` of the rays that reach the surface return from it (with the
-    sensor's range noise); the others give no return.
+    ``surface_return_ratio`` of the rays that reach the surface straight down return from it
+    (with the sensor's range noise), fewer by the cosine of their incidence (turbid water
+    scatters diffusely; a ray at grazing incidence glances off); the others give no return.
     """
 
     depth_ratio: float
-    surface_return_ratio: float = 0.02
+    surface_return_ratio: float = 0.1
     start_m: float = -math.inf
     end_m: float = math.inf
 

@@ -236,6 +236,20 @@ def write_points(path: Path, points: np.ndarray, *, time_s: np.ndarray | None = 
 # --- content checks ---------------------------------------------------------------------------
 
 
+def check_points(
+    points: np.ndarray,
+    *,
+    archive: str | None,
+    member: str,
+    kind: PointKind = "frame",
+    limits: InputLimits = DEFAULT_LIMITS,
+) -> np.ndarray:
+    """The checks :func:`read_points` makes on what a reader returned (no points, NaN,
+    millimetres), for points that came from elsewhere (a bag's message); returns them."""
+    _check_points(points, kind, Where(archive, member, limits))
+    return points
+
+
 def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:
     n = len(points)
     if n == 0:
