@@ -18,10 +18,11 @@ from pipescan.core.uncertainty import unseen_runs
 MIN_SURFACE_POINTS = 3
 """Points on the chord that make it a seen water surface."""
 
-SPARSE_BIN_SHARE = 1.0 / 3.0
+SPARSE_BIN_SHARE = 0.1
 """A bin holding under this share of the section's median bin count holds only a sparse line
-of returns (a water surface returns a share of the rays that reach it, fewer the more
-grazing); a surface seen as densely as the wall is a deposit's top, and counts as one."""
+of returns, even where the sub-slice vote saw it (a water surface returns a share of the rays
+that reach it, fewer the more grazing); a surface seen as densely as the wall is a deposit's
+top, and counts as one."""
 
 
 @dataclass(frozen=True)
@@ -52,6 +53,7 @@ def detect_water(
     angles_rad: np.ndarray,
     seen: np.ndarray,
     counts: np.ndarray,
+    radii_m: np.ndarray,
     wall_radius_m: float,
     nominal_diameter_m: float,
     sigma_m: float,
@@ -73,8 +75,8 @@ def detect_water(
     ----------
     points : (N, 2+) float
         The section's points, section plane (0 across, 1 up), axis at the origin.
-    angles_rad, seen, counts : (B,) arrays
-        The section profile's bins (centres, seen, points per bin).
+    angles_rad, seen, counts, radii_m : (B,) arrays
+        The section profile's bins (centres, seen, points per bin, radius or NaN).
     wall_radius_m : float
         The wall's radius (median of the seen bins at the wall).
     nominal_diameter_m : float
@@ -96,9 +98,10 @@ def detect_water(
     dtheta = 2.0 * math.pi / bins
     down = int(np.argmin(np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * math.pi))))))
     typical = float(np.median(counts[seen])) if seen.any() else 0.0
-    # Water leaves (almost) no points: bins that hold many points but failed the sub-slice
-    # vote (a deposit's top seen along part of the section) are a shadow, not water.
-    candidate = counts < SPARSE_BIN_SHARE * typical
+    # Water leaves the invert unseen, or holding only a sparse line of points: very few, or
+    # few and well inside the wall (not a flattened invert, which a dense scan sees sparsely).
+    inside = np.nan_to_num(radii_m, nan=wall_radius_m) < wall_radius_m * (1.0 - 0.12)
+    candidate = ~seen | (counts < SPARSE_BIN_SHARE * typical) | ((counts < typical / 3.0) & inside)
     if not candidate[down] or candidate.all():
         return None
     run = next(r for r in unseen_runs(~candidate) if down in set(r.tolist()))
@@ -145,7 +148,9 @@ def detect_water(
         & (np.abs(raw[:, 1] - edge_level) <= tolerance)
     )
     surface_y = raw[on_chord, 1]
-    if len(surface_y) < MIN_SURFACE_POINTS:
+    if len(surface_y) < MIN_SURFACE_POINTS or len(surface_y) > typical / 3.0 * len(run):
+        # Too few to be a surface, or as dense as a wall: a deposit's top seen along part of
+        # the section (its shadow), not water.
         return None
     # Then only the points close to their median: stray returns in the window do not count.
     level = float(np.median(surface_y))

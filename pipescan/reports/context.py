@@ -56,7 +56,7 @@ STATUS_EXPLANATIONS: dict[str, str] = {
     SectionStatus.LOW_COVERAGE: "the scan saw too little of the pipe wall around the section",
     SectionStatus.TOO_FEW_POINTS: (
         "too few LiDAR points for the wall's scatter or its edges: the blockage is not known to "
-        "within ±2 percentage points"
+        "within ±2.5 percentage points"
     ),
     SectionStatus.INVERT_UNDER_WATER: (
         "water hid the invert, where a deposit could lie; the water depth is measured"
