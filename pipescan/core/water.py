@@ -105,7 +105,9 @@ def detect_water(
     if not candidate[down] or candidate.all():
         return None
     run = next(r for r in unseen_runs(~candidate) if down in set(r.tolist()))
-    if len(run) < 2 or len(run) > bins // 2:
+    # Narrower than the longest gap a measured section may bridge, it is not worth calling
+    # water (under 1 % of the diameter deep); wider than half the section, it is no level.
+    if len(run) * 360.0 / bins <= max_gap_deg or len(run) > bins // 2:
         return None
     # Only the invert is missing: the rest of the wall is seen as a measured section's is (a
     # forward-looking sensor's first metre misses the crown too, and is no water).
