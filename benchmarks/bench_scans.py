@@ -24,7 +24,7 @@ from collections import Counter
 
 import numpy as np
 
-from pipescan.core.axis import fit_axis
+from pipescan.core.axis import axis_direction, fit_axis
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import SectionStatus
 from pipescan.core.sections import measure_window, plan_windows
@@ -81,7 +81,9 @@ def evaluate(scan, *, as_cloud: bool = False, tilt_deg: float = 0.0) -> dict:
             a = np.radians(tilt_deg)
             rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
             points = points @ rot.T
-        start = cloud_start(points, time_s=time_s)
+        start = cloud_start(
+            points, axis_direction(points, s.nominal_diameter_m), time_s=time_s
+        )
         source = start.source
         axis = fit_axis(
             points,

@@ -367,7 +367,14 @@ def measure_section(
         radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
     )
 
-    area_u = area_uncertainty(radii, profile.seen, profile.counts, sigma_bins, wall_radius_m)
+    area_u = area_uncertainty(
+        radii,
+        profile.seen,
+        profile.counts,
+        sigma_bins,
+        wall_radius_m,
+        slice_radii_m=profile.slice_radii_m,
+    )
     blockage_u = _finite(area_u.total_m2 / nominal_area)
     if (
         status == SectionStatus.OK

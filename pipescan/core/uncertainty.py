@@ -12,6 +12,8 @@ every figure and to decide whether the figures can be trusted (docs/measures.md,
 - **unseen arcs**: an unseen arc of angle ``g`` is interpolated between the radii at its
   ends; whatever hides there and does not reach in past the chord between those ends changes
   the area by at most the circular segment ``R² (g − sin g) / 2``.
+- **along the section**: where the sub-slices' radii of a bin differ by more than their noise
+  (a deformation's ramp, an obstacle's end), the bin's one radius may be off by half that.
 - **resolution**: where the contour steps between two neighbouring bins by more than their
   noise and by more than twice the steps beside it (an obstacle's edge), the edge may lie
   anywhere within the half bins on either side: at most ``½ |r₁² − r₂²| Δθ / 2`` of area;
@@ -55,10 +57,11 @@ class AreaUncertainty:
     noise_m2: float
     unseen_m2: float
     resolution_m2: float
+    along_m2: float = 0.0
 
     @property
     def total_m2(self) -> float:
-        return self.noise_m2 + self.unseen_m2 + self.resolution_m2
+        return self.noise_m2 + self.unseen_m2 + self.resolution_m2 + self.along_m2
 
 
 def residual_sigma_m(
@@ -143,6 +146,7 @@ def area_uncertainty(
     counts: np.ndarray,
     sigma_m: np.ndarray | float,
     radius_m: float,
+    slice_radii_m: np.ndarray | None = None,
 ) -> AreaUncertainty:
     """The 95 % uncertainty of the polar area ``½ Σ r² Δθ`` of a section profile.
 
@@ -158,6 +162,10 @@ def area_uncertainty(
         The residual spread of the points about the bins' radii (1σ), per bin or for all.
     radius_m : float
         The wall's radius, for the unseen arcs' segments.
+    slice_radii_m : (B, S) float, optional
+        Each sub-slice's radius per bin: where they differ beyond their noise, the section
+        changes along its length (a deformation's ramp, an obstacle's end) and its one
+        radius per bin may be off by half that change.
 
     Returns
     -------
@@ -203,7 +211,19 @@ def area_uncertainty(
     second_sd = math.sqrt(6.0) * 2.0 * radii_m * bin_sd
     kink = (second > 3.0 * second_sd) & ~jump & ~np.roll(jump, 1)
     resolution += float(np.sum(second[kink]) * 0.25 * dtheta)
-    return AreaUncertainty(noise_m2=noise, unseen_m2=unseen, resolution_m2=resolution)
+    along = 0.0
+    if slice_radii_m is not None and slice_radii_m.shape[1] > 1:
+        cells = slice_radii_m.shape[1]
+        seen_cells = np.isfinite(slice_radii_m)
+        high = np.where(seen_cells, slice_radii_m, -np.inf).max(axis=1)
+        low = np.where(seen_cells, slice_radii_m, np.inf).min(axis=1)
+        spread = np.where(seen_cells.sum(axis=1) >= 2, high - low, np.nan)
+        cell_sd = bin_sd * math.sqrt(cells)  # a sub-slice holds 1/S of the bin's points
+        excess = np.nan_to_num(spread - 3.0 * math.sqrt(2.0) * cell_sd, nan=0.0)
+        along = float(np.sum(radii_m * dtheta * np.clip(excess, 0.0, None)) * 0.5)
+    return AreaUncertainty(
+        noise_m2=noise, unseen_m2=unseen, resolution_m2=resolution, along_m2=along
+    )
 
 
 def diameter_uncertainty_m(sigma_m: float, points_per_bin: float, pairs: int) -> float:

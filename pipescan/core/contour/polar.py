@@ -11,7 +11,7 @@ whatever its contour method: ``pipescan.core.measures`` builds it once per secti
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -49,6 +49,9 @@ class PolarProfile:
     counts: np.ndarray
     far_radii_m: np.ndarray | None = None
     layer_gap_m: float = 0.03
+    slice_radii_m: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """(B, S) each sub-slice's radius per bin (NaN where it did not see the bin), for the
+    uncertainty from the section changing along its length."""
 
     @property
     def seen(self) -> np.ndarray:
@@ -334,6 +337,7 @@ def polar_profile(
         counts=counts.reshape(bins, slices).sum(1),
         far_radii_m=far_radii,
         layer_gap_m=layer_gap_m,
+        slice_radii_m=near_per_bin,
     )
 
 
