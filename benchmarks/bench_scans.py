@@ -81,15 +81,27 @@ def evaluate(scan, *, as_cloud: bool = False, tilt_deg: float = 0.0) -> dict:
             a = np.radians(tilt_deg)
             rot = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
             points = points @ rot.T
-        start = cloud_start(
-            points, axis_direction(points, s.nominal_diameter_m), time_s=time_s
-        )
-        source = start.source
-        axis = fit_axis(
+        first = scan.T_world_sensor[0][:3, 3]
+        last = scan.T_world_sensor[-1][:3, 3]
+        if tilt_deg:
+            first, last = first @ rot.T, last @ rot.T
+        start = cloud_start(points, axis_direction(points, s.nominal_diameter_m), time_s=time_s)
+        by_time = fit_axis(
             points,
             start_m=start.start_m,
             travel_m=start.travel_m,
             nominal_diameter_m=s.nominal_diameter_m,
+        )
+        travelled = last - first
+        source = (
+            f"{start.source}: {'right' if by_time.direction @ travelled > 0 else 'WRONG'}"
+            f" way, chainage 0 {float(by_time.distance_along(first[None])[0]):+.2f} m from"
+            " the first sensor position (the cloud's first points)"
+        )
+        # The figures are compared with the truth from the sensor's first position, as
+        # start_xyz gives it: the truth's sections start there.
+        axis = fit_axis(
+            points, start_m=first, travel_m=travelled, nominal_diameter_m=s.nominal_diameter_m
         )
     else:
         points, first, last = frames_cloud(scan)
