@@ -193,8 +193,8 @@ def table(seeds: list[int]) -> None:
 def random_ring(rng: np.random.Generator) -> Scenario:
     """A ring profiler under randomised conditions around "about 300 points a section and
     15 mm of noise": 60-360 points a turn, rings 1-8 cm apart, tilted up to 10°, 8-20 mm of
-    noise, pipes of 0.4-1.2 m."""
-    diameter = float(rng.uniform(0.4, 1.2))
+    noise, pipes of 0.6-1.2 m."""
+    diameter = float(rng.uniform(0.6, 1.2))
     per_turn = int(rng.integers(60, 361))
     per_section = float(rng.uniform(220, 420))
     speed = 0.3
