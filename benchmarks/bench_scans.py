@@ -95,8 +95,8 @@ def evaluate(scan, *, as_cloud: bool = False, tilt_deg: float = 0.0) -> dict:
         travelled = last - first
         source = (
             f"{start.source}: {'right' if by_time.direction @ travelled > 0 else 'WRONG'}"
-            f" way, chainage 0 {float(by_time.distance_along(first[None])[0]):+.2f} m from"
-            " the first sensor position (the cloud's first points)"
+            f" way; the first sensor position at chainage"
+            f" {float(by_time.chainage(first[None])[0]):+.2f} m (chainage 0: the cloud's end)"
         )
         # The figures are compared with the truth from the sensor's first position, as
         # start_xyz gives it: the truth's sections start there.
