@@ -192,3 +192,34 @@ def test_sparse_section_reports_uncertainty_and_ok_status():
     assert m.status == SectionStatus.OK
     assert 0.003 < m.blockage_uncertainty_ratio < 0.02
     assert abs(m.blockage_ratio) <= m.blockage_uncertainty_ratio
+
+
+def test_simulate_ring_with_water_and_a_bag_from_the_command_line(tmp_path):
+    from typer.testing import CliRunner
+
+    from pipescan.cli import app
+
+    runner = CliRunner()
+    ring = runner.invoke(
+        app,
+        ["simulate", str(tmp_path / "ring"), "--scenario", "ring", "--travel-m", "1.0",
+         "--water-depth", "0.2"],
+    )  # fmt: skip
+    assert ring.exit_code == 0, ring.output
+    assert (tmp_path / "ring" / "cloud.laz").is_file()
+    truth = (tmp_path / "ring" / "ground_truth" / "sections.csv").read_text().splitlines()
+    assert truth[0].endswith("water_depth_ratio")
+    assert float(truth[1].rsplit(",", 1)[1]) == pytest.approx(0.2)
+    bag = runner.invoke(
+        app,
+        ["simulate", str(tmp_path / "bag"), "--scenario", "clean", "--travel-m", "0.2",
+         "--layout", "bag"],
+    )  # fmt: skip
+    assert bag.exit_code == 0, bag.output
+    with open_archive(tmp_path / "bag") as arc:
+        assert arc.bag is not None and arc.frame_count >= 10
+    wrong = runner.invoke(
+        app, ["simulate", str(tmp_path / "x"), "--scenario", "ring", "--layout", "zip"]
+    )
+    assert wrong.exit_code == 2
+    assert "layout must be" in wrong.output
