@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import subprocess
 import sys
@@ -30,7 +31,11 @@ from pipescan.core.sections import measure_window, plan_windows
 from pipescan.simulator.scan import BoxObstacle, get_scenario, simulate_scan
 
 ROOT = Path(__file__).resolve().parents[1]
-REAL_SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"
+REAL_SCAN = (
+    Path(os.environ.get("PIPESCAN_REALDATA_DIR") or ROOT.parent / "shared" / "realdata")
+    / "s3dss-real459-16k"
+    / "real_459_full.txt"
+)
 MAX_RANGE_M = 5.0
 
 

@@ -9,6 +9,7 @@ pipescan measured (drawn dashed where the section is not ``ok``), with its statu
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 import matplotlib
@@ -23,7 +24,11 @@ from pipescan.core.sections import iter_section_points, plan_windows
 from pipescan.storage.input.pointfiles import read_points
 
 ROOT = Path(__file__).resolve().parents[1]
-SCAN = ROOT.parent / "shared" / "realdata" / "s3dss-real459-16k" / "real_459_full.txt"
+SCAN = (
+    Path(os.environ.get("PIPESCAN_REALDATA_DIR") or ROOT.parent / "shared" / "realdata")
+    / "s3dss-real459-16k"
+    / "real_459_full.txt"
+)
 # x (m) of the sections to draw: clean wall, the intrusion, the data gap, the joint.
 PICKS_X_M = (-0.57, 0.62, -0.07, 0.82)
 

@@ -25,7 +25,7 @@ from alembic.script import ScriptDirectory
 
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage.database import db, repository
-from pipescan.storage.database.models import Base
+from pipescan.storage.database.models import Base, Inspection, Section
 from tests.conftest import is_sqlite
 
 TABLES = {"assets", "inspections", "sections", "defects", "frame_quality", "network_pipes"}
@@ -179,6 +179,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
         "2026_11_23_0001_initial_schema.py",
         "2026_11_23_1620_inspection_blockage_summary.py",
         "2026_12_01_1530_network_pipes_and_survey_geometry.py",
+        "2026_12_01_1600_uncertainty_water_start_source.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -327,6 +328,41 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
         connection.execute(sa.text("DELETE FROM inspections WHERE id = :id"), {"id": unmeasured})
     later = save(engine, content_hash="sha256:later", sections=[make_sections()[-1]], defects=[])
     assert later > unmeasured
+
+
+def test_uncertainty_and_water_migration_with_data(engine: sa.Engine) -> None:
+    # Down one step: the uncertainty, water and start-source columns go, the sections stay;
+    # up again: they come back empty for what was stored without them.
+    inspection_id = save(engine)
+    with engine.connect() as connection:
+        before = connection.execute(
+            sa.select(Section.chainage_start_mm, Section.blockage_ratio).order_by(
+                Section.chainage_start_mm
+            )
+        ).all()
+    db.downgrade(engine, "3f8a6c2d9e17")  # the revision before uncertainty and water
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("sections")}
+    assert "blockage_uncertainty_ratio" not in columns
+    assert "water_depth_ratio" not in columns
+    inspection_columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
+    assert "start_source" not in inspection_columns
+    assert count_rows(engine, "sections") == len(before)
+    db.upgrade(engine)
+    with engine.connect() as connection:
+        after = connection.execute(
+            sa.select(
+                Section.chainage_start_mm,
+                Section.blockage_ratio,
+                Section.blockage_uncertainty_ratio,
+                Section.water_depth_ratio,
+            ).order_by(Section.chainage_start_mm)
+        ).all()
+        source = connection.execute(
+            sa.select(Inspection.start_source).where(Inspection.id == inspection_id)
+        ).scalar_one()
+    assert [tuple(r[:2]) for r in after] == [tuple(r) for r in before]
+    assert all(r[2] is None and r[3] is None for r in after)
+    assert source is None
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:

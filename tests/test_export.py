@@ -21,7 +21,9 @@ from pipescan.storage.database.models import Section
 DOCUMENTED_COLUMNS = (
     "asset_id,inspection_id,inspected_at,chainage_start_m,chainage_end_m,open_area_m2,"
     "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
-    "coverage_ratio,point_count,status,grade"
+    "coverage_ratio,point_count,status,grade,blockage_uncertainty_ratio,"
+    "ovality_uncertainty_ratio,deformation_uncertainty_ratio,deposit_height_uncertainty_ratio,"
+    "water_depth_ratio"
 )
 NOMINAL_AREA_M2 = math.pi * 0.6**2 / 4
 MEASURED = SectionMeasures(
@@ -37,6 +39,11 @@ MEASURED = SectionMeasures(
     deformation_ratio=0.0,
     deposit_height_ratio=0.1,
     grade=3,
+    blockage_uncertainty_ratio=0.0061,
+    ovality_uncertainty_ratio=0.004,
+    deformation_uncertainty_ratio=0.005,
+    deposit_height_uncertainty_ratio=0.012,
+    water_depth_ratio=0.0,
 )
 # Figures computed but not trusted (only a fifth of the perimeter seen): stored for
 # diagnosis, never exported as measured.
@@ -52,6 +59,7 @@ UNMEASURED = SectionMeasures(
     ovality_ratio=0.05,
     deformation_ratio=0.02,
     deposit_height_ratio=0.0,
+    blockage_uncertainty_ratio=0.3,
 )
 DEFECT = Defect(
     code="BBC",
@@ -128,6 +136,11 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         "point_count": "1500",
         "status": "ok",
         "grade": "3",
+        "blockage_uncertainty_ratio": "0.0061",
+        "ovality_uncertainty_ratio": "0.004",
+        "deformation_uncertainty_ratio": "0.005",
+        "deposit_height_uncertainty_ratio": "0.012",
+        "water_depth_ratio": "0",
     }
     assert float(measured["blockage_ratio"]) == pytest.approx(0.125, abs=1e-3)
     # Unmeasured figures are empty, never 0.
@@ -138,6 +151,8 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         "deformation_ratio",
         "deposit_height_ratio",
         "grade",
+        "blockage_uncertainty_ratio",
+        "water_depth_ratio",  # not told: the invert's water was not measured there
     ):
         assert unmeasured[name] == "", name
     assert (unmeasured["status"], unmeasured["point_count"]) == ("low_coverage", "12")

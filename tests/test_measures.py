@@ -90,7 +90,11 @@ def test_unseen_arc_gives_low_coverage_not_a_figure_of_pipe():
 
 def test_too_few_points_and_empty():
     rng = np.random.default_rng(6)
-    assert measure(ring_section(100, rng=rng)).status == SectionStatus.TOO_FEW_POINTS
+    assert measure(ring_section(80, rng=rng)).status == SectionStatus.TOO_FEW_POINTS
+    # Too few for the wall's scatter: the blockage's 95 % uncertainty is over 2 pp.
+    scattered = measure(ring_section(150, noise_m=0.04, rng=rng))
+    assert scattered.status == SectionStatus.TOO_FEW_POINTS
+    assert scattered.blockage_uncertainty_ratio > 0.025
     empty = measure(np.empty((0, 2)))
     assert empty.status == SectionStatus.OUTSIDE_SCAN
     assert empty.blockage_ratio is None
@@ -104,6 +108,30 @@ def test_single_stray_point_does_not_move_the_figure(method):
     for stray in ([0.0, 0.0], [0.05, 0.1], [-0.2, 0.0]):
         moved = measure(np.vstack((pts, [stray])), method=method).blockage_ratio
         assert moved == pytest.approx(base, abs=1e-9)
+
+
+def test_sparse_sections_measured_within_their_uncertainty():
+    """A wall seen all round by a few hundred points is measured, and the stated 95 %
+    uncertainty holds the true error in at least 95 % of sections (deposits up to a fifth of
+    the height; 2-15 mm of noise)."""
+    rng = np.random.default_rng(8)
+    inside, measured, total = 0, 0, 0
+    for noise_m, radius_m in ((0.002, 0.25), (0.005, 0.25), (0.015, 0.4)):
+        for _ in range(60):
+            deposit_m = float(rng.uniform(0.0, 0.4 * radius_m))
+            n = int(rng.integers(200, 400))
+            pts = ring_section(n, radius_m=radius_m, noise_m=noise_m, deposit_m=deposit_m, rng=rng)
+            m = measure_section(
+                pts, chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=2 * radius_m
+            )
+            total += 1
+            if not m.is_ok:
+                continue
+            measured += 1
+            error = abs(m.blockage_ratio - segment_area_ratio(deposit_m, radius_m))
+            inside += error <= m.blockage_uncertainty_ratio
+    assert measured >= 0.85 * total
+    assert inside >= 0.95 * measured
 
 
 # --- the registry of contour methods -------------------------------------------------------

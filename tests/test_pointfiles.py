@@ -316,9 +316,9 @@ def test_large_pipe_in_metres_is_not_millimetres(tmp_path: Path) -> None:
 
 
 def test_unknown_suffix_and_missing_file(tmp_path: Path) -> None:
-    path = tmp_path / "scan.e57"
+    path = tmp_path / "scan.fls"
     path.write_bytes(b"\0" * 16)
-    with pytest.raises(PointFileError, match=r"unsupported point-file suffix '\.e57'") as info:
+    with pytest.raises(PointFileError, match=r"unsupported point-file suffix '\.fls'") as info:
         read_in_archive(path)
     assert_names_place(info.value, path, "points")
     with pytest.raises(PointFileError, match="does not exist"):
@@ -345,7 +345,7 @@ def test_write_points_rejects_bad_input(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
         write_points(tmp_path / "a.npy", np.zeros((4, 2)))
     with pytest.raises(ValueError, match="suffix"):
-        write_points(tmp_path / "a.e57", np.zeros((4, 3)))
+        write_points(tmp_path / "a.fls", np.zeros((4, 3)))
     with pytest.raises(ValueError, match="NaN"):
         write_points(tmp_path / "a.las", np.full((4, 3), np.nan))
 
@@ -378,8 +378,8 @@ def test_registry_keys_are_the_point_suffixes() -> None:
 
 
 def test_an_unknown_suffix_is_never_read_as_text(tmp_path: Path) -> None:
-    path = tmp_path / "frame.e57"
+    path = tmp_path / "frame.fls"
     path.write_text("1 2 3\n4 5 6\n")
-    with pytest.raises(PointFileError, match=r"unsupported point-file suffix '\.e57'"):
+    with pytest.raises(PointFileError, match=r"unsupported point-file suffix '\.fls'"):
         read_points(path)
     assert not is_point_file(path)

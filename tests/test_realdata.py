@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -12,7 +13,13 @@ from pipescan.core.model import SectionStatus
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.storage.input.pointfiles import read_points
 
-REAL = Path(__file__).resolve().parents[2] / "shared" / "realdata" / "s3dss-real459-16k"
+# The shared data sit beside the repository (CI); PIPESCAN_REALDATA_DIR points elsewhere (a
+# worktree whose parent has no shared/).
+REALDATA = Path(
+    os.environ.get("PIPESCAN_REALDATA_DIR")
+    or Path(__file__).resolve().parents[2] / "shared" / "realdata"
+)
+REAL = REALDATA / "s3dss-real459-16k"
 
 
 @pytest.fixture(scope="module")

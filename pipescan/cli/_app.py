@@ -170,6 +170,8 @@ class Scenario(StrEnum):
     paper = "paper"
     clean = "clean"
     long = "long"
+    ring = "ring"
+    static = "static"
 
 
 class ExportFormat(StrEnum):

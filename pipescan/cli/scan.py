@@ -67,10 +67,22 @@ def simulate(
             "negative: cleaned).",
         ),
     ] = 0.0,
+    water_depth: Annotated[
+        float | None,
+        typer.Option(help="Water in the invert, as a share of the diameter (e.g. 0.1)."),
+    ] = None,
+    layout: Annotated[
+        str | None,
+        typer.Option(
+            help="frames (one file per frame), cloud (one registered cloud.laz with GPS "
+            "time) or bag (a ROS 1 bag: PointCloud2, odometry, IMU); default: cloud for ring "
+            "and static, frames otherwise."
+        ),
+    ] = None,
 ) -> None:
     """Simulate a crawler LiDAR scan of a pipe and write it as a scan archive with ground truth.
 
-    Every sensor and crawler effect (range noise, spurious returns, mixed pixels, vibration, odometer scale error and slip, IMU noise and dropouts) is on at a realistic default.
+    Scenarios: paper, clean, long (a forward-looking Livox HAP-like sensor), ring (a 2D ring profiler, about 300 points a section, 15 mm noise), static (a terrestrial scanner at three stations). Every sensor and crawler effect (range noise, spurious returns, mixed pixels, vibration, odometer scale error and slip, IMU noise and dropouts) is on at a realistic default.
     """  # noqa: E501
     from pipescan.simulator.archive import write_simulated_archive
     from pipescan.simulator.growth import grow_deposits
@@ -83,11 +95,16 @@ def simulate(
     if out is None:
         _fail(ValueError("simulate needs OUT, the directory to write the archive to"))
         return
+    from pipescan.simulator.sensors import WaterLevel
+
     overrides: dict[str, object] = {"travel_m": travel_m} if travel_m is not None else {}
     if asset_id is not None:
         overrides["asset_id"] = asset_id
     try:
-        overrides["effects"] = _effects(effect or [], ideal)
+        if effect or ideal:
+            overrides["effects"] = _effects(effect or [], ideal, get_scenario(scenario.value))
+        if water_depth is not None:
+            overrides["water"] = WaterLevel(depth_ratio=water_depth)
         scene = get_scenario(scenario.value, **overrides)
         if inspected_at is not None:
             scene = grow_deposits(scene, deposit_growth, _parse_datetime(inspected_at))
@@ -101,7 +118,7 @@ def simulate(
             if done == of or done % max(1, of // 10) == 0:
                 logging.getLogger("pipescan").info("simulated %d/%d frames", done, of)
 
-        path = write_simulated_archive(scan, out, progress=progress)
+        path = write_simulated_archive(scan, out, progress=progress, layout=layout)
     except (PipescanError, ValueError) as exc:
         _fail(exc)
     deposits = ", ".join(f"{100 * d.peak_height_ratio:.1f} %" for d in scene.deposits[:3])
@@ -125,12 +142,13 @@ def _parse_datetime(text: str) -> datetime:
     return value if value.tzinfo is not None else value.replace(tzinfo=UTC)
 
 
-def _effects(assignments: list[str], ideal: bool):
-    """Effects from ``NAME=VALUE`` strings (ValueError naming the bad one)."""
+def _effects(assignments: list[str], ideal: bool, scenario=None):
+    """Effects from ``NAME=VALUE`` strings over the scenario's own (ValueError naming the
+    bad one)."""
     from pipescan.simulator.scan import Effects
 
     fields = {f.name: f for f in dataclasses.fields(Effects)}
-    base = Effects.ideal() if ideal else Effects()
+    base = Effects.ideal() if ideal else (scenario.effects if scenario else Effects())
     values: dict[str, object] = {}
     for text in assignments:
         name, sep, raw = text.partition("=")
@@ -268,6 +286,10 @@ def _print_summary(summary) -> None:
             f"at {summary.max_blockage_chainage_m:.1f} m"
         )
     typer.echo(f"  {plural(summary.defect_count, 'defect')} flagged")
+    if summary.start_source:
+        from pipescan.core.start import START_SOURCES
+
+        typer.echo(f"  scan start: {START_SOURCES.get(summary.start_source, summary.start_source)}")
     reg = summary.registration
     if reg.get("frames"):
         typer.echo(

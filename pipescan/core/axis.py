@@ -9,6 +9,8 @@ as outliers of the circle).
 from __future__ import annotations
 
 import itertools
+import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -48,6 +50,9 @@ class PipeAxis:
         The curved centreline's nodes, unit tangents and unit up vectors (world frame).
     arc_m : (K,) float, optional
         Each node's distance along the centreline from ``origin_m`` (negative before it).
+    has_invert : bool
+        False for a vertical pipe (a shaft): no side of it is up, so ``up`` is only a
+        reference direction across it, and there is no invert to read deposits or water at.
     """
 
     origin_m: np.ndarray
@@ -60,6 +65,7 @@ class PipeAxis:
     tangents: np.ndarray | None = field(default=None, repr=False, compare=False)
     ups: np.ndarray | None = field(default=None, repr=False, compare=False)
     arc_m: np.ndarray | None = field(default=None, repr=False, compare=False)
+    has_invert: bool = True
 
     @property
     def right(self) -> np.ndarray:
@@ -247,16 +253,32 @@ def fit_circle_robust(
     return centre, radius, inliers
 
 
+VERTICAL_WITHIN_DEG = 5.0
+"""A pipe whose axis lies within this of the up direction is vertical (a shaft): it has no
+invert, and the section's reference direction "up" is chosen across it (``_reference_up``)."""
+
+
+def is_vertical(direction: np.ndarray, up_hint: np.ndarray) -> bool:
+    """True when ``direction`` lies within :data:`VERTICAL_WITHIN_DEG` of ``up_hint``."""
+    up = np.asarray(up_hint, dtype=np.float64)
+    cos = abs(float(direction @ up)) / max(float(np.linalg.norm(up)), 1e-12)
+    return cos >= math.cos(math.radians(VERTICAL_WITHIN_DEG))
+
+
+def _reference_up(direction: np.ndarray) -> np.ndarray:
+    """A fixed direction across a vertical axis: the world axis most perpendicular to it, made
+    perpendicular (so the same shaft always gets the same section orientation)."""
+    axis = np.eye(3)[int(np.argmin(np.abs(direction)))]
+    up = axis - (axis @ direction) * direction
+    return up / np.linalg.norm(up)
+
+
 def _orthonormal_up(direction: np.ndarray, up_hint: np.ndarray) -> np.ndarray:
+    if is_vertical(direction, up_hint):
+        return _reference_up(direction)
     up = np.asarray(up_hint, dtype=np.float64)
     up = up - (up @ direction) * direction
-    norm = np.linalg.norm(up)
-    if norm < 1e-6:
-        raise GeometryError(
-            "the up hint is parallel to the pipe axis",
-            hint="a vertical shaft needs an explicit up direction",
-        )
-    return up / norm
+    return up / np.linalg.norm(up)
 
 
 def _slice_centres(
@@ -337,14 +359,129 @@ def _centreline(
         (np.repeat(tan[:1], len(steps), 0), tan, np.repeat(tan[-1:], len(steps), 0))
     )
     arc = np.concatenate(([0.0], np.cumsum(np.linalg.norm(np.diff(nodes, axis=0), axis=1))))
-    ups = np.asarray(up_hint, dtype=np.float64) - (tangents @ up_hint)[:, None] * tangents
-    norms = np.linalg.norm(ups, axis=1, keepdims=True)
-    if (norms < 1e-6).any():
-        raise GeometryError(
-            "the up hint is parallel to the pipe axis somewhere along it",
-            hint="a vertical shaft needs an explicit up direction",
+    ups = np.array([_orthonormal_up(t, up_hint) for t in tangents])
+    return nodes, tangents, ups, arc
+
+
+def fit_cylinder(
+    points_m: np.ndarray, radius_m: float, *, max_points: int = 20_000, seed: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Robust fit of a cylinder of known radius: its axis, where PCA cannot find it.
+
+    PCA needs a cloud longer than it is wide; a stub scanned over 1.5 diameters, or a shaft
+    seen from one station, is not. A cylinder's surface normals all lie across its axis, so
+    the axis is the direction least present among the normals (Open3D estimates them), with
+    normals that do not lie across it (end walls, faces) dropped and the direction found
+    again. The centre in the plane across it comes from a RANSAC circle (scikit-image); then
+    axis and centre are refined together by least squares with a robust loss (SciPy) on the
+    points' distance from the axis against ``radius_m``. Deposits and obstacles are outliers
+    of both.
+
+    Parameters
+    ----------
+    points_m : (N, 3) float
+        The cloud, metres.
+    radius_m : float
+        The pipe's nominal inner radius.
+
+    Returns
+    -------
+    point_m : (3,) float
+        A point on the axis.
+    direction : (3,) float
+        Unit direction of the axis (sign arbitrary).
+
+    Raises
+    ------
+    GeometryError
+        When no cylinder of that radius fits (too few points on it).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> t, s = rng.uniform(0, 2 * np.pi, 8000), rng.uniform(0, 0.6, 8000)
+    >>> pts = np.column_stack((0.2 * np.cos(t), 0.2 * np.sin(t), s))  # a short vertical stub
+    >>> _, d = fit_cylinder(pts, 0.2)
+    >>> round(abs(float(d[2])), 3)
+    1.0
+    """
+    import open3d as o3d
+    from scipy.optimize import least_squares
+    from skimage.measure import CircleModel, ransac
+
+    pts = np.asarray(points_m, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    if len(pts) > max_points:
+        pts = pts[rng.choice(len(pts), max_points, replace=False)]
+    if len(pts) < 50:
+        raise GeometryError(f"a cylinder fit needs at least 50 points, got {len(pts)}")
+    cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+    cloud.estimate_normals(o3d.geometry.KDTreeSearchParamHybrid(radius=radius_m / 2, max_nn=30))
+    normals = np.asarray(cloud.normals)
+    keep = np.ones(len(normals), dtype=bool)
+    direction = np.array([0.0, 0.0, 1.0])
+    for _ in range(5):
+        _, vectors = np.linalg.eigh(normals[keep].T @ normals[keep])
+        direction = vectors[:, 0]
+        keep = np.abs(normals @ direction) < math.sin(math.radians(20.0))
+        if keep.sum() < 20:
+            raise GeometryError("no cylinder fits the cloud: its normals agree on no axis")
+    u = _reference_up(direction)
+    v = np.cross(direction, u)
+    xy = pts @ np.column_stack((u, v))
+    tolerance = max(0.01, 0.03 * radius_m)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)  # scikit-image 0.26 renames params
+        model, inliers = ransac(
+            xy, CircleModel, min_samples=3, residual_threshold=tolerance, max_trials=300, rng=seed
         )
-    return nodes, tangents, ups / norms, arc
+    if model is None or inliers is None or inliers.sum() < 20:
+        raise GeometryError("no cylinder of the nominal diameter fits the cloud")
+    centre = getattr(model, "center", None)
+    centre2 = np.asarray(model.params[:2] if centre is None else centre, dtype=np.float64)
+    point = centre2[0] * u + centre2[1] * v
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        d = direction + x[0] * u + x[1] * v
+        d = d / np.linalg.norm(d)
+        p = point + x[2] * u + x[3] * v
+        rel = pts - p
+        dist = np.linalg.norm(rel - np.outer(rel @ d, d), axis=1)
+        return dist - radius_m
+
+    fit = least_squares(residuals, np.zeros(4), loss="soft_l1", f_scale=tolerance)
+    x = fit.x
+    d = direction + x[0] * u + x[1] * v
+    return point + x[2] * u + x[3] * v, d / np.linalg.norm(d)
+
+
+def axis_direction(points_m: np.ndarray, nominal_diameter_m: float | None = None) -> np.ndarray:
+    """The pipe's rough axis direction (sign arbitrary): PCA's first axis for a cloud longer
+    than it is wide, else a cylinder fit of the nominal diameter (:func:`fit_cylinder`).
+
+    Raises
+    ------
+    GeometryError
+        When the cloud is not elongated and no nominal diameter is given.
+    """
+    pts = np.asarray(points_m, dtype=np.float64)
+    sample = pts[:: max(1, len(pts) // 200_000)]
+    centred = sample - sample.mean(axis=0)
+    _, sing, vt = np.linalg.svd(centred, full_matrices=False)
+    if sing[0] >= ELONGATION * sing[1]:
+        return vt[0]
+    if nominal_diameter_m is None or not math.isfinite(nominal_diameter_m):
+        raise GeometryError(
+            "the cloud is not elongated enough to define a pipe axis",
+            hint="give nominal_diameter_m (a cylinder of that diameter is then fitted), or "
+            "scan at least about two pipe diameters of length",
+        )
+    return fit_cylinder(sample, nominal_diameter_m / 2.0)[1]
+
+
+ELONGATION = 1.5
+"""PCA's first axis defines the pipe's axis when the cloud's spread along it is this many
+times its spread across; a shorter cloud needs a cylinder fit (:func:`fit_cylinder`)."""
 
 
 def fit_axis(
@@ -360,6 +497,7 @@ def fit_axis(
     node_step_m: float = 0.05,
     max_points: int = 200_000,
     seed: int = 0,
+    nominal_diameter_m: float | None = None,
 ) -> PipeAxis:
     """Fit the pipe's centreline: PCA for a first guess, then robust circle fits on slices.
 
@@ -381,7 +519,10 @@ def fit_axis(
         orients the axis. Without it, the axis is oriented so that its largest world component
         is positive: arbitrary, but deterministic for a given cloud.
     up_hint : (3,) float
-        Roughly "up" in the world frame (the first sensor frame's z for frame archives).
+        Roughly "up" in the world frame (against gravity where an IMU measured it, else the
+        first sensor frame's z for frame archives, a cloud's z). An axis within
+        :data:`VERTICAL_WITHIN_DEG` of it is a vertical shaft: ``has_invert`` is then False
+        and a reference direction across the axis stands for "up".
     chainage_offset_m : float
         Chainage of the scan's start from the upstream node.
     direction : {"downstream", "upstream"}
@@ -395,6 +536,9 @@ def fit_axis(
         Spacing of a curved centreline's nodes.
     max_points : int
         The fit uses a random subsample of at most this many points.
+    nominal_diameter_m : float, optional
+        The pipe's nominal diameter: with it, a cloud too short for PCA (a stub, a shaft seen
+        from one station) gets its axis from a cylinder fit (:func:`fit_cylinder`).
 
     Returns
     -------
@@ -403,7 +547,8 @@ def fit_axis(
     Raises
     ------
     GeometryError
-        When the cloud is too small or not elongated enough to have an axis.
+        When the cloud is too small, or not elongated enough to have an axis and no nominal
+        diameter is given.
 
     Examples
     --------
@@ -426,12 +571,8 @@ def fit_axis(
 
     centroid = pts.mean(axis=0)
     _, sing, vt = np.linalg.svd(pts - centroid, full_matrices=False)
-    if sing[0] < 1.5 * sing[1]:
-        raise GeometryError(
-            "the cloud is not elongated enough to define a pipe axis",
-            hint="a scan should cover at least about two pipe diameters of length",
-        )
-    axis_dir = vt[0]
+    elongated = sing[0] >= ELONGATION * sing[1]
+    axis_dir = vt[0] if elongated else axis_direction(pts, nominal_diameter_m)
     if travel_m is not None and np.linalg.norm(travel_m) > 1e-9:
         if axis_dir @ travel_m < 0:
             axis_dir = -axis_dir
@@ -480,6 +621,7 @@ def fit_axis(
                     break
 
     radius = float(np.median(r_k)) if len(r_k) else float("nan")
+    vertical = is_vertical(axis.direction, up_hint)
     if start_m is not None:
         start_along = float(axis.distance_along(np.asarray(start_m, dtype=np.float64)[None])[0])
     else:
@@ -496,4 +638,5 @@ def fit_axis(
         tangents=axis.tangents,
         ups=axis.ups,
         arc_m=None if axis.arc_m is None else axis.arc_m - start_along,
+        has_invert=not vertical,
     )

@@ -6,6 +6,7 @@ percentages exist only in reports.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 
@@ -18,8 +19,27 @@ from pipescan.core.contour.grid import GridParams
 from pipescan.core.contour.polar import PolarProfile, polar_profile
 from pipescan.core.errors import GeometryError
 from pipescan.core.model import SectionMeasures, SectionStatus
+from pipescan.core.uncertainty import (
+    area_uncertainty,
+    diameter_uncertainty_m,
+    height_uncertainty_m,
+    residual_sigma_m,
+)
+from pipescan.core.water import detect_water
 
 _BIN_CHOICES = (360, 180, 120, 90, 72)
+# Coarser bins for sparse sections (a ring profiler's few hundred points): at least
+# _SPARSE_POINTS_PER_BIN points each, never coarser than 20°.
+_SPARSE_BIN_CHOICES = (60, 48, 36, 30, 24, 20, 18)  # even: opposite bins pair up
+_SPARSE_POINTS_PER_BIN = 8
+# Sub-slices along a section and how many must see a bin: the first whose vote the
+# section's typical bin passes (see _choose_slices).
+_SLICE_CHOICES = ((4, 3), (2, 2), (1, 1))
+_SLICE_VOTE_PASS_SHARE = 0.9
+# Stray-point removal expects about this many neighbours on a sparse wall (its radius grows).
+_STRAY_EXPECTED_NEIGHBOURS = 9.0
+# Two layers in a bin lie further apart than this many times the wall's scatter (1σ).
+_LAYER_GAP_SIGMAS = 6.0
 # Fill lower than this is within the noise of a clean invert.
 _DEPOSIT_FLOOR_M = 0.01
 
@@ -34,7 +54,8 @@ class MeasureParams:
         Contour method, a name in ``pipescan.core.contour.CONTOUR_METHODS``; an unknown name
         raises ``OptionError``.
     min_points : int
-        Fewer points (after stray-point removal) gives ``too_few_points``.
+        Fewer points (after stray-point removal) gives ``too_few_points``, whatever their
+        uncertainty.
     min_coverage_ratio : float
         Less of the perimeter seen, by angle, gives ``low_coverage``.
     max_gap_deg : float
@@ -50,10 +71,16 @@ class MeasureParams:
         per-angle medians do not need more, and the cost stays bounded.
     grid : GridParams
         Parameters of the paper's grid method.
+    max_uncertainty_ratio : float
+        A section whose blockage is not known to within this (95 %, ±) is not ``ok``: it is
+        ``low_coverage`` when its unseen arcs make most of the uncertainty, else
+        ``too_few_points`` (too few points for the wall's scatter or its edges). 2.5 pp: the
+        95 % interval is then no wider than the narrowest condition class of the shipped
+        table (BBE 0-5 %), so a measured figure is never more than one class off.
     """
 
     method: str = DEFAULT_CONTOUR_METHOD
-    min_points: int = 200
+    min_points: int = 100
     min_coverage_ratio: float = 0.9
     max_gap_deg: float = 20.0
     wall_tolerance_ratio: float = 0.12
@@ -61,6 +88,7 @@ class MeasureParams:
     stray_min_neighbours: int = 3
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
+    max_uncertainty_ratio: float = 0.025
 
     def __post_init__(self) -> None:
         check_contour_method(self.method)
@@ -72,6 +100,39 @@ def choose_bins(point_count: int, *, points_per_bin: int = 16) -> int:
         if point_count >= points_per_bin * bins:
             return bins
     return _BIN_CHOICES[-1]
+
+
+def choose_sparse_bins(point_count: int) -> int:
+    """Angle bins for a section too sparse for 5° bins: the finest of
+    ``_SPARSE_BIN_CHOICES`` with at least 8 points each (never coarser than 20°)."""
+    for bins in _SPARSE_BIN_CHOICES:
+        if point_count >= _SPARSE_POINTS_PER_BIN * bins:
+            return bins
+    return _SPARSE_BIN_CHOICES[-1]
+
+
+def _choose_slices(points: np.ndarray, bins: int, length_m: float) -> tuple[int, int]:
+    """Sub-slices along the section, and how many must see a bin, for a sparse section.
+
+    A dense scan sees every bin along the whole section, so three of four sub-slices are
+    asked for. A ring profiler sees each bin only where a ring crosses it (once or twice in a
+    section when its rings are a few centimetres apart or tilted), so the vote is sized to
+    what the section's bins show: the first of 3-of-4, 2-of-2 and 1-of-1 that 90 % of the
+    bins with points pass. A shadow has no points at all and stays unseen whatever
+    the vote.
+    """
+    if points.shape[1] < 3 or len(points) == 0:
+        return 1, 1
+    ang = np.mod(np.arctan2(points[:, 1], points[:, 0]), 2.0 * np.pi)
+    b_idx = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    for slices, need in _SLICE_CHOICES:
+        s_idx = np.clip((points[:, 2] * slices / length_m).astype(np.int64), 0, slices - 1)
+        occupied = np.zeros((bins, slices), dtype=bool)
+        occupied[b_idx, s_idx] = True
+        per_bin = occupied.sum(axis=1)
+        if np.mean(per_bin[per_bin > 0] >= need) >= _SLICE_VOTE_PASS_SHARE:
+            return slices, need
+    return 1, 1
 
 
 def _wall_bins(
@@ -129,6 +190,7 @@ def measure_section(
     nominal_diameter_m: float,
     params: MeasureParams = MeasureParams(),
     point_count: int | None = None,
+    has_invert: bool = True,
 ) -> SectionMeasures:
     """Measure one section from its projected points.
 
@@ -145,6 +207,8 @@ def measure_section(
     params : MeasureParams
     point_count : int, optional
         Points in the section before the caller thinned them (default: as given).
+    has_invert : bool
+        False for a vertical pipe: no deposit height and no water are read.
 
     Returns
     -------
@@ -177,21 +241,97 @@ def measure_section(
     raw_used = raw
     if len(raw) > params.max_points:
         raw_used = raw[np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64)]
+    length_m = chainage_end_m - chainage_start_m
+    sparse = len(raw_used) < 16 * _BIN_CHOICES[-1]
+    stray_radius_m = params.stray_radius_m
+    if sparse:
+        # Few points on the wall: widen the neighbourhood so that a wall point still has
+        # neighbours to count (the wall's perimeter is about π times the diameter).
+        d_m = nominal_diameter_m
+        if not math.isfinite(d_m):
+            d_m = 2.0 * float(np.median(np.hypot(raw_used[:, 0], raw_used[:, 1])))
+        per_m = len(raw_used) / (math.pi * d_m)
+        stray_radius_m = max(stray_radius_m, _STRAY_EXPECTED_NEIGHBOURS / (3.0 * per_m))
     pts = remove_stray_points(
-        raw_used, radius_m=params.stray_radius_m, min_neighbours=params.stray_min_neighbours
+        raw_used, radius_m=stray_radius_m, min_neighbours=params.stray_min_neighbours
     )
+    if sparse:
+        bins = choose_sparse_bins(len(pts))
+        slices, min_slices = _choose_slices(pts, bins, length_m)
+        min_bin_share = 0.25 if slices == 1 else 0.0
+    else:
+        bins, slices, min_slices, min_bin_share = choose_bins(len(pts)), 4, 3, 0.0
     profile: PolarProfile = polar_profile(
-        pts, bins=choose_bins(len(pts)), section_length_m=chainage_end_m - chainage_start_m
+        pts,
+        bins=bins,
+        slices=slices,
+        min_slices=min_slices,
+        section_length_m=length_m,
+        min_bin_share=min_bin_share,
     )
-    coverage = profile.coverage_ratio
     if len(pts) < params.min_points:
-        return SectionMeasures(status=SectionStatus.TOO_FEW_POINTS, coverage_ratio=coverage, **base)
+        return SectionMeasures(
+            status=SectionStatus.TOO_FEW_POINTS, coverage_ratio=profile.coverage_ratio, **base
+        )
     if not profile.seen.any():
         return SectionMeasures(status=SectionStatus.LOW_COVERAGE, coverage_ratio=0.0, **base)
 
+    point_angle = np.mod(np.arctan2(pts[:, 1], pts[:, 0]), 2.0 * np.pi)
+    point_bin = np.minimum((point_angle * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    point_radius = np.hypot(pts[:, 0], pts[:, 1])
+    sigma_bins = residual_sigma_m(point_radius, point_bin, profile.radii_m)
+    sigma_m = float(np.median(sigma_bins))
+    if sparse and _LAYER_GAP_SIGMAS * sigma_m > profile.layer_gap_m:
+        # A noisy wall's own scatter would split a bin into two layers (and open pockets
+        # that are not there): two layers must lie further apart than the scatter.
+        profile = polar_profile(
+            pts,
+            bins=bins,
+            slices=slices,
+            min_slices=min_slices,
+            section_length_m=length_m,
+            min_bin_share=min_bin_share,
+            layer_gap_m=_LAYER_GAP_SIGMAS * sigma_m,
+        )
+        sigma_bins = residual_sigma_m(point_radius, point_bin, profile.radii_m)
+        sigma_m = float(np.median(sigma_bins))
+    wall_radius_m = float(np.median(profile.radii_m[profile.seen]))
+    water = None
+    if has_invert and math.isfinite(nominal_diameter_m):
+        water = detect_water(
+            pts,
+            profile.angles_rad,
+            profile.seen,
+            profile.counts,
+            profile.radii_m,
+            wall_radius_m,
+            nominal_diameter_m,
+            sigma_m,
+            min_coverage_ratio=params.min_coverage_ratio,
+            max_gap_deg=params.max_gap_deg,
+            surface_points=raw_used,
+        )
+    if water is not None:
+        # The wall under water was not seen; a sparse line on the surface is not a contour.
+        radii = profile.radii_m.copy()
+        radii[water.bins] = np.nan
+        far = None if profile.far_radii_m is None else profile.far_radii_m.copy()
+        if far is not None:
+            far[water.bins] = np.nan
+        profile = dataclasses.replace(profile, radii_m=radii, far_radii_m=far)
+    coverage = profile.coverage_ratio
+
     status = SectionStatus.OK
-    if coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
+    if water is not None:
+        status = SectionStatus.INVERT_UNDER_WATER
+    elif coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
         status = SectionStatus.LOW_COVERAGE
+    down = np.abs(np.angle(np.exp(1j * (profile.angles_rad - 1.5 * np.pi)))) <= max(
+        np.radians(5.0), np.pi / bins
+    )
+    water_depth = water.depth_ratio if water is not None else None
+    if has_invert and water is None and profile.seen[down].all():
+        water_depth = 0.0
 
     try:
         contour = contour_method(params.method)(pts, profile, params)
@@ -199,18 +339,22 @@ def measure_section(
         # Too little of the perimeter seen is the first reason, where it applies.
         if status == SectionStatus.OK:
             status = SectionStatus.NO_CONTOUR
-        return SectionMeasures(status=status, coverage_ratio=coverage, **base)
+        return SectionMeasures(
+            status=status, coverage_ratio=coverage, water_depth_ratio=water_depth, **base
+        )
     polygon, radii, open_area = contour.polygon_m, contour.radii_m, contour.area_m2
 
     # A 5-bin running median keeps single noisy bins from setting D_min or D_max.
     radii_smooth = median_filter(radii, size=5, mode="wrap")
-    deposit = _deposit_height_ratio(
-        radii_smooth,
-        profile.seen,
-        profile.angles_rad,
-        nominal_diameter_m,
-        params.wall_tolerance_ratio,
-    )
+    deposit = None
+    if has_invert and water is None:
+        deposit = _deposit_height_ratio(
+            radii_smooth,
+            profile.seen,
+            profile.angles_rad,
+            nominal_diameter_m,
+            params.wall_tolerance_ratio,
+        )
     # The deposit's flat top meets the wall at a shallow angle, so bins just above the wall
     # tolerance can still be fill: leave everything at or below the fill's top out of the
     # wall's diameters.
@@ -222,6 +366,36 @@ def measure_section(
     ovality, deformation = _diameter_measures(
         radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
     )
+
+    area_u = area_uncertainty(
+        radii,
+        profile.seen,
+        profile.counts,
+        sigma_bins,
+        wall_radius_m,
+        slice_radii_m=profile.slice_radii_m,
+    )
+    blockage_u = _finite(area_u.total_m2 / nominal_area)
+    if (
+        status == SectionStatus.OK
+        and blockage_u is not None
+        and blockage_u > params.max_uncertainty_ratio
+    ):
+        unseen_first = area_u.unseen_m2 >= area_u.noise_m2 + area_u.resolution_m2
+        status = SectionStatus.LOW_COVERAGE if unseen_first else SectionStatus.TOO_FEW_POINTS
+    per_bin = float(np.median(profile.counts[profile.seen]))
+    wall = _wall_bins(radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio)
+    pairs = int((wall[: bins // 2] & wall[bins // 2 :]).sum())
+    diameter_u = diameter_uncertainty_m(sigma_m, per_bin, pairs)
+    deposit_u = None
+    if deposit is not None:
+        low = down & profile.seen
+        deposit_u = _finite(
+            height_uncertainty_m(
+                sigma_m, float(profile.counts[low].sum()), float(profile.counts[wall].sum())
+            )
+            / nominal_diameter_m
+        )
     return SectionMeasures(
         status=status,
         coverage_ratio=coverage,
@@ -230,6 +404,19 @@ def measure_section(
         ovality_ratio=ovality,
         deformation_ratio=deformation,
         deposit_height_ratio=deposit,
+        blockage_uncertainty_ratio=blockage_u,
+        ovality_uncertainty_ratio=None
+        if ovality is None
+        else _finite(diameter_u / (2.0 * wall_radius_m)),
+        deformation_uncertainty_ratio=None
+        if deformation is None
+        else _finite(diameter_u / nominal_diameter_m),
+        deposit_height_uncertainty_ratio=deposit_u,
+        water_depth_ratio=water_depth,
         contour_m=polygon,
         **base,
     )
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None

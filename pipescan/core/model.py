@@ -32,12 +32,25 @@ class FrameRef:
 
 
 @dataclass(frozen=True)
+class RosTopics:
+    """The ``[ros]`` table of ``inspection.toml``: which topics of a ROS bag hold the frames
+    (``sensor_msgs/PointCloud2``), the odometry (``nav_msgs/Odometry``) and the IMU
+    (``sensor_msgs/Imu``). None: found by message type."""
+
+    points_topic: str | None = None
+    odometry_topic: str | None = None
+    imu_topic: str | None = None
+
+
+@dataclass(frozen=True)
 class InspectionMeta:
     """The validated content of ``inspection.toml``.
 
     ``upstream_node_xyz`` and ``downstream_node_xyz`` are the nodes' positions ``(x, y)`` or
     ``(x, y, z)`` in the coordinate reference system ``crs`` (e.g. ``"EPSG:25832"``), given
     together or not at all (docs/archive.md).
+    ``start_xyz`` is the sensor's first position in a registered cloud's frame (where its
+    scan starts: docs/archive.md); ``ros`` names a bag's topics.
     """
 
     asset_id: str
@@ -53,6 +66,8 @@ class InspectionMeta:
     upstream_node_xyz: tuple[float, ...] | None = None
     downstream_node_xyz: tuple[float, ...] | None = None
     crs: str | None = None
+    start_xyz: tuple[float, float, float] | None = None
+    ros: RosTopics | None = None
 
     @property
     def nominal_area_m2(self) -> float:
@@ -67,6 +82,7 @@ class SectionStatus(StrEnum):
     TOO_FEW_POINTS = "too_few_points"
     OUTSIDE_SCAN = "outside_scan"
     NO_CONTOUR = "no_contour"
+    INVERT_UNDER_WATER = "invert_under_water"
 
 
 @dataclass(frozen=True)
@@ -92,6 +108,14 @@ class SectionMeasures:
     deformation_ratio: float | None = None
     deposit_height_ratio: float | None = None
     grade: int | None = None
+    # The 95 % uncertainty (half-width, ±) of each figure, as a ratio like the figure.
+    blockage_uncertainty_ratio: float | None = None
+    ovality_uncertainty_ratio: float | None = None
+    deformation_uncertainty_ratio: float | None = None
+    deposit_height_uncertainty_ratio: float | None = None
+    # Depth of water in the invert over the nominal diameter: 0 when the invert was seen dry,
+    # None when it could not be told.
+    water_depth_ratio: float | None = None
     contour_m: np.ndarray | None = field(default=None, compare=False, repr=False)
 
     @property

@@ -160,6 +160,7 @@ def measure_window(
             nominal_diameter_m=nominal_diameter_m,
             params=params,
             point_count=count,
+            has_invert=axis.has_invert,
         )
         for start_mm, local, count in iter_section_points(
             points_m, axis, window, max_points_per_section=params.max_points, relative=relative

@@ -89,6 +89,7 @@ class InspectionSummary:
     max_blockage_chainage_m: float | None
     unmeasured_by_status: dict[str, int]
     registration: dict
+    start_source: str | None
     report_path: str | None
     wall_time_s: float
     reused: bool = False
@@ -167,6 +168,7 @@ def inspect_archive(
                     report_path=written,
                     started=started,
                     reused=True,
+                    start_source=rec.start_source,
                 )
 
         trajectory = None
@@ -243,6 +245,7 @@ def inspect_archive(
             point_count=point_count,
             frame_count=staged.frame_count,
             scanned_length_m=scanned,
+            start_source=fit.start_source,
         )
         inspection_id = save_results(database_url, inspection)
         log.info(
@@ -264,6 +267,7 @@ def inspect_archive(
             registration=registration,
             report_path=written,
             started=started,
+            start_source=fit.start_source,
         )
     finally:
         remove_workspace(run_dir)
@@ -283,6 +287,7 @@ def _summarise(
     report_path: str | None,
     started: float,
     reused: bool = False,
+    start_source: str | None = None,
 ) -> InspectionSummary:
     ok = [s for s in graded if s.is_ok]
     worst = peak_blockage(graded)
@@ -305,6 +310,7 @@ def _summarise(
         max_blockage_chainage_m=worst.chainage_start_m if worst else None,
         unmeasured_by_status=unmeasured,
         registration=registration,
+        start_source=start_source,
         report_path=report_path,
         wall_time_s=time.perf_counter() - started,
         reused=reused,

@@ -58,10 +58,17 @@ STATUS_LABELS: dict[str, str] = {
     SectionStatus.TOO_FEW_POINTS: "too few points",
     SectionStatus.OUTSIDE_SCAN: "outside the scan",
     SectionStatus.NO_CONTOUR: "no closed contour",
+    SectionStatus.INVERT_UNDER_WATER: "invert under water",
 }
 STATUS_EXPLANATIONS: dict[str, str] = {
     SectionStatus.LOW_COVERAGE: "the scan saw too little of the pipe wall around the section",
-    SectionStatus.TOO_FEW_POINTS: "too few LiDAR points fell in the section",
+    SectionStatus.TOO_FEW_POINTS: (
+        "too few LiDAR points for the wall's scatter or its edges: the blockage is not known to "
+        "within ±2.5 percentage points"
+    ),
+    SectionStatus.INVERT_UNDER_WATER: (
+        "water hid the invert, where a deposit could lie; the water depth is measured"
+    ),
     SectionStatus.OUTSIDE_SCAN: "the section lies beyond the scanned length",
     SectionStatus.NO_CONTOUR: "no closed inner contour could be traced",
 }
@@ -182,6 +189,8 @@ class ReportInput:
     history: Sequence[EarlierInspection] = ()
     gis_id: str | None = None
     length_note: str | None = None
+    start_source: str | None = None
+    """Where the scan's start came from (``pipescan.core.start.START_SOURCES``)."""
 
 
 # --- formatting -----------------------------------------------------------------------
@@ -304,7 +313,7 @@ def _section_row(s: SectionMeasures, flagged: bool) -> dict[str, Any]:
     if s.is_ok:
         row.update(
             open_area=(f"{s.open_area_m2:.4f}" if _finite(s.open_area_m2) else NOT_MEASURED),
-            blockage=fmt_pct(s.blockage_ratio, unit=False),
+            blockage=_with_uncertainty(s.blockage_ratio, s.blockage_uncertainty_ratio),
             ovality=fmt_pct(s.ovality_ratio, unit=False),
             deformation=fmt_pct(s.deformation_ratio, unit=False),
             deposit=fmt_pct(s.deposit_height_ratio, unit=False),
@@ -312,14 +321,36 @@ def _section_row(s: SectionMeasures, flagged: bool) -> dict[str, Any]:
         )
     else:
         # Figures computed for a section that is not trusted stay out of the report.
-        row.update(reason=f"{NOT_MEASURED}: {STATUS_LABELS.get(s.status, str(s.status))}")
+        reason = f"{NOT_MEASURED}: {STATUS_LABELS.get(s.status, str(s.status))}"
+        if _finite(s.water_depth_ratio) and s.water_depth_ratio:
+            reason += f" (water {fmt_pct(s.water_depth_ratio, 0)} of the diameter deep)"
+        row.update(reason=reason)
     return row
 
 
+def _with_uncertainty(ratio: float | None, uncertainty: float | None) -> str:
+    """A measured percentage with its 95 % uncertainty: ``"12.3 ± 0.4"``."""
+    text = fmt_pct(ratio, unit=False)
+    if not _finite(ratio) or not _finite(uncertainty):
+        return text
+    return f"{text} ± {uncertainty * 100.0:.1f}"
+
+
 def _registration_rows(inp: ReportInput) -> list[tuple[str, str]]:
+    from pipescan.core.start import START_SOURCES
+
+    start = (
+        [("scan start", START_SOURCES.get(inp.start_source, inp.start_source))]
+        if inp.start_source
+        else []
+    )
+    return start + _registration_only_rows(inp)
+
+
+def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     reg = inp.registration or {}
     engine = reg.get("engine")
-    if inp.frame_count == 0 and not engine:
+    if inp.frame_count == 0 and (not engine or engine.startswith("none")):
         return [("registration", "none: the archive held one registered cloud")]
     fitness = reg.get("mean_fitness")
     rmse_m = reg.get("mean_rmse_m")

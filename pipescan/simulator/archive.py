@@ -1,7 +1,10 @@
 """Write a simulated scan to disk as a scan archive, with its ground truth beside it.
 
 The archive is an ordinary scan archive (docs/archive.md): ``inspection.toml`` and
-``frames/NNNNNN.npy``. The ground truth sits in ``ground_truth/``, which archive readers
+``frames/NNNNNN.npy``; or, with ``layout="cloud"`` (the default for the ring profiler and the
+static scanner, whose data arrive as one registered cloud), ``inspection.toml`` and one
+``cloud.laz`` in the world frame, each point with its capture time as GPS time.
+The ground truth sits in ``ground_truth/``, which archive readers
 ignore:
 
 - ``poses.csv``: ``frame_index, time_s, odometer_m, true_travel_m`` and the 16 entries of
@@ -40,6 +43,10 @@ from pipescan.simulator.scan import (
     SimulatedScan,
     TrueSection,
 )
+from pipescan.simulator.sensors import RingProfiler, StaticScanner, WaterLevel
+from pipescan.storage.input.pointfiles import write_points
+
+_SENSORS = {"ring_profiler": RingProfiler, "static_scanner": StaticScanner}
 
 GENERATOR = "pipescan.simulator.scan"
 """Value of ``generator`` in ``ground_truth/scene.toml``: marks a simulated archive."""
@@ -85,9 +92,9 @@ def dumps_toml(doc: Mapping[str, Any]) -> str:
 # --------------------------------------------------------------------------- writing
 
 
-def _inspection_doc(scan: SimulatedScan) -> dict[str, Any]:
+def _inspection_doc(scan: SimulatedScan, layout: str = "frames") -> dict[str, Any]:
     meta = scan.meta
-    return {
+    doc = {
         "asset_id": meta.asset_id,
         "inspected_at": meta.inspected_at,
         "nominal_diameter_m": meta.nominal_diameter_m,
@@ -107,11 +114,18 @@ def _inspection_doc(scan: SimulatedScan) -> dict[str, Any]:
             for f in meta.frames
         ],
     }
+    if layout != "frames":  # a cloud has none, a bag holds its own
+        del doc["frames"]
+    return doc
 
 
 def _scene_doc(scan: SimulatedScan) -> dict[str, Any]:
     scenario = dataclasses.asdict(scan.scenario)
+    sensor = scan.scenario.sensor
     return {
+        "sensor_kind": next(
+            (kind for kind, cls in _SENSORS.items() if isinstance(sensor, cls)), "forward"
+        ),
         "generator": GENERATOR,
         "seed": scan.seed,
         "n_frames": len(scan),
@@ -137,6 +151,9 @@ def write_simulated_archive(
     out_dir: Path,
     *,
     progress: Callable[[int, int], None] | None = None,
+    layout: str | None = None,
+    cloud_name: str = "cloud.laz",
+    bag_name: str = "scan.bag",
 ) -> Path:
     """Write ``scan`` as a scan archive directory with its ground truth.
 
@@ -149,6 +166,18 @@ def write_simulated_archive(
         simulated archive (which is replaced).
     progress
         Called as ``progress(frames_done, frames_total)`` after each frame.
+    layout
+        ``"frames"`` (one point file per frame, sensor coordinates) or ``"cloud"`` (one
+        registered cloud, ``cloud_name``, in the world frame placed with the true poses, each
+        point's capture time stored with it); default ``"cloud"`` for the ring profiler and
+        the static scanner, ``"frames"`` otherwise;
+        ``"bag"`` writes the frames as a ROS bag, ``bag_name`` (:func:`write_simulated_bag`).
+    cloud_name
+        File name of the cloud; its suffix picks the format (one that holds time: ``.laz``,
+        ``.las``, ``.ply``, ``.pcd``, ``.e57``).
+    bag_name
+        ``scan.bag`` (ROS 1), or a name ending ``.db3`` or ``.mcap`` for a ROS 2 bag folder of
+        that storage.
 
     Returns
     -------
@@ -161,6 +190,10 @@ def write_simulated_archive(
         When ``out_dir`` is a file, or a non-empty directory that is not a simulated archive.
     """
     out_dir = Path(out_dir)
+    if layout is None:
+        layout = "frames" if scan.scenario.sensor is None else "cloud"
+    if layout not in ("frames", "cloud", "bag"):
+        raise ValueError(f"layout must be 'frames', 'cloud' or 'bag', got {layout!r}")
     if out_dir.exists() and not out_dir.is_dir():
         raise ArchiveError(
             "exists and is not a directory", archive=str(out_dir), hint="choose another path"
@@ -176,14 +209,22 @@ def write_simulated_archive(
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
     try:
-        (tmp / "frames").mkdir()
         (tmp / "ground_truth").mkdir()
-        total = len(scan)
-        for frame in scan.frames():
-            np.save(tmp / scan.meta.frames[frame.index].file, frame.points_sensor)
-            if progress is not None:
-                progress(frame.index + 1, total)
-        (tmp / "inspection.toml").write_text(dumps_toml(_inspection_doc(scan)), encoding="utf-8")
+        if layout == "frames":
+            (tmp / "frames").mkdir()
+            total = len(scan)
+            for frame in scan.frames():
+                np.save(tmp / scan.meta.frames[frame.index].file, frame.points_sensor)
+                if progress is not None:
+                    progress(frame.index + 1, total)
+        elif layout == "bag":
+            write_simulated_bag(scan, tmp / bag_name, progress=progress)
+        else:
+            points, time_s = world_cloud(scan, progress=progress)
+            write_points(tmp / cloud_name, points, time_s=time_s)
+        (tmp / "inspection.toml").write_text(
+            dumps_toml(_inspection_doc(scan, layout)), encoding="utf-8"
+        )
         _write_poses(tmp / "ground_truth" / "poses.csv", scan)
         _write_sections(tmp / "ground_truth" / "sections.csv", scan.true_sections(SECTION_STEP_M))
         # Written last: its presence marks a complete simulated archive.
@@ -193,6 +234,70 @@ def write_simulated_archive(
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     return out_dir
+
+
+def write_simulated_bag(
+    scan: SimulatedScan, path: Path, *, progress: Callable[[int, int], None] | None = None
+) -> Path:
+    """Write the scan's frames as a ROS bag: PointCloud2 frames in the sensor frame at their
+    capture times, odometry (the odometer's reading along x) and IMU readings (the specific
+    force against the measured gravity, 9.81 m/s², one per frame) when the scan has them.
+
+    ``path`` ending ``.bag`` is a ROS 1 bag; ``.db3`` or ``.mcap`` a ROS 2 bag folder named
+    without the suffix, holding that storage.
+    """
+    from pipescan.storage.input.bags import write_bag
+
+    t0_ns = 1_700_000_000 * 10**9
+
+    def ns(t_s: float) -> int:
+        return t0_ns + round(t_s * 1e9)
+
+    def frames():
+        for frame in scan.frames():
+            if progress is not None:
+                progress(frame.index + 1, len(scan))
+            yield ns(frame.time_s), frame.points_sensor
+
+    # Odometry and IMU just before each frame, so that the frame's period holds them.
+    odometry = [
+        (ns(float(t)) - 1000, (float(o), 0.0, 0.0))
+        for t, o in zip(scan.times_s, scan.odometer_m, strict=True)
+    ]
+    imu = [
+        (ns(float(scan.times_s[i])) - 1000, tuple(-9.81 * np.asarray(g)))
+        for i in range(len(scan))
+        if (g := scan.gravity(i)) is not None
+    ]
+    suffix = Path(path).suffix
+    storage = {".bag": "rosbag1", ".db3": "sqlite3", ".mcap": "mcap"}[suffix]
+    target = Path(path) if storage == "rosbag1" else Path(path).with_suffix("")
+    return write_bag(target, frames(), odometry=odometry, imu=imu, storage=storage)
+
+
+def world_cloud(
+    scan: SimulatedScan, *, progress: Callable[[int, int], None] | None = None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame's points placed in the world frame with the true poses, and each point's
+    capture time: the registered cloud a perfect SLAM would export.
+
+    Returns
+    -------
+    points : (N, 3) float64, metres, world frame
+    time_s : (N,) float64, seconds: the frame's time plus the ray's share of the frame period
+    """
+    parts, times = [], []
+    period_s = 1.0 / scan.scenario.frame_rate_hz
+    for frame in scan.frames():
+        p = frame.points_sensor.astype(np.float64)
+        T = frame.T_world_sensor
+        parts.append(p @ T[:3, :3].T + T[:3, 3])
+        times.append(frame.time_s + period_s * np.arange(len(p)) / max(len(p), 1))
+        if progress is not None:
+            progress(frame.index + 1, len(scan))
+    if not parts:
+        return np.empty((0, 3)), np.empty(0)
+    return np.concatenate(parts), np.concatenate(times)
 
 
 def _swap_into_place(tmp: Path, out_dir: Path) -> None:
@@ -342,6 +447,9 @@ def read_simulated_scene(archive_dir: Path) -> tuple[Scenario, int, np.ndarray]:
     for key, cls in nested.items():
         raw[key] = tuple(cls(**item) for item in raw.get(key, []))
     raw["world_origin_m"] = tuple(raw["world_origin_m"])
+    sensor_cls = _SENSORS.get(doc.get("sensor_kind", "forward"))
+    raw["sensor"] = sensor_cls(**raw["sensor"]) if sensor_cls and raw.get("sensor") else None
+    raw["water"] = WaterLevel(**raw["water"]) if raw.get("water") else None
     # Effects are a table of their own; archives written before that hold some of them at
     # the top level (and the rest then read back at today's defaults).
     effects = {k: raw.pop(k) for k in EFFECT_NAMES if k in raw} | dict(raw.get("effects", {}))

@@ -53,8 +53,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from pipescan.core.model import FrameRef, InspectionMeta
+from pipescan.simulator.sensors import RingProfiler, StaticScanner, WaterLevel
 
-SCENARIO_NAMES = ("paper", "clean", "long")
+SCENARIO_NAMES = ("paper", "clean", "long", "ring", "static")
 """Names accepted by :func:`get_scenario` and :func:`simulate_scan`."""
 
 SURFACE_NONE = 0
@@ -67,6 +68,8 @@ SURFACE_DEPOSIT = 3
 """Surface id of the top of settled deposits."""
 SURFACE_OBSTACLE = 4
 """Surface id of a box obstacle."""
+SURFACE_WATER = 5
+"""Surface id of the water's surface (:class:`~pipescan.simulator.sensors.WaterLevel`)."""
 
 COVERAGE_BIN_DEG = 2.0
 """Angular bin (degrees, around the pipe axis) of the true coverage."""
@@ -291,6 +294,11 @@ class Scenario:
     inspected_at: datetime = field(default_factory=lambda: datetime(2024, 5, 14, 9, 30, tzinfo=UTC))
     material: str | None = "PVC"
     chainage_offset_m: float = 0.0
+    sensor: RingProfiler | StaticScanner | None = None
+    """Another sensor than the forward-looking one the fields above describe
+    (:mod:`pipescan.simulator.sensors`)."""
+    water: WaterLevel | None = None
+    """Water standing in the invert (not blockage; the wall below it is never seen)."""
 
     def __post_init__(self) -> None:
         positive = (
@@ -312,10 +320,20 @@ class Scenario:
             raise ValueError("points_per_s / frame_rate_hz must give at least one ray per frame.")
         # Every ray must go forward (x > 0 in the pipe frame) for the end wall to close it.
         swing_deg = self.effects.largest_attitude_swing_deg
-        if self.fov_horizontal_deg / 2 + swing_deg >= 89.0:
+        if self.sensor is None and self.fov_horizontal_deg / 2 + swing_deg >= 89.0:
             raise ValueError("fov_horizontal_deg is too wide for a forward-looking sensor.")
-        if self.fov_vertical_deg / 2 + abs(self.mount_pitch_deg) + swing_deg >= 89:
+        if (
+            self.sensor is None
+            and self.fov_vertical_deg / 2 + abs(self.mount_pitch_deg) + swing_deg >= 89
+        ):
             raise ValueError("fov_vertical_deg + mount_pitch_deg point the sensor sideways.")
+        if self.sensor is not None and self.deformations:
+            # Deformations are cast for rays that go forward; these sensors also look back.
+            raise ValueError("Scenario.deformations need the forward-looking sensor.")
+        if self.water is not None and self.water.surface_z_m(self.radius_m) >= (
+            self.mount_offset_z_m - _SENSOR_CLEARANCE_M - 4.0 * self.effects.mount_jitter_m
+        ):
+            raise ValueError("The sensor would be under water: lower WaterLevel.depth_ratio.")
         if (
             math.hypot(self.mount_offset_y_m, self.mount_offset_z_m)
             + 4.0 * self.effects.mount_jitter_m
@@ -383,6 +401,8 @@ class Scenario:
     @property
     def rays_per_frame(self) -> int:
         """Rays emitted per frame (returned points are fewer: blind zone, filtering)."""
+        if self.sensor is not None:
+            return self.sensor.rays_per_frame
         return round(self.points_per_s / self.frame_rate_hz)
 
     @property
@@ -432,6 +452,8 @@ class TrueSection:
     deformation_ratio: float
     coverage_ratio: float
     in_shadow: bool
+    water_depth_ratio: float = 0.0
+    """Depth of the water in the invert over the local pipe height (0: dry)."""
 
 
 # --------------------------------------------------------------------------- scenarios
@@ -470,6 +492,36 @@ def _named_scenario(name: str) -> Scenario:
         )  # fmt: skip
     if name == "clean":
         return Scenario(name="clean", travel_m=3.0, asset_id="SIM-CLEAN")
+    if name == "ring":
+        # A 2D ring profiler on a crawler in a 0.8 m sewer: 120 points a turn, 7.5 turns a
+        # second at 0.3 m/s (a ring every 4 cm, about 300 points a section), 15 mm of range
+        # noise, an obstacle from the crown and a deposit. Ranges are short: no blind zone.
+        return Scenario(
+            name="ring", nominal_diameter_m=0.8, travel_m=10.0, speed_m_s=0.3,
+            frame_rate_hz=7.5, points_per_s=900.0, blind_zone_m=0.05,
+            mount_offset_z_m=-0.08, mount_pitch_deg=0.0, end_wall_beyond_travel_m=0.5,
+            sensor=RingProfiler(points_per_revolution=120, tilt_deg=3.0), truth_ray_stride=1,
+            effects=Effects(range_noise_sigma_m=0.015, range_noise_growth_per_m=0.0),
+            obstacles=(BoxObstacle(4.0, 4.4, -0.18, 0.18, 0.22, 0.5),),
+            deposits=(DepositFill(6.5, 8.0, 0.3, 0.15),),
+            asset_id="SIM-RING",
+        )  # fmt: skip
+    if name == "static":
+        # A terrestrial scanner at three stations 4 m apart in a 0.8 m sewer, 0.4° steps,
+        # 2 mm range noise; a tripod does not rock. The wall between stations is seen from
+        # far away, sparse and grazing.
+        return Scenario(
+            name="static", nominal_diameter_m=0.8, travel_m=8.0, speed_m_s=4.0,
+            frame_rate_hz=1.0, speed_variation_ratio=0.0, points_per_s=1.0, blind_zone_m=0.3,
+            mount_offset_z_m=-0.1, mount_pitch_deg=0.0, end_wall_beyond_travel_m=1.0,
+            sensor=StaticScanner(step_deg=0.4),
+            effects=Effects(
+                range_noise_sigma_m=0.002, rocking_deg=0.0, vibration_deg=0.0,
+                mount_jitter_m=0.0, slip_per_m=0.0,
+            ),
+            deposits=(DepositFill(5.0, 6.5, 0.3, 0.15),),
+            asset_id="SIM-STATIC",
+        )  # fmt: skip
     if name == "long":
         offsets = [k * _LONG_REPEAT_M for k in range(10)]
         return Scenario(
@@ -489,7 +541,9 @@ def get_scenario(name: str, **overrides: object) -> Scenario:
     name
         One of :data:`SCENARIO_NAMES`: ``paper`` (the paper's 0.5 m pipe with a deformation,
         an obstacle and deposits spanning 2.5-23 % blockage, 4.5 m of travel), ``clean``
-        (no defects, 3 m) or ``long`` (100 m, the paper's defects every 10 m).
+        (no defects, 3 m), ``long`` (100 m, the paper's defects every 10 m), ``ring`` (a 2D
+        ring profiler in a 0.8 m sewer, about 300 points a section, 15 mm noise) or
+        ``static`` (a terrestrial scanner at three stations, sparse between them).
     **overrides
         Fields of :class:`Scenario` to replace, e.g. ``travel_m=1.0``, or of its
         :class:`Effects`, e.g. ``spurious_return_ratio=0.02``.
@@ -587,6 +641,8 @@ def ray_directions_sensor(scenario: Scenario, frame_index: int) -> np.ndarray:
     -------
     (N, 3) float64 array of unit vectors (x forward, y left, z up).
     """
+    if scenario.sensor is not None:
+        return scenario.sensor.directions(frame_index)
     n = scenario.rays_per_frame
     return _pattern_dirs(scenario, np.arange(frame_index * n, (frame_index + 1) * n))
 
@@ -785,8 +841,10 @@ def _apply_occluders(
     x_far = ox + np.minimum(t, 1e6) * dx
     r, d_m = scenario.radius_m, scenario.nominal_diameter_m
     with np.errstate(divide="ignore", invalid="ignore"):
+        # Rays may go backwards (a ring profiler, a static scanner): test the span they cross.
+        x_lo, x_hi = np.minimum(ox, x_far), np.maximum(ox, x_far)
         for f in scenario.deposits:
-            cand = np.flatnonzero((x_far >= f.start_m) & (ox <= f.end_m))
+            cand = np.flatnonzero((x_hi >= f.start_m) & (x_lo <= f.end_m))
             if cand.size == 0:
                 continue
             h = f.peak_height_ratio * d_m
@@ -809,7 +867,7 @@ def _apply_occluders(
                 t[sel] = tp[hit]
                 surface[sel] = SURFACE_DEPOSIT
         for b in scenario.obstacles:
-            cand = np.flatnonzero((x_far >= b.start_m) & (ox <= b.end_m))
+            cand = np.flatnonzero((x_hi >= b.start_m) & (x_lo <= b.end_m))
             if cand.size == 0:
                 continue
             t_enter = np.full(cand.size, -np.inf)
@@ -827,6 +885,14 @@ def _apply_occluders(
             sel = cand[hit]
             t[sel] = t_enter[hit]
             surface[sel] = SURFACE_OBSTACLE
+        water = scenario.water
+        if water is not None:
+            z_w = water.surface_z_m(r)
+            t_w = (z_w - oz) / dz
+            x_w = ox + t_w * dx
+            hit = (dz < 0) & (t_w > 0) & (t_w < t) & (x_w >= water.start_m) & (x_w <= water.end_m)
+            t[hit] = t_w[hit]
+            surface[hit] = SURFACE_WATER
 
 
 def _cast_free(
@@ -1182,6 +1248,13 @@ class SimulatedScan:
         range_m, surface = cast_rays(s, T[:3, 3], dirs_pipe, min_range_m=s.blind_zone_m)
         if not noise_free:
             range_m = self._returned_ranges(i, T[:3, 3], dirs_pipe, range_m, surface)
+        if s.water is not None:
+            # Most rays that reach the water give no return (specular, or absorbed below).
+            # Turbid water scatters diffusely: returns fall off with the cosine of incidence.
+            draw = np.random.default_rng((self.seed, 20, i)).random(range_m.size)
+            share = s.water.surface_return_ratio * np.abs(dirs_pipe[:, 2])
+            lost = (surface == SURFACE_WATER) & (draw >= share)
+            range_m = np.where(lost, np.inf, range_m)
         keep = np.isfinite(range_m) & (range_m >= s.blind_zone_m) & (range_m <= s.max_range_m)
         points = (dirs_sensor[keep] * range_m[keep, None]).astype(np.float32)
         return SimulatedFrame(
@@ -1272,13 +1345,16 @@ class SimulatedScan:
             # Every stride-th ray of the endless pattern: still a Kronecker sequence, so the
             # subsample covers the field of view evenly over the frames.
             first = (-i * n) % stride
-            dirs_sensor = _pattern_dirs(s, np.arange(i * n + first, (i + 1) * n, stride))
+            if s.sensor is not None:
+                dirs_sensor = s.sensor.directions(i, stride)
+            else:
+                dirs_sensor = _pattern_dirs(s, np.arange(i * n + first, (i + 1) * n, stride))
             T = self._T_pipe_sensor[i]
             o, d = T[:3, 3], dirs_sensor @ T[:3, :3].T
             t, surface = _cast_free(s, o, d, s.blind_zone_m)
             for grid, tt, ss in ((free, t, surface), (full, *_occluded(s, o, d, t, surface))):
                 ok = (tt >= s.blind_zone_m) & (tt <= s.max_range_m)
-                ok &= (ss != SURFACE_END_WALL) & (ss != SURFACE_NONE)
+                ok &= (ss != SURFACE_END_WALL) & (ss != SURFACE_NONE) & (ss != SURFACE_WATER)
                 p = o + d[ok] * tt[ok, None]
                 ix = np.floor(p[:, 0] / COVERAGE_CHAINAGE_BIN_M).astype(np.int64)
                 ang = np.arctan2(p[:, 2], p[:, 1])
@@ -1338,6 +1414,11 @@ class SimulatedScan:
             top = deposit_top_z_m(s, xs)
             deposit = np.clip(top + b, 0.0, None) / (2.0 * b)
             deformation = np.clip(1.0 - np.minimum(a, b) / s.radius_m, 0.0, None)
+            water = np.zeros_like(xs)
+            if s.water is not None:
+                wet = (xs >= s.water.start_m) & (xs <= s.water.end_m)
+                level = np.clip(s.water.surface_z_m(s.radius_m) + b, 0.0, None) / (2.0 * b)
+                water = np.where(wet, level, 0.0)
             seen = full[j * per : (j + 1) * per].any(axis=0)
             reachable = free[j * per : (j + 1) * per].any(axis=0)
             open_m2 = float(np.mean(areas))
@@ -1352,6 +1433,7 @@ class SimulatedScan:
                     deformation_ratio=float(np.mean(deformation)),
                     coverage_ratio=float(seen.mean()),
                     in_shadow=bool((reachable & ~seen).any()),
+                    water_depth_ratio=float(np.mean(water)),
                 )
             )
         return sections

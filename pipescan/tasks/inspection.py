@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 from prefect import task
 
-from pipescan.core.axis import PipeAxis, fit_axis
+from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
@@ -24,6 +24,7 @@ from pipescan.core.registration import (
     register_frames,
 )
 from pipescan.core.sections import ChainageWindow, measure_window
+from pipescan.core.start import cloud_start
 from pipescan.storage.input.archive import open_archive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.scratch import read_window_offsets, write_buckets
@@ -48,11 +49,13 @@ class StagedArchive:
 
 @dataclass(frozen=True)
 class AxisFit:
-    """The fitted axis and the chainage range the scan covers."""
+    """The fitted axis, the chainage range the scan covers, and where its start came from
+    (a key of ``pipescan.core.start.START_SOURCES``)."""
 
     axis: PipeAxis
     chainage_min_m: float
     chainage_max_m: float
+    start_source: str = "first_frame"
 
 
 def _odometer(meta: InspectionMeta, i: int) -> float | None:
@@ -102,12 +105,25 @@ def fit_pipe_axis(
     max_range_m: float,
     sample_frames: int = 40,
 ) -> AxisFit:
-    """Fit the pipe axis on a sample of the registered points, and the chainage they span."""
+    """Fit the pipe axis on a sample of the registered points, and the chainage they span.
+
+    A registered cloud's start is chosen by ``pipescan.core.start.cloud_start``; up is the
+    cloud's +z. For frames, up is against the IMU's gravity at the first frame, where given,
+    else the first frame's +z.
+    """
     meta = staged.meta
+    diameter = meta.nominal_diameter_m
+    up = np.array([0.0, 0.0, 1.0])
     with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         if trajectory is None:
             points = arc.read_cloud()
-            start = travel = None
+            choice = cloud_start(
+                points,
+                axis_direction(points, diameter),
+                time_s=arc.read_cloud_time(),
+                start_xyz=None if meta.start_xyz is None else np.array(meta.start_xyz),
+            )
+            start, travel, source = choice.start_m, choice.travel_m, choice.source
         else:
             stride = max(1, len(trajectory.frame_indices) // sample_frames)
             indices = trajectory.frame_indices[::stride]
@@ -118,17 +134,24 @@ def fit_pipe_axis(
                 parts.append(pts[rng.choice(len(pts), take, replace=False)])
             points = np.concatenate(parts)
             positions = trajectory.positions_m()
-            start, travel = positions[0], positions[-1] - positions[0]
+            start, travel, source = positions[0], positions[-1] - positions[0], "first_frame"
+            first = meta.frames[trajectory.frame_indices[0]] if meta.frames else None
+            if first is not None and first.gravity is not None:
+                up = -np.asarray(first.gravity, dtype=np.float64)
     axis = fit_axis(
         points,
         start_m=start,
         travel_m=travel,
+        up_hint=up,
         chainage_offset_m=meta.chainage_offset_m,
         direction=meta.direction,
+        nominal_diameter_m=diameter if np.isfinite(diameter) else None,
     )
     chain = axis.chainage(points)
     lo, hi = np.percentile(chain, [0.05, 99.95])
-    return AxisFit(axis=axis, chainage_min_m=float(lo), chainage_max_m=float(hi))
+    return AxisFit(
+        axis=axis, chainage_min_m=float(lo), chainage_max_m=float(hi), start_source=source
+    )
 
 
 @task(name="bucket-points", **IO_RETRY_OPTIONS)

@@ -103,6 +103,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         pipe_class_reason=params.get("pipe_class_reason", "set for the run"),
         gis_id=placement.gis_id,
         length_note=placement.length_note,
+        start_source=rec.start_source,
         history=[
             EarlierInspection(
                 inspection_id=e.id,

@@ -11,7 +11,7 @@ whatever its contour method: ``pipescan.core.measures`` builds it once per secti
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cached_property
 from typing import TYPE_CHECKING
 
@@ -49,6 +49,9 @@ class PolarProfile:
     counts: np.ndarray
     far_radii_m: np.ndarray | None = None
     layer_gap_m: float = 0.03
+    slice_radii_m: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """(B, S) each sub-slice's radius per bin (NaN where it did not see the bin), for the
+    uncertainty from the section changing along its length."""
 
     @property
     def seen(self) -> np.ndarray:
@@ -217,6 +220,7 @@ def polar_profile(
     layer_gap_m: float = 0.03,
     min_layer_points: int = 3,
     min_cell_share: float = 0.25,
+    min_bin_share: float = 0.0,
 ) -> PolarProfile:
     """Robust radius per angle bin, judged along the section's length.
 
@@ -258,6 +262,10 @@ def polar_profile(
         noise).
     min_layer_points : int
         Points each layer needs, so that a few stray returns cannot make a layer.
+    min_bin_share : float
+        A bin holding fewer than this share of the median count of the section's bins with
+        points is unseen (for sparse sections cut into few sub-slices, where the sub-slice
+        vote cannot tell a few leaked points from a seen wall). 0: no such test.
 
     Returns
     -------
@@ -300,6 +308,10 @@ def polar_profile(
     typical = np.median(per_cell, axis=1, keepdims=True)  # not the max: a face is dense
     near_per_bin[per_cell < min_cell_share * typical] = np.nan
     seen = np.isfinite(near_per_bin).sum(axis=1) >= min_slices
+    if min_bin_share > 0:
+        per_bin = per_cell.sum(axis=1)
+        if (per_bin > 0).any():
+            seen &= per_bin >= min_bin_share * float(np.median(per_bin[per_bin > 0]))
     radii = np.full(bins, np.nan)
     far_radii = np.full(bins, np.nan)
     if seen.any():
@@ -325,6 +337,7 @@ def polar_profile(
         counts=counts.reshape(bins, slices).sum(1),
         far_radii_m=far_radii,
         layer_gap_m=layer_gap_m,
+        slice_radii_m=near_per_bin,
     )
 
 

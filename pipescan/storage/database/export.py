@@ -46,6 +46,12 @@ SECTION_CSV_COLUMNS: tuple[str, ...] = (
     "point_count",
     "status",
     "grade",
+    # Added later, so at the end: columns keep their places for existing readers.
+    "blockage_uncertainty_ratio",
+    "ovality_uncertainty_ratio",
+    "deformation_uncertainty_ratio",
+    "deposit_height_uncertainty_ratio",
+    "water_depth_ratio",
 )
 """Header of the sections CSV, in order."""
 
@@ -74,13 +80,26 @@ _MEASURE_COLUMNS = (
     "coverage_ratio",
 )
 
-# Figures of a section that are empty in an export unless its status is ok.
+_LATER_COLUMNS = (
+    "blockage_uncertainty_ratio",
+    "ovality_uncertainty_ratio",
+    "deformation_uncertainty_ratio",
+    "deposit_height_uncertainty_ratio",
+    "water_depth_ratio",
+)
+
+# Figures of a section that are empty in an export unless its status is ok. The water depth
+# is not among them: it is measured where the invert is under water (and no other figure is).
 _UNTRUSTED_UNLESS_OK = (
     "open_area_m2",
     "blockage_ratio",
     "ovality_ratio",
     "deformation_ratio",
     "deposit_height_ratio",
+    "blockage_uncertainty_ratio",
+    "ovality_uncertainty_ratio",
+    "deformation_uncertainty_ratio",
+    "deposit_height_uncertainty_ratio",
 )
 
 # Rows fetched per round trip while streaming.
@@ -154,6 +173,7 @@ def _section_rows(
         Section.point_count,
         Section.status,
         Section.grade,
+        *(getattr(Section, name) for name in _LATER_COLUMNS),
     ).join(Section, Section.inspection_id == Inspection.id)
     statement = _filtered(statement, asset_id, inspection_id).order_by(
         Inspection.asset_id, Inspection.inspected_at, Inspection.id, Section.chainage_start_mm
@@ -207,6 +227,7 @@ def _section_csv_cells(record: Mapping[str, Any]) -> list[str]:
         str(record["point_count"]),
         text_cell(record["status"]),
         _int_cell(record["grade"]),
+        *(_float_cell(record[name]) for name in _LATER_COLUMNS),
     ]
 
 

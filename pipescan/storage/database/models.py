@@ -157,6 +157,9 @@ class Inspection(Base):
     peak_blockage_ratio: Mapped[float | None] = mapped_column(sa.Float())
     # Start of the section with the peak (the first one on a tie), in whole millimetres.
     peak_chainage_start_mm: Mapped[int | None] = mapped_column(sa.Integer())
+    # Where the scan's start came from (pipescan.core.start.START_SOURCES); NULL for
+    # inspections stored before it was recorded.
+    start_source: Mapped[str | None] = mapped_column(sa.String())
 
     asset: Mapped[Asset] = relationship(back_populates="inspections")
     sections: Mapped[list[Section]] = relationship(
@@ -201,6 +204,12 @@ class Section(Base):
     status: Mapped[str] = mapped_column(sa.String())
     grade: Mapped[int | None] = mapped_column(sa.Integer())
     contour_json: Mapped[str | None] = mapped_column(sa.Text())
+    # The 95 % uncertainty (±) of each figure, and the water in the invert (docs/measures.md).
+    blockage_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    ovality_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    deformation_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    deposit_height_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    water_depth_ratio: Mapped[float | None] = mapped_column(sa.Float())
 
     inspection: Mapped[Inspection] = relationship(back_populates="sections")
 

@@ -286,6 +286,11 @@ def section_profiles(
         Section.deformation_ratio,
         Section.deposit_height_ratio,
         Section.grade,
+        Section.blockage_uncertainty_ratio,
+        Section.ovality_uncertainty_ratio,
+        Section.deformation_uncertainty_ratio,
+        Section.deposit_height_uncertainty_ratio,
+        Section.water_depth_ratio,
         # Named, so that section_from_row finds it (None) without a failed lookup per row.
         sa.null().label("contour_json"),
     )

@@ -109,6 +109,7 @@ class InspectionRecord:
     peak_chainage_m: float | None = None
     direction: str | None = None
     chainage_offset_m: float | None = None
+    start_source: str | None = None
 
 
 @dataclass(frozen=True)
@@ -306,6 +307,16 @@ def _section_row(section: SectionMeasures) -> dict[str, Any]:
             if section.contour_m is None
             else _contour_to_json(section.contour_m, _section_where(section))
         ),
+        **{
+            name: None if v is None or not _isfinite(f := float(v)) else f
+            for name, v in (
+                ("blockage_uncertainty_ratio", section.blockage_uncertainty_ratio),
+                ("ovality_uncertainty_ratio", section.ovality_uncertainty_ratio),
+                ("deformation_uncertainty_ratio", section.deformation_uncertainty_ratio),
+                ("deposit_height_uncertainty_ratio", section.deposit_height_uncertainty_ratio),
+                ("water_depth_ratio", section.water_depth_ratio),
+            )
+        },
     }
 
 
@@ -338,6 +349,12 @@ def section_from_row(row: Any) -> SectionMeasures:
         deformation_ratio=row.deformation_ratio,
         deposit_height_ratio=row.deposit_height_ratio,
         grade=row.grade,
+        # Queries that predate them, or leave them out, give None.
+        blockage_uncertainty_ratio=getattr(row, "blockage_uncertainty_ratio", None),
+        ovality_uncertainty_ratio=getattr(row, "ovality_uncertainty_ratio", None),
+        deformation_uncertainty_ratio=getattr(row, "deformation_uncertainty_ratio", None),
+        deposit_height_uncertainty_ratio=getattr(row, "deposit_height_uncertainty_ratio", None),
+        water_depth_ratio=getattr(row, "water_depth_ratio", None),
         contour_m=_contour_from_json(getattr(row, "contour_json", None)),
     )
 
@@ -387,6 +404,7 @@ def _inspection_record(
         scanned_length_m=inspection.scanned_length_m,
         registration=dict(inspection.registration_json or {}),
         threshold_table=inspection.threshold_table,
+        start_source=inspection.start_source,
         upstream_node=asset.upstream_node,
         downstream_node=asset.downstream_node,
         nominal_diameter_m=asset.nominal_diameter_m,
@@ -503,6 +521,11 @@ _SECTION_COPY_TYPES: dict[str, str] = {
     "status": "varchar",
     "grade": "int4",
     "contour_json": "text",
+    "blockage_uncertainty_ratio": "float8",
+    "ovality_uncertainty_ratio": "float8",
+    "deformation_uncertainty_ratio": "float8",
+    "deposit_height_uncertainty_ratio": "float8",
+    "water_depth_ratio": "float8",
 }
 
 
@@ -624,6 +647,8 @@ class InspectionToSave:
         Name of the grading table the grades come from.
     point_count, frame_count, scanned_length_m
         Size of the scan: points and frames read, and the chainage length covered, in metres.
+    start_source
+        Where the scan's start came from (a key of ``pipescan.core.start.START_SOURCES``).
     """
 
     meta: InspectionMeta
@@ -640,6 +665,7 @@ class InspectionToSave:
     point_count: int = 0
     frame_count: int = 0
     scanned_length_m: float = 0.0
+    start_source: str | None = None
 
 
 def save_inspection(engine: Engine, inspection: InspectionToSave) -> int:
@@ -718,6 +744,7 @@ def _prepare(item: InspectionToSave) -> _Prepared:
         "threshold_table": item.threshold_table,
         "direction": meta.direction,
         "chainage_offset_m": _require_finite(meta.chainage_offset_m, "chainage_offset_m", where),
+        "start_source": item.start_source,
         **_summary_columns(item.sections),
     }
     return _Prepared(

@@ -39,6 +39,7 @@ from pipescan.core.errors import (
 )
 from pipescan.core.model import FrameRef, InspectionMeta
 from pipescan.core.sanitize import strip_credentials
+from pipescan.storage.input.bags import BagIndex, index_bag, is_bag, iter_bag_frames
 from pipescan.storage.input.extract import (
     COPY_CHUNK_BYTES,
     Budget,
@@ -56,8 +57,10 @@ from pipescan.storage.input.limits import (
 from pipescan.storage.input.metadata import INSPECTION_FILE, read_inspection_toml
 from pipescan.storage.input.pointfiles import (
     POINT_SUFFIXES,
+    check_points,
     is_point_file,
     point_suffix,
+    read_point_time,
     read_points,
 )
 
@@ -96,6 +99,9 @@ class ScanArchive:
     cloud_member : str or None
         The registered cloud's path relative to ``root`` (e.g. ``"cloud.las"``), or None
         for a frames archive.
+    bag : BagIndex or None
+        For an archive holding a ROS bag: the bag, its topics and frames (whose
+        ``meta.frames`` files read ``"<bag>#<i>"``); None otherwise.
     limits : InputLimits
         The caps its point files are read under.
     """
@@ -109,11 +115,13 @@ class ScanArchive:
         cloud_member: str | None,
         tempdir: Path | None = None,
         limits: InputLimits = DEFAULT_LIMITS,
+        bag: BagIndex | None = None,
     ) -> None:
         self.name = name
         self.root = root
         self.meta = meta
         self.cloud_member = cloud_member
+        self.bag = bag
         self.limits = limits
         self._closed = False
         self._tempdir = tempdir
@@ -171,7 +179,12 @@ class ScanArchive:
         the point files in use. The same bytes give the same hash, whatever the container."""
         self._check_open()
         members = [INSPECTION_FILE]
-        members += [f.file for f in self.meta.frames]
+        if self.bag is not None:
+            bag_path = self.root / self.bag.member
+            files = sorted(bag_path.rglob("*")) if bag_path.is_dir() else [bag_path]
+            members += [str(f.relative_to(self.root)) for f in files if f.is_file()]
+        else:
+            members += [f.file for f in self.meta.frames]
         if self.cloud_member is not None:
             members.append(self.cloud_member)
         digest = hashlib.sha256()
@@ -212,6 +225,8 @@ class ScanArchive:
             )
         if not 0 <= i < len(self.meta.frames):
             raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+        if self.bag is not None:
+            return next(self.iter_frames([i]))[1]
         ref = self.meta.frames[i]
         return read_points(
             self.root / ref.file,
@@ -226,8 +241,27 @@ class ScanArchive:
 
         ``points`` is as :meth:`read_frame` returns; only one frame is in memory at once.
         """
-        for i in range(self.frame_count) if indices is None else indices:
-            yield i, self.read_frame(i)
+        wanted = range(self.frame_count) if indices is None else indices
+        if self.bag is None:
+            for i in wanted:
+                yield i, self.read_frame(i)
+            return
+        self._check_open()
+        wanted = list(wanted)
+        for i in wanted:
+            if not 0 <= i < self.frame_count:
+                raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+        bag = self.bag
+        for i, points in iter_bag_frames(self.root / bag.member, bag, wanted, archive=self.name):
+            yield (
+                i,
+                check_points(
+                    points,
+                    archive=self.name,
+                    member=f"{bag.member} ({bag.points_topic}, frame {i})",
+                    limits=self.limits,
+                ),
+            )
 
     def read_cloud(self) -> np.ndarray:
         """Read the registered cloud.
@@ -259,6 +293,28 @@ class ScanArchive:
             kind="cloud",
             limits=self.limits,
         )
+
+    def read_cloud_time(self) -> np.ndarray | None:
+        """Each point of the registered cloud's capture time, ``(N,)`` seconds, in the order
+        of :meth:`read_cloud`; None when the file holds no time (or all points the same).
+
+        Raises
+        ------
+        PointFileError
+            The cloud's time is corrupt or not finite.
+        """
+        self._check_open()
+        if self.cloud_member is None:
+            return None
+        time_s = read_point_time(
+            self.root / self.cloud_member,
+            archive=self.name,
+            member=self.cloud_member,
+            limits=self.limits,
+        )
+        if time_s is None or len(time_s) == 0 or float(np.ptp(time_s)) == 0.0:
+            return None
+        return time_s
 
     def close(self) -> None:
         """Remove the temporary extraction, if any. Safe to call more than once."""
@@ -338,7 +394,7 @@ def open_archive(
             if local.is_relative_to(tempdir):
                 local.unlink()  # a downloaded copy: once extracted, it only takes up disk
         root = _find_root(content)
-        meta, cloud_member = _inspect_layout(root, name, limits)
+        meta, cloud_member, bag = _inspect_layout(root, name, limits)
         return ScanArchive(
             name=name,
             root=root,
@@ -346,6 +402,7 @@ def open_archive(
             cloud_member=cloud_member,
             tempdir=tempdir,
             limits=limits,
+            bag=bag,
         )
     except BaseException:
         if tempdir is not None:
@@ -371,7 +428,7 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     ArchiveError
         A point file vanished since the archive was opened.
     """
-    for ref in arc.meta.frames:
+    for ref in [] if arc.bag is not None else arc.meta.frames:
         if not (arc.root / ref.file).is_file():
             raise ArchiveError(
                 "the frame file is missing (removed since the archive was opened?)",
@@ -451,7 +508,7 @@ def _check_inside(root: Path, member: str, archive: str) -> None:
 
 def _inspect_layout(
     root: Path, name: str, limits: InputLimits
-) -> tuple[InspectionMeta, str | None]:
+) -> tuple[InspectionMeta, str | None, BagIndex | None]:
     """Validate the metadata and the layout; return the metadata with frames filled in and
     the registered cloud's member path (None for a frames archive).
 
@@ -462,10 +519,53 @@ def _inspect_layout(
     meta = read_inspection_toml(
         root / INSPECTION_FILE, archive=name, max_bytes=limits.metadata_max_bytes
     )
+    bag = _bag_layout(root, name, meta, limits)
+    if bag is not None:
+        return bag
     meta, cloud = _layout(root, name, meta, limits)
     for member in [f.file for f in meta.frames] if cloud is None else [cloud]:
         _check_inside(root, member, name)
-    return meta, cloud
+    return meta, cloud, None
+
+
+def _bag_layout(
+    root: Path, name: str, meta: InspectionMeta, limits: InputLimits
+) -> tuple[InspectionMeta, None, BagIndex] | None:
+    """An archive holding one ROS bag at its root (a ``.bag``, ``.db3`` or ``.mcap`` file,
+    or a ROS 2 bag folder): its frames, odometry and IMU from the bag. None without a bag."""
+    entries = [e for e in root.iterdir() if not _is_junk(e.name) and e.name != FRAMES_DIR]
+    bags = sorted((e.name for e in entries if is_bag(e)), key=natural_key)
+    if not bags:
+        return None
+    if len(bags) > 1:
+        raise _layout_error(
+            f"holds {len(bags)} ROS bags ({', '.join(bags)})",
+            name,
+            bags[1],
+            hint="keep one bag per archive (one inspection of one pipe run)",
+        )
+    member = bags[0]
+    others = [e.name for e in entries if is_point_file(e.name)]
+    if meta.frames or (root / FRAMES_DIR).is_dir() or others:
+        raise _layout_error(
+            f"holds both the ROS bag {member} and frames or a cloud; keep one",
+            name,
+            member,
+            hint="an archive holds the raw frames, one registered cloud or one bag",
+        )
+    bag_path = root / member
+    for path in sorted(bag_path.rglob("*")) if bag_path.is_dir() else [bag_path]:
+        _check_inside(root, str(path.relative_to(root)), name)
+    index, frames = index_bag(bag_path, member, archive=name, topics=meta.ros)
+    if len(frames) > limits.archive_max_members:
+        raise archive_limit_error(
+            "archive_max_members",
+            limits,
+            f"the bag has {len(frames):,} frames",
+            archive=name,
+            file=member,
+        )
+    return dataclasses.replace(meta, frames=frames), None, index
 
 
 def _layout(

@@ -33,7 +33,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from pipescan.core.errors import MetadataError
-from pipescan.core.model import FrameRef, InspectionMeta
+from pipescan.core.model import FrameRef, InspectionMeta, RosTopics
 
 INSPECTION_FILE = "inspection.toml"
 
@@ -147,6 +147,16 @@ class _FrameEntry(BaseModel):
         return (value[0] / norm, value[1] / norm, value[2] / norm)
 
 
+class _RosTable(BaseModel):
+    """The ``[ros]`` table: a bag's topics."""
+
+    model_config = ConfigDict(extra="ignore", str_strip_whitespace=True)
+
+    points_topic: FileText | None = None
+    odometry_topic: FileText | None = None
+    imu_topic: FileText | None = None
+
+
 class InspectionDocument(BaseModel):
     """The schema of ``inspection.toml`` (the archive contract: docs/archive.md).
 
@@ -194,6 +204,20 @@ class InspectionDocument(BaseModel):
                 {"value": list(value), "limit": f"{MAX_COORDINATE:g}", "hint": _HINTS["node_xyz"]},
             )
         return tuple(float(v) for v in value)
+
+    start_xyz: list[float] | None = None
+    ros: _RosTable | None = None
+
+    @field_validator("start_xyz")
+    @classmethod
+    def _three(cls, value: list[float] | None) -> list[float] | None:
+        if value is not None and len(value) != 3:
+            raise PydanticCustomError(
+                "start_xyz_length",
+                "start_xyz must have 3 components [x, y, z], got {value}",
+                {"value": list(value), "hint": _HINTS["start_xyz"]},
+            )
+        return value
 
     @field_validator("inspected_at", mode="before")
     @classmethod
@@ -376,6 +400,12 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         upstream_node_xyz=_as_position(doc.upstream_node_xyz),
         downstream_node_xyz=_as_position(doc.downstream_node_xyz),
         crs=doc.crs,
+        start_xyz=None
+        if doc.start_xyz is None
+        else (doc.start_xyz[0], doc.start_xyz[1], doc.start_xyz[2]),
+        ros=None
+        if doc.ros is None
+        else RosTopics(doc.ros.points_topic, doc.ros.odometry_topic, doc.ros.imu_topic),
     )
 
 
@@ -516,6 +546,7 @@ _CUSTOM_ERROR_TYPES = {
     "node_xyz_length",
     "node_xyz_range",
     "crs_not_a_code",
+    "start_xyz_length",
 }
 
 _HINTS = {
@@ -530,6 +561,9 @@ _HINTS = {
         'upstream_node_xyz = [512345.2, 5803210.7, 41.3], with crs = "EPSG:25832"'
     ),
     "crs": 'write the CRS as an authority code, e.g. crs = "EPSG:25832"',
+    "start_xyz": (
+        "start_xyz = [x, y, z] is the sensor's first position in the cloud's frame, metres"
+    ),
     "gravity": (
         "gravity = [gx, gy, gz] is the IMU's gravity direction in the sensor frame "
         "(any length but zero), e.g. gravity = [0.05, 0.0, -1.0]"

@@ -52,6 +52,7 @@ __all__ = [
     "check_point_file",
     "is_point_file",
     "point_suffix",
+    "read_point_time",
     "read_points",
     "write_points",
 ]
@@ -156,7 +157,38 @@ def _reader(path: Path, archive: str | None, member: str | None, limits: InputLi
     return where, reader
 
 
-def write_points(path: Path, points: np.ndarray) -> None:
+def read_point_time(
+    path: Path,
+    *,
+    archive: str | None = None,
+    member: str | None = None,
+    limits: InputLimits = DEFAULT_LIMITS,
+) -> np.ndarray | None:
+    """Each point's capture time, ``(N,)`` float64 seconds, in the order :func:`read_points`
+    returns the points: LAS/LAZ GPS time, a ``time`` (``timestamp``, ``gps_time``, ``t``)
+    property of a PLY or field of a PCD, an E57 scan's ``timeStamp``. None when the file
+    holds no time, or its format never does.
+
+    Raises
+    ------
+    PointFileError
+        As :func:`read_points`; and when a time is NaN or infinite.
+    """
+    path = Path(path)
+    where, reader = _reader(path, archive, member, limits)
+    if reader.read_time is None:
+        return None
+    time_s = reader.read_time(path, where)
+    if time_s is not None and not np.isfinite(time_s).all():
+        raise where.error(
+            f"{int((~np.isfinite(time_s)).sum())} points have a NaN or infinite time",
+            field="time",
+            hint="export the cloud again, or without its time field",
+        )
+    return time_s
+
+
+def write_points(path: Path, points: np.ndarray, *, time_s: np.ndarray | None = None) -> None:
     """Write an ``(N, 3)`` array of metres to a point file, in the format of its suffix.
 
     LAS/LAZ are written as LAS 1.4, point format 6, with a scale of :data:`LAS_SCALE_M`
@@ -190,10 +222,32 @@ def write_points(path: Path, points: np.ndarray) -> None:
     if writer is None:
         raise ValueError(f"pipescan cannot write {READERS[suffix].name} files")
     path.parent.mkdir(parents=True, exist_ok=True)
-    writer(path, pts)
+    if time_s is None:
+        writer(path, pts)
+        return
+    if READERS[suffix].read_time is None:
+        raise ValueError(f"{READERS[suffix].name} files hold no time per point")
+    time_s = np.asarray(time_s, dtype=np.float64)
+    if time_s.shape != (len(pts),):
+        raise ValueError(f"time_s must have shape ({len(pts)},); got {time_s.shape}")
+    writer(path, pts, time_s)
 
 
 # --- content checks ---------------------------------------------------------------------------
+
+
+def check_points(
+    points: np.ndarray,
+    *,
+    archive: str | None,
+    member: str,
+    kind: PointKind = "frame",
+    limits: InputLimits = DEFAULT_LIMITS,
+) -> np.ndarray:
+    """The checks :func:`read_points` makes on what a reader returned (no points, NaN,
+    millimetres), for points that came from elsewhere (a bag's message); returns them."""
+    _check_points(points, kind, Where(archive, member, limits))
+    return points
 
 
 def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:

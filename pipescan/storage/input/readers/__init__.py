@@ -3,7 +3,9 @@
 Each format module provides ``check(path, where)`` (parse the header and check every
 declared count against the bytes present, allocating nothing the file does not back; returns
 the point count), ``read(path, where)`` (the points, ``(N, 3)`` float64 in metres) and,
-optionally, ``write(path, points)``. :func:`pipescan.storage.input.pointfiles.read_points`
+optionally, ``write(path, points, time_s=None)`` and ``read_time(path, where)`` (each point's
+capture time, for where a registered cloud starts: docs/archive.md).
+:func:`pipescan.storage.input.pointfiles.read_points`
 picks the reader by suffix and adds the checks common to every format (no points, NaN,
 millimetres); an unknown suffix is refused, never read as text.
 
@@ -20,7 +22,7 @@ from types import ModuleType
 
 import numpy as np
 
-from pipescan.storage.input.readers import ascii, las, npy, pcd, ply
+from pipescan.storage.input.readers import ascii, e57, las, npy, pcd, ply
 from pipescan.storage.input.readers._common import Where
 
 __all__ = ["FORMATS", "READERS", "PointFormat", "Where"]
@@ -35,12 +37,23 @@ class PointFormat:
     suffixes: tuple[str, ...]
     check: Callable[[Path, Where], int]
     read: Callable[[Path, Where], np.ndarray]
-    write: Callable[[Path, np.ndarray], None] | None = None
+    write: Callable[..., None] | None = None
+    read_time: Callable[[Path, Where], np.ndarray | None] | None = None
+    """Each point's capture time (N,) in seconds, or None when the file holds none; None for
+    a format that never has one."""
 
     @classmethod
     def from_module(cls, name: str, module: ModuleType) -> PointFormat:
-        """The format a reader module defines (``SUFFIXES``, ``check``, ``read``, ``write``)."""
-        return cls(name, module.SUFFIXES, module.check, module.read, getattr(module, "write", None))
+        """The format a reader module defines (``SUFFIXES``, ``check``, ``read``, and
+        optionally ``write`` and ``read_time``)."""
+        return cls(
+            name,
+            module.SUFFIXES,
+            module.check,
+            module.read,
+            getattr(module, "write", None),
+            getattr(module, "read_time", None),
+        )
 
 
 FORMATS: tuple[PointFormat, ...] = (
@@ -49,6 +62,7 @@ FORMATS: tuple[PointFormat, ...] = (
     PointFormat.from_module("PCD", pcd),
     PointFormat.from_module("NumPy .npy", npy),
     PointFormat.from_module("ASCII x y z", ascii),
+    PointFormat.from_module("E57", e57),
 )
 """Every format pipescan reads: a new one is one module above and one line here."""
 

@@ -146,9 +146,27 @@ def read(path: Path, where: Where) -> np.ndarray:
     return points
 
 
-def write(path: Path, pts: np.ndarray) -> None:
+def read_time(path: Path, where: Where) -> np.ndarray | None:
+    """Each point's GPS time, ``(N,)`` float64 seconds, or None when the point format has
+    none. (Called after :func:`read`, which checked the file.)"""
+    import laspy
+
+    try:
+        with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
+            if "gps_time" not in reader.header.point_format.dimension_names:
+                return None
+            parts = [
+                np.asarray(chunk.gps_time, dtype=np.float64)
+                for chunk in reader.chunk_iterator(CHUNK_POINTS)
+            ]
+    except _errors() as exc:
+        raise where.corrupt(f"cannot read LAS/LAZ GPS time: {exc}", field="gps_time") from exc
+    return np.concatenate(parts) if parts else np.empty(0)
+
+
+def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
     """LAS 1.4, point format 6, scale :data:`LAS_SCALE_M`, offset at the points' minimum;
-    ``.laz`` compressed with lazrs."""
+    ``.laz`` compressed with lazrs. ``time_s`` (N,), when given, is stored as GPS time."""
     import laspy
 
     if not np.isfinite(pts).all():
@@ -161,4 +179,6 @@ def write(path: Path, pts: np.ndarray) -> None:
     header.offsets = offsets
     las = laspy.LasData(header)
     las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
+    if time_s is not None:
+        las.gps_time = np.asarray(time_s, dtype=np.float64)
     las.write(path, laz_backend=laspy.LazBackend.Lazrs)

@@ -123,6 +123,40 @@ def read(path: Path, where: Where) -> np.ndarray:
     return points
 
 
-def write(path: Path, pts: np.ndarray) -> None:
-    """Binary PCD through Open3D (which stores x, y, z as float32)."""
-    write_with_open3d(path, pts, EMPTY_HEADER)
+TIME_NAMES = ("time", "timestamp", "gps_time", "t")
+"""Fields read as each point's capture time (seconds), the first one present."""
+
+
+def read_time(path: Path, where: Where) -> np.ndarray | None:
+    """Each point's capture time, ``(N,)`` float64 seconds, from its first field named in
+    :data:`TIME_NAMES` (read through Open3D's tensor API, which keeps extra fields); None
+    when it has none."""
+    declared = check(path, where)
+    import open3d as o3d
+
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.t.io.read_point_cloud(str(path))
+    found = next((n for n in TIME_NAMES if n in cloud.point), None)
+    if found is None:
+        return None
+    time_s = cloud.point[found].numpy().astype(np.float64).reshape(-1)
+    if len(time_s) != declared:
+        raise where.corrupt(
+            f"the header declares {declared:,} points but {len(time_s):,} times were read",
+            field=found,
+        )
+    return time_s
+
+
+def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
+    """Binary PCD through Open3D (which stores x, y, z as float32); with ``time_s``, a
+    float64 ``time`` field too (and x, y, z as float64)."""
+    if time_s is None or len(pts) == 0:
+        write_with_open3d(path, pts, EMPTY_HEADER)
+        return
+    import open3d as o3d
+
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(np.ascontiguousarray(pts)))
+    cloud.point["time"] = o3d.core.Tensor(np.asarray(time_s, dtype=np.float64).reshape(-1, 1))
+    if not o3d.t.io.write_point_cloud(str(path), cloud, write_ascii=False):
+        raise OSError(f"Open3D could not write {path}")

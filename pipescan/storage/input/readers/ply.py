@@ -19,7 +19,6 @@ from pipescan.storage.input.readers._common import (
     Where,
     count_lines,
     file_size,
-    fill_columns,
     read_head,
     require_bytes,
     text_from,
@@ -185,14 +184,34 @@ def check(path: Path, where: Where) -> int:
     return _check(path, where)[0].vertex.count
 
 
+TIME_NAMES = ("time", "timestamp", "gps_time", "t")
+"""Vertex properties read as each point's capture time (seconds), the first one present."""
+
+
 def read(path: Path, where: Where) -> np.ndarray:
     """The vertices' x, y, z, ``(N, 3)`` float64, metres."""
+    return _read_properties(path, where, AXES)
+
+
+def read_time(path: Path, where: Where) -> np.ndarray | None:
+    """Each vertex's capture time, ``(N,)`` float64 seconds, from its first property named in
+    :data:`TIME_NAMES`; None when it has none."""
+    header = _parse_header(path, where)
+    names = [name for name, _ in header.vertex.props]
+    found = next((n for n in TIME_NAMES if n in names), None)
+    if found is None:
+        return None
+    return _read_properties(path, where, (found,))[:, 0]
+
+
+def _read_properties(path: Path, where: Where, wanted: tuple[str, ...]) -> np.ndarray:
+    """Named vertex properties, ``(N, len(wanted))`` float64."""
     header, offset = _check(path, where)
     vertex = header.vertex
     names = [name for name, _ in vertex.props]
-    cols = [names.index(a) for a in AXES]
+    cols = [names.index(a) for a in wanted]
     if vertex.count == 0:
-        return np.empty((0, 3))
+        return np.empty((0, len(wanted)))
     if header.fmt == "ascii":
         before = 0
         for element in header.elements:
@@ -208,9 +227,9 @@ def read(path: Path, where: Where) -> np.ndarray:
             raise where.corrupt(
                 f"the header declares {vertex.count:,} points but the file holds {len(pts):,}"
             )
-        return pts.reshape(-1, 3).astype(np.float64, copy=False)
+        return pts.reshape(-1, len(wanted)).astype(np.float64, copy=False)
     dtype = _row_dtype(vertex, _FORMATS[header.fmt])
-    out = np.empty((vertex.count, 3))
+    out = np.empty((vertex.count, len(wanted)))
     n = 0
     with path.open("rb") as fh:
         fh.seek(offset)
@@ -218,10 +237,26 @@ def read(path: Path, where: Where) -> np.ndarray:
             rows = np.fromfile(fh, dtype=dtype, count=min(CHUNK_ROWS, vertex.count - n))
             if len(rows) == 0:
                 raise where.corrupt("the PLY vertices end early")
-            n = fill_columns(out, n, *(rows[f"p{c}"] for c in cols))
+            for j, c in enumerate(cols):
+                out[n : n + len(rows), j] = rows[f"p{c}"]
+            n += len(rows)
     return out
 
 
-def write(path: Path, pts: np.ndarray) -> None:
-    """Binary little-endian PLY of float64 vertices, through Open3D."""
-    write_with_open3d(path, pts, EMPTY_HEADER)
+def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
+    """Binary little-endian PLY of float64 vertices (through Open3D), or, with ``time_s``,
+    with a float64 ``time`` property too."""
+    if time_s is None:
+        write_with_open3d(path, pts, EMPTY_HEADER)
+        return
+    rows = np.empty(len(pts), dtype=[("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("time", "<f8")])
+    rows["x"], rows["y"], rows["z"] = pts[:, 0], pts[:, 1], pts[:, 2]
+    rows["time"] = time_s
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(pts)}\nproperty double x\nproperty double y\n"
+        "property double z\nproperty double time\nend_header\n"
+    )
+    with path.open("wb") as fh:
+        fh.write(header.encode("ascii"))
+        fh.write(rows.tobytes())

@@ -1,0 +1,167 @@
+"""Water standing in the invert of a section: a flat chord and missing wall below it.
+
+A LiDAR gets no return from under water and few from its surface, so water leaves the invert
+unseen, from one side's wall to the other's at the same height, with at most a sparse line of
+points along that chord. A deposit is the opposite: its flat top is seen as densely as the
+wall. :func:`detect_water` tells them apart; docs/measures.md says how the figures use it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipescan.core.uncertainty import unseen_runs
+
+MIN_SURFACE_POINTS = 3
+"""Points on the chord that make it a seen water surface."""
+
+SPARSE_BIN_SHARE = 0.1
+"""A bin holding under this share of the section's median bin count holds only a sparse line
+of returns, even where the sub-slice vote saw it (a water surface returns a share of the rays
+that reach it, fewer the more grazing); a surface seen as densely as the wall is a deposit's
+top, and counts as one."""
+
+
+@dataclass(frozen=True)
+class WaterLevel:
+    """Water found in a section.
+
+    Attributes
+    ----------
+    level_m : float
+        Height of the surface above the axis (negative: below it), section-plane metres.
+    depth_ratio : float
+        Depth above the invert over the nominal diameter.
+    bins : (K,) int
+        The angle bins under water (unseen wall, or a sparse chord), to be left out of the
+        contour.
+    from_surface : bool
+        The level was read from points on the surface (else from where the wall stops).
+    """
+
+    level_m: float
+    depth_ratio: float
+    bins: np.ndarray
+    from_surface: bool
+
+
+def detect_water(
+    points: np.ndarray,
+    angles_rad: np.ndarray,
+    seen: np.ndarray,
+    counts: np.ndarray,
+    radii_m: np.ndarray,
+    wall_radius_m: float,
+    nominal_diameter_m: float,
+    sigma_m: float,
+    *,
+    min_coverage_ratio: float = 0.9,
+    max_gap_deg: float = 20.0,
+    surface_points: np.ndarray | None = None,
+) -> WaterLevel | None:
+    """Find water in a section's invert.
+
+    The candidate is the run of bins around straight down that hold no points or only a
+    sparse line of them (:data:`SPARSE_BIN_SHARE` of the seen bins' median count). It is
+    water when the wall on both sides of it stops at the same height (within
+    ``max(3 σ, 2 cm)`` plus one bin's rise), below the axis, and at least
+    :data:`MIN_SURFACE_POINTS` points lie on the chord at that height (within the same
+    tolerance): the level is their median height.
+
+    Parameters
+    ----------
+    points : (N, 2+) float
+        The section's points, section plane (0 across, 1 up), axis at the origin.
+    angles_rad, seen, counts, radii_m : (B,) arrays
+        The section profile's bins (centres, seen, points per bin, radius or NaN).
+    wall_radius_m : float
+        The wall's radius (median of the seen bins at the wall).
+    nominal_diameter_m : float
+    sigma_m : float
+        The section's residual spread (1σ).
+    min_coverage_ratio, max_gap_deg : float
+        The rest of the wall must be seen as a measured section's is: at least this share,
+        with no other unseen arc longer than this.
+    surface_points : (M, 2+) float, optional
+        Where to look for the surface's returns: the section's points before stray-point
+        removal (default ``points``).
+
+    Returns
+    -------
+    WaterLevel or None
+        None when the invert is seen (dry), or the gap there is not level water.
+    """
+    bins = len(angles_rad)
+    dtheta = 2.0 * math.pi / bins
+    down = int(np.argmin(np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * math.pi))))))
+    typical = float(np.median(counts[seen])) if seen.any() else 0.0
+    # Water leaves the invert unseen, or holding only a sparse line of points: very few, or
+    # few and well inside the wall (not a flattened invert, which a dense scan sees sparsely).
+    inside = np.nan_to_num(radii_m, nan=wall_radius_m) < wall_radius_m * (1.0 - 0.12)
+    candidate = ~seen | (counts < SPARSE_BIN_SHARE * typical) | ((counts < typical / 3.0) & inside)
+    if not candidate[down] or candidate.all():
+        return None
+    run = next(r for r in unseen_runs(~candidate) if down in set(r.tolist()))
+    # Narrower than the longest gap a measured section may bridge, it is not worth calling
+    # water (under 1 % of the diameter deep); wider than half the section, it is no level.
+    if len(run) * 360.0 / bins <= max_gap_deg or len(run) > bins // 2:
+        return None
+    # Only the invert is missing: the rest of the wall is seen as a measured section's is (a
+    # forward-looking sensor's first metre misses the crown too, and is no water).
+    rest = np.ones(bins, dtype=bool)
+    rest[run] = False
+    other_gaps = [len(r) for r in unseen_runs(seen | ~rest)]
+    if other_gaps and max(other_gaps) * 360.0 / bins > max(max_gap_deg, 2 * 360.0 / bins):
+        return None
+    left, right = (run[0] - 1) % bins, (run[-1] + 1) % bins
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    ang = np.mod(np.arctan2(xy[:, 1], xy[:, 0]), 2.0 * math.pi)
+    b_idx = np.minimum((ang / dtheta).astype(np.int64), bins - 1)
+    rad = np.hypot(xy[:, 0], xy[:, 1])
+    at_wall = np.abs(rad - wall_radius_m) <= max(3.0 * sigma_m, 0.01)
+    edges = []
+    for b, away in ((left, -1), (right, 1)):
+        # The wall beside the run: its nearest bin, or the next one when that holds nothing.
+        near = at_wall & (b_idx == b)
+        if not near.any():
+            near = at_wall & (b_idx == (b + away) % bins)
+        if not near.any():
+            return None
+        edges.append(float(xy[near, 1].min()))
+    tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(dtheta)
+    if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
+        return None
+    # The chord must be seen: a few points lying flat on the water's surface. A view that
+    # merely stops short of the invert (a forward-looking sensor's first metre, a shadow)
+    # leaves no such line.
+    # Its returns are sparse, so they are looked for among all the section's points (stray
+    # removal drops most of them), near the level where the wall stops.
+    raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
+    raw_ang = np.mod(np.arctan2(raw[:, 1], raw[:, 0]), 2.0 * math.pi)
+    raw_bin = np.minimum((raw_ang / dtheta).astype(np.int64), bins - 1)
+    raw_rad = np.hypot(raw[:, 0], raw[:, 1])
+    edge_level = 0.5 * (edges[0] + edges[1])
+    on_chord = (
+        np.isin(raw_bin, run)
+        & (raw_rad < wall_radius_m - max(3.0 * sigma_m, 0.01))
+        & (np.abs(raw[:, 1] - edge_level) <= tolerance)
+    )
+    surface_y = raw[on_chord, 1]
+    if len(surface_y) < MIN_SURFACE_POINTS or len(surface_y) > typical / 3.0 * len(run):
+        # Too few to be a surface, or as dense as a wall: a deposit's top seen along part of
+        # the section (its shadow), not water.
+        return None
+    # Then only the points close to their median: stray returns in the window do not count.
+    level = float(np.median(surface_y))
+    surface_y = surface_y[np.abs(surface_y - level) <= max(3.0 * sigma_m, 0.02)]
+    if len(surface_y) < MIN_SURFACE_POINTS:
+        return None
+    level = float(np.median(surface_y))
+    from_surface = True
+    depth = (level + wall_radius_m) / nominal_diameter_m
+    if depth <= 0:
+        return None
+    return WaterLevel(level_m=level, depth_ratio=depth, bins=run, from_surface=from_surface)
