@@ -7,6 +7,7 @@ timeout, migrate on first use, file locking across processes) take ``sqlite_url`
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import multiprocessing
 import sqlite3
@@ -178,6 +179,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
     assert files == [
         "2026_11_23_0001_initial_schema.py",
         "2026_11_23_1620_inspection_blockage_summary.py",
+        "2026_12_01_1500_section_chainage_uncertainty.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -304,7 +306,7 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
     assert written[0][3] == pytest.approx(1 - (0.27 / 0.3) ** 2)
     assert written[0][4] == 300
 
-    db.downgrade(engine, "-1")
+    db.downgrade(engine, "c5e1a9f40b21")  # the revision before the blockage summary
     columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
     assert "peak_blockage_ratio" not in columns
     assert count_rows(engine, "sections") == 6
@@ -320,6 +322,26 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
         engine, content_hash="sha256:none", sections=[make_sections()[-1]], defects=[]
     )
     assert replacement > unmeasured
+
+
+def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> None:
+    sections = [
+        dataclasses.replace(s, chainage_uncertainty_m=0.01 * i)
+        for i, s in enumerate(make_sections())
+    ]
+    sections[-1] = dataclasses.replace(sections[-1], chainage_uncertainty_m=None)
+    inspection_id = save(engine, sections=sections)
+    stored = repository.get_sections(engine, inspection_id)
+    assert [s.chainage_uncertainty_m for s in stored] == [0.0, 0.01, 0.02, 0.03, None]
+    # Down one step: the column goes, the sections stay; up again: it is back, unknown (NULL).
+    db.downgrade(engine, "-1")
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("sections")}
+    assert "chainage_uncertainty_m" not in columns
+    assert count_rows(engine, "sections") == 5
+    db.upgrade(engine)
+    again = repository.get_sections(engine, inspection_id)
+    assert [s.chainage_uncertainty_m for s in again] == [None] * 5
+    assert [s.blockage_ratio for s in again] == [s.blockage_ratio for s in stored]
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:

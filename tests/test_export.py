@@ -21,7 +21,7 @@ from pipescan.storage.database.models import Section
 DESIGN_COLUMNS = (
     "asset_id,inspection_id,inspected_at,chainage_start_m,chainage_end_m,open_area_m2,"
     "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
-    "coverage_ratio,point_count,status,grade"
+    "coverage_ratio,point_count,status,grade,chainage_uncertainty_m"
 )
 NOMINAL_AREA_M2 = math.pi * 0.6**2 / 4
 MEASURED = SectionMeasures(
@@ -37,6 +37,7 @@ MEASURED = SectionMeasures(
     deformation_ratio=0.0,
     deposit_height_ratio=0.1,
     grade=3,
+    chainage_uncertainty_m=0.042,
 )
 # Figures computed but not trusted (only a fifth of the perimeter seen): stored for
 # diagnosis, never exported as measured.
@@ -126,6 +127,7 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         "point_count": "1500",
         "status": "ok",
         "grade": "3",
+        "chainage_uncertainty_m": "0.042",
     }
     assert float(measured["blockage_ratio"]) == pytest.approx(0.125, abs=1e-3)
     # Unmeasured figures are empty, never 0.
@@ -205,6 +207,9 @@ def test_sections_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
     assert unmeasured["blockage_ratio"] is None
     assert unmeasured["grade"] is None
     assert unmeasured["status"] == "low_coverage"
+    # Where the section sits is known to within this; unknown is null, never 0.
+    assert measured["chainage_uncertainty_m"] == 0.042
+    assert unmeasured["chainage_uncertainty_m"] is None
 
 
 def test_defects_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:

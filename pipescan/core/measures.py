@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -55,6 +55,12 @@ class MeasureParams:
         per-angle medians do not need more, and the cost stays bounded.
     grid : GridParams
         Parameters of the paper's grid method.
+    max_wall_spread_m : float
+        A section whose wall points spread around its contour by more than this (robust 1σ,
+        pooled over the wall's angle bins) is ``smeared_wall``: the frames that saw it
+        disagree. It sits above what the sensor's own noise gives (see
+        ``docs/registration.md``: the sweep's sections, registered right, read at most
+        ~11 mm under 20 mm of range noise at grazing incidence).
     """
 
     method: Literal["polar", "grid"] = "polar"
@@ -66,6 +72,7 @@ class MeasureParams:
     stray_min_neighbours: int = 3
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
+    max_wall_spread_m: float = 0.02
 
 
 def choose_bins(point_count: int, *, points_per_bin: int = 16) -> int:
@@ -123,6 +130,21 @@ def _deposit_height_ratio(
     return max(0.0, (r_wall - r_bottom) / nominal_diameter_m)
 
 
+def wall_spread_m(points_2d: np.ndarray, profile: PolarProfile, wall: np.ndarray) -> float | None:
+    """Robust spread (1.4826 × MAD, metres) of the points of the wall's bins around their
+    bin's radius: the sensor's noise where the frames agree, more where they do not. None
+    without wall bins."""
+    bins = len(profile.radii_m)
+    rel = np.asarray(points_2d, dtype=np.float64)[:, :2]
+    ang = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * np.pi)
+    b = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    on_wall = wall[b]
+    if on_wall.sum() < 10:
+        return None
+    residual = np.hypot(rel[on_wall, 0], rel[on_wall, 1]) - profile.radii_m[b[on_wall]]
+    return float(1.4826 * np.median(np.abs(residual - np.median(residual))))
+
+
 def measure_section(
     points_2d: np.ndarray,
     *,
@@ -131,6 +153,8 @@ def measure_section(
     nominal_diameter_m: float,
     params: MeasureParams = MeasureParams(),
     point_count: int | None = None,
+    chainage_uncertainty_m: float | None = None,
+    registration_weak: bool = False,
 ) -> SectionMeasures:
     """Measure one section from its projected points.
 
@@ -147,11 +171,18 @@ def measure_section(
     params : MeasureParams
     point_count : int, optional
         Points in the section before the caller thinned them (default: as given).
+    chainage_uncertainty_m : float, optional
+        How far the section's true place may be from its chainage (registration's).
+    registration_weak : bool
+        A frame that saw the section slid along the axis or was extrapolated
+        (``RegistrationEvidence``): the status is then ``weak_registration``.
 
     Returns
     -------
     SectionMeasures
-        ``status`` is ``ok`` only when enough of the perimeter was seen with enough points.
+        ``status`` is ``ok`` only when enough of the perimeter was seen with enough points,
+        by frames that were registered and agree (the wall is not smeared). The first
+        reason that applies is given: coverage and points, then registration, then smear.
         Figures that could be computed are kept for diagnostics even when the status is not
         ok; figures that could not are None.
 
@@ -166,11 +197,12 @@ def measure_section(
     """
     nominal_area = math.pi * nominal_diameter_m**2 / 4.0
     raw = np.asarray(points_2d, dtype=np.float64)
-    base = dict(
+    base: dict[str, Any] = dict(
         chainage_start_m=float(chainage_start_m),
         chainage_end_m=float(chainage_end_m),
         nominal_area_m2=nominal_area,
         point_count=len(raw) if point_count is None else point_count,
+        chainage_uncertainty_m=chainage_uncertainty_m,
     )
     if len(raw) == 0:
         return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)
@@ -194,6 +226,8 @@ def measure_section(
     status = SectionStatus.OK
     if coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
         status = SectionStatus.LOW_COVERAGE
+    elif registration_weak:
+        status = SectionStatus.WEAK_REGISTRATION
 
     if params.method == "grid":
         try:
@@ -230,8 +264,16 @@ def measure_section(
     ovality, deformation = _diameter_measures(
         radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
     )
+    spread = wall_spread_m(
+        pts,
+        profile,
+        _wall_bins(profile.radii_m, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio),
+    )
+    if status == SectionStatus.OK and spread is not None and spread > params.max_wall_spread_m:
+        status = SectionStatus.SMEARED_WALL
     return SectionMeasures(
         status=status,
+        wall_spread_m=spread,
         coverage_ratio=coverage,
         open_area_m2=open_area,
         blockage_ratio=1.0 - open_area / nominal_area,

@@ -18,6 +18,7 @@ from pipescan.core.grading import choose_grading, grade_sections, load_table, me
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
 from pipescan.core.registration import (
+    RegistrationEvidence,
     RegistrationParams,
     Trajectory,
     iter_registered_points,
@@ -154,11 +155,18 @@ def measure_sections(
     axis: PipeAxis,
     nominal_diameter_m: float,
     params: MeasureParams,
+    evidence: RegistrationEvidence | None = None,
 ) -> list[SectionMeasures]:
-    """Measure every section of one chainage window."""
+    """Measure every section of one chainage window (with what registration says of it)."""
     points = read_window_offsets(bucket_root, window)
     sections = measure_window(
-        points, axis, window, nominal_diameter_m=nominal_diameter_m, params=params, relative=True
+        points,
+        axis,
+        window,
+        nominal_diameter_m=nominal_diameter_m,
+        params=params,
+        relative=True,
+        evidence=evidence,
     )
     log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
     return sections

@@ -45,8 +45,10 @@ SECTION_CSV_COLUMNS: tuple[str, ...] = (
     "point_count",
     "status",
     "grade",
+    "chainage_uncertainty_m",
 )
-"""Header of the sections CSV, in order."""
+"""Header of the sections CSV, in order. ``chainage_uncertainty_m`` bounds how far the
+section's true place along the pipe may be from its chainage (empty when not known)."""
 
 DEFECT_CSV_COLUMNS: tuple[str, ...] = (
     "asset_id",
@@ -133,6 +135,7 @@ def _section_rows(
         Section.point_count,
         Section.status,
         Section.grade,
+        Section.chainage_uncertainty_m,
     ).join(Section, Section.inspection_id == Inspection.id)
     statement = _filtered(statement, asset_id, inspection_id).order_by(
         Inspection.asset_id, Inspection.inspected_at, Inspection.id, Section.chainage_start_mm
@@ -186,6 +189,7 @@ def _section_csv_cells(record: Mapping[str, Any]) -> list[str]:
         str(record["point_count"]),
         record["status"],
         _int_cell(record["grade"]),
+        _float_cell(record["chainage_uncertainty_m"]),
     ]
 
 
@@ -323,7 +327,10 @@ def export_sections_jsonl(
         The number of lines written.
     """
     return _write_jsonl(
-        out, SECTION_CSV_COLUMNS, _section_rows(engine, asset_id, inspection_id), _MEASURE_COLUMNS
+        out,
+        SECTION_CSV_COLUMNS,
+        _section_rows(engine, asset_id, inspection_id),
+        (*_MEASURE_COLUMNS, "chainage_uncertainty_m"),
     )
 
 

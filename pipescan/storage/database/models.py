@@ -193,6 +193,9 @@ class Section(Base):
     status: Mapped[str] = mapped_column(sa.String())
     grade: Mapped[int | None] = mapped_column(sa.Integer())
     contour_json: Mapped[str | None] = mapped_column(sa.Text())
+    # How far the section's true place may be from its chainage (registration's); NULL when
+    # not known.
+    chainage_uncertainty_m: Mapped[float | None] = mapped_column(sa.Float())
 
     inspection: Mapped[Inspection] = relationship(back_populates="sections")
 

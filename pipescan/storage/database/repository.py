@@ -297,6 +297,7 @@ def _section_row(section: SectionMeasures) -> dict[str, Any]:
             if section.contour_m is None
             else _contour_to_json(section.contour_m, _section_where(section))
         ),
+        "chainage_uncertainty_m": _finite_or_none(section.chainage_uncertainty_m),
     }
 
 
@@ -330,6 +331,7 @@ def section_from_row(row: Any) -> SectionMeasures:
         deposit_height_ratio=row.deposit_height_ratio,
         grade=row.grade,
         contour_m=_contour_from_json(getattr(row, "contour_json", None)),
+        chainage_uncertainty_m=getattr(row, "chainage_uncertainty_m", None),
     )
 
 
@@ -475,6 +477,7 @@ _SECTION_COPY_TYPES: dict[str, str] = {
     "status": "varchar",
     "grade": "int4",
     "contour_json": "text",
+    "chainage_uncertainty_m": "float8",
 }
 
 
