@@ -491,6 +491,8 @@ class DrawFigures:
     u_max_m: float
     realtime: float
     seconds: float
+    weak: int = 0
+    smeared: int = 0
 
 
 def _flow_sections(archive: Path, work: Path):
@@ -589,14 +591,16 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
         u_max_m=u_max,
         realtime=duration_s / reg_seconds,
         seconds=time.perf_counter() - started,
+        weak=sum(s.status.value == "weak_registration" for s in stored.sections),
+        smeared=sum(s.status.value == "smeared_wall" for s in stored.sections),
     )
 
 
 SWEEP_HEADER = (
     "| draw | frames | odometer err % | travel err % | ok | ok away from edges | "
     "mean pp | max pp | dishonest (>2 pp within ±u) | dishonest at same chainage | "
-    "worst pp | shadows ok/all | u max m | RT 1 core |\n"
-    "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    "worst pp | shadows ok/all | u max m | RT 1 core | weak reg. | smeared |\n"
+    "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
 
 
@@ -605,7 +609,8 @@ def _sweep_row(f: DrawFigures) -> str:
         f"| {f.name} | {f.frames} | {100 * f.odometer_error_ratio:+.2f} | "
         f"{100 * f.travel_error_ratio:+.2f} | {f.ok} | {f.ok_away} | {f.mean_pp:.2f} | "
         f"{f.max_pp:.2f} | {f.dishonest} | {f.dishonest_naive} | {f.worst_pp:.1f} | "
-        f"{f.shadows_ok}/{f.shadows} | {f.u_max_m:.3f} | {f.realtime:.1f}× |"
+        f"{f.shadows_ok}/{f.shadows} | {f.u_max_m:.3f} | {f.realtime:.1f}× | {f.weak} | "
+        f"{f.smeared} |"
     )
 
 
