@@ -165,8 +165,10 @@ def test_features_override_an_odometer_that_slipped():
     e = _errors(scan, traj)
     assert e["odometer_final_m"] > 0.05
     assert e["along_final_m"] < 0.1 * e["odometer_final_m"]
-    slipped = {q.index for q in traj.quality if q.fault == "odometer_slip"}
-    assert len(slipped & set(scan.slip_frames.tolist())) >= 0.5 * len(scan.slip_frames)
+    # The disagreement over the slide window, with ICP carrying the weight, is reported as
+    # the odometer's slip (the sections stay measured: ICP placed them).
+    assert any(q.fault == "odometer_slip" for q in traj.quality)
+    assert not any(q.fault == "slide" for q in traj.quality)
 
 
 def test_featureless_pipe_without_odometer_says_where_it_could_not(clean_scan):

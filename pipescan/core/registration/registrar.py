@@ -61,7 +61,6 @@ class FrameRegistrar:
         self._velocity_m = np.zeros(3)
         self._prev_odometer: float | None = None
         self._down_world: np.ndarray | None = None
-        self._odometer_overridden = False
         self.odometer_frames = 0
         self.count = 0
 
@@ -216,7 +215,6 @@ class FrameRegistrar:
             degenerate=weight < 0.5,
             along_axis_weight=weight,
             chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
-            fault="odometer_slip" if self._odometer_overridden else None,
         )
 
     def _fuse(
@@ -241,8 +239,7 @@ class FrameRegistrar:
         normals_sensor = normals_world @ pred[:3, :3]
         information = axial_information(normals_sensor, surface_variation, resid, axis_sensor)
         x = small_motion(np.linalg.inv(pred) @ T)
-        weight, overrode = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
-        self._odometer_overridden = overrode
+        weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
         length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
         hessian = point_to_plane_hessian(src, normals_sensor)
         weak, scale = degenerate_directions(hessian, length, p.degeneracy_ratio)
@@ -270,7 +267,7 @@ class FrameRegistrar:
         along = float(T[:3, 3] @ self._axis_world)
         fault: Fault | None
         fault, disagreement = self._slides.add(odometer_m, along, w, self._axial.last_icp_var)
-        if fault is None or (fault == "odometer_slip" and quality.fault is not None):
+        if fault is None:
             return T, quality
         if fault == "slide":
             T = T.copy()
