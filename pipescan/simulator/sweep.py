@@ -312,7 +312,8 @@ def score_sections(sections, truth: TrueBlockage) -> SectionScore:
         by_start[start] = sec
         if not sec.is_ok or sec.blockage_ratio is None:
             continue
-        u = float(sec.chainage_uncertainty_m or 0.0)
+        # Sections that state no uncertainty (stored before it was recorded) claim 0.
+        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
         shifted = truth.around(start, u)
         if not np.isfinite(shifted).all():
             continue
