@@ -153,6 +153,26 @@ def test_spurious_returns_do_not_move_frames_along_the_pipe(misty_scan, monkeypa
     assert np.linalg.norm(positions[-1] - positions[0]) < 0.7 * travel
 
 
+def test_a_slide_is_caught_and_put_back_on_the_odometer(misty_scan, monkeypatch):
+    # Fake geometry with a little information (ICP's error 2 cm along the axis) in a smooth,
+    # misty pipe: each frame slides back a little, and the slide window catches it.
+    from pipescan.core.registration import registrar
+
+    monkeypatch.setattr(registrar, "axial_information", lambda *args: 1.0 / 0.02**2)
+    traj = register_frames(_imu_frames(misty_scan))
+    e = _errors(misty_scan, traj)
+    slid = [q.index for q in traj.quality if q.fault == "slide"]
+    assert len(slid) > 20
+    assert e["along_final_m"] <= e["odometer_final_m"] + 0.03  # back within the window's bound
+    assert traj.quality[-1].chainage_uncertainty_m >= e["along_final_m"]
+    # The sections those frames saw are not trusted.
+    chainage = np.linalg.norm(traj.positions_m() - traj.positions_m()[0], axis=1)
+    evidence = registration_evidence(traj, chainage, seen_from_m=5.0)
+    k = slid[len(slid) // 2]
+    assert evidence.for_section(chainage[k] + 1.0, chainage[k] + 1.1)[1]
+    assert registration_summary(traj, RegistrationParams())["slides"] == len(slid)
+
+
 def test_features_override_an_odometer_that_slipped():
     # The crawler sticks on debris every ~0.5 m for a second while the count runs on, and
     # slides as often while the count stands; the end wall and the defects are in view.
@@ -328,10 +348,15 @@ def test_axial_filter_weighs_information_against_the_odometer():
     weak.predict(0.015, map_extent_m=1.0, odometer=True)
     w, overrode = weak.update(1.0 / 0.05**2, 0.0, 0.001)  # ICP's σ 5 cm
     assert w < 0.01 and not overrode
-    # ICP sure of itself (1 mm) and 15 mm off the odometer: the odometer slipped.
+    # ICP sure of itself (1 mm) and a step (15 mm) off the odometer: the odometer slipped.
     slip = AxialFilter(0.03, 0.001)
     slip.predict(0.015, map_extent_m=1.0, odometer=True)
     assert slip.update(1e6, 0.0, -0.015) == (1.0, True)
+    # Without an odometer nothing can slip: the same correction is weighed as usual.
+    guess = AxialFilter(0.03, 0.001)
+    guess.predict(0.015, map_extent_m=1.0, odometer=False)
+    w, overrode = guess.update(1e6, 0.0, -0.015)
+    assert not overrode and 0.99 < w < 1.0
 
 
 def test_slide_detector_tells_a_slide_from_an_odometer_slip():

@@ -118,7 +118,7 @@ def axial_information(
     least 14.5° across it, ``|n_i·a| ≥ 0.25``: an end wall, an obstacle's face, a deposit's
     ramp) and is a surface (the neighbourhood's ``surface_variation`` at most 0.05: a slab
     at most a third as thick as it is wide). ``σ`` is those correspondences' own robust
-    residual spread.
+    residual spread (at least 1 mm).
 
     Why not the whole Hessian: a smooth wall's normals tilt by the range noise and by the
     voxel grid, and a blob of spurious returns has normals in every direction; both put
@@ -211,12 +211,12 @@ class AxialFilter:
     information ``I`` then weighs in: ``w = P² / (P² + 1/I)``, after which ``P² ← (1 - w) P²``.
 
     The chainage uncertainty ``u`` is a bound on the frame's along-axis position from the
-    first frame. A step adds the odometer's bound ``scale · |Δ|`` (times ``1 - w``) unless
-    ICP anchors the frame: its own error ``1/√I`` within what the odometer may be off over
-    the map's length. Then the frame is placed against the map's features, whose place does
-    not drift with the odometer, and only ICP's own error adds up, in quadrature, once per
-    keyframe (the map moves on by keyframes). A slide adds the size of the disagreement
-    (:meth:`widen`).
+    first frame. A step adds the odometer's bound ``scale · |Δ|`` (times ``1 - w``), and ICP's
+    share of the correction its error ``w/√I`` (in quadrature, at 2σ), unless ICP anchors the
+    frame: its own error ``1/√I`` within what the odometer may be off over the map's length.
+    Then the frame is placed against the map's features, whose place does not drift with the
+    odometer, and only ICP's own error adds up, in quadrature, once per keyframe (the map moves
+    on by keyframes). A slide adds the size of the disagreement (:meth:`widen`).
     """
 
     def __init__(
@@ -228,6 +228,7 @@ class AxialFilter:
         self.P = 0.0
         self._cap = 0.0
         self._step = 0.0
+        self._odometer = True
         self.last_icp_var = 0.0
         self._held_m = 0.0
         self._icp_var = 0.0
@@ -250,7 +251,7 @@ class AxialFilter:
             cap = float("inf")
             noise = 0.0
         self.P = float(np.hypot(min(self.P + bound, cap), noise))
-        self._cap, self._step = cap, abs(step_m)
+        self._cap, self._step, self._odometer = cap, abs(step_m), odometer
         return bound
 
     def update(
@@ -261,26 +262,37 @@ class AxialFilter:
 
         ``correction_m`` is ICP's along-axis correction of the prior (the innovation). When it
         exceeds 3σ of both errors together (``P² + 1/I``), the two cannot both be right; ICP,
-        whose own error is then below a third of the disagreement, is believed: the odometer
-        slipped (the crawler stuck on debris while the count ran on, or sliding while it
-        stood), and ``w = 1``.
+        whose own error is then below a third of the disagreement, is believed (``w = 1``):
+        the odometer slipped (the crawler stuck on debris while the count ran on, or sliding
+        while it stood). Should ICP have jumped to a wrong minimum instead, the slide window
+        catches it against the odometer (:class:`SlideDetector`). (A gate on the size of the
+        jump was tried: once a real slip had run past it, ICP was never believed again.)
         """
         overrode = False
+        # Without an odometer the prior is only a guess: there is nothing to slip.
+        gated = (
+            self._odometer
+            and information > 0
+            and correction_m**2 > _INNOVATION_SIGMAS**2 * (self.P**2 + 1.0 / information)
+        )
         if information <= 0:
             w = 0.0
-        elif correction_m**2 > _INNOVATION_SIGMAS**2 * (self.P**2 + 1.0 / information):
+        elif gated:
             w, overrode = 1.0, True
         elif self.P == 0:
             w = 1.0
         else:
             w = self.P**2 / (self.P**2 + 1.0 / information)
         self.last_icp_var = w**2 / information if w > 0 and information > 0 else 0.0
-        anchored = information > 0 and 1.0 / np.sqrt(information) <= self._cap
+        anchored = w > 0 and 1.0 / np.sqrt(information) <= self._cap
         if anchored:
             share = min(self._step / self.keyframe_distance_m, 1.0)
             self._icp_var += share / information
         else:
+            # Held to the odometer, but for ICP's share w of a correction that carries ICP's
+            # own error: that adds up, in quadrature, too.
             self._held_m += (1.0 - w) * step_bound_m
+            self._icp_var += self.last_icp_var
         self.P = float(np.sqrt(1.0 - w)) * self.P
         return w, overrode
 
@@ -312,6 +324,8 @@ class SlideDetector:
         self.window_m = window_m
         self.scale = scale_error_ratio
         self.noise_m = noise_m
+        self.window_frames = 0
+        """Frames in the window of the last fault, this one included."""
         self._frames: deque[_WindowFrame] = deque()
 
     def restart(self) -> None:
@@ -341,5 +355,6 @@ class SlideDetector:
         if abs(disagreement) <= allowed:
             return None, disagreement
         carried = float(np.mean([f.weight for f in frames])) >= _ICP_CARRIED_WEIGHT
+        self.window_frames = len(self._frames)
         self._frames.clear()  # the caller adds the frame again, where it leaves it
         return ("odometer_slip" if carried else "slide"), disagreement

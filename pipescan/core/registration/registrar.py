@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 
 import numpy as np
@@ -61,6 +62,8 @@ class FrameRegistrar:
         self._velocity_m = np.zeros(3)
         self._prev_odometer: float | None = None
         self._down_world: np.ndarray | None = None
+        self.slid: list[tuple[int, int]] = []
+        """Runs of frames (first, last, counted from 0) that slid along the axis."""
         self.odometer_frames = 0
         self.count = 0
 
@@ -260,8 +263,6 @@ class FrameRegistrar:
     ) -> tuple[np.ndarray, FrameQuality]:
         """Compare registered and odometer travel over the slide window; put a frame that
         slid back on the odometer."""
-        import dataclasses
-
         assert self._axis_world is not None
         w = quality.along_axis_weight
         along = float(T[:3, 3] @ self._axis_world)
@@ -274,6 +275,8 @@ class FrameRegistrar:
             T[:3, 3] -= disagreement * self._axis_world
             self._axial.widen(disagreement)
             self._axial.P = 0.0
+            # Every frame of the window slid with it: their sections are not trusted.
+            self.slid.append((self.count - self._slides.window_frames + 1, self.count))
         self._slides.add(odometer_m, float(T[:3, 3] @ self._axis_world), w, 0.0)
         return T, dataclasses.replace(
             quality,
@@ -344,8 +347,6 @@ def register_frames(
     >>> traj.T_world_frame.shape[1:], traj.along_axis_prior
     ((4, 4), 'odometer')
     """
-    import dataclasses
-
     reg = FrameRegistrar(params)
     poses, quality, indices = [], [], []
     for frame_index, points, odometer, *rest in frames:
@@ -359,4 +360,8 @@ def register_frames(
         indices.append(frame_index)
     if not poses:
         raise RegistrationError("no frames to register")
+    for first, last in reg.slid:
+        for k in range(max(first, 1), last + 1):
+            if quality[k].fault is None:
+                quality[k] = dataclasses.replace(quality[k], fault="slide")
     return Trajectory(np.asarray(poses), tuple(quality), tuple(indices), reg.along_axis_prior)
