@@ -18,6 +18,7 @@ from pipescan.core.registration import (
     SlideDetector,
     Trajectory,
     chain_trajectories,
+    iter_registered_points,
     kabsch,
     plan_chunks,
     register_frames,
@@ -165,11 +166,9 @@ def test_a_slide_is_caught_and_put_back_on_the_odometer(misty_scan, monkeypatch)
     assert len(slid) > 20
     assert e["along_final_m"] <= e["odometer_final_m"] + 0.03  # back within the window's bound
     assert traj.quality[-1].chainage_uncertainty_m >= e["along_final_m"]
-    # The sections those frames saw are not trusted.
-    chainage = np.linalg.norm(traj.positions_m() - traj.positions_m()[0], axis=1)
-    evidence = registration_evidence(traj, chainage, seen_from_m=5.0)
-    k = slid[len(slid) // 2]
-    assert evidence.for_section(chainage[k] + 1.0, chainage[k] + 1.1)[1]
+    # Frames that slid are left out of the sections; the other frames see them whole.
+    placed = list(iter_registered_points(((q.index, np.zeros((1, 3))) for q in traj.quality), traj))
+    assert len(placed) == len(traj.quality) - len(slid)
     assert registration_summary(traj, RegistrationParams())["slides"] == len(slid)
 
 
@@ -391,12 +390,23 @@ def test_chained_chunks_add_their_uncertainties():
 def test_registration_evidence_of_a_section():
     q = tuple(
         FrameQuality(i, 1.0, 0.0, False, 1.0, chainage_uncertainty_m=0.01 * i,
-                     fault="slide" if i == 6 else None)
+                     fault="slide" if i in (6, 7) else None)
         for i in range(10)
     )  # fmt: skip
     traj = Trajectory(np.repeat(np.eye(4)[None], 10, axis=0), q, tuple(range(10)))
     evidence = registration_evidence(traj, np.arange(10) * 1.0, seen_from_m=2.0)
     # A section at 3.0-3.1 m is seen from frames at 1-3 m: uncertainty 3 cm, no slide.
     assert evidence.for_section(3.0, 3.1) == (pytest.approx(0.03), False)
-    # One at 7.0-7.1 m is seen from the frame that slid (6 m).
-    assert evidence.for_section(7.0, 7.1) == (pytest.approx(0.07), True)
+    # One at 6.0-6.1 m is seen from frames at 4-6 m, one of three slid: the others see it.
+    assert evidence.for_section(6.0, 6.1) == (pytest.approx(0.06), False)
+    # One at 7.5-7.6 m is seen from frames at 6-7 m, which both slid.
+    assert evidence.for_section(7.5, 7.6) == (pytest.approx(0.07), True)
+    # Without an odometer, a frame with no geometry along the axis makes its sections weak.
+    guessed = Trajectory(
+        traj.T_world_frame,
+        tuple(dataclasses.replace(x, degenerate=x.index == 2, fault=None) for x in q),
+        traj.frame_indices,
+        "constant_velocity",
+    )
+    evidence = registration_evidence(guessed, np.arange(10) * 1.0, seen_from_m=2.0)
+    assert evidence.for_section(3.0, 3.1)[1] and not evidence.for_section(8.0, 8.1)[1]

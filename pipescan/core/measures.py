@@ -176,7 +176,7 @@ def measure_section(
     chainage_uncertainty_m : float, optional
         How far the section's true place may be from its chainage (registration's).
     registration_weak : bool
-        A frame that saw the section slid along the axis or was extrapolated
+        Most frames that saw the section slid along the axis, or one was extrapolated
         (``RegistrationEvidence``): the status is then ``weak_registration``.
 
     Returns

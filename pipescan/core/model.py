@@ -60,8 +60,9 @@ class SectionStatus(StrEnum):
     OUTSIDE_SCAN = "outside_scan"
     NO_CONTOUR = "no_contour"
     WEAK_REGISTRATION = "weak_registration"
-    """A frame that saw the section slid along the pipe axis (registration caught it against
-    the odometer), or had neither odometer nor geometry along the axis."""
+    """Most frames that saw the section slid along the pipe axis (registration caught it
+    against the odometer, and left them out), or one had neither odometer nor geometry along
+    the axis (its place was extrapolated)."""
     SMEARED_WALL = "smeared_wall"
     """The wall's points spread around the contour by more than the sensor's noise allows:
     the frames that saw the section disagree."""

@@ -149,8 +149,8 @@ def measure_window(
     relative : bool
         ``points_m`` are offsets from ``axis.origin_m`` (see ``iter_section_points``).
     evidence : RegistrationEvidence, optional
-        What registration says about each section: its chainage uncertainty, and whether a
-        frame that saw it slid (then its status is ``weak_registration``).
+        What registration says about each section: its chainage uncertainty, and whether its
+        registration is weak (then its status is ``weak_registration``).
 
     Returns
     -------

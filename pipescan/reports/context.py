@@ -57,8 +57,9 @@ STATUS_EXPLANATIONS: dict[str, str] = {
     SectionStatus.OUTSIDE_SCAN: "the section lies beyond the scanned length",
     SectionStatus.NO_CONTOUR: "no closed inner contour could be traced",
     SectionStatus.WEAK_REGISTRATION: (
-        "a frame that saw the section slid along the pipe (registered travel disagreed with "
-        "the odometer beyond its error), or had neither odometer nor geometry along the pipe"
+        "most frames that saw the section slid along the pipe (registered travel disagreed "
+        "with the odometer beyond its error), or one had neither odometer nor geometry along "
+        "the pipe"
     ),
     SectionStatus.SMEARED_WALL: (
         "the wall's points spread around the contour by more than the sensor's noise: the "

@@ -145,6 +145,8 @@ def bucket_points(
         if trajectory is None:
             return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
         pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))
+    if not pts:  # every frame of the chunk slid along the axis: none is placed
+        return 0
     return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
 
 

@@ -100,9 +100,11 @@ class RegistrationEvidence:
     """What registration says about each stretch of chainage, for the sections measured there.
 
     A section is seen by the frames within ``seen_from_m`` behind it (in the direction of
-    travel: the sensor looks forward). Its chainage uncertainty is the largest of theirs, and
-    its registration is weak when any of them slid along the axis (a fault the odometer
-    caught) or had no odometer and no geometry along the axis (extrapolated).
+    travel: the sensor looks forward). Its chainage uncertainty is the largest of theirs. Its
+    registration is weak when one of them had no odometer and no geometry along the axis
+    (its place is extrapolated), or when most of them slid along the axis (a fault the
+    odometer caught: such frames are left out of the sections, and the few left may not show
+    the section whole).
 
     Attributes
     ----------
@@ -110,8 +112,8 @@ class RegistrationEvidence:
         Chainage of each frame's sensor position on the fitted axis.
     uncertainty_m : (F,) float
         Each frame's chainage uncertainty.
-    weak : (F,) bool
-        Frames whose along-axis position is not trusted.
+    extrapolated, slid : (F,) bool
+        Frames placed along the axis by a guess (no odometer, no geometry), frames that slid.
     seen_from_m : float
         How far ahead of the sensor a section can be seen (the section range).
     ahead : {1, -1}
@@ -120,7 +122,8 @@ class RegistrationEvidence:
 
     frame_chainage_m: np.ndarray
     uncertainty_m: np.ndarray
-    weak: np.ndarray
+    extrapolated: np.ndarray
+    slid: np.ndarray
     seen_from_m: float
     ahead: int = 1
 
@@ -133,7 +136,8 @@ class RegistrationEvidence:
             seen = (c >= start_m) & (c <= end_m + self.seen_from_m)
         if not seen.any():
             return 0.0, False
-        return float(self.uncertainty_m[seen].max()), bool(self.weak[seen].any())
+        weak = bool(self.extrapolated[seen].any()) or float(self.slid[seen].mean()) > 0.5
+        return float(self.uncertainty_m[seen].max()), weak
 
 
 def registration_evidence(
@@ -143,11 +147,12 @@ def registration_evidence(
     ``frame_chainage_m`` (their sensor positions on the fitted axis, (F,))."""
     chainage = np.asarray(frame_chainage_m, dtype=np.float64)
     q = trajectory.quality
-    extrapolated = trajectory.along_axis_prior != "odometer"
-    weak = np.array([x.fault == "slide" or (extrapolated and x.degenerate) for x in q])
+    guessed = trajectory.along_axis_prior != "odometer"
+    extrapolated = np.array([guessed and x.degenerate for x in q], dtype=bool)
+    slid = np.array([x.fault == "slide" for x in q], dtype=bool)
     uncertainty = np.array([x.chainage_uncertainty_m for x in q])
     ahead = 1 if len(chainage) < 2 or chainage[-1] >= chainage[0] else -1
-    return RegistrationEvidence(chainage, uncertainty, weak, seen_from_m, ahead)
+    return RegistrationEvidence(chainage, uncertainty, extrapolated, slid, seen_from_m, ahead)
 
 
 @dataclass(frozen=True)

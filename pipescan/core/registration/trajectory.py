@@ -96,7 +96,14 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
 def iter_registered_points(
     frames: Iterable[tuple[int, np.ndarray]], trajectory: Trajectory
 ) -> Iterator[np.ndarray]:
-    """Transform frames into the world frame, one at a time, (N, 3) each."""
+    """Transform frames into the world frame, one at a time, (N, 3) each.
+
+    Frames that slid along the axis (``fault == "slide"``) are left out: their place is not
+    known, and the sections are seen from many other frames.
+    """
     pose_of = dict(zip(trajectory.frame_indices, trajectory.T_world_frame, strict=True))
+    slid = {q.index for q in trajectory.quality if q.fault == "slide"}
     for frame_index, points in frames:
+        if frame_index in slid:
+            continue
         yield transform(pose_of[frame_index], np.asarray(points, dtype=np.float64))
