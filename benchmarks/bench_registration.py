@@ -430,48 +430,6 @@ def bench_parallel(args) -> None:
 
 # --------------------------------------------------------------------------- sweep
 
-TRUTH_STEP_M = 0.005  # the truth's resolution along the axis (a twentieth of a section)
-SECTION_STEP_M = 0.1
-FLAT_PP = 0.2  # the truth is "away from a defect's edge" where it varies less than this
-DISHONEST_PP = 2.0
-
-
-class _Truth:
-    """The simulator's exact blockage on a fine grid along the axis, averaged over any section."""
-
-    def __init__(self, scan) -> None:
-        from pipescan.simulator.scan import free_area_m2
-
-        s = scan.scenario
-        n = int(np.ceil(s.end_wall_m / TRUTH_STEP_M))
-        x = (np.arange(n) + 0.5) * TRUTH_STEP_M
-        blockage = np.array([1.0 - free_area_m2(s, float(v)) / s.nominal_area_m2 for v in x])
-        self._fine = blockage
-        self._cum = np.concatenate(([0.0], np.cumsum(blockage)))
-        self._per = round(SECTION_STEP_M / TRUTH_STEP_M)
-        self.sections = {round(t.chainage_start_m, 3): t for t in scan.true_sections()}
-
-    def section(self, start_m: np.ndarray) -> np.ndarray:
-        """Mean true blockage of sections starting at ``start_m`` (NaN beyond the scene)."""
-        i = np.round(np.asarray(start_m) / TRUTH_STEP_M).astype(np.int64)
-        ok = (i >= 0) & (i + self._per < len(self._cum))
-        out = np.full(i.shape, np.nan)
-        out[ok] = (self._cum[i[ok] + self._per] - self._cum[i[ok]]) / self._per
-        return out
-
-    def variation(self, start_m: float, u_m: float) -> float:
-        """How much the true blockage varies over the section widened by ±``u_m`` (max - min
-        on the fine grid): 0 away from every defect's edge."""
-        lo = max(0, int(np.floor((start_m - u_m) / TRUTH_STEP_M)))
-        hi = int(np.ceil((start_m + SECTION_STEP_M + u_m) / TRUTH_STEP_M))
-        part = self._fine[lo:hi]
-        return float(part.max() - part.min()) if part.size else float("nan")
-
-    def around(self, start_m: float, u_m: float) -> np.ndarray:
-        """True blockage of the section shifted by every amount within ±``u_m``."""
-        shifts = np.arange(-u_m, u_m + 1e-9, TRUTH_STEP_M) if u_m > 0 else np.zeros(1)
-        return self.section(start_m + shifts)
-
 
 @dataclasses.dataclass
 class DrawFigures:
@@ -491,6 +449,8 @@ class DrawFigures:
     u_max_m: float
     realtime: float
     seconds: float
+    weak: int = 0
+    smeared: int = 0
 
 
 def _flow_sections(archive: Path, work: Path):
@@ -529,74 +489,37 @@ def _registered(archive: Path, params: RegistrationParams):
 def evaluate_draw(draw, work: Path) -> DrawFigures:
     """Simulate one draw, inspect it with the flow, and score its sections against the truth."""
     from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.sweep import TrueBlockage, score_sections
 
     scan = simulate_scan(draw.scenario, draw.seed)
     archive = write_simulated_archive(scan, work / "archive")
     started = time.perf_counter()
     trajectory, reg_seconds = _registered(archive, RegistrationParams())
     stored = _flow_sections(archive, work)
-    truth = _Truth(scan)
+    score = score_sections(stored.sections, TrueBlockage(scan))
     axis = scan.T_world_pipe[:3, 0]
     positions = trajectory.positions_m()
     travel = float((positions[-1] - positions[0]) @ (scan.T_world_sensor[0, :3, :3].T @ axis))
     true_travel = float(scan.true_travel_m[-1])
-    ok_errors, dishonest, dishonest_naive, worst = [], 0, 0, 0.0
-    ok = 0
-    u_max = 0.0
-    by_start = {}
-    for sec in stored.sections:
-        start = round(sec.chainage_start_m, 3)
-        by_start[start] = sec
-        if not sec.is_ok or sec.blockage_ratio is None:
-            continue
-        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
-        u_max = max(u_max, u)
-        shifted = truth.around(start, u)
-        if not np.isfinite(shifted).all():
-            continue
-        ok += 1
-        b = sec.blockage_ratio
-        here = float(truth.section(np.array([start]))[0])
-        closest = float(np.min(np.abs(b - shifted))) * 100
-        naive = abs(b - here) * 100
-        worst = max(worst, closest)
-        dishonest += closest > DISHONEST_PP
-        dishonest_naive += naive > DISHONEST_PP
-        if truth.variation(start, u) * 100 <= FLAT_PP:
-            ok_errors.append(naive)
-    shadows = [t for t in truth.sections.values() if t.in_shadow and t.coverage_ratio < 0.9]
-    shadows_ok = sum(
-        1
-        for t in shadows
-        if (sec := by_start.get(round(t.chainage_start_m, 3))) is not None and sec.is_ok
-    )
-    errors = np.array(ok_errors) if ok_errors else np.array([np.nan])
     duration_s = len(scan) / scan.scenario.frame_rate_hz
     return DrawFigures(
         name=draw.name,
         frames=len(scan),
         odometer_error_ratio=float(scan.odometer_m[-1] / true_travel - 1.0),
         travel_error_ratio=travel / true_travel - 1.0,
-        ok=ok,
-        ok_away=len(ok_errors),
-        mean_pp=float(np.mean(errors)),
-        max_pp=float(np.max(errors)),
-        dishonest=dishonest,
-        dishonest_naive=dishonest_naive,
-        worst_pp=worst,
-        shadows=len(shadows),
-        shadows_ok=shadows_ok,
-        u_max_m=u_max,
+        **dataclasses.asdict(score),
         realtime=duration_s / reg_seconds,
         seconds=time.perf_counter() - started,
+        weak=sum(s.status.value == "weak_registration" for s in stored.sections),
+        smeared=sum(s.status.value == "smeared_wall" for s in stored.sections),
     )
 
 
 SWEEP_HEADER = (
     "| draw | frames | odometer err % | travel err % | ok | ok away from edges | "
     "mean pp | max pp | dishonest (>2 pp within ±u) | dishonest at same chainage | "
-    "worst pp | shadows ok/all | u max m | RT 1 core |\n"
-    "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    "worst pp | shadows ok/all | u max m | RT 1 core | weak reg. | smeared |\n"
+    "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
 
 
@@ -605,7 +528,8 @@ def _sweep_row(f: DrawFigures) -> str:
         f"| {f.name} | {f.frames} | {100 * f.odometer_error_ratio:+.2f} | "
         f"{100 * f.travel_error_ratio:+.2f} | {f.ok} | {f.ok_away} | {f.mean_pp:.2f} | "
         f"{f.max_pp:.2f} | {f.dishonest} | {f.dishonest_naive} | {f.worst_pp:.1f} | "
-        f"{f.shadows_ok}/{f.shadows} | {f.u_max_m:.3f} | {f.realtime:.1f}× |"
+        f"{f.shadows_ok}/{f.shadows} | {f.u_max_m:.3f} | {f.realtime:.1f}× | {f.weak} | "
+        f"{f.smeared} |"
     )
 
 
@@ -615,7 +539,7 @@ def bench_sweep(args) -> None:
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     from prefect.testing.utilities import prefect_test_harness
 
-    from pipescan.simulator.sweep import sweep_draws
+    from pipescan.simulator.sweep import DISHONEST_PP, FLAT_PP, sweep_draws
 
     draws = sweep_draws(random_draws=args.random_draws, long_run=not args.no_long)
     if args.only:

@@ -7,6 +7,7 @@ timeout, migrate on first use, file locking across processes) take ``sqlite_url`
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import multiprocessing
 import sqlite3
@@ -180,6 +181,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
         "2026_11_23_1620_inspection_blockage_summary.py",
         "2026_12_01_1530_network_pipes_and_survey_geometry.py",
         "2026_12_01_1600_uncertainty_water_start_source.py",
+        "2026_12_01_1700_section_chainage_uncertainty.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -363,6 +365,26 @@ def test_uncertainty_and_water_migration_with_data(engine: sa.Engine) -> None:
     assert [tuple(r[:2]) for r in after] == [tuple(r) for r in before]
     assert all(r[2] is None and r[3] is None for r in after)
     assert source is None
+
+
+def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> None:
+    sections = [
+        dataclasses.replace(s, chainage_uncertainty_m=0.01 * i)
+        for i, s in enumerate(make_sections())
+    ]
+    sections[-1] = dataclasses.replace(sections[-1], chainage_uncertainty_m=None)
+    inspection_id = save(engine, sections=sections)
+    stored = repository.get_sections(engine, inspection_id)
+    assert [s.chainage_uncertainty_m for s in stored] == [0.0, 0.01, 0.02, 0.03, None]
+    # Down one step: the column goes, the sections stay; up again: it is back, unknown (NULL).
+    db.downgrade(engine, "-1")
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("sections")}
+    assert "chainage_uncertainty_m" not in columns
+    assert count_rows(engine, "sections") == 5
+    db.upgrade(engine)
+    again = repository.get_sections(engine, inspection_id)
+    assert [s.chainage_uncertainty_m for s in again] == [None] * 5
+    assert [s.blockage_ratio for s in again] == [s.blockage_ratio for s in stored]
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:

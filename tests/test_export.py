@@ -23,7 +23,7 @@ DOCUMENTED_COLUMNS = (
     "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
     "coverage_ratio,point_count,status,grade,blockage_uncertainty_ratio,"
     "ovality_uncertainty_ratio,deformation_uncertainty_ratio,deposit_height_uncertainty_ratio,"
-    "water_depth_ratio"
+    "water_depth_ratio,chainage_uncertainty_m"
 )
 NOMINAL_AREA_M2 = math.pi * 0.6**2 / 4
 MEASURED = SectionMeasures(
@@ -44,6 +44,7 @@ MEASURED = SectionMeasures(
     deformation_uncertainty_ratio=0.005,
     deposit_height_uncertainty_ratio=0.012,
     water_depth_ratio=0.0,
+    chainage_uncertainty_m=0.042,
 )
 # Figures computed but not trusted (only a fifth of the perimeter seen): stored for
 # diagnosis, never exported as measured.
@@ -141,6 +142,7 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         "deformation_uncertainty_ratio": "0.005",
         "deposit_height_uncertainty_ratio": "0.012",
         "water_depth_ratio": "0",
+        "chainage_uncertainty_m": "0.042",
     }
     assert float(measured["blockage_ratio"]) == pytest.approx(0.125, abs=1e-3)
     # Unmeasured figures are empty, never 0.
@@ -222,6 +224,9 @@ def test_sections_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
     assert unmeasured["blockage_ratio"] is None
     assert unmeasured["grade"] is None
     assert unmeasured["status"] == "low_coverage"
+    # Where the section sits is known to within this; unknown is null, never 0.
+    assert measured["chainage_uncertainty_m"] == 0.042
+    assert unmeasured["chainage_uncertainty_m"] is None
 
 
 def test_defects_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:

@@ -430,3 +430,43 @@ def test_grid_chain_that_does_not_go_round_is_no_contour_not_a_small_one():
     lenient = measure(gap, method="grid", max_gap_deg=90.0, min_coverage_ratio=0.5)
     assert lenient.status == SectionStatus.NO_CONTOUR
     assert lenient.blockage_ratio is None
+
+
+# ------------------------------------------------------------------ registration's say
+
+
+def test_frames_that_disagree_smear_the_wall():
+    rng = np.random.default_rng(4)
+    one = ring_section(6000, noise_m=0.004, rng=rng)
+    ok = measure_section(one, chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=0.5)
+    assert ok.is_ok and ok.wall_spread_m == pytest.approx(0.004, rel=0.15)
+    # The same wall from four frames 1.5 cm off each other's place, each way: each is a
+    # clean circle, together a smear.
+    offsets = 0.015 * np.array([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]])
+    two = np.vstack([part + off for part, off in zip(np.split(one, 4), offsets, strict=True)])
+    smeared = measure_section(two, chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=0.5)
+    assert smeared.status == SectionStatus.SMEARED_WALL
+    assert smeared.wall_spread_m > MeasureParams().max_wall_spread_m
+    assert smeared.blockage_ratio is not None  # kept for diagnosis, never reported as measured
+
+
+def test_weak_registration_is_a_status_and_uncertainty_is_kept():
+    rng = np.random.default_rng(5)
+    pts = ring_section(6000, rng=rng)
+    s = measure_section(
+        pts,
+        chainage_start_m=2.0,
+        chainage_end_m=2.1,
+        nominal_diameter_m=0.5,
+        chainage_uncertainty_m=0.07,
+        registration_weak=True,
+    )
+    assert s.status == SectionStatus.WEAK_REGISTRATION and not s.is_ok
+    assert s.chainage_uncertainty_m == 0.07
+    # Too little coverage is the first reason, where it applies.
+    gap = ring_section(6000, rng=rng, gap_deg=(200, 260))
+    s = measure_section(
+        gap, chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=0.5,
+        registration_weak=True,
+    )  # fmt: skip
+    assert s.status == SectionStatus.LOW_COVERAGE

@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -77,6 +78,14 @@ class MeasureParams:
         ``too_few_points`` (too few points for the wall's scatter or its edges). 2.5 pp: the
         95 % interval is then no wider than the narrowest condition class of the shipped
         table (BBE 0-5 %), so a measured figure is never more than one class off.
+    max_wall_spread_m : float
+        A section whose wall points spread around its contour by more than this (robust 1σ,
+        pooled over the wall's angle bins) is ``smeared_wall``: the frames that saw it
+        disagree. A forward-looking sensor sees the wall at grazing incidence, where range
+        noise moves a point along the wall more than across it: with the true poses, the
+        spread reads 1-3 mm under the simulator's default noise and at most 6.6 mm at the
+        harsh end (20 mm range noise); frames that disagree by 10 mm (lateral) or 0.5°
+        (tilt) read 8-20 mm, with errors of 1-10 pp (``docs/registration.md``).
     """
 
     method: str = DEFAULT_CONTOUR_METHOD
@@ -88,6 +97,7 @@ class MeasureParams:
     stray_min_neighbours: int = 3
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
+    max_wall_spread_m: float = 0.008
     max_uncertainty_ratio: float = 0.025
 
     def __post_init__(self) -> None:
@@ -182,6 +192,21 @@ def _deposit_height_ratio(
     return max(0.0, (r_wall - r_bottom) / nominal_diameter_m)
 
 
+def wall_spread_m(points_2d: np.ndarray, profile: PolarProfile, wall: np.ndarray) -> float | None:
+    """Robust spread (1.4826 × MAD, metres) of the points of the wall's bins around their
+    bin's radius: the sensor's noise where the frames agree, more where they do not. None
+    without wall bins."""
+    bins = len(profile.radii_m)
+    rel = np.asarray(points_2d, dtype=np.float64)[:, :2]
+    ang = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * np.pi)
+    b = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    on_wall = wall[b]
+    if on_wall.sum() < 10:
+        return None
+    residual = np.hypot(rel[on_wall, 0], rel[on_wall, 1]) - profile.radii_m[b[on_wall]]
+    return float(1.4826 * np.median(np.abs(residual - np.median(residual))))
+
+
 def measure_section(
     points_2d: np.ndarray,
     *,
@@ -191,6 +216,8 @@ def measure_section(
     params: MeasureParams = MeasureParams(),
     point_count: int | None = None,
     has_invert: bool = True,
+    chainage_uncertainty_m: float | None = None,
+    registration_weak: bool = False,
 ) -> SectionMeasures:
     """Measure one section from its projected points.
 
@@ -209,11 +236,18 @@ def measure_section(
         Points in the section before the caller thinned them (default: as given).
     has_invert : bool
         False for a vertical pipe: no deposit height and no water are read.
+    chainage_uncertainty_m : float, optional
+        How far the section's true place may be from its chainage (registration's).
+    registration_weak : bool
+        Most frames that saw the section slid along the axis, or one was extrapolated
+        (``RegistrationEvidence``): the status is then ``weak_registration``.
 
     Returns
     -------
     SectionMeasures
-        ``status`` is ``ok`` only when enough of the perimeter was seen with enough points.
+        ``status`` is ``ok`` only when enough of the perimeter was seen with enough points,
+        by frames that were registered and agree (the wall is not smeared). The first
+        reason that applies is given: coverage and points, then registration, then smear.
         Figures that could be computed are kept for diagnostics even when the status is not
         ok; figures that could not are None.
 
@@ -228,11 +262,12 @@ def measure_section(
     """
     nominal_area = math.pi * nominal_diameter_m**2 / 4.0
     raw = np.asarray(points_2d, dtype=np.float64)
-    base = dict(
+    base: dict[str, Any] = dict(
         chainage_start_m=float(chainage_start_m),
         chainage_end_m=float(chainage_end_m),
         nominal_area_m2=nominal_area,
         point_count=len(raw) if point_count is None else point_count,
+        chainage_uncertainty_m=chainage_uncertainty_m,
     )
     if len(raw) == 0:
         return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)
@@ -326,6 +361,8 @@ def measure_section(
         status = SectionStatus.INVERT_UNDER_WATER
     elif coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
         status = SectionStatus.LOW_COVERAGE
+    elif registration_weak:
+        status = SectionStatus.WEAK_REGISTRATION
     down = np.abs(np.angle(np.exp(1j * (profile.angles_rad - 1.5 * np.pi)))) <= max(
         np.radians(5.0), np.pi / bins
     )
@@ -383,6 +420,18 @@ def measure_section(
     ):
         unseen_first = area_u.unseen_m2 >= area_u.noise_m2 + area_u.resolution_m2
         status = SectionStatus.LOW_COVERAGE if unseen_first else SectionStatus.TOO_FEW_POINTS
+    # Frames that disagree smear the wall. Only a dense section can show it: a sparse one
+    # (a ring profiler's) sees each bin once, so its spread is the range noise, which the
+    # uncertainty above already carries.
+    spread = None
+    if not sparse:
+        spread = wall_spread_m(
+            pts,
+            profile,
+            _wall_bins(profile.radii_m, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio),
+        )
+    if status == SectionStatus.OK and spread is not None and spread > params.max_wall_spread_m:
+        status = SectionStatus.SMEARED_WALL
     per_bin = float(np.median(profile.counts[profile.seen]))
     wall = _wall_bins(radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio)
     pairs = int((wall[: bins // 2] & wall[bins // 2 :]).sum())
@@ -398,6 +447,7 @@ def measure_section(
         )
     return SectionMeasures(
         status=status,
+        wall_spread_m=spread,
         coverage_ratio=coverage,
         open_area_m2=open_area,
         blockage_ratio=1.0 - open_area / nominal_area,

@@ -82,6 +82,13 @@ class SectionStatus(StrEnum):
     TOO_FEW_POINTS = "too_few_points"
     OUTSIDE_SCAN = "outside_scan"
     NO_CONTOUR = "no_contour"
+    WEAK_REGISTRATION = "weak_registration"
+    """Most frames that saw the section slid along the pipe axis (registration caught it
+    against the odometer, and left them out), or one had neither odometer nor geometry along
+    the axis (its place was extrapolated)."""
+    SMEARED_WALL = "smeared_wall"
+    """The wall's points spread around the contour by more than the sensor's noise allows:
+    the frames that saw the section disagree."""
     INVERT_UNDER_WATER = "invert_under_water"
 
 
@@ -94,6 +101,10 @@ class SectionMeasures:
     diagnostics) but must never be presented as measured.
     ``contour_m`` is the inner contour, shape (M, 2), in metres, in the section plane with
     the pipe centre at the origin, first column across (right), second up.
+    ``chainage_uncertainty_m`` bounds how far the section's true place along the pipe may be
+    from its chainage (the odometer-held travel before it; None when not known).
+    ``wall_spread_m`` is the robust spread of the wall's points around the contour (a
+    diagnostic of registration; not stored).
     """
 
     chainage_start_m: float
@@ -117,6 +128,8 @@ class SectionMeasures:
     # None when it could not be told.
     water_depth_ratio: float | None = None
     contour_m: np.ndarray | None = field(default=None, compare=False, repr=False)
+    chainage_uncertainty_m: float | None = None
+    wall_spread_m: float | None = field(default=None, compare=False)
 
     @property
     def is_ok(self) -> bool:
@@ -147,9 +160,20 @@ class Defect:
 @dataclass(frozen=True)
 class FrameQuality:
     """Registration quality of one frame: ICP fitness in [0, 1], inlier RMSE in metres, and
-    whether the along-axis translation was held to the odometer (degenerate geometry)."""
+    whether the along-axis translation was held to the odometer (degenerate geometry).
+
+    ``along_axis_weight`` is ICP's weight along the pipe axis against the odometer (0: held to
+    it, 1: ICP alone); ``degenerate`` is that weight below one half. ``chainage_uncertainty_m``
+    bounds the frame's along-axis position from the first frame. ``fault`` is ``"slide"``
+    when registration slid along the axis and the frame was put back on the odometer (its
+    sections are then not trusted), ``"odometer_slip"`` when the odometer disagreed with
+    what ICP saw of features in view.
+    """
 
     index: int
     fitness: float
     rmse_m: float
     degenerate: bool
+    along_axis_weight: float = 0.0
+    chainage_uncertainty_m: float = 0.0
+    fault: str | None = None

@@ -15,6 +15,7 @@ import numpy as np
 from pipescan.core.axis import PipeAxis
 from pipescan.core.measures import MeasureParams, measure_section
 from pipescan.core.model import SectionMeasures
+from pipescan.core.registration.metrics import RegistrationEvidence
 
 
 @dataclass(frozen=True)
@@ -133,6 +134,7 @@ def measure_window(
     nominal_diameter_m: float,
     params: MeasureParams = MeasureParams(),
     relative: bool = False,
+    evidence: RegistrationEvidence | None = None,
 ) -> list[SectionMeasures]:
     """Measure every section of a chainage window.
 
@@ -146,23 +148,32 @@ def measure_window(
     params : MeasureParams
     relative : bool
         ``points_m`` are offsets from ``axis.origin_m`` (see ``iter_section_points``).
+    evidence : RegistrationEvidence, optional
+        What registration says about each section: its chainage uncertainty, and whether its
+        registration is weak (then its status is ``weak_registration``).
 
     Returns
     -------
     list of SectionMeasures
         One per section of the window, in chainage order, whatever its status.
     """
-    return [
-        measure_section(
-            local,
-            chainage_start_m=start_mm / 1000.0,
-            chainage_end_m=(start_mm + window.step_mm) / 1000.0,
-            nominal_diameter_m=nominal_diameter_m,
-            params=params,
-            point_count=count,
-            has_invert=axis.has_invert,
+    sections = []
+    for start_mm, local, count in iter_section_points(
+        points_m, axis, window, max_points_per_section=params.max_points, relative=relative
+    ):
+        start_m, end_m = start_mm / 1000.0, (start_mm + window.step_mm) / 1000.0
+        uncertainty, weak = evidence.for_section(start_m, end_m) if evidence else (None, False)
+        sections.append(
+            measure_section(
+                local,
+                chainage_start_m=start_m,
+                chainage_end_m=end_m,
+                nominal_diameter_m=nominal_diameter_m,
+                params=params,
+                point_count=count,
+                chainage_uncertainty_m=uncertainty,
+                registration_weak=weak,
+                has_invert=axis.has_invert,
+            )
         )
-        for start_mm, local, count in iter_section_points(
-            points_m, axis, window, max_points_per_section=params.max_points, relative=relative
-        )
-    ]
+    return sections

@@ -20,6 +20,7 @@ from pipescan.core.registration import (
     RegistrationParams,
     chain_trajectories,
     plan_chunks,
+    registration_evidence,
     registration_summary,
 )
 from pipescan.core.sanitize import strip_credentials
@@ -191,6 +192,16 @@ def inspect_archive(
             f"axis fitted; chainage {fit.chainage_min_m:.2f}-{fit.chainage_max_m:.2f} m "
             f"in {len(windows)} windows"
         )
+        # Each section's chainage uncertainty, and whether a frame that saw it slid.
+        evidence = (
+            registration_evidence(
+                trajectory,
+                fit.axis.chainage(trajectory.positions_m()),
+                seen_from_m=params.max_section_range_m,
+            )
+            if trajectory is not None
+            else None
+        )
         bucket_root = run_dir / "buckets"
         spans = chunks or [(0, 0)]
         counts = [
@@ -210,7 +221,7 @@ def inspect_archive(
 
         window_futures = [
             measure_sections.submit(
-                bucket_root, w, fit.axis, meta.nominal_diameter_m, params.measure
+                bucket_root, w, fit.axis, meta.nominal_diameter_m, params.measure, evidence
             )
             for w in windows
         ]
@@ -225,7 +236,13 @@ def inspect_archive(
         )
         graded, defects = grading.sections, grading.defects
         registration = (
-            registration_summary(trajectory, params.registration)
+            registration_summary(
+                trajectory,
+                params.registration,
+                odometer_m=(meta.frames[0].odometer_m, meta.frames[-1].odometer_m)
+                if meta.frames
+                else None,
+            )
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )

@@ -59,6 +59,8 @@ STATUS_LABELS: dict[str, str] = {
     SectionStatus.OUTSIDE_SCAN: "outside the scan",
     SectionStatus.NO_CONTOUR: "no closed contour",
     SectionStatus.INVERT_UNDER_WATER: "invert under water",
+    SectionStatus.WEAK_REGISTRATION: "weak registration",
+    SectionStatus.SMEARED_WALL: "smeared wall",
 }
 STATUS_EXPLANATIONS: dict[str, str] = {
     SectionStatus.LOW_COVERAGE: "the scan saw too little of the pipe wall around the section",
@@ -71,6 +73,15 @@ STATUS_EXPLANATIONS: dict[str, str] = {
     ),
     SectionStatus.OUTSIDE_SCAN: "the section lies beyond the scanned length",
     SectionStatus.NO_CONTOUR: "no closed inner contour could be traced",
+    SectionStatus.WEAK_REGISTRATION: (
+        "most frames that saw the section slid along the pipe (registered travel disagreed "
+        "with the odometer beyond its error), or one had neither odometer nor geometry along "
+        "the pipe"
+    ),
+    SectionStatus.SMEARED_WALL: (
+        "the wall's points spread around the contour by more than the sensor's noise: the "
+        "frames that saw the section disagree"
+    ),
 }
 MEASURE_LABELS: dict[str, str] = {
     "blockage_ratio": "blockage",
@@ -300,10 +311,18 @@ def _is_flagged_at(defects: Sequence[Defect], s: SectionMeasures) -> bool:
     return any(d.chainage_start_m <= mid < d.chainage_end_m for d in defects)
 
 
+def _uncertainty(s: SectionMeasures) -> str:
+    """The section's chainage uncertainty, shown from 1 cm (below, the chainage's own two
+    decimals say it); empty otherwise."""
+    u = s.chainage_uncertainty_m
+    return fmt_m(u, unit=False) if u is not None and _finite(u) and u >= 0.01 else ""
+
+
 def _section_row(s: SectionMeasures, flagged: bool) -> dict[str, Any]:
     row: dict[str, Any] = {
         "start": fmt_m(s.chainage_start_m, unit=False),
         "end": fmt_m(s.chainage_end_m, unit=False),
+        "uncertainty": _uncertainty(s),
         "coverage": fmt_pct(s.coverage_ratio, 0, unit=False),
         "points": fmt_int(s.point_count),
         "status": STATUS_LABELS.get(s.status, str(s.status)),
@@ -375,6 +394,20 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
                 else f"none of {inp.frame_count}",
             )
         )
+    uncertainty_m = reg.get("chainage_uncertainty_m")
+    if _finite(uncertainty_m):
+        rows.append(
+            (
+                "chainage uncertainty",
+                f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel)",
+            )
+        )
+    slides = reg.get("slides")
+    if slides:
+        rows.append(
+            ("slides caught", f"{slides} frame(s) put back on the odometer; their sections "
+             "are not measured")
+        )  # fmt: skip
     return rows
 
 
@@ -407,6 +440,7 @@ def _unmeasured_run_row(run: Sequence[SectionMeasures]) -> dict[str, Any]:
     return {
         "start": fmt_m(first.chainage_start_m, unit=False),
         "end": fmt_m(last.chainage_end_m, unit=False),
+        "uncertainty": _uncertainty(max(run, key=lambda s: s.chainage_uncertainty_m or 0.0)),
         "coverage": coverage,
         "points": fmt_int(sum(s.point_count for s in run)),
         "status": status,

@@ -224,7 +224,7 @@ class Effects:
     @classmethod
     def ideal(cls, **overrides: object) -> Effects:
         """No effect at all (a perfect sensor on a perfect crawler), except ``overrides``."""
-        none = {f.name: 0.0 for f in dataclasses.fields(cls)}
+        none: dict[str, object] = {f.name: 0.0 for f in dataclasses.fields(cls)}
         none.update(
             grazing_noise_max_factor=1.0, slip_duration_s=(0.0, 0.0), imu=True, imu_noise_deg=0.0
         )
@@ -569,6 +569,7 @@ def get_scenario(name: str, **overrides: object) -> Scenario:
     effect_overrides = {k: overrides.pop(k) for k in list(overrides) if k in EFFECT_NAMES}
     if effect_overrides:
         effects = overrides.get("effects", base.effects)
+        assert isinstance(effects, Effects)
         overrides["effects"] = dataclasses.replace(effects, **effect_overrides)  # type: ignore[arg-type]
     return dataclasses.replace(base, **overrides)  # type: ignore[arg-type]
 

@@ -116,6 +116,7 @@ def defect_scene(
         obstacles=tuple(obstacles),
         effects=effects if effects is not None else Effects(),
         asset_id=f"SIM-{name.upper()}",
+        truth_ray_stride=1,  # the exact truth: a shadow is a shadow, not a sampling gap
     )
 
 
@@ -138,6 +139,7 @@ def smooth_scene(
         mount_offset_z_m=-0.05 * k,
         effects=effects if effects is not None else Effects(),
         asset_id=f"SIM-{name.upper()}",
+        truth_ray_stride=1,
     )
 
 
@@ -213,3 +215,199 @@ def sweep_draws(*, random_draws: int = 8, seed: int = 12, long_run: bool = True)
         scene = defect_scene(0.5, 30.0, effects=random_effects(rng), name="long30")
         draws.append(Draw("combined: random, 0.5 m, 30 m run", "combined", scene, 200))
     return draws
+
+
+# --------------------------------------------------------------------------- scoring
+
+TRUTH_STEP_M = 0.005
+"""Resolution of the truth along the axis when scoring (a twentieth of a section)."""
+FLAT_PP = 0.2
+"""A section is away from every defect's edge when the true blockage over it, widened by its
+chainage uncertainty on both sides, varies by less than this (percentage points)."""
+DISHONEST_PP = 2.0
+"""An ok section is dishonest when its blockage is off the truth by more than this anywhere
+within its chainage uncertainty (percentage points)."""
+SHADOW_COVERAGE = 0.9
+"""A true section in an occlusion shadow counts when less than this share of its perimeter
+could be seen."""
+
+
+class TrueBlockage:
+    """The simulator's exact blockage on a fine grid along the axis, averaged over any section.
+
+    Parameters
+    ----------
+    scan
+        A :class:`~pipescan.simulator.scan.SimulatedScan` (its scenario and true sections).
+    step_m
+        Section length.
+    """
+
+    def __init__(self, scan, step_m: float = 0.1) -> None:
+        from pipescan.simulator.scan import free_area_m2
+
+        s = scan.scenario
+        n = int(np.ceil(s.end_wall_m / TRUTH_STEP_M))
+        x = (np.arange(n) + 0.5) * TRUTH_STEP_M
+        self.fine = np.array([1.0 - free_area_m2(s, float(v)) / s.nominal_area_m2 for v in x])
+        self._cum = np.concatenate(([0.0], np.cumsum(self.fine)))
+        self._per = round(step_m / TRUTH_STEP_M)
+        self.step_m = step_m
+        self.offset_m = s.chainage_offset_m
+        self.sections = {round(t.chainage_start_m, 3): t for t in scan.true_sections(step_m)}
+
+    def section(self, start_m: np.ndarray) -> np.ndarray:
+        """Mean true blockage of sections starting at ``start_m`` (NaN beyond the scene)."""
+        i = np.round((np.asarray(start_m) - self.offset_m) / TRUTH_STEP_M).astype(np.int64)
+        ok = (i >= 0) & (i + self._per < len(self._cum))
+        out = np.full(i.shape, np.nan)
+        out[ok] = (self._cum[i[ok] + self._per] - self._cum[i[ok]]) / self._per
+        return out
+
+    def variation(self, start_m: float, u_m: float) -> float:
+        """How much the true blockage varies over the section widened by ±``u_m``."""
+        lo = max(0, int(np.floor((start_m - self.offset_m - u_m) / TRUTH_STEP_M)))
+        hi = int(np.ceil((start_m - self.offset_m + self.step_m + u_m) / TRUTH_STEP_M))
+        part = self.fine[lo:hi]
+        return float(part.max() - part.min()) if part.size else float("nan")
+
+    def around(self, start_m: float, u_m: float) -> np.ndarray:
+        """True blockage of the section shifted by every amount within ±``u_m``."""
+        shifts = np.arange(-u_m, u_m + 1e-9, TRUTH_STEP_M) if u_m > 0 else np.zeros(1)
+        return self.section(start_m + shifts)
+
+
+@dataclass(frozen=True)
+class SectionScore:
+    """How a scan's measured sections compare with the truth.
+
+    ``ok_away`` counts the ok sections away from every defect's edge (``FLAT_PP`` over the
+    section widened by its chainage uncertainty ``u``); ``mean_pp`` and ``max_pp`` are their
+    |error| at the same chainage. ``dishonest`` counts ok sections off the truth by more than
+    ``DISHONEST_PP`` everywhere within ±u; ``dishonest_naive`` those off at the same
+    chainage. ``shadows_ok`` counts true shadows (``SHADOW_COVERAGE``) whose section is ok,
+    and ``shadows_ok_wrong`` those of them off the truth (anywhere within ±u) by more than
+    their own stated 95 % blockage uncertainty: a shadow's figure may be trusted only where
+    what was seen of it bounds it.
+    """
+
+    ok: int
+    ok_away: int
+    mean_pp: float
+    max_pp: float
+    dishonest: int
+    dishonest_naive: int
+    worst_pp: float
+    shadows: int
+    shadows_ok: int
+    u_max_m: float
+    shadows_ok_wrong: int = 0
+
+
+def score_sections(sections, truth: TrueBlockage) -> SectionScore:
+    """Score measured sections (``SectionMeasures``) against the truth (see
+    :class:`SectionScore`)."""
+    errors: list[float] = []
+    ok = dishonest = naive_dishonest = 0
+    worst = u_max = 0.0
+    by_start = {}
+    for sec in sections:
+        start = round(sec.chainage_start_m, 3)
+        by_start[start] = sec
+        if not sec.is_ok or sec.blockage_ratio is None:
+            continue
+        # Sections that state no uncertainty (stored before it was recorded) claim 0.
+        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
+        shifted = truth.around(start, u)
+        if not np.isfinite(shifted).all():
+            continue
+        ok += 1
+        u_max = max(u_max, u)
+        b = sec.blockage_ratio
+        naive = abs(b - float(truth.section(np.array([start]))[0])) * 100
+        closest = float(np.min(np.abs(b - shifted))) * 100
+        worst = max(worst, closest)
+        dishonest += closest > DISHONEST_PP
+        naive_dishonest += naive > DISHONEST_PP
+        if truth.variation(start, u) * 100 <= FLAT_PP:
+            errors.append(naive)
+    shadows = [
+        t for t in truth.sections.values() if t.in_shadow and t.coverage_ratio < SHADOW_COVERAGE
+    ]
+    shadow_ok = [
+        sec
+        for t in shadows
+        if (sec := by_start.get(round(t.chainage_start_m, 3))) is not None and sec.is_ok
+    ]
+    shadows_ok_wrong = 0
+    for sec in shadow_ok:
+        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
+        stated = float(getattr(sec, "blockage_uncertainty_ratio", None) or 0.0)
+        shifted = truth.around(round(sec.chainage_start_m, 3), u)
+        if sec.blockage_ratio is None or not np.isfinite(shifted).all():
+            continue
+        shadows_ok_wrong += float(np.min(np.abs(sec.blockage_ratio - shifted))) > stated
+    e = np.array(errors) if errors else np.array([np.nan])
+    return SectionScore(
+        ok=ok,
+        ok_away=len(errors),
+        mean_pp=float(np.mean(e)),
+        max_pp=float(np.max(e)),
+        dishonest=dishonest,
+        dishonest_naive=naive_dishonest,
+        worst_pp=worst,
+        shadows=len(shadows),
+        shadows_ok=len(shadow_ok),
+        u_max_m=u_max,
+        shadows_ok_wrong=shadows_ok_wrong,
+    )
+
+
+def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5.0):
+    """The inspect flow's stages on a simulated scan, in memory and without Prefect:
+    registration in chunks (chained), the axis, each section's registration evidence, and
+    the sections. For tests and studies of a scan small enough to hold in memory (the flow
+    buckets points on disk instead).
+
+    Returns
+    -------
+    trajectory, sections
+    """
+    from pipescan.core.axis import fit_axis
+    from pipescan.core.registration import (
+        chain_trajectories,
+        iter_registered_points,
+        plan_chunks,
+        register_frames,
+        registration_evidence,
+    )
+    from pipescan.core.sections import measure_window, plan_windows
+
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    trajectory = chain_trajectories(
+        [
+            register_frames(iter(frames[a : b + 1]))
+            for a, b in plan_chunks(len(frames), chunk_frames)
+        ]
+    )
+    cropped = (
+        (i, p[np.einsum("ij,ij->i", p, p) <= max_section_range_m**2]) for i, p, _, _ in frames
+    )
+    points = np.concatenate(list(iter_registered_points(cropped, trajectory)))
+    positions = trajectory.positions_m()
+    axis = fit_axis(points, start_m=positions[0], travel_m=positions[-1] - positions[0])
+    evidence = registration_evidence(
+        trajectory, axis.chainage(positions), seen_from_m=max_section_range_m
+    )
+    chain = axis.chainage(points)
+    sections = []
+    for w in plan_windows(max(0.0, float(chain.min())), float(chain.max()), step_m=0.1):
+        inside = (chain >= w.start_m) & (chain < w.end_m)
+        sections += measure_window(
+            points[inside],
+            axis,
+            w,
+            nominal_diameter_m=scan.scenario.nominal_diameter_m,
+            evidence=evidence,
+        )
+    return trajectory, sections

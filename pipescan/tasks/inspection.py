@@ -18,6 +18,7 @@ from pipescan.core.grading import choose_grading, grade_sections, load_table, me
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
 from pipescan.core.registration import (
+    RegistrationEvidence,
     RegistrationParams,
     Trajectory,
     iter_registered_points,
@@ -170,6 +171,8 @@ def bucket_points(
         if trajectory is None:
             return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
         pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))
+    if not pts:  # every frame of the chunk slid along the axis: none is placed
+        return 0
     return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
 
 
@@ -180,11 +183,18 @@ def measure_sections(
     axis: PipeAxis,
     nominal_diameter_m: float,
     params: MeasureParams,
+    evidence: RegistrationEvidence | None = None,
 ) -> list[SectionMeasures]:
-    """Measure every section of one chainage window."""
+    """Measure every section of one chainage window (with what registration says of it)."""
     points = read_window_offsets(bucket_root, window)
     sections = measure_window(
-        points, axis, window, nominal_diameter_m=nominal_diameter_m, params=params, relative=True
+        points,
+        axis,
+        window,
+        nominal_diameter_m=nominal_diameter_m,
+        params=params,
+        relative=True,
+        evidence=evidence,
     )
     log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
     return sections

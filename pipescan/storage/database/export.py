@@ -52,8 +52,10 @@ SECTION_CSV_COLUMNS: tuple[str, ...] = (
     "deformation_uncertainty_ratio",
     "deposit_height_uncertainty_ratio",
     "water_depth_ratio",
+    "chainage_uncertainty_m",
 )
-"""Header of the sections CSV, in order."""
+"""Header of the sections CSV, in order. ``chainage_uncertainty_m`` bounds how far the
+section's true place along the pipe may be from its chainage (empty when not known)."""
 
 DEFECT_CSV_COLUMNS: tuple[str, ...] = (
     "asset_id",
@@ -86,6 +88,7 @@ _LATER_COLUMNS = (
     "deformation_uncertainty_ratio",
     "deposit_height_uncertainty_ratio",
     "water_depth_ratio",
+    "chainage_uncertainty_m",
 )
 
 # Figures of a section that are empty in an export unless its status is ok. The water depth
@@ -365,7 +368,10 @@ def export_sections_jsonl(
         The number of lines written.
     """
     return _write_jsonl(
-        out, SECTION_CSV_COLUMNS, _section_rows(engine, asset_id, inspection_id), _MEASURE_COLUMNS
+        out,
+        SECTION_CSV_COLUMNS,
+        _section_rows(engine, asset_id, inspection_id),
+        (*_MEASURE_COLUMNS, *_LATER_COLUMNS),
     )
 
 

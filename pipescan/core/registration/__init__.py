@@ -1,0 +1,109 @@
+"""Frame registration: odometer-initialised ICP, fused with the odometer and the IMU.
+
+In a smooth straight pipe, ICP cannot tell where along the axis one frame sits relative to the
+next, nor how it is rolled about the axis: the cost is flat in those directions. And what is
+not surface (spurious returns from mist, spray and dust; mixed pixels at depth edges) can fake
+exactly the information that is missing, and let ICP slide along the pipe. The stages:
+
+``preprocess``
+    Range crop, voxel filter and isolated-point removal of each frame; a keyframe of the
+    local map keeps only what at least two of its frames saw.
+``engines``
+    The local map (the last few keyframes) and the ICP step: ``small_gicp`` (default),
+    Open3D's legacy ``open3d`` and tensor ``open3d_tensor`` pipelines (with a Tukey robust
+    kernel), and the paper's point-to-point ICP with the Kabsch step
+    (``method="point_to_point"``, as printed: no fusion).
+``fusion``
+    Along the axis, ICP's correction is weighed against the odometer by ICP's information
+    along the axis (the Hessian, less what a smooth wall fakes) and the odometer's stated
+    uncertainty; a window of travel catches slides. About the axis, roll is held where the
+    Hessian is degenerate, at an attitude turned to agree with the IMU's gravity.
+``registrar``
+    :class:`FrameRegistrar` and :func:`register_frames`: the streaming loop.
+``trajectory``
+    :class:`Trajectory`, chunks (:func:`plan_chunks`) and :func:`chain_trajectories`.
+``metrics``
+    :func:`registration_summary`, :func:`trajectory_errors` and the per-chainage
+    :class:`RegistrationEvidence` that section statuses depend on.
+
+Poses are 4×4 matrices ``T_world_frame`` mapping frame (sensor) coordinates into the world
+frame, which is the first frame's sensor frame. ``docs/registration.md`` has the measurements.
+"""
+
+from pipescan.core.registration.engines import LocalMap, icp_point_to_point, kabsch, transform
+from pipescan.core.registration.fusion import (
+    AxialFilter,
+    SlideDetector,
+    axial_information,
+    degenerate_directions,
+    gravity_corrected,
+    point_to_plane_hessian,
+)
+from pipescan.core.registration.metrics import (
+    RegistrationEvidence,
+    TrajectoryErrors,
+    degenerate_spans,
+    registration_evidence,
+    registration_summary,
+    slide_spans,
+    trajectory_errors,
+)
+from pipescan.core.registration.params import (
+    REGISTRATION_ENGINES,
+    REGISTRATION_METHODS,
+    AlongAxisPrior,
+    RegistrationEngine,
+    RegistrationMethod,
+    RegistrationParams,
+)
+from pipescan.core.registration.preprocess import (
+    estimate_normals,
+    preprocess_frame,
+    remove_isolated,
+    seen_twice,
+    voxel_downsample,
+)
+from pipescan.core.registration.registrar import FrameRegistrar, register_frames
+from pipescan.core.registration.trajectory import (
+    Trajectory,
+    chain_trajectories,
+    iter_registered_points,
+    plan_chunks,
+)
+
+__all__ = [
+    "REGISTRATION_ENGINES",
+    "REGISTRATION_METHODS",
+    "AlongAxisPrior",
+    "AxialFilter",
+    "FrameRegistrar",
+    "LocalMap",
+    "RegistrationEngine",
+    "RegistrationEvidence",
+    "RegistrationMethod",
+    "RegistrationParams",
+    "SlideDetector",
+    "Trajectory",
+    "TrajectoryErrors",
+    "axial_information",
+    "chain_trajectories",
+    "degenerate_directions",
+    "degenerate_spans",
+    "estimate_normals",
+    "gravity_corrected",
+    "icp_point_to_point",
+    "iter_registered_points",
+    "kabsch",
+    "plan_chunks",
+    "point_to_plane_hessian",
+    "preprocess_frame",
+    "register_frames",
+    "registration_evidence",
+    "registration_summary",
+    "remove_isolated",
+    "seen_twice",
+    "slide_spans",
+    "trajectory_errors",
+    "transform",
+    "voxel_downsample",
+]

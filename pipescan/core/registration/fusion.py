@@ -1,0 +1,360 @@
+"""Fusing ICP with the odometer along the pipe axis and with the IMU about it.
+
+In a smooth straight pipe the wall tells ICP nothing about where along the axis a frame
+sits, nor how it is rolled about the axis. Both are weighed, not switched:
+
+Along the axis
+    ICP's information along the axis is read off the point-to-plane Hessian of the frame at
+    its solution: ``Σ (n_i·a)² / σ_r²`` over its correspondences (``a`` the axis, ``n_i`` the
+    map normals, ``σ_r`` the residuals' robust spread). The wall's own normals tilt by the
+    range noise and fake some of it; what a smooth wall fakes is estimated from the frame
+    itself (a multiple of the median per-point share) and taken off. The odometer's stated
+    uncertainty (``odometer_scale_error_ratio`` of the distance since ICP last had
+    information, plus its reading noise) is the prior's. The frame's along-axis correction is
+    ICP's times ``w = P² / (P² + 1/I)``: weak or fake geometry can never move a frame along
+    the axis further than its information warrants (:class:`AxialFilter`).
+Slides
+    Over a window of travel (``slide_window_m``), the registered travel must agree with the
+    odometer's within the odometer's error. If it does not while ICP carried little weight, ICP
+    slid (a fault, not a measurement): the frame goes back to the odometer and the map is
+    restarted. If ICP carried the weight throughout (features in view), the odometer slipped
+    (the crawler stuck on debris, or sliding) and ICP stands (:class:`SlideDetector`).
+About the axis
+    Roll is held where the Hessian is degenerate (rotation-dominated eigenvectors below
+    ``degeneracy_ratio`` of the largest), at the previous attitude turned to agree with the
+    IMU's gravity when the frame carries it (:func:`gravity_corrected`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+# Gravity says nothing about roll about an axis within ~6° of vertical (a shaft): there the
+# components of gravity across the axis are below this and the IMU correction is skipped.
+_MIN_GRAVITY_ACROSS_AXIS = 0.1
+# A surface faces along the axis when it rises at least 14.5° across it (|n·a| ≥ 0.25). The
+# wall's own normals, tilted by range noise and the voxel grid, read |n·a| of 0.01-0.02 (their
+# median on the simulator's scans, from ideal to the harsh end of noise): 14.5° is ten times
+# that. An end wall, an obstacle's face and a deposit's ramp rise further: the paper's deposit
+# (28.5 % of the height over 0.25 m) rises at 19° in a 0.3 m pipe and 34° in a 0.6 m one.
+FACING_COS = 0.25
+"""A surface faces along the axis when its normal is within 75.5° of it (``|n·a| ≥ 0.25``)."""
+# A map point lies on a surface when its neighbourhood is a slab: the smallest eigenvalue of
+# its covariance at most this share of their sum (a slab a third as thick as it is wide; a
+# blob is 1/3). Measured on the simulator: the wall reads 0.002-0.01, blobs of spurious returns
+# 0.13-0.23 (median), the obstacle's faces under 5 mm of noise 0.002-0.03.
+_MAX_SURFACE_VARIATION = 0.05
+MIN_FACING_SUPPORT = 10
+"""Correspondences on surfaces facing along the axis below which there is no information:
+ten map points at 3 cm spacing are a patch of ~1 dm², the smallest face worth the name."""
+# A residual spread below this is not believed (a perfect match of few points): it would make
+# the information, and ICP's weight, arbitrarily large.
+_MIN_RESIDUAL_SIGMA_M = 0.001
+# Without an odometer the prior along the axis is the last velocity; a crawler's speed varies,
+# so that prior is given this uncertainty per step (its own size).
+_CONSTANT_VELOCITY_STEP_RATIO = 1.0
+# ICP and the odometer disagree when ICP's correction exceeds this many σ of both together.
+_INNOVATION_SIGMAS = 3.0
+# How many standard deviations of the noise terms a slide must exceed on top of the
+# odometer's scale error: 3σ false alarms are one window in 370.
+_SLIDE_SIGMAS = 3.0
+# ICP carried the weight over a window when its mean weight is at least this: then a
+# disagreement with the odometer is the odometer's (slip), not ICP's.
+_ICP_CARRIED_WEIGHT = 0.5
+
+Fault = Literal["slide", "odometer_slip"]
+
+
+def point_to_plane_hessian(source_m: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Gauss-Newton Hessian ``Σ J_iᵀ J_i`` of point-to-plane ICP, (6, 6), order (rot, trans).
+
+    ``J_i = [(p_i × n_i)ᵀ, n_iᵀ]`` for a source point p_i matched to a target point with
+    normal n_i, both in one frame; rotation is about that frame's origin. Pass points in the
+    sensor frame (normals rotated into it) to get the Hessian of a perturbation about the
+    sensor, ``T = T_pred @ exp(δ)``.
+    """
+    j = np.hstack((np.cross(source_m, normals), normals))
+    return j.T @ j
+
+
+def degenerate_directions(
+    hessian: np.ndarray, length_m: float, ratio: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weak directions of a point-to-plane Hessian, in unit-balanced coordinates.
+
+    The rotation part is scaled by ``length_m`` (the points' RMS distance from the rotation
+    centre) so that both parts are in metres and one eigenvalue ratio means the same for
+    both. In a smooth pipe the two weak modes are the translation along the axis and the roll
+    about it.
+
+    Returns
+    -------
+    weak : (6, W) float
+        Orthonormal weak directions (W = 0 when the geometry constrains every direction).
+    scale : (6,) float
+        Multiply ``(rotvec_rad, translation_m)`` by it to reach the balanced coordinates.
+    """
+    scale = np.array([length_m] * 3 + [1.0] * 3)
+    balanced = hessian / np.outer(scale, scale)
+    evals, evecs = np.linalg.eigh(balanced)
+    return evecs[:, evals < ratio * evals[-1]], scale
+
+
+def axial_information(
+    normals_sensor: np.ndarray,
+    surface_variation: np.ndarray,
+    residuals_m: np.ndarray,
+    axis_sensor: np.ndarray,
+) -> float:
+    """ICP's information about the translation along the pipe axis, 1/m².
+
+    The axial entry of the point-to-plane Hessian, ``Σ (n_i·a)² / σ²``, over the
+    correspondences whose map point lies on a surface that faces along the axis (rising at
+    least 14.5° across it, ``|n_i·a| ≥ 0.25``: an end wall, an obstacle's face, a deposit's
+    ramp) and is a surface (the neighbourhood's ``surface_variation`` at most 0.05: a slab
+    at most a third as thick as it is wide). ``σ`` is those correspondences' own robust
+    residual spread (at least 1 mm).
+
+    Why not the whole Hessian: a smooth wall's normals tilt by the range noise and by the
+    voxel grid, and a blob of spurious returns has normals in every direction; both put
+    information along the axis into the Hessian that the geometry does not have, and ICP
+    then slides (on the simulator, 97 % of a 3 m run with no noise at all). The wall's
+    normals tilt by 1° or so, ten times less than a facing surface must; a blob is no slab.
+    Fewer than :data:`MIN_FACING_SUPPORT` such correspondences are no surface: no
+    information.
+
+    Parameters
+    ----------
+    normals_sensor : (N, 3) float
+        Unit normals of the map points matched by the frame, in the sensor frame.
+    surface_variation : (N,) float
+        Those map points' ``λ_min / Σλ`` (see ``LocalMap``).
+    residuals_m : (N,) float
+        Point-to-plane residuals of those matches at the solution.
+    axis_sensor : (3,) float
+        The pipe axis in the sensor frame (unit).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> wall = rng.normal(0, 0.05, (2000, 3)); wall[:, 1] = 1.0   # a smooth wall
+    >>> wall /= np.linalg.norm(wall, axis=1, keepdims=True)
+    >>> flat, r = np.full(2000, 0.01), rng.normal(0, 0.005, 2000)
+    >>> axial_information(wall, flat, r, np.array([1.0, 0, 0]))
+    0.0
+    >>> face = np.vstack((wall, np.tile([1.0, 0, 0], (100, 1))))   # plus an end wall
+    >>> info = axial_information(face, np.resize(flat, 2100), np.resize(r, 2100),
+    ...                          np.array([1.0, 0, 0]))
+    >>> 0.5 < info * 0.005**2 / 100 < 2   # 100 points of 5 mm noise
+    True
+    """
+    facing = np.abs(normals_sensor @ axis_sensor)
+    use = (facing >= FACING_COS) & (surface_variation <= _MAX_SURFACE_VARIATION)
+    if use.sum() < MIN_FACING_SUPPORT:
+        return 0.0
+    r = residuals_m[use]
+    sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), _MIN_RESIDUAL_SIGMA_M)
+    return float(np.sum(facing[use] ** 2)) / sigma**2
+
+
+def small_motion(T: np.ndarray) -> np.ndarray:
+    """(rotation vector, translation) of a small relative motion."""
+    return np.concatenate((Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3]))
+
+
+def from_small_motion(x: np.ndarray) -> np.ndarray:
+    """The 4×4 pose of a (rotation vector, translation)."""
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_rotvec(x[:3]).as_matrix()
+    T[:3, 3] = x[3:]
+    return T
+
+
+def gravity_corrected(
+    pred: np.ndarray, gravity_sensor: np.ndarray, axis_world: np.ndarray, down_world: np.ndarray
+) -> np.ndarray:
+    """Turn a predicted attitude about the pipe axis so that it agrees with the IMU.
+
+    The world "down" seen from the prediction should read as this frame's measured gravity.
+    The roll about the axis that best aligns them is the signed angle between the two
+    directions' components across the axis (both in the sensor frame); the predicted attitude
+    is turned by it about the sensor. Pitch and yaw are left to ICP, which observes them to
+    ~0.01°. A prediction is returned unchanged where gravity lies within ~6° of the axis.
+    """
+    R = pred[:3, :3]
+    axis = R.T @ axis_world
+    predicted = R.T @ down_world
+    across_pred = predicted - axis * (axis @ predicted)
+    across_meas = gravity_sensor - axis * (axis @ gravity_sensor)
+    if min(np.linalg.norm(across_pred), np.linalg.norm(across_meas)) < _MIN_GRAVITY_ACROSS_AXIS:
+        return pred
+    # R_new = R @ Rot(axis, θ) reads down as Rot(axis, -θ) @ predicted: θ turns the measured
+    # direction onto the predicted one.
+    theta = np.arctan2(axis @ np.cross(across_meas, across_pred), across_meas @ across_pred)
+    corrected = pred.copy()
+    corrected[:3, :3] = R @ Rotation.from_rotvec(theta * axis).as_matrix()
+    return corrected
+
+
+class AxialFilter:
+    """The along-axis prior's uncertainty, frame by frame, and the chainage uncertainty.
+
+    ``P`` is the standard deviation of the predicted along-axis position relative to the
+    local map. An odometer step ``Δ`` adds ``scale · |Δ|`` to it (its scale error is
+    systematic: it adds up linearly, not in quadrature) and its reading noise in quadrature;
+    it never exceeds what the odometer can be off over the map's own length. ICP's
+    information ``I`` then weighs in: ``w = P² / (P² + 1/I)``, after which ``P² ← (1 - w) P²``.
+
+    The chainage uncertainty ``u`` is a bound on the frame's along-axis position from the
+    first frame. A step adds the odometer's bound ``scale · |Δ|`` (times ``1 - w``), and ICP's
+    share of the correction its error ``w/√I`` (in quadrature, at 2σ), unless ICP anchors the
+    frame: its own error ``1/√I`` within what the odometer may be off over the map's length.
+    Then the frame is placed against the map's features, whose place does not drift with the
+    odometer, and only ICP's own error adds up, in quadrature, once per keyframe (the map moves
+    on by keyframes). A slide adds the size of the disagreement (:meth:`widen`).
+    """
+
+    def __init__(
+        self, scale_error_ratio: float, noise_m: float, keyframe_distance_m: float = 0.15
+    ) -> None:
+        self.scale = scale_error_ratio
+        self.noise_m = noise_m
+        self.keyframe_distance_m = keyframe_distance_m
+        self.P = 0.0
+        self._cap = 0.0
+        self._step = 0.0
+        self._odometer = True
+        self.last_icp_var = 0.0
+        self._held_m = 0.0
+        self._icp_var = 0.0
+        self._widened_m = 0.0
+
+    @property
+    def chainage_uncertainty_m(self) -> float:
+        """The bound ``u`` of the current frame's along-axis position (m)."""
+        return self._held_m + 2.0 * float(np.sqrt(self._icp_var)) + self._widened_m
+
+    def predict(self, step_m: float, *, map_extent_m: float, odometer: bool) -> float:
+        """Grow ``P`` by one step of ``step_m`` (odometer, or a constant-velocity guess);
+        returns the step's own bound on the along-axis error."""
+        if odometer:
+            bound = self.scale * abs(step_m)
+            cap = self.scale * max(map_extent_m, abs(step_m))
+            noise = np.sqrt(2.0) * self.noise_m
+        else:
+            bound = _CONSTANT_VELOCITY_STEP_RATIO * abs(step_m)
+            cap = float("inf")
+            noise = 0.0
+        self.P = float(np.hypot(min(self.P + bound, cap), noise))
+        self._cap, self._step, self._odometer = cap, abs(step_m), odometer
+        return bound
+
+    def update(
+        self, information: float, step_bound_m: float, correction_m: float = 0.0
+    ) -> tuple[float, bool]:
+        """Weigh ICP's information (1/m²) against ``P``; returns ICP's weight ``w`` and
+        whether ICP overrode the odometer.
+
+        ``correction_m`` is ICP's along-axis correction of the prior (the innovation). When it
+        exceeds 3σ of both errors together (``P² + 1/I``), the two cannot both be right; ICP,
+        whose own error is then below a third of the disagreement, is believed (``w = 1``):
+        the odometer slipped (the crawler stuck on debris while the count ran on, or sliding
+        while it stood). Should ICP have jumped to a wrong minimum instead, the slide window
+        catches it against the odometer (:class:`SlideDetector`). (A gate on the size of the
+        jump was tried: once a real slip had run past it, ICP was never believed again.)
+        """
+        overrode = False
+        # Without an odometer the prior is only a guess: there is nothing to slip.
+        gated = (
+            self._odometer
+            and information > 0
+            and correction_m**2 > _INNOVATION_SIGMAS**2 * (self.P**2 + 1.0 / information)
+        )
+        if information <= 0:
+            w = 0.0
+        elif gated:
+            w, overrode = 1.0, True
+        elif self.P == 0:
+            w = 1.0
+        else:
+            w = self.P**2 / (self.P**2 + 1.0 / information)
+        self.last_icp_var = w**2 / information if w > 0 and information > 0 else 0.0
+        anchored = w > 0 and 1.0 / np.sqrt(information) <= self._cap
+        if anchored:
+            share = min(self._step / self.keyframe_distance_m, 1.0)
+            self._icp_var += share / information
+        else:
+            # Held to the odometer, but for ICP's share w of a correction that carries ICP's
+            # own error: that adds up, in quadrature, too.
+            self._held_m += (1.0 - w) * step_bound_m
+            self._icp_var += self.last_icp_var
+        self.P = float(np.sqrt(1.0 - w)) * self.P
+        return w, overrode
+
+    def widen(self, by_m: float) -> None:
+        """Add ``by_m`` to the chainage uncertainty (a disagreement nobody could resolve)."""
+        self._widened_m += abs(by_m)
+
+
+@dataclass
+class _WindowFrame:
+    odometer_m: float
+    along_m: float
+    weight: float
+    icp_var: float
+
+
+class SlideDetector:
+    """Registered travel against the odometer's over a window of travel.
+
+    Feed every frame with :meth:`add`. Over the frames since the window started (at least
+    ``window_m`` of odometer travel), a disagreement beyond the odometer's error
+    (``scale · travel`` plus 3σ of the reading noise and of ICP's own noise) is a fault:
+    ``slide`` when ICP carried little weight in the window, ``odometer_slip`` when it carried
+    it (features in view: the odometer is the one that is wrong). After a fault the window is
+    empty: add the frame again where the fault left it.
+    """
+
+    def __init__(self, window_m: float, scale_error_ratio: float, noise_m: float) -> None:
+        self.window_m = window_m
+        self.scale = scale_error_ratio
+        self.noise_m = noise_m
+        self.window_frames = 0
+        """Frames in the window of the last fault, this one included."""
+        self._frames: deque[_WindowFrame] = deque()
+
+    def restart(self) -> None:
+        self._frames.clear()
+
+    def add(
+        self, odometer_m: float, along_m: float, weight: float, icp_var: float
+    ) -> tuple[Fault | None, float]:
+        """Add a frame (odometer reading, registered position along the axis, ICP's weight
+        and its variance share); returns the fault found (or None) and the disagreement (m,
+        registered minus odometer travel over the window)."""
+        self._frames.append(_WindowFrame(odometer_m, along_m, weight, icp_var))
+        while (
+            len(self._frames) > 2 and abs(odometer_m - self._frames[1].odometer_m) >= self.window_m
+        ):
+            self._frames.popleft()
+        first = self._frames[0]
+        odometer_travel = odometer_m - first.odometer_m
+        if abs(odometer_travel) < self.window_m:
+            return None, 0.0
+        disagreement = (along_m - first.along_m) - odometer_travel
+        frames = list(self._frames)[1:]
+        icp_sigma = float(np.sqrt(sum(f.icp_var for f in frames)))
+        allowed = self.scale * abs(odometer_travel) + _SLIDE_SIGMAS * float(
+            np.hypot(np.sqrt(2.0) * self.noise_m, icp_sigma)
+        )
+        if abs(disagreement) <= allowed:
+            return None, disagreement
+        carried = float(np.mean([f.weight for f in frames])) >= _ICP_CARRIED_WEIGHT
+        self.window_frames = len(self._frames)
+        self._frames.clear()  # the caller adds the frame again, where it leaves it
+        return ("odometer_slip" if carried else "slide"), disagreement

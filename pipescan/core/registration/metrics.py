@@ -1,0 +1,204 @@
+"""What a registration is worth: its summary, its errors against a truth, and what it says
+about each stretch of chainage (uncertainty, slides) for the sections measured there."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from pipescan.core.registration.params import RegistrationParams
+from pipescan.core.registration.trajectory import Trajectory
+
+
+def degenerate_spans(trajectory: Trajectory) -> list[tuple[int, int]]:
+    """Runs of consecutive degenerate frames, as (first, last) archive frame indices."""
+    return _spans(trajectory, lambda q: q.degenerate)
+
+
+def slide_spans(trajectory: Trajectory) -> list[tuple[int, int]]:
+    """Runs of consecutive frames put back on the odometer after a slide."""
+    return _spans(trajectory, lambda q: q.fault == "slide")
+
+
+def _spans(trajectory: Trajectory, flagged) -> list[tuple[int, int]]:
+    spans: list[tuple[int, int]] = []
+    previous = False
+    for q in trajectory.quality:
+        now = bool(flagged(q))
+        if now and previous:
+            spans[-1] = (spans[-1][0], q.index)
+        elif now:
+            spans.append((q.index, q.index))
+        previous = now
+    return spans
+
+
+def registration_summary(
+    trajectory: Trajectory,
+    params: RegistrationParams,
+    odometer_m: tuple[float | None, float | None] | None = None,
+) -> dict:
+    """What to store and print about a registration: engine, quality, travel, where it held.
+
+    ``unconstrained_spans`` lists the runs of frames whose along-axis position the geometry
+    hardly constrained (ICP's weight below one half), with the distance travelled (from the
+    first frame, metres) at each end. With an odometer they were held to it; without one
+    (``along_axis_prior`` = ``constant_velocity``) they are extrapolated, *not measured*, and
+    ``warning`` says so. ``travel_m`` is the registered travel (first to last position);
+    ``odometer_travel_m`` the odometer's (when ``odometer_m``, its first and last readings,
+    is given). ``chainage_uncertainty_m`` bounds the last frame's along-axis position.
+    ``slides`` and ``odometer_slips`` count the faults found over the slide window.
+    """
+    q = trajectory.quality[1:] or trajectory.quality
+    positions = trajectory.positions_m()
+    steps = np.linalg.norm(np.diff(positions, axis=0), axis=1)
+    travel = np.concatenate(([0.0], np.cumsum(steps)))
+    pos_of = {i: k for k, i in enumerate(trajectory.frame_indices)}
+
+    def span_dict(a: int, b: int) -> dict:
+        return {
+            "first_frame": a,
+            "last_frame": b,
+            "start_travel_m": round(float(travel[pos_of[a]]), 4),
+            "end_travel_m": round(float(travel[pos_of[b]]), 4),
+        }
+
+    spans = [span_dict(a, b) for a, b in degenerate_spans(trajectory)]
+    degenerate = sum(x.degenerate for x in q)
+    summary: dict = {
+        "engine": params.label,
+        "frames": len(trajectory.quality),
+        "mean_fitness": float(np.mean([x.fitness for x in q])),
+        "mean_rmse_m": float(np.mean([x.rmse_m for x in q])),
+        "degenerate_frames": degenerate,
+        "along_axis_prior": trajectory.along_axis_prior,
+        "unconstrained_spans": spans,
+        "travel_m": round(float(np.linalg.norm(positions[-1] - positions[0])), 4),
+        "chainage_uncertainty_m": round(
+            max((x.chainage_uncertainty_m for x in trajectory.quality), default=0.0), 4
+        ),
+        "slides": sum(x.fault == "slide" for x in q),
+        "odometer_slips": sum(x.fault == "odometer_slip" for x in q),
+        "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
+    }
+    if odometer_m is not None and None not in odometer_m:
+        first, last = odometer_m
+        assert first is not None and last is not None
+        summary["odometer_travel_m"] = round(abs(last - first), 4)
+    if degenerate and trajectory.along_axis_prior != "odometer":
+        summary["warning"] = (
+            f"{degenerate} frame(s) in {len(spans)} span(s) had no odometer and no geometry "
+            "along the pipe axis: their chainage is extrapolated, not measured"
+        )
+    return summary
+
+
+@dataclass(frozen=True)
+class RegistrationEvidence:
+    """What registration says about each stretch of chainage, for the sections measured there.
+
+    A section is seen by the frames within ``seen_from_m`` behind it (in the direction of
+    travel: the sensor looks forward). Its chainage uncertainty is the largest of theirs. Its
+    registration is weak when one of them had no odometer and no geometry along the axis
+    (its place is extrapolated), or when most of them slid along the axis (a fault the
+    odometer caught: such frames are left out of the sections, and the few left may not show
+    the section whole).
+
+    Attributes
+    ----------
+    frame_chainage_m : (F,) float
+        Chainage of each frame's sensor position on the fitted axis.
+    uncertainty_m : (F,) float
+        Each frame's chainage uncertainty.
+    extrapolated, slid : (F,) bool
+        Frames placed along the axis by a guess (no odometer, no geometry), frames that slid.
+    seen_from_m : float
+        How far ahead of the sensor a section can be seen (the section range).
+    ahead : {1, -1}
+        The direction of travel along the chainage.
+    """
+
+    frame_chainage_m: np.ndarray
+    uncertainty_m: np.ndarray
+    extrapolated: np.ndarray
+    slid: np.ndarray
+    seen_from_m: float
+    ahead: int = 1
+
+    def for_section(self, start_m: float, end_m: float) -> tuple[float, bool]:
+        """(chainage uncertainty, weak) of the section ``[start_m, end_m)``."""
+        c = self.frame_chainage_m
+        if self.ahead >= 0:
+            seen = (c >= start_m - self.seen_from_m) & (c <= end_m)
+        else:
+            seen = (c >= start_m) & (c <= end_m + self.seen_from_m)
+        if not seen.any():
+            return 0.0, False
+        weak = bool(self.extrapolated[seen].any()) or float(self.slid[seen].mean()) > 0.5
+        return float(self.uncertainty_m[seen].max()), weak
+
+
+def registration_evidence(
+    trajectory: Trajectory, frame_chainage_m: np.ndarray, *, seen_from_m: float
+) -> RegistrationEvidence:
+    """The :class:`RegistrationEvidence` of a trajectory whose frames sit at
+    ``frame_chainage_m`` (their sensor positions on the fitted axis, (F,))."""
+    chainage = np.asarray(frame_chainage_m, dtype=np.float64)
+    q = trajectory.quality
+    guessed = trajectory.along_axis_prior != "odometer"
+    extrapolated = np.array([guessed and x.degenerate for x in q], dtype=bool)
+    slid = np.array([x.fault == "slide" for x in q], dtype=bool)
+    uncertainty = np.array([x.chainage_uncertainty_m for x in q])
+    ahead = 1 if len(chainage) < 2 or chainage[-1] >= chainage[0] else -1
+    return RegistrationEvidence(chainage, uncertainty, extrapolated, slid, seen_from_m, ahead)
+
+
+@dataclass(frozen=True)
+class TrajectoryErrors:
+    """Pose errors of an estimated trajectory against the truth (both from the first frame).
+
+    Translation errors are split along the pipe axis (the direction from the first to the
+    last true position) and across it; rotation errors into roll about that axis (which a
+    round pipe cannot observe, and which moves neither chainages nor areas) and the tilt of
+    the axis (pitch and yaw together).
+    """
+
+    across_rms_m: float
+    along_final_m: float
+    along_max_m: float
+    tilt_rms_deg: float
+    roll_rms_deg: float
+
+
+def trajectory_errors(T_estimated: np.ndarray, T_true: np.ndarray) -> TrajectoryErrors:
+    """Compare poses, (F, 4, 4) each; both are re-expressed relative to their first pose.
+
+    Raises
+    ------
+    ValueError
+        When the shapes differ or the truth does not move (no axis to split along).
+    """
+    est, true = np.asarray(T_estimated, np.float64), np.asarray(T_true, np.float64)
+    if est.shape != true.shape or est.ndim != 3 or est.shape[1:] != (4, 4):
+        raise ValueError(f"Poses must both have shape (F, 4, 4), got {est.shape}, {true.shape}.")
+    est = np.einsum("ij,fjk->fik", np.linalg.inv(est[0]), est)
+    true = np.einsum("ij,fjk->fik", np.linalg.inv(true[0]), true)
+    travel = true[-1, :3, 3]
+    if np.linalg.norm(travel) < 1e-6:
+        raise ValueError("The true trajectory does not move; there is no axis to split along.")
+    axis = travel / np.linalg.norm(travel)
+    err = est[:, :3, 3] - true[:, :3, 3]
+    along = err @ axis
+    across = np.linalg.norm(err - np.outer(along, axis), axis=1)
+    rotvec = Rotation.from_matrix(est[:, :3, :3] @ true[:, :3, :3].transpose(0, 2, 1)).as_rotvec()
+    roll = rotvec @ axis
+    tilt = np.linalg.norm(rotvec - np.outer(roll, axis), axis=1)
+    return TrajectoryErrors(
+        across_rms_m=float(np.sqrt(np.mean(across**2))),
+        along_final_m=float(along[-1]),
+        along_max_m=float(np.abs(along).max()),
+        tilt_rms_deg=float(np.degrees(np.sqrt(np.mean(tilt**2)))),
+        roll_rms_deg=float(np.degrees(np.sqrt(np.mean(roll**2)))),
+    )

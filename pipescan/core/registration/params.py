@@ -1,0 +1,136 @@
+"""The parameters of frame registration, with the reasons for their defaults."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+RegistrationMethod = Literal["point_to_plane", "gicp", "point_to_point"]
+REGISTRATION_METHODS: tuple[str, ...] = ("gicp", "point_to_plane", "point_to_point")
+"""``gicp`` (default, small_gicp only), ``point_to_plane`` and the paper's ``point_to_point``."""
+
+RegistrationEngine = Literal["small_gicp", "open3d", "open3d_tensor"]
+REGISTRATION_ENGINES: tuple[str, ...] = ("small_gicp", "open3d", "open3d_tensor")
+"""Libraries that run the ICP step of ``point_to_plane`` and ``gicp``."""
+
+AlongAxisPrior = Literal["odometer", "constant_velocity", "mixed"]
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Parameters of frame registration (see ``docs/registration.md`` for the measurements
+    behind each default).
+
+    Attributes
+    ----------
+    method : {"gicp", "point_to_plane", "point_to_point"}
+        ``gicp`` (default; plane-to-plane) and ``point_to_plane`` run the full pipeline
+        (filtering, fusion with the odometer, slide detection); ``point_to_point`` is the
+        paper's ICP with the Kabsch/SVD step, kept as printed (NumPy, no fusion).
+    engine : {"small_gicp", "open3d", "open3d_tensor"}
+        Library running the ICP step. ``gicp`` needs ``small_gicp``. The Open3D engines use a
+        Tukey robust kernel of width ``max_correspondence_m / 2``; small_gicp's Python API
+        has none (its correspondence gate and the map filter stand in).
+    voxel_m : float
+        Voxel size of the local map, and of the test that keeps only map points seen from
+        at least two frames (a surface persists from frame to frame; a spurious return, a
+        mixed pixel or a drop does not).
+    max_range_m : float
+        Points further than this from the sensor are left out of registration (grazing,
+        sparse and noisy at range).
+    max_correspondence_m : float
+        ICP correspondence distance; also the inlier distance of the reported fitness.
+    max_iterations : int
+    keyframe_distance_m : float
+        Consecutive frames are grouped into one keyframe of the local map until the sensor
+        moved this far.
+    map_keyframes : int
+        Keyframes kept in the local map.
+    degeneracy_ratio : float
+        A rotation-dominated direction of the (unit-balanced) Hessian whose eigenvalue is
+        below this share of the largest is degenerate (the roll about the axis of a round
+        pipe); there the prior attitude (IMU-corrected when gravity is given) is kept.
+    odometer_scale_error_ratio : float
+        The odometer's stated uncertainty: the largest share by which its count may be off
+        the distance travelled (±3 % for a cable counter or wheel encoder on wet pipe). It
+        weighs the odometer against ICP along the axis, bounds the chainage uncertainty of
+        odometer-held stretches, and is what a slide must exceed to be caught.
+    odometer_noise_m : float
+        1σ noise of one odometer reading (its resolution and jitter).
+    slide_window_m : float
+        Slide detection compares registered and odometer travel over the frames of this
+        much travel. Over 0.5 m, a 3 % odometer allows 1.5 cm (plus 3σ of its reading noise,
+        4 mm): a smaller slide passes for the odometer's own error. The window must fit in a
+        chunk of frames (60 frames are 0.9 m at 0.15 m/s).
+    source_voxel_m : float, optional
+        Voxel size of each frame, coarser than the map's: fewer points, faster ICP. ``None``
+        uses ``voxel_m``.
+    num_threads : int
+        Threads the engine may use for one frame. 1 by default: parallelism comes from
+        registering chunks of frames in parallel.
+
+    Raises
+    ------
+    ValueError
+        From construction, for an unknown method or engine or an out-of-range value.
+    """
+
+    method: RegistrationMethod = "gicp"
+    engine: RegistrationEngine = "small_gicp"
+    voxel_m: float = 0.03
+    max_range_m: float = 6.0
+    max_correspondence_m: float = 0.08
+    max_iterations: int = 15
+    keyframe_distance_m: float = 0.15
+    map_keyframes: int = 8
+    degeneracy_ratio: float = 0.01
+    odometer_scale_error_ratio: float = 0.03
+    odometer_noise_m: float = 0.001
+    slide_window_m: float = 0.5
+    source_voxel_m: float | None = 0.045
+    num_threads: int = 1
+
+    def __post_init__(self) -> None:
+        if self.method not in REGISTRATION_METHODS:
+            raise ValueError(
+                f"RegistrationParams.method {self.method!r} is unknown; "
+                f"use one of {', '.join(REGISTRATION_METHODS)}."
+            )
+        if self.engine not in REGISTRATION_ENGINES:
+            raise ValueError(
+                f"RegistrationParams.engine {self.engine!r} is unknown; "
+                f"use one of {', '.join(REGISTRATION_ENGINES)}."
+            )
+        if self.method == "gicp" and self.engine != "small_gicp":
+            raise ValueError("RegistrationParams.method 'gicp' needs engine='small_gicp'.")
+        positive = (
+            "voxel_m", "max_range_m", "max_correspondence_m", "keyframe_distance_m",
+            "odometer_scale_error_ratio", "odometer_noise_m", "slide_window_m",
+        )  # fmt: skip
+        for name in positive:
+            if not getattr(self, name) > 0:
+                raise ValueError(
+                    f"RegistrationParams.{name} must be > 0, got {getattr(self, name)!r}."
+                )
+        if self.source_voxel_m is not None and not self.source_voxel_m > 0:
+            raise ValueError(
+                "RegistrationParams.source_voxel_m must be > 0 or None, "
+                f"got {self.source_voxel_m!r}."
+            )
+        for name in ("max_iterations", "map_keyframes", "num_threads"):
+            if getattr(self, name) < 1:
+                raise ValueError(
+                    f"RegistrationParams.{name} must be >= 1, got {getattr(self, name)!r}."
+                )
+        if not 0 <= self.degeneracy_ratio < 1:
+            raise ValueError(
+                "RegistrationParams.degeneracy_ratio must be in [0, 1), "
+                f"got {self.degeneracy_ratio!r}."
+            )
+
+    @property
+    def label(self) -> str:
+        """The engine and method as a user reads them, e.g. ``small_gicp point_to_plane``."""
+        if self.method == "point_to_point":
+            return "paper point_to_point (Kabsch, NumPy)"
+        return f"{self.engine} {self.method}"

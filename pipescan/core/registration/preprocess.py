@@ -1,0 +1,125 @@
+"""Filtering what is not surface, before registering.
+
+Two filters, because what is not surface differs in a frame and in the map:
+
+- A frame (sensor frame) is range-cropped and voxelised. Its stray points find nothing in a
+  clean map to pull on (ICP's correspondence gate, and a robust kernel where the engine has
+  one).
+- A keyframe of the local map keeps only voxels that at least two of its frames hit (a
+  single-frame keyframe, the first, drops its isolated points with Open3D's statistical
+  outlier removal instead). A
+  surface persists from frame to frame; a spurious return, a mixed pixel at a depth edge
+  (its range depends on where the sensor stood) or a drop does not. This is the filter that
+  matters: the map is what ICP slides against, and spurious points kept in it gather where
+  the sensor was, pulling every later frame back towards it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipescan.core.registration.params import RegistrationParams
+
+NORMAL_NEIGHBOURS = 12
+"""Neighbours of the normals and covariances of the map and of each frame."""
+
+# Statistical outlier removal on a voxelised frame: a voxel whose mean distance to its
+# neighbours exceeds the frame's mean by this many standard deviations is dropped. Wall voxels
+# sit at the voxel spacing from their neighbours; a spurious return sits at the spacing of the
+# spurious returns themselves (decimetres). 3σ keeps the sparse far wall (checked on the
+# sweep: < 1 % of the wall voxels go).
+_OUTLIER_NEIGHBOURS = 8
+_OUTLIER_STD_RATIO = 3.0
+_MIN_FRAMES_PER_VOXEL = 2
+
+
+def crop_range(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """Points within ``max_range_m`` of the sensor, (K, 3) float64 (sensor frame).
+
+    Raises
+    ------
+    ValueError
+        When ``points_m`` is not (N, 3).
+    """
+    pts = np.asarray(points_m, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"A frame must have shape (N, 3), got {pts.shape}.")
+    return pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+
+
+def voxel_downsample(points_m: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Centroid of the points in each occupied voxel, (K, 3) float64, same frame as the input."""
+    import open3d as o3d
+
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_m, np.float64)))
+    return np.asarray(pcd.voxel_down_sample(voxel_m).points)
+
+
+def remove_isolated(points_m: np.ndarray) -> np.ndarray:
+    """Drop isolated points (statistical outlier removal, Open3D), (K, 3) float64."""
+    import open3d as o3d
+
+    if len(points_m) <= _OUTLIER_NEIGHBOURS:
+        return np.asarray(points_m, np.float64)
+    pcd = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(np.asarray(points_m, np.float64)))
+    _, kept = pcd.remove_statistical_outlier(_OUTLIER_NEIGHBOURS, _OUTLIER_STD_RATIO)
+    return np.asarray(points_m, np.float64)[np.asarray(kept, dtype=np.int64)]
+
+
+def preprocess_frame(points_m: np.ndarray, params: RegistrationParams) -> np.ndarray:
+    """Range-crop and voxel-downsample (at ``source_voxel_m``, or ``voxel_m`` when it is
+    None); returns (K, 3) float64 (sensor frame).
+
+    What is not surface in the frame is left to the correspondence gate and to the map's
+    filter (``seen_twice``): a frame's stray points find nothing in a clean map to pull on.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> wall = np.column_stack((rng.uniform(1, 3, 4000), np.full(4000, 0.25),
+    ...                         rng.uniform(-0.1, 0.1, 4000)))
+    >>> stray = np.array([[1.5, 0.0, 0.0], [2.5, -0.1, 0.05]])
+    >>> kept = preprocess_frame(np.vstack((wall, stray)), RegistrationParams(max_range_m=2.0))
+    >>> bool(np.all(kept[:, 0] <= 2.0))
+    True
+    """
+    pts = crop_range(points_m, params.max_range_m)
+    if len(pts) == 0:
+        return pts
+    return voxel_downsample(pts, params.source_voxel_m or params.voxel_m)
+
+
+def seen_twice(frames_world: list[np.ndarray], voxel_m: float) -> np.ndarray:
+    """The points of several registered frames that fall in voxels hit by at least two of
+    them, (K, 3) float64 (world frame). With a single frame, its isolated points are dropped
+    instead (``remove_isolated``): there is no second view to confirm a surface.
+
+    Parameters
+    ----------
+    frames_world : list of (N_i, 3) float
+        Registered (downsampled) frames in one frame of reference.
+    voxel_m : float
+        Voxel size of the test.
+    """
+    if len(frames_world) == 1:
+        return remove_isolated(frames_world[0])
+    points = np.vstack(frames_world)
+    frame_of = np.repeat(np.arange(len(frames_world)), [len(f) for f in frames_world])
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    size = keys.max(axis=0) + 1
+    _, voxel = np.unique((keys[:, 0] * size[1] + keys[:, 1]) * size[2] + keys[:, 2],
+                         return_inverse=True)  # fmt: skip
+    # Distinct frames per voxel: count unique (voxel, frame) pairs.
+    pair = np.unique(voxel * len(frames_world) + frame_of)
+    frames_per_voxel = np.bincount(pair // len(frames_world), minlength=voxel.max() + 1)
+    return points[frames_per_voxel[voxel] >= _MIN_FRAMES_PER_VOXEL]
+
+
+def estimate_normals(points_m: np.ndarray, *, k: int = NORMAL_NEIGHBOURS) -> np.ndarray:
+    """Unit normals from the k-neighbourhood covariance, (N, 3)."""
+    import small_gicp
+
+    cloud = small_gicp.PointCloud(np.asarray(points_m, np.float64))
+    small_gicp.estimate_normals(cloud, num_neighbors=k)
+    return cloud.normals()[:, :3].copy()

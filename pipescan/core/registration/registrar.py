@@ -1,0 +1,367 @@
+"""Streaming frame-to-local-map registration: the loop that ties the stages together."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable
+
+import numpy as np
+
+from pipescan.core.errors import RegistrationError
+from pipescan.core.model import FrameQuality
+from pipescan.core.registration.engines import LocalMap, aligner, transform
+from pipescan.core.registration.fusion import (
+    AxialFilter,
+    Fault,
+    SlideDetector,
+    axial_information,
+    degenerate_directions,
+    from_small_motion,
+    gravity_corrected,
+    point_to_plane_hessian,
+    small_motion,
+)
+from pipescan.core.registration.params import AlongAxisPrior, RegistrationParams
+from pipescan.core.registration.preprocess import preprocess_frame
+from pipescan.core.registration.trajectory import Trajectory
+
+_MIN_FRAME_POINTS = 50
+_MIN_CORRESPONDENCES = 30
+
+
+class FrameRegistrar:
+    """Streaming frame-to-local-map registration.
+
+    Feed frames in order with ``add``; each returns the frame's pose and quality. Only the
+    downsampled keyframes of the local map (and the downsampled frames of the keyframe being
+    grouped) are kept in memory, never the full frames.
+
+    Examples
+    --------
+    >>> reg = FrameRegistrar(RegistrationParams())          # doctest: +SKIP
+    >>> for pts, odo in frames:                              # doctest: +SKIP
+    ...     T_world_frame, quality = reg.add(pts, odo)
+    """
+
+    def __init__(self, params: RegistrationParams = RegistrationParams()) -> None:
+        self.params = params
+        self._map = LocalMap(params)
+        self._align = aligner(params)
+        self._axial = AxialFilter(
+            params.odometer_scale_error_ratio, params.odometer_noise_m, params.keyframe_distance_m
+        )
+        self._slides = SlideDetector(
+            params.slide_window_m, params.odometer_scale_error_ratio, params.odometer_noise_m
+        )
+        self._pending: list[np.ndarray] = []
+        self._last_key_position: np.ndarray | None = None
+        self._key_positions: list[np.ndarray] = []
+        self._axis_world: np.ndarray | None = None
+        self._prev: np.ndarray | None = None
+        self._prev_constrained = False
+        self._velocity_m = np.zeros(3)
+        self._prev_odometer: float | None = None
+        self._down_world: np.ndarray | None = None
+        self.slid: list[tuple[int, int]] = []
+        """Runs of frames (first, last, counted from 0) that slid along the axis."""
+        self.odometer_frames = 0
+        self.count = 0
+
+    # -- prediction -------------------------------------------------------------------------
+    def _predict(self, odometer_m: float | None) -> tuple[np.ndarray, float]:
+        """The prior pose and its along-axis step (odometer, or constant velocity)."""
+        assert self._prev is not None and self._axis_world is not None
+        prev = self._prev
+        pred = prev.copy()
+        if odometer_m is not None and self._prev_odometer is not None:
+            step = odometer_m - self._prev_odometer
+            pred[:3, 3] = prev[:3, 3] + step * self._axis_world
+        else:
+            # No odometer: constant velocity, in translation only (extrapolating the rotation
+            # too would let a held roll drift on at its last rate for ever), measured between
+            # two consecutive constrained frames only: a frame that re-anchors on a feature
+            # after a held stretch jumps, and that jump is not a speed.
+            pred[:3, 3] = prev[:3, 3] + self._velocity_m
+            step = float(self._velocity_m @ self._axis_world)
+        return pred, step
+
+    def _map_extent_m(self, position: np.ndarray) -> float:
+        """How far behind the current position the local map reaches (m)."""
+        if not self._key_positions:
+            return 0.0
+        return float(np.linalg.norm(position - self._key_positions[0]))
+
+    # -- one frame --------------------------------------------------------------------------
+    def add(
+        self,
+        points_sensor_m: np.ndarray,
+        odometer_m: float | None = None,
+        gravity: np.ndarray | tuple[float, float, float] | None = None,
+    ) -> tuple[np.ndarray, FrameQuality]:
+        """Register the next frame.
+
+        Parameters
+        ----------
+        points_sensor_m : (N, 3) float
+            The frame in sensor coordinates, metres.
+        odometer_m : float, optional
+            The crawler's cable-counter reading at this frame. Without it, the along-axis
+            motion is extrapolated at constant velocity where the geometry has no
+            information, and such frames are flagged ``degenerate``.
+        gravity : (3,) float, optional
+            The direction of gravity an IMU measured at this frame, in the sensor frame (any
+            length). The first reading defines the world "down"; later readings turn the
+            predicted roll about the pipe axis into agreement with it before ICP, and a held
+            (degenerate) roll stays there. A frame without it keeps the previous roll.
+
+        Returns
+        -------
+        T_world_frame : (4, 4) float
+        quality : FrameQuality
+
+        Raises
+        ------
+        RegistrationError
+            When the frame leaves too few points to register (after filtering) or finds too
+            few correspondences in the local map.
+        """
+        p = self.params
+        index = self.count
+        gravity_sensor = _unit_gravity(gravity, index)
+        pts = preprocess_frame(points_sensor_m, p)
+        if len(pts) < _MIN_FRAME_POINTS:
+            raise RegistrationError(
+                f"frame {index} has only {len(pts)} points within {p.max_range_m} m after "
+                "filtering; it cannot be registered",
+                hint="check the frame, or raise max_range_m",
+            )
+        if self._prev is None:
+            T = np.eye(4)
+            quality = FrameQuality(index, 1.0, 0.0, False, along_axis_weight=1.0)
+            self._map.add_keyframe([pts], T[:3, 0])
+            self._last_key_position = T[:3, 3].copy()
+            self._key_positions = [T[:3, 3].copy()]
+            self._axis_world = self._map.axis
+        else:
+            has_odometer = odometer_m is not None and self._prev_odometer is not None
+            pred, step = self._predict(odometer_m)
+            if gravity_sensor is not None and self._down_world is not None:
+                assert self._axis_world is not None
+                pred = gravity_corrected(pred, gravity_sensor, self._axis_world, self._down_world)
+            step_bound = self._axial.predict(
+                step, map_extent_m=self._map_extent_m(pred[:3, 3]), odometer=has_odometer
+            )
+            T, quality = self._register(pts, pred, index, step_bound)
+            if has_odometer:
+                assert odometer_m is not None
+                T, quality = self._check_slide(T, quality, odometer_m)
+            self._add_to_map(T, pts, quality)
+        if self._down_world is None and gravity_sensor is not None:
+            self._down_world = T[:3, :3] @ gravity_sensor
+        if self._prev is not None and self._prev_constrained and not quality.degenerate:
+            self._velocity_m = T[:3, 3] - self._prev[:3, 3]
+        self._prev, self._prev_constrained = T, not quality.degenerate
+        self._prev_odometer = odometer_m
+        self.odometer_frames += odometer_m is not None
+        self.count += 1
+        return T, quality
+
+    def _add_to_map(self, T: np.ndarray, pts: np.ndarray, quality: FrameQuality) -> None:
+        p = self.params
+        self._pending.append(transform(T, pts))
+        assert self._last_key_position is not None
+        if quality.fault == "slide":
+            # The map holds frames that slid: start it again from this frame.
+            self._map.clear()
+            self._map.add_keyframe(self._pending[-1:], T[:3, 0])
+            self._pending.clear()
+            self._last_key_position = T[:3, 3].copy()
+            self._key_positions = [T[:3, 3].copy()]
+            return
+        if np.linalg.norm(T[:3, 3] - self._last_key_position) >= p.keyframe_distance_m:
+            # Group the frames since the last keyframe into one keyframe.
+            self._map.add_keyframe(self._pending, T[:3, 0])
+            self._pending = []
+            self._last_key_position = T[:3, 3].copy()
+            self._key_positions = [*self._key_positions, T[:3, 3].copy()][-p.map_keyframes :]
+            self._axis_world = self._map.axis
+
+    def _register(
+        self, pts: np.ndarray, pred: np.ndarray, index: int, step_bound: float
+    ) -> tuple[np.ndarray, FrameQuality]:
+        m = self._map
+        T = self._align(m, pts, pred)
+        if not np.isfinite(T).all():
+            raise RegistrationError(f"frame {index}: ICP diverged (non-finite pose)")
+        # Correspondences at the solution, the same for every engine: they give the fitness,
+        # the point-to-plane RMSE, the Hessian and the information along the axis.
+        src_idx, tgt_idx = self._correspondences(pts, T)
+        if len(src_idx) < _MIN_CORRESPONDENCES:
+            raise RegistrationError(
+                f"frame {index}: ICP found only {len(src_idx)} correspondences",
+                hint="the frame does not overlap the previous ones; check frame order",
+            )
+        src, normals_world = pts[src_idx], m.normals[tgt_idx]
+        resid = np.einsum("ij,ij->i", transform(T, src) - m.points[tgt_idx], normals_world)
+        T, weight = self._fuse(
+            src, normals_world, m.surface_variation[tgt_idx], resid, pred, T, step_bound
+        )
+        # The residuals at the fused pose, with the ICP solution's correspondences: the fusion
+        # moves the frame along the wall, where point-to-plane residuals hardly change.
+        resid = np.einsum("ij,ij->i", transform(T, src) - m.points[tgt_idx], normals_world)
+        rmse = float(np.sqrt(np.mean(resid**2)))
+        fitness = len(src_idx) / len(pts)
+        return T, FrameQuality(
+            index=index,
+            fitness=fitness,
+            rmse_m=rmse,
+            degenerate=weight < 0.5,
+            along_axis_weight=weight,
+            chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
+        )
+
+    def _fuse(
+        self,
+        src: np.ndarray,
+        normals_world: np.ndarray,
+        surface_variation: np.ndarray,
+        resid: np.ndarray,
+        pred: np.ndarray,
+        T: np.ndarray,
+        step_bound: float,
+    ) -> tuple[np.ndarray, float]:
+        """Weigh ICP's correction from the prior: along the axis by its information against
+        the prior's uncertainty, about the axis (roll) held where the Hessian is degenerate.
+        Returns the fused pose and ICP's weight along the axis."""
+        p = self.params
+        if p.method == "point_to_point":
+            # The paper's point-to-point ICP is kept as printed, without fusion.
+            return T, 1.0
+        assert self._axis_world is not None
+        axis_sensor = pred[:3, :3].T @ self._axis_world
+        normals_sensor = normals_world @ pred[:3, :3]
+        information = axial_information(normals_sensor, surface_variation, resid, axis_sensor)
+        x = small_motion(np.linalg.inv(pred) @ T)
+        weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
+        length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
+        hessian = point_to_plane_hessian(src, normals_sensor)
+        weak, scale = degenerate_directions(hessian, length, p.degeneracy_ratio)
+        weak = weak[:, np.linalg.norm(weak[:3], axis=0) > 0.5]  # rotation-dominated: roll
+        # Express the ICP correction relative to the prior, about the sensor, in balanced
+        # coordinates; drop it along the weak roll directions and keep ICP's share ``weight``
+        # of it along the axis.
+        x = x * scale
+        if weak.shape[1]:
+            weak = np.linalg.qr(weak)[0]
+            x -= weak @ (weak.T @ x)
+        along = np.concatenate(([0.0, 0.0, 0.0], axis_sensor))
+        x -= (1.0 - weight) * along * (along @ x)
+        return pred @ from_small_motion(x / scale), weight
+
+    def _check_slide(
+        self, T: np.ndarray, quality: FrameQuality, odometer_m: float
+    ) -> tuple[np.ndarray, FrameQuality]:
+        """Compare registered and odometer travel over the slide window; put a frame that
+        slid back on the odometer."""
+        assert self._axis_world is not None
+        w = quality.along_axis_weight
+        along = float(T[:3, 3] @ self._axis_world)
+        fault: Fault | None
+        fault, disagreement = self._slides.add(odometer_m, along, w, self._axial.last_icp_var)
+        if fault is None:
+            return T, quality
+        if fault == "slide":
+            T = T.copy()
+            T[:3, 3] -= disagreement * self._axis_world
+            self._axial.widen(disagreement)
+            self._axial.P = 0.0
+            # Every frame of the window slid with it: their sections are not trusted.
+            self.slid.append((self.count - self._slides.window_frames + 1, self.count))
+        self._slides.add(odometer_m, float(T[:3, 3] @ self._axis_world), w, 0.0)
+        return T, dataclasses.replace(
+            quality,
+            fault=fault,
+            chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
+        )
+
+    def _correspondences(self, pts: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        idx, dist = self._map.nearest(transform(T, pts))
+        ok = (idx >= 0) & (dist <= self.params.max_correspondence_m)
+        return np.flatnonzero(ok), idx[ok]
+
+    @property
+    def along_axis_prior(self) -> AlongAxisPrior:
+        """What held the frames so far along degenerate directions."""
+        if self.odometer_frames >= self.count:
+            return "odometer"
+        return "constant_velocity" if self.odometer_frames == 0 else "mixed"
+
+
+def _unit_gravity(
+    gravity: np.ndarray | tuple[float, float, float] | None, index: int
+) -> np.ndarray | None:
+    if gravity is None:
+        return None
+    g = np.asarray(gravity, dtype=np.float64)
+    norm = float(np.linalg.norm(g)) if g.shape == (3,) else 0.0
+    if not (np.isfinite(norm) and norm > 0):
+        raise RegistrationError(
+            f"gravity must be a finite, non-zero 3-vector, got {gravity!r} (frame {index})",
+            hint="pass the IMU's gravity direction in the sensor frame, or None",
+        )
+    return g / norm
+
+
+def register_frames(
+    frames: Iterable[
+        tuple[int, np.ndarray, float | None]
+        | tuple[int, np.ndarray, float | None, np.ndarray | tuple[float, float, float] | None]
+    ],
+    params: RegistrationParams = RegistrationParams(),
+) -> Trajectory:
+    """Register a sequence of frames into one trajectory.
+
+    Parameters
+    ----------
+    frames : iterable of (frame_index, points_sensor_m (N, 3), odometer_m or None[, gravity])
+        Streamed in order; each full frame is dropped once registered. The optional fourth
+        element is the IMU's gravity direction in the sensor frame, (3,) or None (see
+        :meth:`FrameRegistrar.add`): it holds the roll about the pipe axis to the IMU.
+    params : RegistrationParams
+
+    Returns
+    -------
+    Trajectory
+        Poses relative to the first frame of the sequence.
+
+    Raises
+    ------
+    RegistrationError
+        When there is no frame, or one cannot be registered (the message names it).
+
+    Examples
+    --------
+    >>> from pipescan.simulator.scan import get_scenario, simulate_scan
+    >>> scan = simulate_scan(get_scenario("paper", travel_m=0.3), seed=1)
+    >>> traj = register_frames((f.index, f.points_sensor, f.odometer_m) for f in scan.frames())
+    >>> traj.T_world_frame.shape[1:], traj.along_axis_prior
+    ((4, 4), 'odometer')
+    """
+    reg = FrameRegistrar(params)
+    poses, quality, indices = [], [], []
+    for frame_index, points, odometer, *rest in frames:
+        gravity = rest[0] if rest else None
+        try:
+            T, q = reg.add(points, odometer, gravity)
+        except RegistrationError as exc:
+            raise RegistrationError(f"frame {frame_index}: {exc.reason}", hint=exc.hint) from exc
+        poses.append(T)
+        quality.append(dataclasses.replace(q, index=frame_index))
+        indices.append(frame_index)
+    if not poses:
+        raise RegistrationError("no frames to register")
+    for first, last in reg.slid:
+        for k in range(max(first, 1), last + 1):
+            if quality[k].fault is None:
+                quality[k] = dataclasses.replace(quality[k], fault="slide")
+    return Trajectory(np.asarray(poses), tuple(quality), tuple(indices), reg.along_axis_prior)

@@ -1,0 +1,109 @@
+"""Trajectories: the poses and quality of registered frames, split into chunks and chained."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipescan.core.errors import RegistrationError
+from pipescan.core.model import FrameQuality
+from pipescan.core.registration.engines import transform
+from pipescan.core.registration.params import AlongAxisPrior
+
+
+@dataclass(frozen=True)
+class Trajectory:
+    """Poses of consecutive frames and their registration quality.
+
+    Attributes
+    ----------
+    T_world_frame : (F, 4, 4) float
+        Poses; the first is the identity unless the trajectory was chained.
+    quality : tuple of FrameQuality
+        One per frame (the first frame's fitness is 1 by definition). ``degenerate`` marks
+        frames whose along-axis position the geometry hardly constrained: they were held to
+        the prior (``along_axis_prior``); ``chainage_uncertainty_m`` bounds each frame's
+        along-axis position; ``fault`` marks slides and odometer slips.
+    frame_indices : tuple of int
+        Archive frame indices of the poses.
+    along_axis_prior : {"odometer", "constant_velocity", "mixed"}
+        What held degenerate frames: the odometer, or without one a constant-velocity
+        extrapolation (which is not a measurement: such frames were *not* registered along
+        the axis), or a mix when only some frames had an odometer reading.
+    """
+
+    T_world_frame: np.ndarray
+    quality: tuple[FrameQuality, ...]
+    frame_indices: tuple[int, ...]
+    along_axis_prior: AlongAxisPrior = "odometer"
+
+    def positions_m(self) -> np.ndarray:
+        """Sensor positions in the world frame, (F, 3)."""
+        return self.T_world_frame[:, :3, 3]
+
+
+def plan_chunks(frame_count: int, chunk_frames: int) -> list[tuple[int, int]]:
+    """Split frames into chunks ``[first, last]`` (inclusive) that overlap by one frame.
+
+    The shared frame lets consecutive chunks, registered independently and in parallel, be
+    chained into one trajectory.
+    """
+    if frame_count <= 0:
+        return []
+    chunk_frames = max(2, chunk_frames)
+    chunks, first = [], 0
+    while True:
+        last = min(first + chunk_frames - 1, frame_count - 1)
+        chunks.append((first, last))
+        if last >= frame_count - 1:
+            return chunks
+        first = last
+
+
+def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
+    """Chain chunk trajectories that overlap by one frame into one trajectory.
+
+    Chunk k's first frame is chunk k−1's last; its poses are re-expressed in the world frame
+    of chunk 0: ``T_world_frame = T_world_shared @ T_chunk_frame``. Chainage uncertainties
+    add up: chunk k's start where chunk k−1 ended.
+    """
+    if not chunks:
+        raise RegistrationError("no chunks to chain")
+    poses = [chunks[0].T_world_frame]
+    quality = list(chunks[0].quality)
+    indices = list(chunks[0].frame_indices)
+    for chunk in chunks[1:]:
+        if chunk.frame_indices[0] != indices[-1]:
+            raise RegistrationError(
+                f"chunks do not overlap: frame {indices[-1]} then {chunk.frame_indices[0]}"
+            )
+        T_world_shared = poses[-1][-1]
+        poses.append(np.einsum("ij,fjk->fik", T_world_shared, chunk.T_world_frame[1:]))
+        offset = quality[-1].chainage_uncertainty_m
+        quality.extend(
+            dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + offset)
+            for q in chunk.quality[1:]
+        )
+        indices.extend(chunk.frame_indices[1:])
+    priors = {c.along_axis_prior for c in chunks}
+    prior: AlongAxisPrior = priors.pop() if len(priors) == 1 else "mixed"
+    return Trajectory(np.concatenate(poses), tuple(quality), tuple(indices), prior)
+
+
+def iter_registered_points(
+    frames: Iterable[tuple[int, np.ndarray]], trajectory: Trajectory
+) -> Iterator[np.ndarray]:
+    """Transform frames into the world frame, one at a time, (N, 3) each.
+
+    Frames that slid along the axis (``fault == "slide"``) are left out: their place is not
+    known, and the sections are seen from many other frames.
+    """
+    pose_of = dict(zip(trajectory.frame_indices, trajectory.T_world_frame, strict=True))
+    slid = {q.index for q in trajectory.quality if q.fault == "slide"}
+    for frame_index, points in frames:
+        if frame_index in slid:
+            continue
+        yield transform(pose_of[frame_index], np.asarray(points, dtype=np.float64))
