@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import shapely
+from scipy.spatial.transform import Rotation
 
 from pipescan.core.errors import ArchiveError
 from pipescan.simulator.archive import (
@@ -24,6 +25,7 @@ from pipescan.simulator.scan import (
     SURFACE_WALL,
     BoxObstacle,
     DepositFill,
+    Effects,
     Scenario,
     cast_rays,
     ellipse_axes_m,
@@ -31,6 +33,7 @@ from pipescan.simulator.scan import (
     get_scenario,
     ray_directions_sensor,
     simulate_scan,
+    surface_normals,
     surface_residual_m,
 )
 
@@ -155,21 +158,79 @@ def test_noise_free_points_lie_on_the_analytic_surfaces(paper_scan):
         assert np.abs(x[far] - s.end_wall_m).max(initial=0.0) < 2e-6
 
 
-def test_range_noise_and_spurious_returns_as_configured():
-    s = get_scenario("clean", travel_m=1.0)
-    scan = simulate_scan(s, seed=11)
-    errors = []
-    for i in (0, 3, 6, 9):
-        pts = scan.frame(i).points_sensor.astype(np.float64)
+def _range_errors(scan, frames, **frame_kwargs):
+    """Reported minus exact range of every return of some frames, with the noise model's σ."""
+    s = scan.scenario
+    errors, sigmas, exacts = [], [], []
+    for i in frames:
+        pts = scan.frame(i, **frame_kwargs).points_sensor.astype(np.float64)
         rng = np.linalg.norm(pts, axis=1)
         T = scan.T_pipe_sensor(i)
-        exact, _ = cast_rays(s, T[:3, 3], (pts / rng[:, None]) @ T[:3, :3].T)
+        d = (pts / rng[:, None]) @ T[:3, :3].T
+        exact, surface = cast_rays(s, T[:3, 3], d)
+        cos_incidence = np.abs(
+            np.einsum("ij,ij->i", surface_normals(s, T[:3, 3] + d * exact[:, None], surface), d)
+        )
         errors.append(rng - exact)
-    err = np.concatenate(errors)
-    spurious = err < -0.03  # 6 sigma: only the early returns
-    assert 0.001 < spurious.mean() < 0.0035
-    assert np.std(err[~spurious]) == pytest.approx(s.range_noise_sigma_m, rel=0.05)
-    assert abs(np.mean(err[~spurious])) < 1e-4
+        sigmas.append(s.effects.range_sigma_m(exact, cos_incidence))
+        exacts.append(exact)
+    return np.concatenate(errors), np.concatenate(sigmas), np.concatenate(exacts)
+
+
+def test_range_noise_grows_with_range_and_incidence_and_spurious_returns_come_early():
+    # Mixed pixels (at the corner of wall and end wall) are tested on their own below.
+    s = get_scenario("clean", travel_m=1.0, mixed_pixel_ratio=0.0)
+    err, sigma, exact = _range_errors(simulate_scan(s, seed=11), (0, 3, 6, 9))
+    spurious = err < -6 * sigma
+    # Early returns land anywhere between the blind zone and the surface: those within 6σ of
+    # the surface pass for noise.
+    beyond = np.clip(1.0 - 6 * sigma / (exact - s.blind_zone_m), 0.0, 1.0)
+    expected = s.effects.spurious_return_ratio * beyond.mean()
+    assert spurious.mean() == pytest.approx(expected, rel=0.15)
+    z = err[~spurious] / sigma[~spurious]
+    assert np.std(z) == pytest.approx(1.0, rel=0.03) and abs(np.mean(z)) < 0.02
+    # The model's σ spans what a sewer gives: a few mm close and facing, ~1 cm grazing at range.
+    assert sigma.min() < 0.005 and np.percentile(sigma, 99) > 0.008
+    # No return lands behind the surface by more than the noise.
+    assert (err < 6 * sigma).all()
+
+
+def test_ideal_effects_give_exact_ranges_and_each_effect_draws_on_its_own():
+    ideal = simulate_scan(get_scenario("paper", travel_m=1.0, effects=Effects.ideal()), seed=2)
+    np.testing.assert_array_equal(
+        ideal.frame(5).points_sensor, ideal.frame(5, noise_free=True).points_sensor
+    )
+    assert ideal.odometer_m[-1] == ideal.true_travel_m[-1]
+    # Spurious returns switched on leave every other return where it was.
+    some = simulate_scan(
+        get_scenario("paper", travel_m=1.0, effects=Effects.ideal(spurious_return_ratio=0.01)),
+        seed=2,
+    )
+    a, b = ideal.frame(5).points_sensor, some.frame(5).points_sensor
+    assert a.shape == b.shape
+    moved = np.any(a != b, axis=1)
+    assert 0.005 < moved.mean() < 0.015
+    np.testing.assert_array_equal(ideal.T_world_sensor, some.T_world_sensor)
+
+
+def test_mixed_pixels_sit_between_the_surfaces_of_a_depth_edge():
+    # Frames looking at the obstacle hanging from the crown (2.6-2.9 m): its lower edge is a
+    # depth edge against the wall behind it.
+    base = dict(travel_m=2.4, deformations=(), deposits=())
+    frames = (0, 40, 80, 120)
+    for ratio in (0.0, 1.0):
+        effects = Effects.ideal(mixed_pixel_ratio=ratio, beam_footprint_deg=0.15)
+        scan = simulate_scan(get_scenario("paper", effects=effects, **base), seed=1)
+        off = []
+        for i in frames:
+            p = _to_pipe(scan, i, scan.frame(i).points_sensor)
+            off.append(surface_residual_m(scan.scenario, p))
+        off = np.concatenate(off)
+        mixed = off > 0.01
+        if ratio == 0.0:
+            assert not mixed.any()
+        else:
+            assert 20 < mixed.sum() < 0.01 * off.size
 
 
 def test_deformed_wall_hits_match_a_brute_force_search():
@@ -210,7 +271,9 @@ def test_memory_stays_bounded_over_many_frames():
 
 
 def test_odometer_scale_error_and_frame_zero():
-    s = get_scenario("paper", travel_m=3.0, odometer_scale_error_ratio=0.035)
+    s = get_scenario(
+        "paper", travel_m=3.0, effects=Effects(odometer_scale_error_ratio=0.035, slip_per_m=0)
+    )
     scan = simulate_scan(s, seed=2)
     assert scan.odometer_m[0] == 0.0 and scan.true_travel_m[0] == 0.0
     assert scan.T_pipe_sensor(0)[0, 3] == 0.0
@@ -218,7 +281,7 @@ def test_odometer_scale_error_and_frame_zero():
     slope = np.polyfit(scan.true_travel_m, scan.odometer_m, 1)[0]
     assert slope == pytest.approx(1.035, abs=5e-4)
     residual = scan.odometer_m - 1.035 * scan.true_travel_m
-    assert np.std(residual) == pytest.approx(s.odometer_noise_m, rel=0.3)
+    assert np.std(residual) == pytest.approx(s.effects.odometer_noise_m, rel=0.3)
     assert 3.0 - 0.03 < scan.true_travel_m[-1] <= 3.0
     # The speed varies around 0.15 m/s rather than staying constant.
     speed = np.diff(scan.true_travel_m) / 0.1
@@ -239,12 +302,62 @@ def test_poses_follow_a_pipe_not_aligned_with_world_axes(paper_scan):
         R = T[:3, :3]
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
         assert np.linalg.det(R) == pytest.approx(1.0)
-    # Jitter: about 1°, smooth (small frame-to-frame change).
+    # Rocking about 1°, plus a vibration that changes every frame.
     fwd = paper_scan.T_world_sensor[:, :3, 0]
     tilt = np.degrees(np.arccos(np.clip(fwd @ axis, -1, 1)))
     assert 0.5 < tilt.max() < 3.0 + 2.0
     step = np.degrees(np.arccos(np.clip(np.sum(fwd[1:] * fwd[:-1], axis=1), -1, 1)))
-    assert step.max() < 0.3
+    # The forward axis turns by pitch and yaw: each changes by √2 σ between frames.
+    vibration = paper_scan.scenario.effects.vibration_deg
+    assert np.sqrt(np.mean(step**2)) == pytest.approx(2.0 * vibration, rel=0.15)
+
+
+def test_vibration_and_mount_jitter_are_new_every_frame():
+    e = Effects.ideal(vibration_deg=1.0, mount_jitter_m=0.01)
+    scan = simulate_scan(get_scenario("clean", travel_m=3.0, effects=e, **FAST), seed=3)
+    roll = np.array(
+        [
+            Rotation.from_matrix(scan.T_pipe_sensor(i)[:3, :3]).as_euler("xyz")[0]
+            for i in range(len(scan))
+        ]
+    )
+    assert np.degrees(np.std(roll)) == pytest.approx(1.0, rel=0.15)
+    assert abs(np.corrcoef(roll[1:], roll[:-1])[0, 1]) < 0.2  # not smooth
+    lateral = np.array([scan.T_pipe_sensor(i)[1:3, 3] for i in range(len(scan))])
+    s = scan.scenario
+    np.testing.assert_allclose(
+        lateral.mean(axis=0), [s.mount_offset_y_m, s.mount_offset_z_m], atol=0.003
+    )
+    np.testing.assert_allclose(lateral.std(axis=0), 0.01, rtol=0.15)
+
+
+def test_slip_stuck_counts_on_while_the_crawler_stands_sliding_the_reverse():
+    e = Effects.ideal(slip_per_m=2.0, slip_duration_s=(1.0, 1.0))
+    scan = simulate_scan(get_scenario("clean", travel_m=3.0, effects=e, **FAST), seed=5)
+    assert len(scan.slip_frames) > 20
+    moved = np.diff(scan.true_travel_m) > 0
+    counted = np.diff(scan.odometer_m) > 0
+    assert (moved & ~counted).sum() > 5  # sliding
+    assert (~moved & counted).sum() > 5  # stuck
+    assert np.all(moved | counted)  # one or the other always advances
+    assert not np.allclose(scan.odometer_m, scan.true_travel_m)
+    # Without slip the count is the distance.
+    plain = simulate_scan(get_scenario("clean", travel_m=3.0, effects=Effects.ideal(), **FAST), 5)
+    np.testing.assert_allclose(plain.odometer_m, plain.true_travel_m)
+
+
+def test_imu_noise_and_dropouts():
+    e = Effects.ideal(imu_noise_deg=0.3, imu_dropout_ratio=0.2)
+    scan = simulate_scan(get_scenario("clean", travel_m=3.0, effects=e, **FAST), seed=6)
+    missing = [i for i in range(len(scan)) if scan.gravity(i) is None]
+    assert 0.12 < len(missing) / len(scan) < 0.28
+    assert scan.meta.frames[missing[0]].gravity is None
+    kept = [i for i in range(len(scan)) if scan.gravity(i) is not None]
+    true_down = -scan.T_world_sensor[kept, 2, :3]
+    angle = np.degrees(np.arccos(np.clip(np.sum(scan.gravity_sensor[kept] * true_down, 1), -1, 1)))
+    # The angle between two directions off by N(0, σ) per axis: RMS √2 σ.
+    assert np.sqrt(np.mean(angle**2)) == pytest.approx(0.3 * np.sqrt(2), rel=0.15)
+    assert simulate_scan(get_scenario("clean", travel_m=0.5, imu=False), 0).gravity(0) is None
 
 
 # ------------------------------------------------------------------ ground truth

@@ -17,17 +17,44 @@ from pipescan.core.errors import OptionError, PipescanError
 
 @app.command()
 def simulate(
-    out: Annotated[Path, typer.Argument(help="Directory to write the archive to.")],
+    out: Annotated[
+        Path | None, typer.Argument(help="Directory to write the archive to.", show_default=False)
+    ] = None,
     scenario: Annotated[Scenario, typer.Option(help="Scene and sensor preset.")] = Scenario.paper,
     seed: Annotated[int, typer.Option(help="Random seed (same seed, same scan).")] = 0,
     travel_m: Annotated[float | None, typer.Option(help="Override the crawler's travel.")] = None,
+    effect: Annotated[
+        list[str] | None,
+        typer.Option(
+            metavar="NAME=VALUE",
+            help="Set a sensor or crawler effect (repeatable), e.g. "
+            "spurious_return_ratio=0.02 or slip_duration_s=0.5,2. Names: see --list-effects.",
+        ),
+    ] = None,
+    ideal: Annotated[
+        bool, typer.Option(help="Switch every effect off (then --effect switches some on).")
+    ] = False,
+    list_effects: Annotated[
+        bool, typer.Option(help="List the effects with their defaults, and exit.")
+    ] = False,
 ) -> None:
-    """Simulate a crawler LiDAR scan of a pipe and write it as a scan archive with ground truth."""
-    from pipescan.simulator.archive import write_simulated_archive
-    from pipescan.simulator.scan import get_scenario, simulate_scan
+    """Simulate a crawler LiDAR scan of a pipe and write it as a scan archive with ground truth.
 
-    overrides = {"travel_m": travel_m} if travel_m is not None else {}
+    Every sensor and crawler effect (range noise, spurious returns, mixed pixels, vibration, odometer scale error and slip, IMU noise and dropouts) is on at a realistic default.
+    """  # noqa: E501
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.scan import Effects, get_scenario, simulate_scan
+
+    if list_effects:
+        for f in dataclasses.fields(Effects):
+            typer.echo(f"{f.name} = {getattr(Effects(), f.name)!r}")
+        return
+    if out is None:
+        _fail(ValueError("simulate needs OUT, the directory to write the archive to"))
+        return
+    overrides: dict[str, object] = {"travel_m": travel_m} if travel_m is not None else {}
     try:
+        overrides["effects"] = _effects(effect or [], ideal)
         scan = simulate_scan(get_scenario(scenario.value, **overrides), seed=seed)
         total = len(scan.times_s)
         started = time.perf_counter()
@@ -37,12 +64,43 @@ def simulate(
                 logging.getLogger("pipescan").info("simulated %d/%d frames", done, of)
 
         path = write_simulated_archive(scan, out, progress=progress)
-    except PipescanError as exc:
+    except (PipescanError, ValueError) as exc:
         _fail(exc)
     typer.echo(
         f"wrote {path} ({total} frames, scenario {scenario.value}, seed {seed}) "
         f"in {time.perf_counter() - started:.1f} s; ground truth in {path / 'ground_truth'}"
     )
+
+
+def _effects(assignments: list[str], ideal: bool):
+    """Effects from ``NAME=VALUE`` strings (ValueError naming the bad one)."""
+    from pipescan.simulator.scan import Effects
+
+    fields = {f.name: f for f in dataclasses.fields(Effects)}
+    base = Effects.ideal() if ideal else Effects()
+    values: dict[str, object] = {}
+    for text in assignments:
+        name, sep, raw = text.partition("=")
+        name = name.strip()
+        if not sep or name not in fields:
+            raise ValueError(
+                f"--effect {text!r}: expected NAME=VALUE with NAME one of {', '.join(fields)}"
+            )
+        default = getattr(base, name)
+        try:
+            if isinstance(default, bool):
+                if raw.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError
+                values[name] = raw.strip().lower() in ("true", "1", "yes")
+            elif isinstance(default, tuple):
+                values[name] = tuple(float(v) for v in raw.split(","))
+            else:
+                values[name] = float(raw)
+        except ValueError:
+            raise ValueError(
+                f"--effect {text!r}: {name} needs a {type(default).__name__} like {default!r}"
+            ) from None
+    return dataclasses.replace(base, **values)  # type: ignore[arg-type]
 
 
 def _inspection_params(contour: str | None, registration: str | None):

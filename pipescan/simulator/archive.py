@@ -31,8 +31,10 @@ import tomli_w
 
 from pipescan.core.errors import ArchiveError
 from pipescan.simulator.scan import (
+    EFFECT_NAMES,
     BoxObstacle,
     DepositFill,
+    Effects,
     EllipticalDeformation,
     Scenario,
     SimulatedScan,
@@ -340,6 +342,12 @@ def read_simulated_scene(archive_dir: Path) -> tuple[Scenario, int, np.ndarray]:
     for key, cls in nested.items():
         raw[key] = tuple(cls(**item) for item in raw.get(key, []))
     raw["world_origin_m"] = tuple(raw["world_origin_m"])
+    # Effects are a table of their own; archives written before that hold some of them at
+    # the top level (and the rest then read back at today's defaults).
+    effects = {k: raw.pop(k) for k in EFFECT_NAMES if k in raw} | dict(raw.get("effects", {}))
+    if "slip_duration_s" in effects:
+        effects["slip_duration_s"] = tuple(effects["slip_duration_s"])
+    raw["effects"] = Effects(**{k: v for k, v in effects.items() if k in EFFECT_NAMES})
     raw.update(dict.fromkeys(doc.get("null_fields", [])))
     known = {f.name for f in dataclasses.fields(Scenario)}
     scenario = Scenario(**{k: v for k, v in raw.items() if k in known})

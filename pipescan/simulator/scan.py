@@ -50,6 +50,7 @@ from datetime import UTC, datetime
 from typing import TypeVar
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from pipescan.core.model import FrameRef, InspectionMeta
 
@@ -87,6 +88,9 @@ _R2_ALPHA = (1.0 / _PLASTIC, 1.0 / _PLASTIC**2)
 # Attitude jitter: a sum of sinusoids per axis, with periods a crawler's rocking has.
 _JITTER_TERMS = 3
 _JITTER_PERIOD_RANGE_S = (1.5, 20.0)
+
+# Two returns closer than this in range are one surface seen at a slant, not a depth edge.
+_MIXED_PIXEL_MIN_GAP_M = 0.02
 
 _ILLINOIS_STEPS = 7
 _MARCH_STEP_M = 0.02
@@ -142,6 +146,106 @@ class BoxObstacle:
 
 
 @dataclass(frozen=True)
+class Effects:
+    """What a real sensor on a real crawler in a real sewer does to a scan.
+
+    Every effect is on by default, at a value in the middle of what sewer inspections meet;
+    :meth:`ideal` switches them all off. Each has its own random stream (seeded from the scan's
+    seed), so turning one effect on or off leaves the draws of the others unchanged. Add a
+    new effect as a field here (with its check in ``__post_init__``) and use it in
+    :class:`SimulatedScan`.
+
+    Sensor (per return)
+        ``range_noise_sigma_m`` is the 1σ range noise of a return at zero range and normal
+        incidence; it grows by ``range_noise_growth_per_m`` per metre of range and by
+        ``1 / sqrt(cos(incidence))`` towards grazing incidence (weaker returns), at most by
+        ``grazing_noise_max_factor``. Defaults: 3.5 mm at 1 m facing the wall, ~8 mm on the
+        wall 2 m ahead, ~11 mm at 5 m. A share ``spurious_return_ratio`` of the rays return
+        early (mist, spray, dust, drips), anywhere along the ray between the blind zone and the
+        surface. Where the beam's footprint (``beam_footprint_deg`` from its centre) straddles
+        a depth edge between two surfaces, a share ``mixed_pixel_ratio`` of such rays return a
+        range between the two (a mixed pixel).
+    Attitude and mount (per frame)
+        ``rocking_deg``: smooth rocking, per axis a sum of sinusoids with periods of 1.5-20 s
+        and peak at most this. ``vibration_deg``: 1σ per axis of an attitude change drawn
+        anew every frame. ``mount_jitter_m``: 1σ of the sensor's lateral (y and z) offset,
+        drawn anew every frame.
+    Odometer (cable counter)
+        ``odometer_scale_error_ratio``: the count reads ``(1 + ratio)`` times the distance.
+        ``odometer_noise_m``: 1σ per reading. Slip: ``slip_per_m`` events per metre of travel
+        (Poisson), each lasting a time drawn from ``slip_duration_s``; half of them *stuck*
+        (the crawler stands on debris while the count runs on) and half *sliding* (the crawler
+        moves while the count stands).
+    IMU
+        ``imu`` False: no gravity at all. ``imu_noise_deg``: 1σ per axis of the measured
+        gravity direction. ``imu_dropout_ratio``: share of frames that carry no gravity.
+    """
+
+    range_noise_sigma_m: float = 0.003
+    range_noise_growth_per_m: float = 0.0005
+    grazing_noise_max_factor: float = 2.0
+    spurious_return_ratio: float = 0.005
+    mixed_pixel_ratio: float = 0.5
+    beam_footprint_deg: float = 0.15
+    rocking_deg: float = 1.0
+    vibration_deg: float = 0.3
+    mount_jitter_m: float = 0.002
+    odometer_scale_error_ratio: float = 0.02
+    odometer_noise_m: float = 0.0005
+    slip_per_m: float = 0.1
+    slip_duration_s: tuple[float, float] = (0.5, 2.0)
+    imu: bool = True
+    imu_noise_deg: float = 0.1
+    imu_dropout_ratio: float = 0.02
+
+    def __post_init__(self) -> None:
+        non_negative = (
+            "range_noise_sigma_m", "range_noise_growth_per_m", "beam_footprint_deg",
+            "rocking_deg", "vibration_deg", "mount_jitter_m", "odometer_noise_m", "slip_per_m",
+            "imu_noise_deg",
+        )  # fmt: skip
+        for name in non_negative:
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"Effects.{name} must be >= 0, got {getattr(self, name)!r}.")
+        for name in ("spurious_return_ratio", "mixed_pixel_ratio", "imu_dropout_ratio"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"Effects.{name} must be in [0, 1], got {getattr(self, name)!r}.")
+        if not self.grazing_noise_max_factor >= 1:
+            raise ValueError("Effects.grazing_noise_max_factor must be >= 1.")
+        if not -0.5 < self.odometer_scale_error_ratio < 0.5:
+            raise ValueError("Effects.odometer_scale_error_ratio must be in (-0.5, 0.5).")
+        lo, hi = self.slip_duration_s
+        if not 0 <= lo <= hi:
+            raise ValueError("Effects.slip_duration_s must be (shortest, longest), 0 <= shortest.")
+
+    @classmethod
+    def ideal(cls, **overrides: object) -> Effects:
+        """No effect at all (a perfect sensor on a perfect crawler), except ``overrides``."""
+        none = {f.name: 0.0 for f in dataclasses.fields(cls)}
+        none.update(
+            grazing_noise_max_factor=1.0, slip_duration_s=(0.0, 0.0), imu=True, imu_noise_deg=0.0
+        )
+        none.update(overrides)
+        return cls(**none)  # type: ignore[arg-type]
+
+    @property
+    def largest_attitude_swing_deg(self) -> float:
+        """A bound on the attitude's excursion (rocking plus 4σ of vibration)."""
+        return self.rocking_deg + 4.0 * self.vibration_deg
+
+    def range_sigma_m(self, range_m: np.ndarray, cos_incidence: np.ndarray) -> np.ndarray:
+        """1σ range noise (m) of returns at ``range_m`` hitting at ``cos_incidence``."""
+        grazing = np.minimum(
+            1.0 / np.sqrt(np.clip(cos_incidence, 1e-6, 1.0)), self.grazing_noise_max_factor
+        )
+        return (self.range_noise_sigma_m + self.range_noise_growth_per_m * range_m) * grazing
+
+
+EFFECT_NAMES: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(Effects))
+"""Fields of :class:`Effects`; :func:`get_scenario` accepts them as overrides too."""
+
+
+@dataclass(frozen=True)
 class Scenario:
     """Every parameter of a simulated scan (see :func:`get_scenario` for the named ones).
 
@@ -169,16 +273,10 @@ class Scenario:
     centre_to_edge_spacing_ratio: float = 2.0 / 3.0
     blind_zone_m: float = 0.5
     max_range_m: float = 150.0
-    range_noise_sigma_m: float = 0.005
-    spurious_return_ratio: float = 0.002
-    attitude_jitter_deg: float = 1.0
     mount_offset_y_m: float = 0.01
     mount_offset_z_m: float = -0.05
     mount_pitch_deg: float = 3.0
-    odometer_scale_error_ratio: float = 0.02
-    odometer_noise_m: float = 0.0005
-    imu: bool = True
-    imu_noise_deg: float = 0.05
+    effects: Effects = field(default_factory=lambda: Effects())
     end_wall_beyond_travel_m: float = 2.0
     world_yaw_deg: float = 30.0
     world_gradient_ratio: float = 0.01
@@ -203,30 +301,26 @@ class Scenario:
         for name in positive:
             if not getattr(self, name) > 0:
                 raise ValueError(f"Scenario.{name} must be > 0, got {getattr(self, name)!r}.")
-        non_negative = (
-            "blind_zone_m", "range_noise_sigma_m", "spurious_return_ratio",
-            "attitude_jitter_deg", "odometer_noise_m", "chainage_offset_m", "imu_noise_deg",
-        )  # fmt: skip
-        for name in non_negative:
+        for name in ("blind_zone_m", "chainage_offset_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"Scenario.{name} must be >= 0, got {getattr(self, name)!r}.")
         if not 0 <= self.speed_variation_ratio < 1:
             raise ValueError("Scenario.speed_variation_ratio must be in [0, 1).")
-        if not 0 <= self.spurious_return_ratio <= 1:
-            raise ValueError("Scenario.spurious_return_ratio must be in [0, 1].")
         if self.truth_ray_stride < 1:
             raise ValueError("Scenario.truth_ray_stride must be >= 1.")
         if self.rays_per_frame < 1:
             raise ValueError("points_per_s / frame_rate_hz must give at least one ray per frame.")
         # Every ray must go forward (x > 0 in the pipe frame) for the end wall to close it.
-        if self.fov_horizontal_deg / 2 + self.attitude_jitter_deg * 2 >= 89.0:
+        swing_deg = self.effects.largest_attitude_swing_deg
+        if self.fov_horizontal_deg / 2 + swing_deg >= 89.0:
             raise ValueError("fov_horizontal_deg is too wide for a forward-looking sensor.")
-        if (
-            self.fov_vertical_deg / 2 + abs(self.mount_pitch_deg) + self.attitude_jitter_deg * 2
-            >= 89
-        ):
+        if self.fov_vertical_deg / 2 + abs(self.mount_pitch_deg) + swing_deg >= 89:
             raise ValueError("fov_vertical_deg + mount_pitch_deg point the sensor sideways.")
-        if math.hypot(self.mount_offset_y_m, self.mount_offset_z_m) >= self.radius_m * 0.8:
+        if (
+            math.hypot(self.mount_offset_y_m, self.mount_offset_z_m)
+            + 4.0 * self.effects.mount_jitter_m
+            >= self.radius_m * 0.8
+        ):
             raise ValueError("The sensor mount offset puts the sensor at or outside the wall.")
         for d in self.deformations:
             if not (d.end_m - d.start_m >= 2 * d.ramp_m and d.ramp_m > 0):
@@ -254,7 +348,8 @@ class Scenario:
         # The ray caster assumes the sensor is in free space at every position; the crawler
         # carrying it is not modelled, so a path through a solid would be a silent error.
         x0, x1 = 0.0, self.travel_m
-        y, z, c = self.mount_offset_y_m, self.mount_offset_z_m, _SENSOR_CLEARANCE_M
+        y, z = self.mount_offset_y_m, self.mount_offset_z_m
+        c = _SENSOR_CLEARANCE_M + 4.0 * self.effects.mount_jitter_m
         for f in self.deposits:
             if f.start_m <= x1 and f.end_m >= x0:
                 top_z_m = -self.radius_m + f.peak_height_ratio * self.nominal_diameter_m
@@ -396,7 +491,8 @@ def get_scenario(name: str, **overrides: object) -> Scenario:
         an obstacle and deposits spanning 2.5-23 % blockage, 4.5 m of travel), ``clean``
         (no defects, 3 m) or ``long`` (100 m, the paper's defects every 10 m).
     **overrides
-        Fields of :class:`Scenario` to replace, e.g. ``travel_m=1.0``.
+        Fields of :class:`Scenario` to replace, e.g. ``travel_m=1.0``, or of its
+        :class:`Effects`, e.g. ``spurious_return_ratio=0.02``.
 
     Raises
     ------
@@ -410,12 +506,16 @@ def get_scenario(name: str, **overrides: object) -> Scenario:
     """
     base = _named_scenario(name)
     known = {f.name for f in dataclasses.fields(Scenario)}
-    unknown = sorted(set(overrides) - known)
+    unknown = sorted(set(overrides) - known - set(EFFECT_NAMES))
     if unknown:
         raise ValueError(
             f"Unknown Scenario field(s) {', '.join(unknown)}; "
-            f"valid fields: {', '.join(sorted(known))}."
+            f"valid fields: {', '.join(sorted(known | set(EFFECT_NAMES)))}."
         )
+    effect_overrides = {k: overrides.pop(k) for k in list(overrides) if k in EFFECT_NAMES}
+    if effect_overrides:
+        effects = overrides.get("effects", base.effects)
+        overrides["effects"] = dataclasses.replace(effects, **effect_overrides)  # type: ignore[arg-type]
     return dataclasses.replace(base, **overrides)  # type: ignore[arg-type]
 
 
@@ -782,6 +882,48 @@ def cast_rays(
     return t, surface
 
 
+def surface_normals(
+    scenario: Scenario, points_pipe_m: np.ndarray, surface: np.ndarray
+) -> np.ndarray:
+    """Unit normals (N, 3) of the surfaces at their hit points, in the pipe frame.
+
+    Wall: the gradient of the local ellipse (the slope of a deformation's ramp along the axis
+    is left out: under 2°). End wall: the axis. Deposit top: from the slope of the fill along
+    the axis. Obstacle: the normal of the box face nearest to the point. Rows of
+    :data:`SURFACE_NONE` are (1, 0, 0).
+    """
+    p = np.asarray(points_pipe_m, dtype=np.float64)
+    x, y, z = p[:, 0], p[:, 1], p[:, 2]
+    normals = np.zeros_like(p)
+    normals[:, 0] = 1.0
+    wall = surface == SURFACE_WALL
+    if wall.any():
+        a, b = ellipse_axes_m(scenario, x[wall])
+        normals[wall] = np.column_stack((np.zeros(wall.sum()), y[wall] / a**2, z[wall] / b**2))
+    deposit = surface == SURFACE_DEPOSIT
+    if deposit.any():
+        h = 1e-3
+        xd = x[deposit]
+        slope = (deposit_top_z_m(scenario, xd + h) - deposit_top_z_m(scenario, xd - h)) / (2 * h)
+        slope = np.where(np.isfinite(slope), slope, 0.0)
+        normals[deposit] = np.column_stack((-slope, np.zeros(xd.size), np.ones(xd.size)))
+    obstacle = np.flatnonzero(surface == SURFACE_OBSTACLE)
+    if obstacle.size:
+        best = np.full(obstacle.size, np.inf)
+        for box in scenario.obstacles:
+            lo = np.array([box.start_m, box.y_min_m, box.z_min_m])
+            hi = np.array([box.end_m, box.y_max_m, box.z_max_m])
+            q = p[obstacle]
+            gap = np.minimum(np.abs(q - lo), np.abs(q - hi))  # distance to each face pair
+            face = np.argmin(gap, axis=1)
+            dist = gap[np.arange(obstacle.size), face]
+            outside = np.maximum(np.maximum(lo - q, q - hi), 0.0).max(axis=1)
+            better = (dist + outside) < best
+            best = np.where(better, dist + outside, best)
+            normals[obstacle[better]] = np.eye(3)[face[better]]
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
 def surface_residual_m(scenario: Scenario, points_pipe_m: np.ndarray) -> np.ndarray:
     """Distance-like residual of points to the nearest modelled surface.
 
@@ -880,47 +1022,68 @@ class SimulatedScan:
     def __init__(self, scenario: Scenario, seed: int = 0) -> None:
         self.scenario = scenario
         self.seed = int(seed)
+        s, e = scenario, scenario.effects
         rng = np.random.default_rng((self.seed, 1))
-        s = scenario
         # Speed varies smoothly around the set speed so that constant-velocity guesses are off.
         phase = rng.uniform(0.0, 2.0 * math.pi)
         omega = 2.0 * math.pi / s.speed_variation_period_s
 
-        def travel(t_s: np.ndarray) -> np.ndarray:
+        def commanded(t_s: np.ndarray) -> np.ndarray:
             wobble = (np.cos(omega * t_s + phase) - math.cos(phase)) / omega
             return s.speed_m_s * (t_s - s.speed_variation_ratio * wobble)
 
+        stuck_s, slips = self._draw_slips()
         n_max = (
-            math.ceil(s.travel_m / (s.speed_m_s * (1 - s.speed_variation_ratio)) * s.frame_rate_hz)
+            math.ceil(
+                (s.travel_m / (s.speed_m_s * (1 - s.speed_variation_ratio)) + stuck_s)
+                * s.frame_rate_hz
+            )
             + 2
         )
         times = np.arange(n_max) / s.frame_rate_hz
-        travel_m = travel(times)
+        step_m = np.diff(commanded(times), prepend=0.0)
+        stuck = np.zeros(n_max, dtype=bool)
+        sliding = np.zeros(n_max, dtype=bool)
+        commanded_m = np.cumsum(step_m)
+        for at_m, duration_s, is_stuck in slips:
+            first = int(np.searchsorted(commanded_m, at_m))
+            last = first + max(1, round(duration_s * s.frame_rate_hz))
+            (stuck if is_stuck else sliding)[first:last] = True
+        # Stuck: the wheels turn (the count runs on) while the crawler stands. Sliding: the
+        # crawler moves while the count stands.
+        travel_m = np.cumsum(np.where(stuck, 0.0, step_m))
+        counted_m = np.cumsum(np.where(sliding, 0.0, step_m))
         n = int(np.searchsorted(travel_m, s.travel_m, side="right"))
         self.times_s = times[:n]
         self.true_travel_m = travel_m[:n]
-        odo_noise = rng.normal(0.0, s.odometer_noise_m, n)
+        self.slip_frames = np.flatnonzero((stuck | sliding)[:n])
+        odo_noise = np.random.default_rng((self.seed, 3)).normal(0.0, e.odometer_noise_m, n)
         odo_noise[0] = 0.0
-        self.odometer_m = self.true_travel_m * (1.0 + s.odometer_scale_error_ratio) + odo_noise
+        self.odometer_m = counted_m[:n] * (1.0 + e.odometer_scale_error_ratio) + odo_noise
 
-        # Attitude jitter: per axis a weighted sum of sinusoids, peak <= attitude_jitter_deg.
+        # Rocking: per axis a weighted sum of sinusoids, peak <= rocking_deg.
         periods = rng.uniform(*_JITTER_PERIOD_RANGE_S, size=(3, _JITTER_TERMS))
         weights = rng.uniform(0.5, 1.0, size=(3, _JITTER_TERMS))
         weights /= weights.sum(axis=1, keepdims=True)
         phases = rng.uniform(0.0, 2.0 * math.pi, size=(3, _JITTER_TERMS))
         arg = 2.0 * math.pi * self.times_s[:, None, None] / periods[None] + phases[None]
-        jitter_rad = math.radians(s.attitude_jitter_deg) * (weights[None] * np.sin(arg)).sum(axis=2)
+        attitude_rad = math.radians(e.rocking_deg) * (weights[None] * np.sin(arg)).sum(axis=2)
+        # Vibration: a new attitude offset every frame.
+        vibration = np.random.default_rng((self.seed, 5)).normal(0.0, 1.0, (n, 3))
+        attitude_rad += math.radians(e.vibration_deg) * vibration
+        jitter = np.random.default_rng((self.seed, 6)).normal(0.0, 1.0, (n, 2))
+        lateral_m = np.array([s.mount_offset_y_m, s.mount_offset_z_m]) + e.mount_jitter_m * jitter
 
         mount = _rot_y(-math.radians(s.mount_pitch_deg))  # positive pitch = nose up
         self.T_world_pipe = world_from_pipe(s)
         self._T_pipe_sensor = np.empty((n, 4, 4))
         for i in range(n):
-            roll, pitch, yaw = jitter_rad[i]
+            roll, pitch, yaw = attitude_rad[i]
             rotation = mount @ _rot_z(yaw) @ _rot_y(pitch) @ _rot_x(roll)
-            position = (self.true_travel_m[i], s.mount_offset_y_m, s.mount_offset_z_m)
+            position = (self.true_travel_m[i], *lateral_m[i])
             self._T_pipe_sensor[i] = _pose(rotation, position)
         self.T_world_sensor = self.T_world_pipe[None] @ self._T_pipe_sensor
-        self.gravity_sensor = self._imu_gravity() if s.imu else None
+        self.gravity_sensor = self._imu_gravity() if e.imu else None
 
         self.meta = InspectionMeta(
             asset_id=s.asset_id,
@@ -936,36 +1099,49 @@ class SimulatedScan:
                     frame_file_name(i),
                     float(self.times_s[i]),
                     float(self.odometer_m[i]),
-                    self._gravity(i),
+                    self.gravity(i),
                 )
                 for i in range(n)
             ),
         )
         self._coverage_cache: tuple[np.ndarray, np.ndarray] | None = None
 
+    def _draw_slips(self) -> tuple[float, list[tuple[float, float, bool]]]:
+        """Slip events ``(commanded travel at the start (m), duration (s), stuck?)`` and their
+        total stuck time (s), from their own random stream."""
+        e = self.scenario.effects
+        rng = np.random.default_rng((self.seed, 4))
+        count = int(rng.poisson(e.slip_per_m * self.scenario.travel_m))
+        slips = [
+            (
+                float(rng.uniform(0.0, self.scenario.travel_m)),
+                float(rng.uniform(*e.slip_duration_s)),
+                bool(rng.random() < 0.5),
+            )
+            for _ in range(count)
+        ]
+        return sum(d for _, d, stuck in slips if stuck), slips
+
     def _imu_gravity(self) -> np.ndarray:
         """The IMU's gravity directions, (F, 3), in the sensor frame: the true world "down"
         seen from the true attitude, tilted by a random rotation of ``imu_noise_deg`` RMS
-        per axis (its own random stream, so the other draws do not change)."""
-        rng = np.random.default_rng((self.seed, 2))
+        per axis (its own random stream, so the other draws do not change). Rows of frames
+        that the IMU missed (``imu_dropout_ratio``) are NaN."""
+        effects = self.scenario.effects
         down_sensor = -self.T_world_sensor[:, 2, :3]  # R_world_sensorᵀ (0, 0, -1)
-        tilt_rad = rng.normal(0.0, math.radians(self.scenario.imu_noise_deg), (len(self), 3))
-        noisy = np.empty_like(down_sensor)
-        for i, (g, w) in enumerate(zip(down_sensor, tilt_rad, strict=True)):
-            angle = float(np.linalg.norm(w))
-            if angle == 0.0:
-                noisy[i] = g
-                continue
-            k = w / angle  # Rodrigues' rotation of g about k by angle
-            noisy[i] = (
-                g * math.cos(angle)
-                + np.cross(k, g) * math.sin(angle)
-                + k * (k @ g) * (1.0 - math.cos(angle))
-            )
-        return noisy / np.linalg.norm(noisy, axis=1, keepdims=True)
+        tilt_rad = np.random.default_rng((self.seed, 2)).normal(
+            0.0, math.radians(effects.imu_noise_deg), (len(self), 3)
+        )
+        noisy = Rotation.from_rotvec(tilt_rad).apply(down_sensor)
+        noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+        dropped = np.random.default_rng((self.seed, 7)).random(len(self))
+        noisy[dropped < effects.imu_dropout_ratio] = np.nan
+        return noisy
 
-    def _gravity(self, i: int) -> tuple[float, float, float] | None:
-        if self.gravity_sensor is None:
+    def gravity(self, i: int) -> tuple[float, float, float] | None:
+        """The IMU's unit gravity direction at frame ``i`` in the sensor frame, or None
+        (no IMU, or the IMU missed this frame)."""
+        if self.gravity_sensor is None or not np.isfinite(self.gravity_sensor[i]).all():
             return None
         gx, gy, gz = (float(v) for v in self.gravity_sensor[i])
         return (gx, gy, gz)
@@ -1002,14 +1178,10 @@ class SimulatedScan:
         s = self.scenario
         dirs_sensor = ray_directions_sensor(s, i)
         T = self._T_pipe_sensor[i]
-        range_m, _ = cast_rays(s, T[:3, 3], dirs_sensor @ T[:3, :3].T, min_range_m=s.blind_zone_m)
+        dirs_pipe = dirs_sensor @ T[:3, :3].T
+        range_m, surface = cast_rays(s, T[:3, 3], dirs_pipe, min_range_m=s.blind_zone_m)
         if not noise_free:
-            rng = np.random.default_rng((self.seed, 0, i))
-            n = range_m.size
-            noisy = range_m + rng.normal(0.0, s.range_noise_sigma_m, n)
-            spurious = (rng.random(n) < s.spurious_return_ratio) & (range_m > s.blind_zone_m)
-            early = s.blind_zone_m + rng.random(n) * (range_m - s.blind_zone_m)
-            range_m = np.where(spurious & np.isfinite(range_m), early, noisy)
+            range_m = self._returned_ranges(i, T[:3, 3], dirs_pipe, range_m, surface)
         keep = np.isfinite(range_m) & (range_m >= s.blind_zone_m) & (range_m <= s.max_range_m)
         points = (dirs_sensor[keep] * range_m[keep, None]).astype(np.float32)
         return SimulatedFrame(
@@ -1018,8 +1190,50 @@ class SimulatedScan:
             odometer_m=float(self.odometer_m[i]),
             points_sensor=points,
             T_world_sensor=self.T_world_sensor[i].copy(),
-            gravity=self._gravity(i),
+            gravity=self.gravity(i),
         )
+
+    def _returned_ranges(
+        self,
+        i: int,
+        origin_pipe_m: np.ndarray,
+        dirs_pipe: np.ndarray,
+        range_m: np.ndarray,
+        surface: np.ndarray,
+    ) -> np.ndarray:
+        """The ranges the sensor reports for exact first hits: mixed pixels at depth edges,
+        range noise by range and incidence, spurious early returns (see :class:`Effects`).
+        Each effect draws from its own stream of ``(seed, effect, frame)``."""
+        s, e = self.scenario, self.scenario.effects
+        n = range_m.size
+        hit = np.isfinite(range_m)
+        out = range_m.copy()
+        if e.mixed_pixel_ratio > 0 and e.beam_footprint_deg > 0:
+            rng = np.random.default_rng((self.seed, 12, i))
+            # A second ray through the footprint's edge, in a random direction across the beam.
+            across = np.cross(dirs_pipe, rng.normal(size=(n, 3)))
+            across /= np.linalg.norm(across, axis=1, keepdims=True)
+            edge = dirs_pipe + math.radians(e.beam_footprint_deg) * across
+            edge /= np.linalg.norm(edge, axis=1, keepdims=True)
+            edge_range, edge_surface = cast_rays(s, origin_pipe_m, edge, min_range_m=s.blind_zone_m)
+            straddles = (
+                hit
+                & np.isfinite(edge_range)
+                & (edge_surface != surface)
+                & (np.abs(edge_range - range_m) > _MIXED_PIXEL_MIN_GAP_M)
+            )
+            mixed = straddles & (rng.random(n) < e.mixed_pixel_ratio)
+            w = rng.random(n)
+            out = np.where(mixed, (1.0 - w) * range_m + w * edge_range, out)
+        points = origin_pipe_m + dirs_pipe * np.where(hit, range_m, 0.0)[:, None]
+        normals = surface_normals(s, points, surface)
+        cos_incidence = np.abs(np.einsum("ij,ij->i", normals, dirs_pipe))
+        sigma = e.range_sigma_m(np.where(hit, range_m, 0.0), cos_incidence)
+        out = out + sigma * np.random.default_rng((self.seed, 10, i)).normal(0.0, 1.0, n)
+        rng = np.random.default_rng((self.seed, 11, i))
+        spurious = (rng.random(n) < e.spurious_return_ratio) & hit & (range_m > s.blind_zone_m)
+        early = s.blind_zone_m + rng.random(n) * (range_m - s.blind_zone_m)
+        return np.where(spurious, early, out)
 
     def frames(self) -> Iterator[SimulatedFrame]:
         """Yield every frame in order, generating each one on demand."""

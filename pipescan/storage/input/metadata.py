@@ -355,7 +355,9 @@ def _check_frames(entries: Sequence[_FrameEntry], fail: Any) -> tuple[FrameRef, 
             )
         )
 
-    for key in ("time_s", "odometer_m", "gravity"):
+    # gravity may be missing on some frames: an IMU drops readings, and registration then
+    # holds those frames' roll to the previous attitude.
+    for key in ("time_s", "odometer_m"):
         given = [getattr(f, key) is not None for f in frames]
         if any(given) and not all(given):
             i = given.index(False)

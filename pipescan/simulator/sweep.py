@@ -1,0 +1,215 @@
+"""A seeded sweep of simulated scans over sensor and crawler effects × scenes.
+
+Accuracy claims must hold on scans the code was not tuned on. A :class:`Draw` is one scan of
+the sweep: a scene (pipe diameter, length, defects, whether the end wall is in view) and the
+:class:`~pipescan.simulator.scan.Effects` that spoil it. :func:`sweep_draws` lists them:
+
+- one draw per effect at the harsh end of its range, the others off (``effect:<name>``);
+- the defaults, every effect at its harsh end together, and seeded random combinations of
+  effects drawn from their ranges, over 0.3, 0.5 and 0.6 m pipes and a 30 m run
+  (``combined:<name>``).
+
+The ranges are those of issue 12 (what real sewers do to a LiDAR on a crawler): spurious
+returns 0.1-2 % of a frame, range noise 2-20 mm 1σ, vibration up to 1.5° 1σ per frame, mount
+jitter up to 1 cm, odometer scale error up to ±3 % with slip, IMU noise 0.05-0.3° and frames
+without IMU. ``benchmarks/bench_registration.py sweep`` runs them; the slow tests run a few.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipescan.simulator.scan import (
+    BoxObstacle,
+    DepositFill,
+    Effects,
+    EllipticalDeformation,
+    Scenario,
+)
+
+_DEPOSIT_PEAK_RATIO = 0.2851
+
+HARSH = Effects(
+    range_noise_sigma_m=0.006,
+    range_noise_growth_per_m=0.002,
+    grazing_noise_max_factor=2.0,
+    spurious_return_ratio=0.02,
+    mixed_pixel_ratio=1.0,
+    beam_footprint_deg=0.3,
+    rocking_deg=1.5,
+    vibration_deg=1.5,
+    mount_jitter_m=0.01,
+    odometer_scale_error_ratio=-0.03,
+    odometer_noise_m=0.002,
+    slip_per_m=0.5,
+    slip_duration_s=(1.0, 3.0),
+    imu=True,
+    imu_noise_deg=0.3,
+    imu_dropout_ratio=0.2,
+)
+"""Every effect at the harsh end of issue 12's ranges: range noise ~12 mm at 1 m and ~20 mm
+on the wall 3 m ahead, 2 % spurious returns, 1.5° vibration per frame, 1 cm mount jitter,
+a 3 % short odometer with a slip every 2 m, 0.3° IMU noise and one frame in five without IMU."""
+
+# One entry per effect (or group of fields that make one effect): the fields set to HARSH.
+EFFECT_GROUPS: dict[str, tuple[str, ...]] = {
+    "range noise": ("range_noise_sigma_m", "range_noise_growth_per_m", "grazing_noise_max_factor"),
+    "spurious returns 2 %": ("spurious_return_ratio",),
+    "mixed pixels": ("mixed_pixel_ratio", "beam_footprint_deg"),
+    "rocking 1.5°": ("rocking_deg",),
+    "vibration 1.5°/frame": ("vibration_deg",),
+    "mount jitter 1 cm": ("mount_jitter_m",),
+    "odometer scale -3 %": ("odometer_scale_error_ratio", "odometer_noise_m"),
+    "odometer slip": ("slip_per_m", "slip_duration_s"),
+    "IMU noise 0.3°": ("imu_noise_deg",),
+    "IMU dropouts 20 %": ("imu_dropout_ratio",),
+}
+
+
+@dataclass(frozen=True)
+class Draw:
+    """One scan of the sweep: ``name``, ``kind`` (``effect`` or ``combined``), the scenario and
+    the seed that make it."""
+
+    name: str
+    kind: str
+    scenario: Scenario
+    seed: int
+
+
+def defect_scene(
+    diameter_m: float = 0.6,
+    travel_m: float = 8.0,
+    *,
+    end_wall_beyond_travel_m: float = 8.0,
+    repeat_m: float = 10.0,
+    effects: Effects | None = None,
+    name: str = "sweep",
+) -> Scenario:
+    """A pipe with the paper scenario's three defects (deformation, obstacle hanging from the
+    crown, deposits), scaled to ``diameter_m`` across the pipe and repeated every
+    ``repeat_m`` along it while they fit in the travel. The end wall stands
+    ``end_wall_beyond_travel_m`` beyond the last position: by default out of the registration's
+    range, as in a long sewer, so that it never steadies the along-axis position."""
+    k = diameter_m / 0.5  # the paper's defects are drawn for a 0.5 m pipe
+    # The sensor rides above the deposit's top with room for 1 cm of mount jitter (4σ).
+    deposit_top_m = -diameter_m / 2 + _DEPOSIT_PEAK_RATIO * diameter_m
+    mount_z_m = max(-0.05 * k, deposit_top_m + 0.065)
+    deformations, deposits, obstacles = [], [], []
+    for start in np.arange(0.0, max(travel_m - 3.0, 0.0) + 1e-9, repeat_m):
+        x = float(start)
+        deformations.append(EllipticalDeformation(x + 1.5, x + 2.2, 0.2, 0.07, 0.03))
+        obstacles.append(BoxObstacle(x + 2.6, x + 2.9, -0.14 * k, 0.14 * k, 0.1184 * k, 0.35 * k))
+        deposits.append(DepositFill(x + 3.4, x + 4.3, 0.25, _DEPOSIT_PEAK_RATIO))
+    return Scenario(
+        name=name,
+        nominal_diameter_m=diameter_m,
+        travel_m=travel_m,
+        end_wall_beyond_travel_m=end_wall_beyond_travel_m,
+        mount_offset_y_m=0.01 * k,
+        mount_offset_z_m=mount_z_m,
+        deformations=tuple(deformations),
+        deposits=tuple(deposits),
+        obstacles=tuple(obstacles),
+        effects=effects if effects is not None else Effects(),
+        asset_id=f"SIM-{name.upper()}",
+    )
+
+
+def smooth_scene(
+    diameter_m: float = 0.5,
+    travel_m: float = 3.0,
+    *,
+    end_wall_beyond_travel_m: float = 8.0,
+    effects: Effects | None = None,
+    name: str = "smooth",
+) -> Scenario:
+    """A featureless pipe with the end wall out of range: nothing constrains the axis."""
+    k = diameter_m / 0.5
+    return Scenario(
+        name=name,
+        nominal_diameter_m=diameter_m,
+        travel_m=travel_m,
+        end_wall_beyond_travel_m=end_wall_beyond_travel_m,
+        mount_offset_y_m=0.01 * k,
+        mount_offset_z_m=-0.05 * k,
+        effects=effects if effects is not None else Effects(),
+        asset_id=f"SIM-{name.upper()}",
+    )
+
+
+def random_effects(rng: np.random.Generator) -> Effects:
+    """Effects drawn uniformly from issue 12's ranges (each effect on, at a random level)."""
+    return Effects(
+        range_noise_sigma_m=float(rng.uniform(0.002, 0.006)),
+        range_noise_growth_per_m=float(rng.uniform(0.0, 0.002)),
+        grazing_noise_max_factor=float(rng.uniform(1.0, 2.0)),
+        spurious_return_ratio=float(rng.uniform(0.001, 0.02)),
+        mixed_pixel_ratio=float(rng.uniform(0.0, 1.0)),
+        beam_footprint_deg=float(rng.uniform(0.05, 0.3)),
+        rocking_deg=float(rng.uniform(0.0, 1.5)),
+        vibration_deg=float(rng.uniform(0.0, 1.5)),
+        mount_jitter_m=float(rng.uniform(0.0, 0.01)),
+        odometer_scale_error_ratio=float(rng.uniform(-0.03, 0.03)),
+        odometer_noise_m=float(rng.uniform(0.0, 0.002)),
+        slip_per_m=float(rng.uniform(0.0, 0.5)),
+        slip_duration_s=(0.5, float(rng.uniform(0.5, 3.0))),
+        imu=bool(rng.random() < 0.8),
+        imu_noise_deg=float(rng.uniform(0.05, 0.3)),
+        imu_dropout_ratio=float(rng.uniform(0.0, 0.2)),
+    )
+
+
+def sweep_draws(*, random_draws: int = 8, seed: int = 12, long_run: bool = True) -> list[Draw]:
+    """The draws of the sweep, in a fixed order (see the module docstring).
+
+    Parameters
+    ----------
+    random_draws
+        Seeded random combinations, cycling over the 0.3, 0.5 and 0.6 m pipes.
+    seed
+        Seeds the random combinations; each draw's scan seed is its index.
+    long_run
+        Include the 30 m run (about 2,000 frames).
+    """
+    draws: list[Draw] = []
+    base = defect_scene(0.6, 8.0, effects=Effects.ideal())
+    for label, fields in EFFECT_GROUPS.items():
+        one = Effects.ideal(**{f: getattr(HARSH, f) for f in fields})
+        draws.append(Draw(f"effect: {label}", "effect", dataclasses.replace(base, effects=one), 0))
+    draws += [
+        Draw("combined: defaults, 0.6 m, 8 m", "combined", defect_scene(0.6, 8.0), 1),
+        Draw("combined: defaults, smooth 0.5 m, 3 m", "combined", smooth_scene(0.5, 3.0), 2),
+        Draw(
+            "combined: all harsh, 0.6 m, 8 m", "combined", defect_scene(0.6, 8.0, effects=HARSH), 3
+        ),
+        Draw(
+            "combined: all harsh, smooth 0.5 m, 3 m",
+            "combined",
+            smooth_scene(0.5, 3.0, effects=HARSH),
+            4,
+        ),
+        Draw(
+            "combined: defaults, 0.5 m, end wall in view",
+            "combined",
+            defect_scene(0.5, 4.5, end_wall_beyond_travel_m=2.0),
+            5,
+        ),
+    ]
+    rng = np.random.default_rng(seed)
+    diameters = (0.3, 0.5, 0.6)
+    for j in range(random_draws):
+        d = diameters[j % len(diameters)]
+        travel = float(rng.uniform(5.0, 8.0))
+        effects = random_effects(rng)
+        scene = defect_scene(d, travel, effects=effects, name=f"random{j}")
+        draws.append(
+            Draw(f"combined: random {j}, {d} m, {travel:.1f} m", "combined", scene, 100 + j)
+        )
+    if long_run:
+        scene = defect_scene(0.5, 30.0, effects=random_effects(rng), name="long30")
+        draws.append(Draw("combined: random, 0.5 m, 30 m run", "combined", scene, 200))
+    return draws
