@@ -39,6 +39,7 @@ from pipescan.simulator.scan import (
     Scenario,
     SimulatedScan,
     TrueSection,
+    WallBand,
 )
 
 GENERATOR = "pipescan.simulator.scan"
@@ -338,6 +339,7 @@ def read_simulated_scene(archive_dir: Path) -> tuple[Scenario, int, np.ndarray]:
         "deformations": EllipticalDeformation,
         "deposits": DepositFill,
         "obstacles": BoxObstacle,
+        "bands": WallBand,
     }
     for key, cls in nested.items():
         raw[key] = tuple(cls(**item) for item in raw.get(key, []))
