@@ -380,11 +380,23 @@ class Scenario:
                 raise ValueError(f"Deposit {f} needs end_m - start_m >= 2 ramp_m > 0.")
             if not 0 <= f.peak_height_ratio < 1:
                 raise ValueError(f"Deposit {f} peak_height_ratio must be in [0, 1).")
-        for kind, items in (("deformations", self.deformations), ("obstacles", self.obstacles)):
-            spans = sorted((item.start_m, item.end_m) for item in items)
-            for first, second in itertools.pairwise(spans):
-                if second[0] < first[1]:
-                    raise ValueError(f"Scenario.{kind} must not overlap: spans {first}, {second}.")
+        spans = sorted((item.start_m, item.end_m) for item in self.deformations)
+        for first, second in itertools.pairwise(spans):
+            if second[0] < first[1]:
+                raise ValueError(
+                    f"Scenario.deformations must not overlap: spans {first}, {second}."
+                )
+        # Obstacles may share a stretch of pipe (one at the crown, one at the invert), not space.
+        for a, b in itertools.combinations(self.obstacles, 2):
+            if (
+                a.start_m < b.end_m
+                and b.start_m < a.end_m
+                and a.y_min_m < b.y_max_m
+                and b.y_min_m < a.y_max_m
+                and a.z_min_m < b.z_max_m
+                and b.z_min_m < a.z_max_m
+            ):
+                raise ValueError(f"Scenario.obstacles must not overlap: {a}, {b}.")
         for b in self.obstacles:
             if not (b.start_m < b.end_m and b.y_min_m < b.y_max_m and b.z_min_m < b.z_max_m):
                 raise ValueError(f"Obstacle {b} must have min < max on every axis.")
