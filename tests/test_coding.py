@@ -334,3 +334,43 @@ def test_code_sections_skips_unmeasured_and_contourless_sections():
     codings = code_sections([ok, lost, bare])
     assert codings[0] is not None and codings[0].codes == (BBC,)
     assert codings[1] is None and codings[2] is None
+
+
+def test_the_network_ranking_puts_a_deposit_above_three_small_obstacles():
+    # The ranking: three pipes like the real scan (a narrow body at 5 o'clock, whose
+    # near wall reads as a 4.3 % diameter loss: BAA class 1 in v1) ranked above a pipe with a
+    # 23.5 % deposit (class 2). Coded, the obstacles are BBE class 4 and the deposit comes first.
+    from datetime import UTC, datetime
+
+    from pipescan.core.grading import worst_defect
+    from pipescan.reports.network import NetworkInput, PipeInspection, build_network_context
+
+    table = load_table()
+    nominal = math.pi * 0.4**2
+    body = contour(disc(0.4).difference(shapely.box(-0.2, -0.45, -0.06, -0.27)), noise_m=0.002)
+    obstacle = SectionMeasures(
+        1.5, 1.6, nominal, SectionStatus.OK, 800, 0.95, open_area_m2=nominal * 0.965,
+        blockage_ratio=0.035, deformation_ratio=0.043, deposit_height_ratio=0.01, contour_m=body,
+    )  # fmt: skip
+    deposit = section(37, fill(disc(), -R + 0.285 * D), deposit_height_ratio=0.285)
+
+    def pipe(asset_id: str, s: SectionMeasures, diameter_m: float) -> PipeInspection:
+        graded = grade_sections([s], table)
+        defects = merge_defects(graded, table)
+        when = datetime(2025, 1, 1, tzinfo=UTC)
+        return PipeInspection(
+            asset_id, None, None, diameter_m, "concrete", asset_id, when, graded, len(defects),
+            worst_defect=worst_defect(defects),
+        )  # fmt: skip
+
+    pipes = [pipe(f"REAL-{k}", obstacle, 0.8) for k in range(3)] + [pipe("PAPER", deposit, 0.5)]
+    context = build_network_context(
+        NetworkInput(
+            pipes=pipes, generated_at=datetime(2025, 1, 2, tzinfo=UTC), software_version="t"
+        )
+    )
+    first = context["by_grade"][0]
+    assert first["asset_id"] == "PAPER" and first["worst_grade"] == "2"
+    assert first["worst_defect"].startswith("BBC 3.") and first["worst_defect"].endswith("class 2")
+    assert [r["worst_grade"] for r in context["by_grade"][1:]] == ["4", "4", "4"]
+    assert context["by_grade"][1]["worst_defect"].startswith("BBE 4.")

@@ -97,6 +97,8 @@ DEFECTS = [
         peak_value=0.06,
         peak_blockage_ratio=0.12,
         grade=2,
+        clock_from_h=4.25,
+        clock_to_h=7.75,
     ),
     Defect(
         code="BAA",
@@ -107,6 +109,7 @@ DEFECTS = [
         peak_value=0.05,
         peak_blockage_ratio=None,
         grade=None,
+        characterisation="A",
     ),
 ]
 FRAME_QUALITY = [
@@ -178,6 +181,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
     assert files == [
         "2026_11_23_0001_initial_schema.py",
         "2026_11_23_1620_inspection_blockage_summary.py",
+        "2026_12_01_1600_defect_clock_positions.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -304,7 +308,7 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
     assert written[0][3] == pytest.approx(1 - (0.27 / 0.3) ** 2)
     assert written[0][4] == 300
 
-    db.downgrade(engine, "-1")
+    db.downgrade(engine, "c5e1a9f40b21")  # the revision before the summary
     columns = {c["name"] for c in sa.inspect(engine).get_columns("inspections")}
     assert "peak_blockage_ratio" not in columns
     assert count_rows(engine, "sections") == 6
@@ -320,6 +324,24 @@ def test_blockage_summary_migration_with_data(engine: sa.Engine) -> None:
         engine, content_hash="sha256:none", sections=[make_sections()[-1]], defects=[]
     )
     assert replacement > unmeasured
+
+
+def test_defect_clock_positions_migration_with_data(engine: sa.Engine) -> None:
+    # Down one step: the defects stay, without their clock positions; up again: they come
+    # back empty (NULL: not coded), and new saves fill them in.
+    first = save(engine)
+    db.downgrade(engine, "-1")
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("defects")}
+    assert {"clock_from_h", "clock_to_h", "characterisation"}.isdisjoint(columns)
+    assert count_rows(engine, "defects") == 2
+    db.upgrade(engine)
+    before = repository.get_defects(engine, first)
+    assert [(d.code, d.clock_from_h, d.clock_to_h, d.characterisation) for d in before] == [
+        ("BAA", None, None, None),
+        ("BBC", None, None, None),
+    ]
+    again = save(engine, content_hash="sha256:again")
+    assert repository.get_defects(engine, again) == [DEFECTS[1], DEFECTS[0]]
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:

@@ -128,6 +128,9 @@ class CodingParams:
         ... and by more than this share of the wall radius.
     gap_deg : float
         Displaced arcs closer than this merge (one body dipping towards the wall once).
+    fade_ratio : float
+        A displaced arc runs on, at both ends, while its displacement stays over this share of
+        the threshold (and twice the wall's scatter): its edges are seen to where they fade.
     min_area_ratio : float
         A displaced arc whose lost area is under this share of the nominal cross-section is
         not a feature: below what sections measure reliably.
@@ -135,8 +138,9 @@ class CodingParams:
         The smallest diameter reduction coded as a deformation: within the roundness
         tolerance of pipes and the noise of the fit below it.
     ring_ratio : float
-        A wall whose mean radius lies inside the nominal by more than this share is displaced
-        all round (attached deposits all round, or a wrong nominal diameter): unclassified.
+        A wall whose longest radius lies inside the nominal by more than this share is
+        displaced all round (attached deposits all round, or a wrong nominal diameter):
+        unclassified.
     chord_tol_ratio : float
         Distance from a deposit's chord (share of the nominal diameter) within which a bin lies
         on it.
@@ -172,6 +176,7 @@ class CodingParams:
     noise_factor: float = 4.0
     displacement_floor_ratio: float = 0.03
     gap_deg: float = 4.0
+    fade_ratio: float = 0.3
     min_area_ratio: float = 0.01
     min_deformation_ratio: float = 0.02
     ring_ratio: float = 0.03
@@ -180,7 +185,7 @@ class CodingParams:
     min_chord_support_ratio: float = 0.6
     min_chord_seen_ratio: float = 0.3
     max_chord_contradiction_ratio: float = 0.1
-    band_spread_ratio: float = 0.45
+    band_spread_ratio: float = 0.3
     band_max_thickness_ratio: float = 0.25
     band_min_length_ratio: float = 6.0
     body_max_aspect: float = 5.0
@@ -755,10 +760,18 @@ def code_section(
         )
         reference = np.minimum(reference, chord.fill_r)
 
-    # Whatever stands inside the wall, or inside a deposit's top, beyond the threshold.
+    # Whatever stands inside the wall, or inside a deposit's top, beyond the threshold; each
+    # arc then runs on to where its displacement fades into the wall's scatter, so that a
+    # tapering edge is seen whole (an even band has square edges; a thin chord tapers).
     disp = _smooth3(reference - radii)
     rest = _close_gaps(disp > threshold, round(p.gap_deg * bins / 360.0))
-    for arc in _runs(rest):
+    runs = _runs(rest)
+    fade = max(2.0 * wall.noise_m, p.fade_ratio * threshold)
+    taken = rest.copy()
+    for k, arc in enumerate(runs):
+        runs[k] = arc = _grow(arc, disp > fade, taken)
+        taken[arc] = True
+    for arc in runs:
         area = _arc_area_m2(reference, radii, arc, bins)
         if area < p.min_area_ratio * nominal_area:
             continue
@@ -774,6 +787,28 @@ def code_section(
         features.append(deformation)
     features.sort(key=lambda f: (f.arc_from_rad is None, f.arc_from_rad or 0.0))
     return SectionCoding(tuple(features), float(wall.coef[0]), wall.noise_m, threshold)
+
+
+def _grow(arc: np.ndarray, above: np.ndarray, taken: np.ndarray) -> np.ndarray:
+    """``arc`` (bins in order) extended at both ends over bins that are ``above`` and not
+    ``taken`` by another arc."""
+    bins = len(above)
+    if len(arc) >= bins:
+        return arc
+    before, after = [], []
+    k = (arc[0] - 1) % bins
+    while above[k] and not taken[k] and len(arc) + len(before) < bins:
+        before.append(k)
+        k = (k - 1) % bins
+    k = (arc[-1] + 1) % bins
+    while (
+        above[k] and not taken[k] and k not in before and len(arc) + len(before) + len(after) < bins
+    ):
+        after.append(k)
+        k = (k + 1) % bins
+    return np.concatenate(
+        (np.array(before[::-1], dtype=np.int64), arc, np.array(after, dtype=np.int64))
+    )
 
 
 def _smooth3(values: np.ndarray) -> np.ndarray:
@@ -801,8 +836,9 @@ def _ring_feature(
     bins: int,
     p: CodingParams,
 ) -> WallFeature | None:
-    """The wall displaced all round: a mean radius well inside the nominal."""
-    shrink = 1.0 - float(wall.coef[0]) / nominal_r
+    """The wall displaced all round: even its longest radius well inside the nominal (a
+    deformation brings one diameter in, not both)."""
+    shrink = 1.0 - float(wall_r.max()) / nominal_r
     if shrink <= p.ring_ratio:
         return None
     area = float(nominal_area - np.sum(0.5 * radii * radii) * _TWO_PI / bins)

@@ -62,6 +62,7 @@ __all__ = [
     "load_table",
     "merge_defects",
     "pipe_class_for_material",
+    "worst_defect",
 ]
 
 PipeClass = Literal["rigid", "flexible"]
@@ -584,6 +585,27 @@ def is_flagged(
         return True
     peak = defect.peak_blockage_ratio
     return peak is not None and math.isfinite(peak) and peak >= blockage_threshold_ratio
+
+
+def worst_defect(defects: Iterable[Defect]) -> Defect | None:
+    """The defect that sets a pipe's condition: the worst class (an ungraded one last), then
+    the largest peak blockage, then the upstream one. None when there is none.
+
+    >>> a = Defect("BBE", "blockage_ratio", 1.0, 1.2, 1.1, 0.035, 0.035, 4)
+    >>> b = Defect("BBC", "deposit_height_ratio", 3.4, 4.0, 3.8, 0.285, 0.235, 2)
+    >>> worst_defect([a, b]).code
+    'BBC'
+    """
+
+    def key(d: Defect) -> tuple[int, float, float]:
+        peak = d.peak_blockage_ratio
+        return (
+            d.grade if d.grade is not None else _N_BOUNDS + 1,
+            -(peak if peak is not None and math.isfinite(peak) else -math.inf),
+            d.chainage_start_m,
+        )
+
+    return min(defects, key=key, default=None)
 
 
 def _uncoded(s: SectionMeasures, table: ThresholdTable, pipe_class: PipeClass, **flags: Any):

@@ -17,14 +17,16 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from pipescan.core.model import SectionMeasures
+from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import peak_blockage
 from pipescan.core.trends import MIN_YEARS_APART, SECONDS_PER_YEAR, growth_per_year
 from pipescan.reports.context import (
     NOT_RECORDED,
     TableCitation,
     _finite,
+    fmt_clock,
     fmt_datetime,
+    fmt_grade,
     fmt_m,
     fmt_pct,
     fmt_points,
@@ -55,7 +57,9 @@ class PipeInspection:
     """One pipe's inspection in a network summary, with the pipe's earlier scans.
 
     ``sections`` need no contours. ``earlier`` are the asset's earlier scans (each archive
-    once), in date order; the last is the previous inspection.
+    once), in date order; the last is the previous inspection. ``worst_defect`` is the defect
+    that sets the pipe's condition (:func:`pipescan.core.grading.worst_defect`), shown with its
+    code and clock positions.
     """
 
     asset_id: str
@@ -68,6 +72,7 @@ class PipeInspection:
     sections: Sequence[SectionMeasures]
     defect_count: int
     earlier: Sequence[EarlierScan] = ()
+    worst_defect: Defect | None = None
 
     @property
     def previous(self) -> EarlierScan | None:
@@ -138,6 +143,15 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
     )
 
 
+def _defect_words(d: Defect | None) -> str:
+    """``"BBC 3.8–8.2, class 2"``: a defect's code, clock positions and class, in brief."""
+    if d is None:
+        return ""
+    clock = fmt_clock(d.clock_from_h, d.clock_to_h, d.code)
+    where = "" if clock == "\u2014" else f" {clock}"
+    return f"{d.code}{where}, class {fmt_grade(d.grade)}"
+
+
 def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
     pipe = p.pipe
     nodes = " → ".join(n for n in (pipe.upstream_node, pipe.downstream_node) if n)
@@ -164,6 +178,7 @@ def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
         if p.max_blockage_at_m is not None
         else "",
         "defects": str(pipe.defect_count),
+        "worst_defect": _defect_words(pipe.worst_defect),
         "previous_at": (
             fmt_datetime(pipe.previous.inspected_at)[:10]
             if pipe.previous is not None

@@ -8,7 +8,7 @@ from pathlib import Path
 from prefect import task
 
 import pipescan
-from pipescan.core.grading import load_table
+from pipescan.core.grading import load_table, worst_defect
 from pipescan.reports.context import (
     EarlierInspection,
     ReportInput,
@@ -26,6 +26,7 @@ from pipescan.reports.render import render_network_pdf, render_pdf
 from pipescan.storage.database.db import connect
 from pipescan.storage.database.queries import (
     defect_counts,
+    defects_by_inspection,
     earlier_inspections,
     earlier_scans,
     network_inspections,
@@ -68,6 +69,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         ids = [e.id for e in earlier]
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
+        defects = defects_by_inspection(engine, ids)
     finally:
         engine.dispose()
     params = rec.params or {}
@@ -122,6 +124,7 @@ def load_network_input(
         history = earlier_scans(engine, ids)
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
+        defects = defects_by_inspection(engine, ids)
     finally:
         engine.dispose()
     pipes = []
@@ -137,6 +140,7 @@ def load_network_input(
                 inspected_at=r.inspected_at,
                 sections=profiles[r.id],
                 defect_count=counts[r.id],
+                worst_defect=worst_defect(defects[r.id]),
                 earlier=[
                     EarlierScan(e.id, e.inspected_at, e.peak_blockage_ratio)
                     for e in reversed(history[r.id])
