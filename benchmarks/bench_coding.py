@@ -36,7 +36,7 @@ from pipescan.simulator.features import FeatureOutcome, score_defects, true_feat
 from pipescan.simulator.scan import simulate_scan
 from pipescan.simulator.sweep import HARSH
 
-OUTCOMES = ("found", "split", "mis-coded", "merged", "missed")
+OUTCOMES = ("found", "split", "mis-coded", "merged", "missed", "not measured")
 
 
 def defects_true_poses(scenario, seed: int):
@@ -50,7 +50,7 @@ def defects_true_poses(scenario, seed: int):
     codings = code_sections(sections)
     graded = grade_sections(sections, table, pipe_class=choice.pipe_class, codings=codings)
     defects = merge_defects(graded, table, pipe_class=choice.pipe_class, codings=codings)
-    return defects, table, choice.pipe_class
+    return defects, table, choice.pipe_class, sections
 
 
 def _clock(from_h: float | None, to_h: float | None) -> str:
@@ -76,9 +76,9 @@ def coding_table(results: list[tuple[str, list[FeatureOutcome], list]]) -> None:
     print("\n## Coding table")
     print(
         "| family | features (over threshold) | found as one defect | split | mis-coded | merged |"
-        " missed | clock error, mean / max (h) | spurious defects of this code |"
+        " missed | not measured | clock error, mean / max (h) | spurious defects of this code |"
     )
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     spurious = Counter(d.code for _, _, sp in results for d in sp)
     by_code: dict[str, list[FeatureOutcome]] = defaultdict(list)
     for _, outcomes, _ in results:
@@ -100,11 +100,13 @@ def coding_table(results: list[tuple[str, list[FeatureOutcome], list]]) -> None:
     other = {c: n for c, n in spurious.items() if c not in by_code}
     if other:
         print(f"spurious defects of codes no scene has: {dict(other)}")
-    everything = [o for _, os_, _ in results for o in os_]
+    everything = [o for _, os_, _ in results for o in os_ if o.outcome != "not measured"]
     over = [o for o in everything if o.over_threshold]
     bad = sum(o.outcome in ("split", "mis-coded") for o in everything)
+    unmeasured = sum(o.outcome == "not measured" for _, os_, _ in results for o in os_)
     print(
-        f"\nTargets: over-threshold features found as one defect: "
+        f"\nTargets (features with a measured section over them; {unmeasured} had none): "
+        f"over-threshold features found as one defect: "
         f"{sum(o.outcome == 'found' for o in over)} of {len(over)}; mis-coded or split: {bad} of "
         f"{len(everything)} (at most 1 in 50: {len(everything) / 50:.1f}); clock error within "
         f"1 h: {sum(o.clock_error_h <= 1.0 for o in everything if o.clock_error_h is not None)}"
@@ -123,9 +125,11 @@ def sweep(args: argparse.Namespace) -> None:
     results = []
     for draw in draws:
         started = time.perf_counter()
-        defects, table, pipe_class = defects_true_poses(draw.scenario, draw.seed)
+        defects, table, pipe_class, sections = defects_true_poses(draw.scenario, draw.seed)
         truths = true_features(draw.scenario)
-        outcomes, spurious = score_defects(defects, truths, table, pipe_class=pipe_class)
+        outcomes, spurious = score_defects(
+            defects, truths, table, pipe_class=pipe_class, sections=sections
+        )
         results.append((draw.name, outcomes, spurious))
         summary = ", ".join(
             f"{o.feature.code} {o.outcome}"
@@ -150,7 +154,7 @@ def estimated(args: argparse.Namespace) -> None:
     from pipescan.flows.inspect import InspectionParams, inspect_archive
     from pipescan.simulator.archive import write_simulated_archive
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.repository import get_defects
+    from pipescan.storage.database.repository import get_defects, get_sections
 
     names = args.scenes or [
         "deposit, 0.25 m ramps",
@@ -176,11 +180,18 @@ def estimated(args: argparse.Namespace) -> None:
                 params=InspectionParams(),
                 work_dir=f"{tmp}/w",
             )
-            defects = get_defects(connect(db), summary.inspection_id)
+            engine = connect(db)
+            defects = get_defects(engine, summary.inspection_id)
+            sections = get_sections(engine, summary.inspection_id)
+            engine.dispose()
             choice = choose_grading(draw.scenario.material)
             truths = true_features(draw.scenario)
             outcomes, spurious = score_defects(
-                defects, truths, load_table(choice.table), pipe_class=choice.pipe_class
+                defects,
+                truths,
+                load_table(choice.table),
+                pipe_class=choice.pipe_class,
+                sections=sections,
             )
             results.append((draw.name, outcomes, spurious))
             text = ", ".join(f"{o.feature.code} {o.outcome}" for o in outcomes)

@@ -374,3 +374,118 @@ def test_the_network_ranking_puts_a_deposit_above_three_small_obstacles():
     assert first["worst_defect"].startswith("BBC 3.") and first["worst_defect"].endswith("class 2")
     assert [r["worst_grade"] for r in context["by_grade"][1:]] == ["4", "4", "4"]
     assert context["by_grade"][1]["worst_defect"].startswith("BBE 4.")
+
+
+# --- on simulated scans -----------------------------------------------------------------------
+
+
+def _coded_scan(scenario, seed: int = 3):
+    """Defects of a simulated scan measured with its true poses (registration is not what is
+    tested here), graded with the scene's pipe class."""
+    from pipescan.core.axis import fit_axis
+    from pipescan.core.grading import choose_grading
+    from pipescan.core.sections import measure_window, plan_windows
+    from pipescan.simulator.scan import simulate_scan
+
+    scan = simulate_scan(scenario, seed=seed)
+    T0 = np.linalg.inv(scan.T_pipe_sensor(0))
+    points = scan.points_true_poses(max_range_m=5.0) @ T0[:3, :3].T + T0[:3, 3]
+    last = (T0 @ scan.T_pipe_sensor(len(scan) - 1))[:3, 3]
+    axis = fit_axis(points, start_m=np.zeros(3), travel_m=last)
+    chain = axis.chainage(points)
+    sections = []
+    for w in plan_windows(max(0.0, chain.min()), chain.max(), step_m=0.1, window_m=2.0):
+        sections += measure_window(points, axis, w, nominal_diameter_m=scenario.nominal_diameter_m)
+    choice = choose_grading(scenario.material)
+    table = load_table(choice.table)
+    codings = code_sections(sections)
+    graded = grade_sections(sections, table, pipe_class=choice.pipe_class, codings=codings)
+    return merge_defects(graded, table, pipe_class=choice.pipe_class, codings=codings)
+
+
+@pytest.mark.parametrize(
+    ("scene", "code", "arc_h"),
+    [
+        ("obstacle from the side", BBE, (1.9, 4.1)),  # on the right, looking downstream
+        pytest.param("band on the right", BBB, (1.5, 4.5), marks=pytest.mark.slow),
+    ],
+)
+def test_a_simulated_feature_is_one_defect_at_its_clock_position(scene, code, arc_h):
+    # The whole chain, with every sensor effect on at its default: simulator, true poses,
+    # axis, sections, coding. The truth's clock arc and the defect's agree within an hour.
+    from pipescan.simulator.coding_scenes import coding_scene
+    from pipescan.simulator.features import score_defects, true_features
+
+    scenario = coding_scene(scene, 0.5, points_per_s=150_000)
+    (truth,) = true_features(scenario)
+    assert (truth.code, truth.clock_from_h, truth.clock_to_h) == (
+        code,
+        pytest.approx(arc_h[0], abs=0.05),
+        pytest.approx(arc_h[1], abs=0.05),
+    )
+    defects = _coded_scan(scenario)
+    (outcome,), spurious = score_defects(defects, [truth], load_table())
+    assert outcome.outcome == "found" and spurious == []
+    assert outcome.clock_error_h is not None and outcome.clock_error_h <= 1.0
+
+
+def test_simulated_bands_lie_where_their_points_are_and_take_their_area():
+    from pipescan.simulator.scan import (
+        DepositFill,
+        Effects,
+        WallBand,
+        deposit_top_z_m,
+        free_area_m2,
+        get_scenario,
+        simulate_scan,
+        surface_residual_m,
+    )
+
+    bands = (WallBand(1.0, 1.6, 1.5, 4.5, 0.02), WallBand(1.2, 1.5, 8.0, 10.0, 0.015))
+    scenario = get_scenario(
+        "clean", travel_m=1.2, bands=bands, deposits=(DepositFill(1.1, 1.6, 0.1, 0.2),),
+        points_per_s=100_000, effects=Effects.ideal(),
+    )  # fmt: skip
+    scan = simulate_scan(scenario, seed=1)
+    frame = scan.frame(len(scan) - 1, noise_free=True)
+    T = scan.T_pipe_sensor(frame.index)
+    pts = frame.points_sensor.astype(float) @ T[:3, :3].T + T[:3, 3]
+    assert surface_residual_m(scenario, pts).max() < 1e-5
+    for x in (1.1, 1.3, 1.55):
+        free = disc()
+        z_dep = float(deposit_top_z_m(scenario, np.array([x]))[0])
+        if np.isfinite(z_dep):
+            free = free.difference(shapely.box(-1, -1, 1, z_dep))
+        for b in bands:
+            if b.start_m <= x < b.end_m:
+                free = band(free, b.clock_from_h, b.clock_to_h, b.thickness_m)
+        assert free_area_m2(scenario, x) == pytest.approx(free.area, rel=2e-4)
+    with pytest.raises(ValueError, match="overlaps"):
+        get_scenario(
+            "clean", bands=(WallBand(0.5, 1.0, 1, 4, 0.02), WallBand(0.8, 1.2, 3, 5, 0.02))
+        )
+
+
+def test_simulated_archives_carry_their_true_features(tmp_path):
+    from pipescan.simulator.archive import read_true_features, write_simulated_archive
+    from pipescan.simulator.features import true_features
+    from pipescan.simulator.scan import WallBand, get_scenario, simulate_scan
+
+    scenario = get_scenario(
+        "paper", travel_m=0.3, points_per_s=20_000, bands=(WallBand(0.5, 1.0, 7, 11, 0.02),)
+    )
+    out = write_simulated_archive(simulate_scan(scenario, seed=2), tmp_path / "a")
+    features = read_true_features(out)
+    assert features == true_features(scenario)
+    assert [(f.code, f.chainage_start_m) for f in features] == [
+        (BBB, 0.5),
+        (BAA, 1.5),
+        (BBE, 2.6),
+        (BBC, 3.4),
+    ]
+    deposit = features[-1]
+    assert (deposit.clock_from_h, deposit.clock_to_h) == (
+        pytest.approx(3.85, abs=0.01),
+        pytest.approx(8.15, abs=0.01),
+    )
+    assert deposit.peak_blockage_ratio == pytest.approx(0.235, abs=0.001)

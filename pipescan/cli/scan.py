@@ -152,7 +152,10 @@ def _print_summary(summary) -> None:
             f"  worst blockage {pct(summary.max_blockage_ratio)} "
             f"at {summary.max_blockage_chainage_m:.1f} m"
         )
-    typer.echo(f"  {summary.defect_count} defects flagged")
+    typer.echo(
+        f"  {summary.defect_count} defects coded, {summary.flagged_defect_count} over the "
+        "flagging threshold"
+    )
     reg = summary.registration
     if reg.get("frames"):
         typer.echo(

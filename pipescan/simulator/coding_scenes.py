@@ -4,8 +4,9 @@ an obstacle, ramps of several lengths, and pipes of 0.3 to 0.9 m.
 :func:`coding_draws` lists them as :class:`~pipescan.simulator.sweep.Draw` s, each scene at
 every diameter, every sensor and crawler effect on at its default (or at ``effects``). A scene's
 defects are drawn for a 0.5 m pipe and scaled across the pipe with its diameter; along the pipe
-they start where a forward-looking sensor sees the whole wall (about 3.6 radii ahead of it),
-and the crawler stops just past the last one. ``benchmarks/bench_coding.py`` scores the coder
+they start where a forward-looking sensor sees the whole wall of a section from several of its
+positions (6 radii and the blind zone from the start), and the crawler stops just past the last
+one. ``benchmarks/bench_coding.py`` scores the coder
 on them against :func:`pipescan.simulator.features.true_features`.
 """
 
@@ -155,7 +156,9 @@ def coding_scene(
         For an unknown scene.
     """
     k = diameter_m / 0.5
-    start_m = round(3.6 * diameter_m / 2.0 + 0.5, 1)
+    # A forward-looking sensor first reaches the crown and invert about 3.6 radii ahead, and
+    # sees a section whole only from some way further back: 6 radii, plus 0.5 m of blind zone.
+    start_m = round(6.0 * diameter_m / 2.0 + 0.5, 1)
     parts = SCENES[name](start_m, k)
     fields: dict[str, list[object]] = {
         "deformations": [],

@@ -20,7 +20,7 @@ import shapely
 
 from pipescan.core.coding import BAA, BBB, BBC, BBE, clock_hours
 from pipescan.core.grading import ThresholdTable
-from pipescan.core.model import Defect
+from pipescan.core.model import Defect, SectionMeasures
 from pipescan.simulator.scan import (
     BoxObstacle,
     DepositFill,
@@ -191,7 +191,9 @@ class FeatureOutcome:
 
     ``outcome`` is ``found`` (one defect of its code), ``split`` (two or more defects),
     ``mis-coded`` (found, but under another code), ``merged`` (no defect of its own: it lies
-    inside a defect given to another feature) or ``missed`` (no defect there at all).
+    inside a defect given to another feature), ``missed`` (no defect there at all) or, when
+    the sections are given, ``not measured`` (no defect, and no section over it was measured:
+    nothing to code).
     ``clock_error_h`` is the larger of the errors at the arc's two ends, in hours, for a
     feature found with its code and an arc; ``over_threshold`` whether its own figures are over
     the report's threshold (class ``flag_grade`` or worse, or blockage over the threshold).
@@ -240,6 +242,7 @@ def score_defects(
     flag_grade: int = 2,
     tol_m: float = 0.1,
     slack_h: float = 1.0,
+    sections: Sequence[SectionMeasures] | None = None,
 ) -> tuple[list[FeatureOutcome], list[Defect]]:
     """Match an inspection's defects to the true features, and say how each feature fared.
 
@@ -285,6 +288,13 @@ def score_defects(
             outcome = "mis-coded"
         elif overlapping[i]:
             outcome = "merged"
+        elif sections is not None and not any(
+            s.is_ok
+            and s.chainage_start_m < f.chainage_end_m
+            and s.chainage_end_m > f.chainage_start_m
+            for s in sections
+        ):
+            outcome = "not measured"
         else:
             outcome = "missed"
         error = None

@@ -69,7 +69,6 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         ids = [e.id for e in earlier]
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
-        defects = defects_by_inspection(engine, ids)
     finally:
         engine.dispose()
     params = rec.params or {}
