@@ -489,3 +489,13 @@ def test_simulated_archives_carry_their_true_features(tmp_path):
         pytest.approx(8.15, abs=0.01),
     )
     assert deposit.peak_blockage_ratio == pytest.approx(0.235, abs=0.001)
+
+
+def test_a_feature_whose_figure_is_missing_is_listed_ungraded():
+    # The deposit's bins straight down were not seen (a gap under 20°: the section is ok), so
+    # the section has no deposit height: the deposit is still one defect, with the coder's
+    # estimate of its height and no class.
+    s = section(0, fill(disc(), -0.15), deposit_height_ratio=None)
+    (defect,) = merge_defects([s], load_table())
+    assert defect.code == BBC and defect.grade is None
+    assert defect.peak_value == pytest.approx(0.2, abs=0.01)

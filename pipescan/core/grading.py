@@ -587,6 +587,15 @@ def is_flagged(
     return peak is not None and math.isfinite(peak) and peak >= blockage_threshold_ratio
 
 
+def _coder_estimate(feature: WallFeature, s: SectionMeasures) -> float:
+    """The coder's own estimate of a feature's figure, as a ratio: its height (a deposit) or
+    its diameter loss (a deformation) over the nominal diameter, else its lost area over the
+    nominal area."""
+    if feature.measure == "blockage_ratio" or not s.nominal_area_m2 > 0:
+        return feature.lost_area_m2 / s.nominal_area_m2 if s.nominal_area_m2 > 0 else 0.0
+    return feature.height_m / (2.0 * math.sqrt(s.nominal_area_m2 / math.pi))
+
+
 def worst_defect(defects: Iterable[Defect]) -> Defect | None:
     """The defect that sets a pipe's condition: the worst class (an ungraded one last), then
     the largest peak blockage, then the upstream one. None when there is none.
@@ -655,7 +664,8 @@ def merge_defects(
     :func:`is_flagged` for the report's threshold). An unclassified one is listed only when it
     is flagged or its class reaches the table's classes (0-3): a small thing whose family is not
     known is not worth a look. Sections without a contour cannot be coded: each flagged one
-    counts as a feature of its governing rule's code (as v1 did).
+    counts as a feature of its governing rule's code (as v1 did). A run whose figure is missing
+    in every section is listed ungraded, with the coder's own estimate of it as its peak.
 
     Parameters
     ----------
@@ -708,7 +718,12 @@ def merge_defects(
             if (value := feature_value(f, ordered[k], coded[k])) is not None
         ]
         if not candidates:
-            continue
+            # The figure is missing in every section of the run (the bins it is read from were
+            # not seen): the feature is still listed, ungraded, with the coder's own estimate.
+            candidates = [
+                (_coder_estimate(f, ordered[k]), k, f)
+                for k, f in zip(run.sections, run.features, strict=True)
+            ]
         # max() keeps the first of equal values, so ties go to the upstream section.
         peak_value, peak_index, peak_feature = max(candidates, key=lambda c: c[0])
         first, last = run.sections[0], run.sections[-1]
