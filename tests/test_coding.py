@@ -176,6 +176,21 @@ def test_a_band_along_the_wall_is_attached_deposits():
     assert f.height_m == pytest.approx(0.02, abs=0.003)
 
 
+def test_a_flat_slab_at_the_crown_is_not_a_band():
+    # Even enough in thickness, but its face is straight: it does not follow the wall.
+    f = only(disc().difference(shapely.box(-0.12, 0.2, 0.12, 0.3)))
+    assert f.code == UNCLASSIFIED and "straight" in f.rule
+
+
+def test_a_rough_deposit_is_a_deposit_and_a_stone_on_the_invert_an_obstacle():
+    rng = np.random.default_rng(1)
+    x = np.linspace(-0.3, 0.3, 200)
+    top = -0.15 + 0.006 * np.sin(40 * x) + rng.normal(0.0, 0.003, len(x))
+    rough = shapely.Polygon(np.vstack([np.column_stack((x, top)), [[0.3, -0.4], [-0.3, -0.4]]]))
+    assert codes(disc().difference(rough)) == [BBC]
+    assert codes(disc().difference(shapely.Point(0.05, -0.22).buffer(0.06))) == [BBE]
+
+
 @pytest.mark.parametrize(
     ("box", "arc_h"),
     [

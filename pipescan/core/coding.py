@@ -152,7 +152,8 @@ class CodingParams:
         may be more open than the fill allows.
     band_spread_ratio : float
         A band's thickness over the middle of its arc varies by at most this share of its
-        median (10th to 90th percentile).
+        median (10th to 90th percentile), and its face there follows the wall (a circle about
+        the axis fits it better than a straight line).
     band_max_thickness_ratio : float
         Thickest band, as a share of the wall radius.
     band_min_length_ratio : float
@@ -611,6 +612,21 @@ def _flank_steepness_deg(
     return min(ends)
 
 
+def _follows_the_wall(radii: np.ndarray, angles: np.ndarray, idx: np.ndarray) -> bool:
+    """Whether the contour over bins ``idx`` follows the wall (a circle about the axis) more
+    closely than a straight line: a band's face does, an obstacle's flat face does not."""
+    if len(idx) < 5:
+        return False
+    r = radii[idx]
+    x, y = r * np.cos(angles[idx]), r * np.sin(angles[idx])
+    about_circle = float(np.sqrt(np.mean((r - np.median(r)) ** 2)))
+    xy = np.column_stack((x - x.mean(), y - y.mean()))
+    # The smallest singular value: the RMS distance to the best straight line (total least
+    # squares), times the square root of the point count.
+    about_line = float(np.linalg.svd(xy, compute_uv=False)[-1]) / math.sqrt(len(idx))
+    return about_circle < about_line
+
+
 def _classify_arc(
     disp: np.ndarray,
     idx: np.ndarray,
@@ -638,15 +654,18 @@ def _classify_arc(
     peak = float(own.max())
     aspect = length_m / max(peak, 1e-9)
     surface = "the deposit's top" if on_fill else "the wall"
+    middle_idx = idx[int(0.15 * n) : max(int(0.15 * n) + 1, n - int(0.15 * n))]
+    concentric = _follows_the_wall(radii, angles, middle_idx)
     if (
         not on_fill
         and spread <= p.band_spread_ratio
+        and concentric
         and thickness <= p.band_max_thickness_ratio * radius
         and length_m >= p.band_min_length_ratio * thickness
     ):
         return BBB, (
             f"a band along the wall, {1000 * thickness:.0f} mm thick (varying by "
-            f"{100 * spread:.0f} %) over {1000 * length_m:.0f} mm"
+            f"{100 * spread:.0f} %) over {1000 * length_m:.0f} mm, its face following the wall"
         )
     at_invert = _covers_invert(idx, bins) or on_fill
     compact = aspect <= p.body_max_aspect and arc_rad <= math.radians(p.max_body_arc_deg)
@@ -658,7 +677,11 @@ def _classify_arc(
             f" ({math.degrees(arc_rad):.0f}°)"
             + (f", its sides rising at {steepness:.0f}° at the invert" if at_invert else "")
         )
-    why = [f"its thickness varies by {100 * spread:.0f} % (not a band)"]
+    why = [
+        f"its thickness varies by {100 * spread:.0f} % (not a band)"
+        if concentric
+        else "its face is straight, not following the wall (not a band)"
+    ]
     if not compact:
         why.append(f"it is {aspect:.1f} times longer than high (not a body)")
     elif not steep:
