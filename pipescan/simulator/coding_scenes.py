@@ -175,14 +175,23 @@ def coding_scene(
     for part in parts:
         fields[kinds[type(part)]].append(part)
     end_m = max(p.end_m for p in parts)  # type: ignore[attr-defined]
+    effects = effects if effects is not None else Effects()
+    # The sensor rides above any deposit's top, with room for its mount jitter (4σ).
+    clearance_m = 0.02 + 4.0 * effects.mount_jitter_m + 0.005
+    tops = [
+        -diameter_m / 2.0 + f.peak_height_ratio * diameter_m
+        for f in fields["deposits"]
+        if isinstance(f, DepositFill)
+    ]
+    mount_z_m = max([-0.05 * k] + [top + clearance_m for top in tops])
     slug = "".join(c if c.isalnum() else "-" for c in name).strip("-")
     values: dict[str, object] = {
         "name": f"coding: {name}",
         "nominal_diameter_m": diameter_m,
         "travel_m": round(end_m + 0.3, 2),
         "mount_offset_y_m": 0.01 * k,
-        "mount_offset_z_m": -0.05 * k,
-        "effects": effects if effects is not None else Effects(),
+        "mount_offset_z_m": mount_z_m,
+        "effects": effects,
         "asset_id": f"SIM-{slug.upper()[:40]}-{round(1000 * diameter_m)}",
         **{key: tuple(v) for key, v in fields.items()},
     }
