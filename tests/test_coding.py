@@ -514,3 +514,15 @@ def test_a_feature_whose_figure_is_missing_is_listed_ungraded():
     (defect,) = merge_defects([s], load_table())
     assert defect.code == BBC and defect.grade is None
     assert defect.peak_value == pytest.approx(0.2, abs=0.01)
+
+
+def test_a_ragged_contour_is_not_coded():
+    # A face across the section (the points of a wall ahead, say) leaves a contour that
+    # scatters by centimetres: nothing is coded against it, and it says so.
+    rng = np.random.default_rng(4)
+    angles = np.radians(np.arange(0.5, 360.0, 1.0))
+    radii = R - np.abs(rng.normal(0.0, 0.03, len(angles)))
+    (f,) = code_section(
+        np.column_stack((radii * np.cos(angles), radii * np.sin(angles))), D
+    ).features
+    assert f.code == UNCLASSIFIED and "ragged" in f.rule and f.arc_from_rad is None

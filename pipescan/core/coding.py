@@ -137,6 +137,10 @@ class CodingParams:
     min_deformation_ratio : float
         The smallest diameter reduction coded as a deformation: within the roundness
         tolerance of pipes and the noise of the fit below it.
+    max_scatter_ratio : float
+        A wall that scatters (1σ) by more than this share of the radius is too ragged to code
+        anything against: the section is unclassified as a whole. Measured walls scatter by
+        well under 1 % of the radius.
     ring_ratio : float
         A wall whose longest radius lies inside the nominal by more than this share is
         displaced all round (attached deposits all round, or a wrong nominal diameter):
@@ -168,6 +172,10 @@ class CodingParams:
         Widest arc a body standing off the wall may cover.
     deformation_axis_tol_deg : float
         An ellipse's axes within this of vertical and horizontal.
+    symmetric_share : float
+        Share of bins whose radius is within the displacement floor of the opposite bin's, for
+        the contour to be taken as possibly a deformed wall from the start (an ellipse about
+        the axis is point-symmetric; a band or an obstacle on one side is not).
     perimeter_tol_ratio : float
         "Perimeter roughly kept": the fitted wall's perimeter within this share of the
         nominal.
@@ -181,6 +189,7 @@ class CodingParams:
     min_area_ratio: float = 0.01
     min_deformation_ratio: float = 0.02
     ring_ratio: float = 0.03
+    max_scatter_ratio: float = 0.02
     chord_tol_ratio: float = 0.015
     max_chord_tilt_deg: float = 12.0
     min_chord_support_ratio: float = 0.6
@@ -193,6 +202,7 @@ class CodingParams:
     body_min_steepness_deg: float = 45.0
     max_body_arc_deg: float = 180.0
     deformation_axis_tol_deg: float = 20.0
+    symmetric_share: float = 0.9
     perimeter_tol_ratio: float = 0.05
 
 
@@ -372,12 +382,19 @@ def _fit_wall(radii: np.ndarray, angles: np.ndarray, floor_m: float, p: CodingPa
     centred on the axis: a deformed wall is far from any circle, so the first start would
     leave its flattened sides out and never fit them, and a deformation squeezes the pipe
     about its axis (the axis is fitted to the wall), where a band on one side would need the
-    centre to move.
+    centre to move. The second start is tried only when the contour is point-symmetric about
+    the axis (``symmetric_share`` of its bins within the floor of the opposite one), as an
+    ellipse about it is.
     """
     reference = float(np.percentile(radii, 75))
     envelope = _robust_wall(
         radii, angles, floor_m, p, np.abs(radii - reference) <= max(0.03 * reference, floor_m)
     )
+    # An ellipse about the axis is point-symmetric: r(θ) = r(θ + π). A contour that is not (a
+    # band or an obstacle on one side) is no candidate for the second start.
+    opposite = np.roll(radii, len(radii) // 2)
+    if np.mean(np.abs(radii - opposite) <= floor_m) < p.symmetric_share:
+        return envelope
     ellipse = _robust_wall(radii, angles, floor_m, p, np.ones(len(radii), dtype=bool), centred=True)
 
     def on_wall(w: _Wall) -> int:
@@ -742,6 +759,22 @@ def code_section(
     threshold = max(p.noise_factor * wall.noise_m, floor_m)
     features: list[WallFeature] = []
 
+    if wall.noise_m > p.max_scatter_ratio * nominal_r:
+        # A wall this ragged (a face across the section, points from elsewhere) is no wall to
+        # code anything against.
+        lost = float(nominal_area - np.sum(0.5 * radii * radii) * _TWO_PI / bins)
+        ragged = WallFeature(
+            UNCLASSIFIED,
+            None,
+            None,
+            max(lost, 0.0),
+            0.0,
+            rule=(
+                "the contour is too ragged to code: the wall scatters by "
+                f"{1000 * wall.noise_m:.0f} mm"
+            ),
+        )
+        return SectionCoding((ragged,), float(wall.coef[0]), wall.noise_m, threshold)
     ring = _ring_feature(wall, wall_r, radii, nominal_r, nominal_area, bins, p)
     if ring is not None:
         return SectionCoding((ring,), float(wall.coef[0]), wall.noise_m, threshold)
