@@ -98,6 +98,8 @@ DEFECTS = [
         peak_value=0.06,
         peak_blockage_ratio=0.12,
         grade=2,
+        clock_from_h=4.25,
+        clock_to_h=7.75,
     ),
     Defect(
         code="BAA",
@@ -108,6 +110,7 @@ DEFECTS = [
         peak_value=0.05,
         peak_blockage_ratio=None,
         grade=None,
+        characterisation="A",
     ),
 ]
 FRAME_QUALITY = [
@@ -182,6 +185,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
         "2026_12_01_1530_network_pipes_and_survey_geometry.py",
         "2026_12_01_1600_uncertainty_water_start_source.py",
         "2026_12_01_1700_section_chainage_uncertainty.py",
+        "2026_12_01_1800_defect_clock_positions.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -376,8 +380,9 @@ def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> Non
     inspection_id = save(engine, sections=sections)
     stored = repository.get_sections(engine, inspection_id)
     assert [s.chainage_uncertainty_m for s in stored] == [0.0, 0.01, 0.02, 0.03, None]
-    # Down one step: the column goes, the sections stay; up again: it is back, unknown (NULL).
-    db.downgrade(engine, "-1")
+    # Down to the revision before it: the column goes, the sections stay; up again: it is
+    # back, unknown (NULL).
+    db.downgrade(engine, "a61c0e5d2b94")
     columns = {c["name"] for c in sa.inspect(engine).get_columns("sections")}
     assert "chainage_uncertainty_m" not in columns
     assert count_rows(engine, "sections") == 5
@@ -385,6 +390,24 @@ def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> Non
     again = repository.get_sections(engine, inspection_id)
     assert [s.chainage_uncertainty_m for s in again] == [None] * 5
     assert [s.blockage_ratio for s in again] == [s.blockage_ratio for s in stored]
+
+
+def test_defect_clock_positions_migration_with_data(engine: sa.Engine) -> None:
+    # Down one step: the defects stay, without their clock positions; up again: they come
+    # back empty (NULL: not coded), and new saves fill them in.
+    first = save(engine)
+    db.downgrade(engine, "3f8a61c2d7e4")  # the revision before the clock positions
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("defects")}
+    assert {"clock_from_h", "clock_to_h", "characterisation"}.isdisjoint(columns)
+    assert count_rows(engine, "defects") == 2
+    db.upgrade(engine)
+    before = repository.get_defects(engine, first)
+    assert [(d.code, d.clock_from_h, d.clock_to_h, d.characterisation) for d in before] == [
+        ("BAA", None, None, None),
+        ("BBC", None, None, None),
+    ]
+    again = save(engine, content_hash="sha256:again")
+    assert repository.get_defects(engine, again) == [DEFECTS[1], DEFECTS[0]]
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:

@@ -71,6 +71,8 @@ DEFECT = Defect(
     peak_value=0.1,
     peak_blockage_ratio=None,
     grade=3,
+    clock_from_h=4.25,
+    clock_to_h=7.75,
 )
 
 
@@ -208,6 +210,9 @@ def test_defects_csv(engine: sa.Engine, ids: dict[str, int]) -> None:
             "peak_value": "0.1",
             "peak_blockage_ratio": "",
             "grade": "3",
+            "clock_from_h": "4.25",
+            "clock_to_h": "7.75",
+            "characterisation": "",
         }
     ]
 
@@ -247,6 +252,9 @@ def test_defects_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
         "peak_value": 0.1,
         "peak_blockage_ratio": None,  # unknown, not 0
         "grade": 3,
+        "clock_from_h": 4.25,
+        "clock_to_h": 7.75,
+        "characterisation": None,
     }
 
 

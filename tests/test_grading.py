@@ -308,17 +308,29 @@ def test_two_spans_separated_by_an_unflagged_section_stay_two(table):
     assert second.peak_blockage_ratio == pytest.approx(0.11)
 
 
-def test_unmeasured_section_splits_a_span(table):
+def test_a_short_unmeasured_stretch_inside_one_feature_is_bridged(table):
+    # One section lost (to a shadow, say) between two sections of the same feature: one
+    # defect over all three (v1 split it in two).
     sections = [
         section(0, blockage=0.15),
         section(1, status=SectionStatus.LOW_COVERAGE, blockage=None, deformation=None),
         section(2, blockage=0.18),
     ]
+    (defect,) = merge_defects(sections, table)
+    assert (defect.chainage_start_m, defect.chainage_end_m) == pytest.approx((0.0, 0.3))
+    # Flagged on blockage alone (BBE class 3 > flag grade 2): code is BBE.
+    assert (defect.code, defect.grade, defect.peak_value) == ("BBE", 3, pytest.approx(0.18))
+
+
+def test_a_long_unmeasured_stretch_splits_a_span(table):
+    lost = [
+        section(i, status=SectionStatus.LOW_COVERAGE, blockage=None, deformation=None)
+        for i in (1, 2, 3)
+    ]
+    sections = [section(0, blockage=0.15), *lost, section(4, blockage=0.18)]
     defects = merge_defects(sections, table)
     ends = [m for d in defects for m in (d.chainage_start_m, d.chainage_end_m)]
-    assert ends == pytest.approx([0.0, 0.1, 0.2, 0.3])
-    # Flagged on blockage alone (BBE class 3 > flag grade 2): code is BBE.
-    assert [(d.code, d.grade) for d in defects] == [("BBE", 3), ("BBE", 3)]
+    assert ends == pytest.approx([0.0, 0.1, 0.4, 0.5])
 
 
 def test_a_chainage_gap_splits_a_span(table):

@@ -240,7 +240,7 @@ def test_report_without_defects_says_so(tmp_path):
     assert "No defects" in html
     text = pdf_text(render_pdf(inp, tmp_path / "quiet.pdf"))
     assert "No defects" in text
-    assert "Flagged sections" in text
+    assert "Defects" in text
 
 
 def test_all_unmeasured_report(tmp_path):

@@ -285,7 +285,10 @@ def _print_summary(summary) -> None:
             f"  worst blockage {pct(summary.max_blockage_ratio)} "
             f"at {summary.max_blockage_chainage_m:.1f} m"
         )
-    typer.echo(f"  {plural(summary.defect_count, 'defect')} flagged")
+    typer.echo(
+        f"  {plural(summary.defect_count, 'defect')} coded, {summary.flagged_defect_count} over "
+        "the flagging threshold"
+    )
     if summary.start_source:
         from pipescan.core.start import START_SOURCES
 

@@ -1,18 +1,21 @@
-"""Condition grades from section measures, and defects from flagged sections.
+"""Condition grades from coded sections, and defects from coded features along the pipe.
 
 Threshold tables are data: TOML files shipped in ``pipescan/core/tables/`` (or any TOML file
 given by path), each recording its source. A table holds rules; each rule grades one measure
 column of :class:`~pipescan.core.model.SectionMeasures` (a ratio) into condition classes
 0 (worst) to 4 (best) for one EN 13508-2 code.
 
-Grading rule (v1)
------------------
-A section's grade is the worst (lowest) class over the table's graded rules whose measure the
-section has (not None, not NaN), and the governing code is that rule's code. With the default
-table this is BAA on ``deformation_ratio`` (the rigid or flexible rule, by pipe class), BBC on
-``deposit_height_ratio`` and BBE on ``blockage_ratio`` (cross-section loss, which includes
-obstacles). A section whose status is not ``ok`` is unmeasured: its grade is None, whatever
-figures it carries.
+Grading rule (v2, docs/grading.md)
+----------------------------------
+Each section's displaced wall is first coded (:mod:`pipescan.core.coding`): settled deposits
+(BBC), attached deposits (BBB), an obstacle (BBE), a deformation (BAA), or unclassified. A
+feature is graded by its own family's rule on its own measure (BBC on
+``deposit_height_ratio``, BAA on ``deformation_ratio`` with the pipe class's rule, BBE and BBB
+on ``blockage_ratio``); an unclassified feature by the table's graded rules on the figure it
+shows. A section's grade is the worst over its features, and class 4 when nothing is coded.
+A section that is not ``ok`` is unmeasured: its grade is None, whatever figures it carries.
+A measured section without a contour cannot be coded, and is graded as v1 did: the worst class
+over the table's graded rules whose measure it has.
 
 Everything here is pure: small dataclasses in, small dataclasses out.
 """
@@ -28,9 +31,19 @@ from itertools import pairwise
 from pathlib import Path
 from typing import Any, Literal
 
+from pipescan.core.coding import (
+    BAA,
+    UNCLASSIFIED,
+    CodingParams,
+    SectionCoding,
+    WallFeature,
+    clock_hours,
+    code_sections,
+    feature_runs,
+)
 from pipescan.core.errors import GradingError
 from pipescan.core.model import Defect, SectionMeasures
-from pipescan.core.summary import adjacent_runs, peak_blockage
+from pipescan.core.summary import peak_blockage
 
 __all__ = [
     "DEFAULT_TABLE",
@@ -40,12 +53,16 @@ __all__ = [
     "ThresholdTable",
     "available_tables",
     "choose_grading",
+    "feature_value",
     "flag_section",
+    "grade_feature",
     "grade_section",
     "grade_sections",
+    "is_flagged",
     "load_table",
     "merge_defects",
     "pipe_class_for_material",
+    "worst_defect",
 ]
 
 PipeClass = Literal["rigid", "flexible"]
@@ -323,14 +340,51 @@ def _measure_value(s: SectionMeasures, measure: str) -> float | None:
     return float(value)
 
 
-def _grade_with_rule(
-    s: SectionMeasures, table: ThresholdTable, pipe_class: PipeClass
+def feature_value(
+    feature: WallFeature, s: SectionMeasures, coding: SectionCoding | None = None
+) -> float | None:
+    """The figure that quantifies a feature in its section: its measure's value there.
+
+    For ``blockage_ratio`` it is the feature's own share: the section's blockage less the
+    areas the other features coded in the section take (each between the wall and the
+    contour over its own arc), so an obstacle over a deposit is not charged with the deposit.
+    Alone in its section, a feature's blockage is the section's. None when the figure is
+    missing.
+
+    >>> from pipescan.core.model import SectionStatus
+    >>> band = WallFeature("BBB", 4.2, 5.2, 0.004, 0.015, "a band")
+    >>> fill = WallFeature("BBC", 3.9, 5.5, 0.018, 0.07, "a chord", measure="deposit_height_ratio")
+    >>> s = SectionMeasures(0.0, 0.1, 0.2, SectionStatus.OK, 900, 1.0, blockage_ratio=0.11)
+    >>> round(feature_value(band, s, SectionCoding((fill, band), 0.25, 0.001, 0.0075)), 3)
+    0.02
+    """
+    if feature.measure != "blockage_ratio":
+        return _measure_value(s, feature.measure)
+    return _own_blockage(feature, s, coding)
+
+
+def _own_blockage(
+    feature: WallFeature, s: SectionMeasures, coding: SectionCoding | None
+) -> float | None:
+    """The section's blockage less the areas of the other features coded in it."""
+    value = _measure_value(s, "blockage_ratio")
+    if value is None or coding is None:
+        return value
+    others = sum(g.lost_area_m2 for g in coding.features if g is not feature)
+    if not s.nominal_area_m2 > 0:
+        return value
+    return max(0.0, value - others / s.nominal_area_m2)
+
+
+def _worst(
+    s: SectionMeasures, rules: Iterable[GradeRule], value: float | None = None
 ) -> tuple[int | None, GradeRule | None]:
-    if not s.is_ok:
-        return None, None
+    """The worst class the rules give the section's figures (or ``value``, for every rule);
+    on a tie, the first rule."""
     worst: tuple[int, GradeRule] | None = None
-    for rule in table.rules_for(pipe_class):
-        value = _measure_value(s, rule.measure)
+    given = value
+    for rule in rules:
+        value = _measure_value(s, rule.measure) if given is None else given
         if value is None:
             continue
         condition_class = rule.classify(value)
@@ -342,10 +396,96 @@ def _grade_with_rule(
     return worst
 
 
-def grade_section(
-    s: SectionMeasures, table: ThresholdTable, *, pipe_class: PipeClass = "rigid"
+def _grade_with_rule(
+    s: SectionMeasures, table: ThresholdTable, pipe_class: PipeClass
+) -> tuple[int | None, GradeRule | None]:
+    """v1: the worst class over every graded rule (for sections that cannot be coded)."""
+    if not s.is_ok:
+        return None, None
+    return _worst(s, table.rules_for(pipe_class))
+
+
+def grade_feature(
+    feature: WallFeature,
+    s: SectionMeasures,
+    table: ThresholdTable,
+    *,
+    pipe_class: PipeClass = "rigid",
+    coding: SectionCoding | None = None,
+) -> tuple[int | None, GradeRule | None]:
+    """Grade one coded feature of a section: its family's rule on its own figure
+    (:func:`feature_value`; ``coding`` is the section's, for a blockage's own share).
+
+    A feature of a known family is graded by every rule of the table with its code (graded or
+    not: ``graded = false`` only keeps a rule from grading what could not be coded) that
+    applies to the pipe class and grades the feature's measure; an unclassified feature by
+    the table's graded rules on the figure it shows (:attr:`WallFeature.measure`).
+
+    Returns
+    -------
+    grade : int or None
+        0 (worst) ... 4 (best); None when the section is not ``ok``, its figure is missing, or
+        no rule of the table grades that code.
+    rule : GradeRule or None
+        The rule that gave the grade.
+
+    Examples
+    --------
+    An obstacle is graded on the blockage, whatever the deformation figure says:
+
+    >>> from pipescan.core.model import SectionStatus
+    >>> obstacle = WallFeature("BBE", 4.5, 5.0, 0.01, 0.1, "a body", measure="blockage_ratio")
+    >>> s = SectionMeasures(0.0, 0.1, 0.5, SectionStatus.OK, 900, 1.0, blockage_ratio=0.035,
+    ...                     deformation_ratio=0.043)
+    >>> grade, rule = grade_feature(obstacle, s, load_table())
+    >>> grade, rule.code
+    (4, 'BBE')
+    """
+    if not s.is_ok:
+        return None, None
+    if feature.code == UNCLASSIFIED:
+        rules = [r for r in table.rules_for(pipe_class) if r.measure == feature.measure]
+    else:
+        rules = [
+            r
+            for r in table.rules
+            if r.code == feature.code
+            and r.measure == feature.measure
+            and (r.pipe_class is None or r.pipe_class == pipe_class)
+        ]
+    value = feature_value(feature, s, coding)
+    if value is None:
+        return None, None
+    return _worst(s, rules, value)
+
+
+def _section_grade(
+    s: SectionMeasures, coding: SectionCoding | None, table: ThresholdTable, pipe_class: PipeClass
 ) -> tuple[int | None, str | None]:
-    """Grade one section: the worst class over the measures it has, and the governing code.
+    if not s.is_ok:
+        return None, None
+    if coding is None:
+        grade, rule = _grade_with_rule(s, table, pipe_class)
+        return grade, (rule.code if rule is not None else None)
+    worst: tuple[int, str] | None = None
+    for feature in coding.features:
+        grade, rule = grade_feature(feature, s, table, pipe_class=pipe_class, coding=coding)
+        if grade is not None and (worst is None or grade < worst[0]):
+            worst = (grade, feature.code)
+    if worst is None:
+        return _N_BOUNDS, None  # nothing coded (or nothing gradeable): no defect
+    return worst
+
+
+def grade_section(
+    s: SectionMeasures,
+    table: ThresholdTable,
+    *,
+    pipe_class: PipeClass = "rigid",
+    coding: SectionCoding | None = None,
+    params: CodingParams = CodingParams(),
+) -> tuple[int | None, str | None]:
+    """Grade one section: the worst class over its coded features, and the code of that one.
 
     Parameters
     ----------
@@ -355,19 +495,25 @@ def grade_section(
         The threshold table (see :func:`load_table`).
     pipe_class
         ``"rigid"`` or ``"flexible"``: selects the BAA deformation rule.
+    coding
+        The section's coding; by default it is coded from its contour
+        (:func:`pipescan.core.coding.code_section`). A section without a contour cannot be
+        coded and is graded as v1 did: the worst class over the table's graded rules.
+    params
+        The coder's parameters, when the section is coded here.
 
     Returns
     -------
     grade : int or None
-        0 (worst) ... 4 (best); None when the status is not ``ok`` or no graded measure is
-        available.
+        0 (worst) ... 4 (best): 4 when nothing is coded; None when the status is not ``ok``.
     code : str or None
-        The EN 13508-2 code of the rule giving that grade; on a tie, the rule listed first in
-        the table.
+        The code of the feature (or, uncoded, of the rule) that gives that grade; None when
+        nothing does.
 
     Examples
     --------
-    BAA on a rigid pipe: 7 % deformation or more is class 0, 4-7 % class 1.
+    BAA on a rigid pipe, for a section without a contour (graded as v1): 7 % deformation or
+    more is class 0, 4-7 % class 1.
 
     >>> from pipescan.core.model import SectionStatus
     >>> s = SectionMeasures(0.0, 0.1, 0.196, SectionStatus.OK, 900, 1.0,
@@ -375,8 +521,9 @@ def grade_section(
     >>> grade_section(s, load_table())
     (1, 'BAA')
     """
-    grade, rule = _grade_with_rule(s, table, pipe_class)
-    return grade, (rule.code if rule is not None else None)
+    if coding is None:
+        coding = code_sections([s], params)[0]
+    return _section_grade(s, coding, table, pipe_class)
 
 
 def grade_sections(
@@ -384,9 +531,23 @@ def grade_sections(
     table: ThresholdTable,
     *,
     pipe_class: PipeClass = "rigid",
+    codings: Sequence[SectionCoding | None] | None = None,
+    params: CodingParams = CodingParams(),
 ) -> list[SectionMeasures]:
-    """Copies of ``sections`` with ``grade`` set by :func:`grade_section` (None if unmeasured)."""
-    return [replace(s, grade=grade_section(s, table, pipe_class=pipe_class)[0]) for s in sections]
+    """Copies of ``sections`` with ``grade`` set by :func:`grade_section` (None if unmeasured).
+
+    ``codings`` (one per section, see :func:`pipescan.core.coding.code_sections`) saves coding
+    the sections again when the caller has them.
+    """
+    sections = list(sections)
+    if codings is None:
+        codings = code_sections(sections, params)
+    if len(codings) != len(sections):
+        raise ValueError(f"{len(codings)} codings for {len(sections)} sections")
+    return [
+        replace(s, grade=_section_grade(s, c, table, pipe_class)[0])
+        for s, c in zip(sections, codings, strict=True)
+    ]
 
 
 def flag_section(
@@ -415,6 +576,63 @@ def flag_section(
     return s.grade is not None and s.grade <= flag_grade
 
 
+def is_flagged(
+    defect: Defect, *, blockage_threshold_ratio: float = 0.10, flag_grade: int = 2
+) -> bool:
+    """Whether a defect is over the report's threshold: its class is ``flag_grade`` or worse,
+    or its peak blockage is at or above ``blockage_threshold_ratio``."""
+    if defect.grade is not None and defect.grade <= flag_grade:
+        return True
+    peak = defect.peak_blockage_ratio
+    return peak is not None and math.isfinite(peak) and peak >= blockage_threshold_ratio
+
+
+def _coder_estimate(feature: WallFeature, s: SectionMeasures) -> float:
+    """The coder's own estimate of a feature's figure, as a ratio: its height (a deposit) or
+    its diameter loss (a deformation) over the nominal diameter, else its lost area over the
+    nominal area."""
+    if feature.measure == "blockage_ratio" or not s.nominal_area_m2 > 0:
+        return feature.lost_area_m2 / s.nominal_area_m2 if s.nominal_area_m2 > 0 else 0.0
+    return feature.height_m / (2.0 * math.sqrt(s.nominal_area_m2 / math.pi))
+
+
+def worst_defect(defects: Iterable[Defect]) -> Defect | None:
+    """The defect that sets a pipe's condition: the worst class (an ungraded one last), then
+    the largest peak blockage, then the upstream one. None when there is none.
+
+    >>> a = Defect("BBE", "blockage_ratio", 1.0, 1.2, 1.1, 0.035, 0.035, 4)
+    >>> b = Defect("BBC", "deposit_height_ratio", 3.4, 4.0, 3.8, 0.285, 0.235, 2)
+    >>> worst_defect([a, b]).code
+    'BBC'
+    """
+
+    def key(d: Defect) -> tuple[int, float, float]:
+        peak = d.peak_blockage_ratio
+        return (
+            d.grade if d.grade is not None else _N_BOUNDS + 1,
+            -(peak if peak is not None and math.isfinite(peak) else -math.inf),
+            d.chainage_start_m,
+        )
+
+    return min(defects, key=key, default=None)
+
+
+def _uncoded(s: SectionMeasures, table: ThresholdTable, pipe_class: PipeClass, **flags: Any):
+    """A measured section without a contour, as v1 saw it: one feature of the governing
+    rule's code when the section is flagged, none otherwise."""
+    grade, rule = _grade_with_rule(s, table, pipe_class)
+    if not flag_section(replace(s, grade=grade), **flags):
+        return SectionCoding((), float("nan"), float("nan"), float("nan"))
+    blockage_rule = next(
+        (r for r in table.rules_for(pipe_class) if r.measure == "blockage_ratio"), None
+    )
+    if rule is None or (grade is not None and grade > flags["flag_grade"] and blockage_rule):
+        rule = blockage_rule  # flagged on blockage alone
+    code, measure = (rule.code, rule.measure) if rule is not None else ("", "blockage_ratio")
+    feature = WallFeature(code, None, None, 0.0, 0.0, "not coded: no contour", measure=measure)
+    return SectionCoding((feature,), float("nan"), float("nan"), float("nan"))
+
+
 def merge_defects(
     sections: Sequence[SectionMeasures],
     table: ThresholdTable,
@@ -422,23 +640,32 @@ def merge_defects(
     blockage_threshold_ratio: float = 0.10,
     flag_grade: int = 2,
     pipe_class: PipeClass = "rigid",
+    codings: Sequence[SectionCoding | None] | None = None,
+    params: CodingParams = CodingParams(),
 ) -> list[Defect]:
-    """Merge adjacent flagged sections into defects.
+    """The inspection's defects: one per physical feature, coded, located and graded.
 
-    Sections are graded with ``table`` (any stored ``grade`` is ignored), flagged by
-    :func:`flag_section`, and taken in chainage order. Flagged sections whose intervals touch
-    form one span (:func:`pipescan.core.summary.adjacent_runs`); an unflagged or unmeasured
-    section, or a gap in chainage, ends a span.
+    Sections are coded (or ``codings`` given, one per section in the order given), taken in
+    chainage order, and their features followed along the chainage into runs
+    (:func:`pipescan.core.coding.feature_runs`: same code, overlapping arcs, touching sections
+    or a short stretch of unmeasured ones; a deposit's ramp and an obstacle's shadowed rear
+    join their feature). Each run is one defect:
 
-    For each span:
+    - ``code``: the family; ``grade``: the worst :func:`grade_feature` over its sections;
+    - ``measure``, ``peak_value``, ``peak_chainage_m``: the family's measure, its largest value
+      in the run (:func:`feature_value`: a blockage is the feature's own share), and the start
+      of that section (the upstream one on a tie);
+    - ``peak_blockage_ratio``: the largest measured blockage over the run's span (all that is
+      lost there, whatever takes it);
+    - ``clock_from_h``, ``clock_to_h``: the union of its sections' displaced arcs;
+    - ``characterisation``: a deformation's, at its peak.
 
-    - ``grade`` is the worst grade in the span;
-    - ``code`` and ``measure`` are those of the governing rule of a worst-graded section; when
-      the span was flagged on blockage alone (no section at ``flag_grade`` or worse), they are
-      the table's graded rule on ``blockage_ratio`` (BBE in the default table);
-    - ``peak_chainage_m`` is the start of the section where that measure is largest (the first
-      such section on a tie) and ``peak_value`` that value (a fraction);
-    - ``peak_blockage_ratio`` is the largest blockage in the span (None if none measured).
+    A defect of a known family is listed whatever its class (it is an observation; see
+    :func:`is_flagged` for the report's threshold). An unclassified one is listed only when it
+    is flagged or its class reaches the table's classes (0-3): a small thing whose family is not
+    known is not worth a look. Sections without a contour cannot be coded: each flagged one
+    counts as a feature of its governing rule's code (as v1 did). A run whose figure is missing
+    in every section is listed ungraded, with the coder's own estimate of it as its peak.
 
     Parameters
     ----------
@@ -447,60 +674,78 @@ def merge_defects(
     table
         Threshold table.
     blockage_threshold_ratio, flag_grade
-        Flagging thresholds, see :func:`flag_section`.
+        The report's threshold, see :func:`is_flagged`.
     pipe_class
         ``"rigid"`` or ``"flexible"``.
+    codings, params
+        The sections' codings (one per section, in the order of ``sections``), or the coder's
+        parameters to code them here.
 
     Returns
     -------
     list of Defect
-        In chainage order; empty when nothing is flagged.
+        In chainage order; empty when nothing is coded.
     """
-    ordered = sorted(sections, key=lambda s: s.chainage_start_m)
-    graded = [_grade_with_rule(s, table, pipe_class) for s in ordered]
-    flags = [
-        flag_section(
-            replace(s, grade=g),
-            blockage_threshold_ratio=blockage_threshold_ratio,
-            flag_grade=flag_grade,
-        )
-        for s, (g, _) in zip(ordered, graded, strict=True)
-    ]
-
-    spans = adjacent_runs(ordered, flags)
-    blockage_rule = next(
-        (r for r in table.rules_for(pipe_class) if r.measure == "blockage_ratio"), None
-    )
-    defects = []
-    for span in spans:
-        grades = [g for i in span if (g := graded[i][0]) is not None]
-        worst_grade = min(grades) if grades else None
-        if worst_grade is not None and (worst_grade <= flag_grade or blockage_rule is None):
-            governing = next(graded[i][1] for i in span if graded[i][0] == worst_grade)
-            code, measure = governing.code, governing.measure  # type: ignore[union-attr]
-        elif blockage_rule is not None:
-            code, measure = blockage_rule.code, blockage_rule.measure
+    if codings is None:
+        codings = code_sections(sections, params)
+    if len(codings) != len(sections):
+        raise ValueError(f"{len(codings)} codings for {len(sections)} sections")
+    order = sorted(range(len(sections)), key=lambda i: sections[i].chainage_start_m)
+    ordered = [sections[i] for i in order]
+    flags = {"blockage_threshold_ratio": blockage_threshold_ratio, "flag_grade": flag_grade}
+    coded: list[SectionCoding | None] = []
+    for i in order:
+        s, c = sections[i], codings[i]
+        if not s.is_ok:
+            coded.append(None)
+        elif c is None:
+            coded.append(_uncoded(s, table, pipe_class, **flags))
         else:
-            # Flagged on blockage with no grade at all and no blockage rule in the table.
-            code, measure = "", "blockage_ratio"
-        candidates = [
-            (value, i) for i in span if (value := _measure_value(ordered[i], measure)) is not None
+            coded.append(c)
+
+    defects = []
+    for run in feature_runs(ordered, coded):
+        graded = [
+            grade_feature(f, ordered[k], table, pipe_class=pipe_class, coding=coded[k])[0]
+            for k, f in zip(run.sections, run.features, strict=True)
         ]
+        grades = [g for g in graded if g is not None]
+        worst_grade = min(grades) if grades else None
+        measure = run.features[0].measure
+        candidates = [
+            (value, k, f)
+            for k, f in zip(run.sections, run.features, strict=True)
+            if (value := feature_value(f, ordered[k], coded[k])) is not None
+        ]
+        if not candidates:
+            # The figure is missing in every section of the run (the bins it is read from were
+            # not seen): the feature is still listed, ungraded, with the coder's own estimate.
+            candidates = [
+                (_coder_estimate(f, ordered[k]), k, f)
+                for k, f in zip(run.sections, run.features, strict=True)
+            ]
         # max() keeps the first of equal values, so ties go to the upstream section.
-        peak_value, peak_index = max(candidates, key=lambda vi: vi[0])
-        span_peak = peak_blockage(ordered[span.start : span.stop])
-        defects.append(
-            Defect(
-                code=code,
-                measure=measure,
-                chainage_start_m=ordered[span[0]].chainage_start_m,
-                chainage_end_m=ordered[span[-1]].chainage_end_m,
-                peak_chainage_m=ordered[peak_index].chainage_start_m,
-                peak_value=peak_value,
-                peak_blockage_ratio=None if span_peak is None else span_peak.blockage_ratio,
-                grade=worst_grade,
-            )
+        peak_value, peak_index, peak_feature = max(candidates, key=lambda c: c[0])
+        first, last = run.sections[0], run.sections[-1]
+        span_peak = peak_blockage(ordered[first : last + 1])
+        arc_from, arc_to = run.arc()
+        defect = Defect(
+            code=run.code,
+            measure=measure,
+            chainage_start_m=ordered[first].chainage_start_m,
+            chainage_end_m=ordered[last].chainage_end_m,
+            peak_chainage_m=ordered[peak_index].chainage_start_m,
+            peak_value=peak_value,
+            peak_blockage_ratio=None if span_peak is None else span_peak.blockage_ratio,
+            grade=worst_grade,
+            clock_from_h=None if arc_from is None else clock_hours(arc_from),
+            clock_to_h=None if arc_to is None else clock_hours(arc_to),
+            characterisation=peak_feature.characterisation if run.code == BAA else None,
         )
+        listed = run.code != UNCLASSIFIED or is_flagged(defect, **flags)
+        listed = listed or (worst_grade is not None and worst_grade < _N_BOUNDS)
+        if listed:
+            defects.append(defect)
     return defects
 
 

@@ -138,11 +138,18 @@ class SectionMeasures:
 
 @dataclass(frozen=True)
 class Defect:
-    """Adjacent flagged sections merged into one span.
+    """One physical feature along the pipe, coded and graded (docs/coding.md, docs/grading.md).
 
-    ``code`` is the EN 13508-2 code of the governing measure (e.g. ``BBC``), ``measure`` the
-    column it was graded on, ``peak_value`` that measure's worst value (a ratio) at
-    ``peak_chainage_m`` (the start of the worst section).
+    ``code`` is the EN 13508-2 main code of its family (``BBC``, ``BBB``, ``BBE``, ``BAA``), or
+    ``"unclassified"`` when no coding rule fits with confidence. ``measure`` is the column it
+    was graded on, ``peak_value`` that measure's worst value (a ratio) at
+    ``peak_chainage_m`` (the start of the worst section), ``grade`` its condition class.
+
+    ``clock_from_h`` and ``clock_to_h`` are clock positions in hours, in (0, 12]: 12 at the
+    crown, 3 on the right looking in the survey's direction; the displaced arc runs clockwise
+    from ``clock_from_h`` to ``clock_to_h``. Both are None for a deformation, which moves the
+    whole ring. ``characterisation`` is the EN 13508-2 characterisation where the geometry
+    tells it (``A`` vertical or ``B`` horizontal for a deformation), else None.
     """
 
     code: str
@@ -155,6 +162,7 @@ class Defect:
     grade: int | None
     clock_from_h: float | None = None
     clock_to_h: float | None = None
+    characterisation: str | None = None
 
 
 @dataclass(frozen=True)

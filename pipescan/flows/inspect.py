@@ -14,7 +14,7 @@ from pathlib import Path
 from prefect import flow
 
 import pipescan
-from pipescan.core.grading import choose_grading
+from pipescan.core.grading import choose_grading, is_flagged
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import (
     RegistrationParams,
@@ -96,6 +96,8 @@ class InspectionSummary:
     reused: bool = False
     """True when the archive was already inspected under the same parameters and the stored
     inspection was summarised instead of processing it again (``reuse_stored``)."""
+    flagged_defect_count: int = 0
+    """How many of the defects are over the flagging threshold (``is_flagged``)."""
 
 
 def stored_params(params: InspectionParams, pipe_class: str, pipe_class_reason: str) -> dict:
@@ -170,6 +172,7 @@ def inspect_archive(
                     started=started,
                     reused=True,
                     start_source=rec.start_source,
+                    flags=_flags(params),
                 )
 
         trajectory = None
@@ -285,9 +288,17 @@ def inspect_archive(
             report_path=written,
             started=started,
             start_source=fit.start_source,
+            flags=_flags(params),
         )
     finally:
         remove_workspace(run_dir)
+
+
+def _flags(params: InspectionParams) -> dict:
+    return {
+        "blockage_threshold_ratio": params.blockage_threshold_ratio,
+        "flag_grade": params.flag_grade,
+    }
 
 
 def _summarise(
@@ -305,6 +316,7 @@ def _summarise(
     started: float,
     reused: bool = False,
     start_source: str | None = None,
+    flags: dict | None = None,
 ) -> InspectionSummary:
     ok = [s for s in graded if s.is_ok]
     worst = peak_blockage(graded)
@@ -323,6 +335,7 @@ def _summarise(
         section_count=len(graded),
         sections_ok=len(ok),
         defect_count=len(defects),
+        flagged_defect_count=sum(is_flagged(d, **(flags or {})) for d in defects),
         max_blockage_ratio=worst.blockage_ratio if worst else None,
         max_blockage_chainage_m=worst.chainage_start_m if worst else None,
         unmeasured_by_status=unmeasured,

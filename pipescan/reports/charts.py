@@ -278,10 +278,16 @@ def cross_section_svg(
     nominal_diameter_m: float | None,
     blockage_ratio: float | None = None,
     title: str = "",
+    clock_arc_h: tuple[float, float] | None = None,
     width_in: float = 3.3,
     height_in: float = 3.1,
 ) -> str:
     """One section's measured contour against the nominal circle, to scale, as SVG.
+
+    The section is drawn as seen looking in the survey's direction (the way clock positions
+    are read: 12 at the crown, 3 on the right), with the clock positions 12, 3, 6 and 9 marked
+    around it; ``clock_arc_h``, a defect's ``(from, to)`` clock positions, is drawn as a thick
+    arc outside the wall, clockwise from ``from`` to ``to``.
 
     The open area inside the measured contour is pale blue; the part of the nominal circle
     that is not open (lost to deposits, obstacles or deformation) is shaded red. Dimension
@@ -317,7 +323,9 @@ def cross_section_svg(
         raise ValueError(f"contour_m must have shape (M, 2) with M >= 3, not {contour.shape}")
     if not np.isfinite(contour).all():
         raise ValueError("contour_m holds non-finite values")
-    contour_mm = contour * 1000.0
+    # The section plane's first axis (PipeAxis.right, up x direction) points to the left of
+    # someone looking in the survey's direction: mirror it, so the figure is their view.
+    contour_mm = contour * np.array([-1000.0, 1000.0])
     polygon = shapely.Polygon(contour_mm)
     if not polygon.is_valid:
         parts = _polygons(shapely.make_valid(polygon))
@@ -422,7 +430,7 @@ def cross_section_svg(
                 zorder=6,
             )
         if radius_mm is not None:
-            y_dim = radius_mm * 1.12
+            y_dim = radius_mm * 1.2
             ax.annotate("", (-radius_mm, y_dim), (radius_mm, y_dim), arrowprops=arrow, zorder=5)
             for x in (-radius_mm, radius_mm):
                 ax.plot([x, x], [0.0, y_dim * 1.03], color="#999999", lw=0.4, zorder=0)
@@ -435,10 +443,11 @@ def cross_section_svg(
                 va="bottom",
                 zorder=6,
             )
-        limit = extent_mm * 1.22
+        _clock_marks(ax, radius_mm or extent_mm, clock_arc_h)
+        limit = extent_mm * 1.3
         ax.set_xlim(-limit, limit)
         ax.set_ylim(-limit, limit)
-        ax.set_xlabel("across (mm)")
+        ax.set_xlabel("across (mm), looking in the survey's direction")
         ax.set_ylabel("up (mm)")
         ax.tick_params(labelsize=6.5)
         ax.grid(color="#e4e4e4", lw=0.4, zorder=0)
@@ -456,6 +465,28 @@ def cross_section_svg(
             )  # fmt: skip
         # No legend in the figure: the report gives one key for all of them.
         return _save_svg(fig)
+
+
+def _clock_marks(ax: Any, radius_mm: float, arc_h: tuple[float, float] | None) -> None:
+    """Clock positions 12, 3, 6 and 9 around the wall, and a defect's arc outside it (in the
+    figure's view, clock ``h`` lies at the angle ``90° − 30° h`` from the x axis)."""
+    for hours in (12, 3, 6, 9):
+        angle = math.radians(90.0 - 30.0 * hours)
+        ax.text(
+            1.1 * radius_mm * math.cos(angle), 1.1 * radius_mm * math.sin(angle), str(hours),
+            fontsize=6, color="#777777", ha="center", va="center", zorder=6,
+        )  # fmt: skip
+    if arc_h is None or not all(_finite(h) for h in arc_h):
+        return
+    start, end = arc_h
+    span = (end - start) % 12.0 or 12.0
+    hours = start + np.linspace(0.0, span, 120)
+    angles = np.radians(90.0 - 30.0 * hours)
+    ring = 1.035 * radius_mm
+    ax.plot(
+        ring * np.cos(angles), ring * np.sin(angles), color=_COLOUR_FLAGGED, lw=3.0,
+        solid_capstyle="butt", zorder=5,
+    )  # fmt: skip
 
 
 _DRAW_TOLERANCE_MM = 0.3

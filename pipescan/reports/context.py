@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, TypeGuard
 
-from pipescan.core.grading import ThresholdTable, pipe_class_for_material
+from pipescan.core.grading import ThresholdTable, is_flagged, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.summary import ADJACENT_TOL_M, adjacent_runs, blockage_summary, peak_blockage
@@ -95,6 +95,10 @@ CODE_LABELS: dict[str, str] = {
     "BBC": "settled deposits",
     "BBE": "obstacle",
 }
+CHARACTERISATIONS: dict[tuple[str, str], str] = {
+    ("BAA", "A"): "vertical",
+    ("BAA", "B"): "horizontal",
+}
 
 
 @dataclass(frozen=True)
@@ -158,7 +162,8 @@ class ReportInput:
     sections
         Graded sections, any order.
     defects
-        Merged flagged spans (see :func:`pipescan.core.grading.merge_defects`).
+        The coded defects, one per physical feature (see
+        :func:`pipescan.core.grading.merge_defects`); those over the threshold are flagged.
     generated_at
         When the report was generated.
     flag_grade
@@ -271,6 +276,25 @@ def _fmt_share(ratio: float | None) -> str:
 
 def fmt_grade(grade: int | None) -> str:
     return str(grade) if grade is not None else "not graded"
+
+
+def fmt_clock(from_h: float | None, to_h: float | None, code: str = "") -> str:
+    """A defect's clock positions, ``"10.3–1.7"`` (clockwise, hours); ``"whole ring"`` for a
+    deformation, which has none; ``"—"`` when they were not recorded.
+
+    >>> fmt_clock(10.34, 1.66), fmt_clock(None, None, "BAA"), fmt_clock(None, None, "BBE")
+    ('10.3–1.7', 'whole ring', '—')
+    """
+    if not (_finite(from_h) and _finite(to_h)):
+        return "whole ring" if code == "BAA" else "\u2014"
+    return f"{from_h:.1f}\u2013{to_h:.1f}"
+
+
+def _code_words(d: Defect) -> str:
+    """The code's family in words, with its characterisation where there is one."""
+    words = CODE_LABELS.get(d.code, "")
+    extra = CHARACTERISATIONS.get((d.code, d.characterisation or ""), "")
+    return f"{words}, {extra}" if words and extra else words
 
 
 def fmt_int(value: int | None) -> str:
@@ -502,7 +526,8 @@ def _defect_figures(
         figure: dict[str, Any] = {
             "number": number,
             "code": d.code or "—",
-            "code_label": CODE_LABELS.get(d.code, ""),
+            "code_label": _code_words(d),
+            "clock": fmt_clock(d.clock_from_h, d.clock_to_h, d.code),
             "at": fmt_m(d.peak_chainage_m),
             "measure": MEASURE_LABELS.get(d.measure, d.measure),
             "value": fmt_pct(d.peak_value),
@@ -523,6 +548,11 @@ def _defect_figures(
                     nominal_diameter_m=inp.nominal_diameter_m,
                     blockage_ratio=s.blockage_ratio,
                     title=f"{number} {d.code} at {d.peak_chainage_m:.2f} m",
+                    clock_arc_h=(
+                        (d.clock_from_h, d.clock_to_h)
+                        if _finite(d.clock_from_h) and _finite(d.clock_to_h)
+                        else None
+                    ),
                 )
             )
         figures.append(figure)
@@ -677,6 +707,13 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
     """
     sections = sorted(inp.sections, key=lambda s: s.chainage_start_m)
     defects = sorted(inp.defects, key=lambda d: d.chainage_start_m)
+    # Every coded defect is listed; those over the report's threshold are flagged, and only
+    # they are shaded on the chart and marked in the section tables.
+    flags = {
+        "blockage_threshold_ratio": inp.blockage_threshold_ratio,
+        "flag_grade": inp.flag_grade,
+    }
+    flagged = [d for d in defects if is_flagged(d, **flags)]
     ok = [s for s in sections if s.is_ok]
     total_length_m = sum(_length_m(s) for s in sections)
     ok_length_m = sum(_length_m(s) for s in ok)
@@ -757,14 +794,16 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
     worst_sections = sorted(
         with_blockage, key=lambda s: (-(s.blockage_ratio or 0.0), s.chainage_start_m)
     )[:WORST_SECTIONS]
-    worst = [_section_row(s, _is_flagged_at(defects, s)) for s in worst_sections]
+    worst = [_section_row(s, _is_flagged_at(flagged, s)) for s in worst_sections]
 
     defect_rows = []
     for d in defects:
         defect_rows.append(
             {
                 "code": d.code or "—",
-                "code_label": CODE_LABELS.get(d.code, ""),
+                "code_label": _code_words(d),
+                "clock": fmt_clock(d.clock_from_h, d.clock_to_h, d.code),
+                "flagged": is_flagged(d, **flags),
                 "measure": MEASURE_LABELS.get(d.measure, d.measure),
                 "start": fmt_m(d.chainage_start_m, unit=False),
                 "end": fmt_m(d.chainage_end_m, unit=False),
@@ -798,7 +837,8 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "mean_blockage": fmt_pct(blockage.mean_blockage_ratio),
         "worst_grade": str(min(graded_ok)) if graded_ok else "not graded",
         "defect_count": len(defects),
-        "flagged_length": fmt_m(sum(d.chainage_end_m - d.chainage_start_m for d in defects), 1),
+        "flagged_count": len(flagged),
+        "flagged_length": fmt_m(sum(d.chainage_end_m - d.chainage_start_m for d in flagged), 1),
         "ungraded_ok_count": len(ungraded_ok),
         "flag_rule": flag_rule,
         "threshold": threshold_pct,
@@ -813,10 +853,10 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
 
         chart_uri = _svg_uri(
             blockage_chart_svg(
-                sections, defects, blockage_threshold_ratio=inp.blockage_threshold_ratio
+                sections, flagged, blockage_threshold_ratio=inp.blockage_threshold_ratio
             )
         )
-    appendix_rows, appendix_complete = _appendix(sections, defects)
+    appendix_rows, appendix_complete = _appendix(sections, flagged)
 
     return {
         "title": f"Pipe condition report {inp.asset_id}",

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from pipescan.core.model import SectionMeasures
+from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import (
     MIN_YEARS_APART,
@@ -29,7 +29,9 @@ from pipescan.reports.context import (
     NOT_RECORDED,
     TableCitation,
     _finite,
+    fmt_clock,
     fmt_datetime,
+    fmt_grade,
     fmt_growth,
     fmt_m,
     fmt_pct,
@@ -65,7 +67,9 @@ class PipeInspection:
     ``sections`` need no contours. ``earlier`` are the asset's earlier scans (each archive
     once), in date order; the last is the previous inspection. ``gis_id`` is the pipe's id in
     an imported network layer; ``length_note`` says when the scan's reach and the pipe's GIS
-    length disagree.
+    length disagree. ``worst_defect`` is the defect
+    that sets the pipe's condition (:func:`pipescan.core.grading.worst_defect`), shown with its
+    code and clock positions.
     """
 
     asset_id: str
@@ -78,6 +82,7 @@ class PipeInspection:
     sections: Sequence[SectionMeasures]
     defect_count: int
     earlier: Sequence[EarlierScan] = ()
+    worst_defect: Defect | None = None
     gis_id: str | None = None
     length_note: str | None = None
 
@@ -168,6 +173,15 @@ def summarise(pipe: PipeInspection) -> PipeSummary:
     )
 
 
+def _defect_words(d: Defect | None) -> str:
+    """``"BBC 3.8–8.2, class 2"``: a defect's code, clock positions and class, in brief."""
+    if d is None:
+        return ""
+    clock = fmt_clock(d.clock_from_h, d.clock_to_h, d.code)
+    where = "" if clock == "\u2014" else f" {clock}"
+    return f"{d.code}{where}, class {fmt_grade(d.grade)}"
+
+
 def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
     pipe = p.pipe
     nodes = " → ".join(n for n in (pipe.upstream_node, pipe.downstream_node) if n)
@@ -198,6 +212,7 @@ def _row(rank: int, p: PipeSummary, flag_grade: int) -> dict[str, Any]:
         if p.max_blockage_at_m is not None
         else "",
         "defects": str(pipe.defect_count),
+        "worst_defect": _defect_words(pipe.worst_defect),
         "previous_at": (
             fmt_datetime(pipe.previous.inspected_at)[:10]
             if pipe.previous is not None

@@ -10,6 +10,8 @@ ignore:
 - ``poses.csv``: ``frame_index, time_s, odometer_m, true_travel_m`` and the 16 entries of
   ``T_world_sensor``, row-major (``T00 ... T33``).
 - ``sections.csv``: one :class:`~pipescan.simulator.scan.TrueSection` per row (0.1 m sections).
+- ``features.csv``: one :class:`~pipescan.simulator.features.TrueFeature` per row: the true
+  feature list (code, chainage span, clock arc, own figures), what the defect coder should find.
 - ``scene.toml``: the generator, the seed, ``T_world_pipe`` and every scenario parameter.
 
 TOML is written with tomli-w; ``tomllib`` reads it back.
@@ -33,6 +35,7 @@ import numpy as np
 import tomli_w
 
 from pipescan.core.errors import ArchiveError
+from pipescan.simulator.features import TRUE_FEATURE_COLUMNS, TrueFeature, true_features
 from pipescan.simulator.scan import (
     EFFECT_NAMES,
     BoxObstacle,
@@ -42,6 +45,7 @@ from pipescan.simulator.scan import (
     Scenario,
     SimulatedScan,
     TrueSection,
+    WallBand,
 )
 from pipescan.simulator.sensors import RingProfiler, StaticScanner, WaterLevel
 from pipescan.storage.input.pointfiles import write_points
@@ -227,6 +231,7 @@ def write_simulated_archive(
         )
         _write_poses(tmp / "ground_truth" / "poses.csv", scan)
         _write_sections(tmp / "ground_truth" / "sections.csv", scan.true_sections(SECTION_STEP_M))
+        _write_features(tmp / "ground_truth" / "features.csv", true_features(scan.scenario))
         # Written last: its presence marks a complete simulated archive.
         (tmp / _SCENE).write_text(dumps_toml(_scene_doc(scan)), encoding="utf-8")
         _swap_into_place(tmp, out_dir)
@@ -334,7 +339,44 @@ def _write_sections(path: Path, sections: list[TrueSection]) -> None:
             )
 
 
+def _write_features(path: Path, features: list[TrueFeature]) -> None:
+    with path.open("w", newline="", encoding="utf-8") as fh:
+        writer = csv.writer(fh)
+        writer.writerow(TRUE_FEATURE_COLUMNS)
+        for f in features:
+            writer.writerow(
+                ["" if (v := getattr(f, c)) is None else v if isinstance(v, str) else repr(v)
+                 for c in TRUE_FEATURE_COLUMNS]
+            )  # fmt: skip
+
+
 # --------------------------------------------------------------------------- reading
+
+
+def read_true_features(archive_dir: Path) -> list[TrueFeature]:
+    """The true feature list of a simulated archive (``ground_truth/features.csv``).
+
+    Raises
+    ------
+    ArchiveError
+        When the file is missing (an archive written before it existed: write it again) or a
+        row cannot be read.
+    """
+    path = _ground_truth_file(Path(archive_dir), "features.csv")
+    with path.open(newline="", encoding="utf-8") as fh:
+        rows = list(csv.reader(fh))
+    _check_header(rows, TRUE_FEATURE_COLUMNS, Path(archive_dir), "features.csv")
+    out = []
+    try:
+        for row in rows[1:]:
+            values: dict[str, Any] = dict(zip(TRUE_FEATURE_COLUMNS, row, strict=True))
+            for key, text in values.items():
+                if key not in ("code", "measure"):
+                    values[key] = None if text == "" else float(text)
+            out.append(TrueFeature(**values))
+    except ValueError as exc:
+        raise _bad_rows(Path(archive_dir), "features.csv", exc) from exc
+    return out
 
 
 def _ground_truth_file(archive_dir: Path, name: str) -> Path:
@@ -443,6 +485,7 @@ def read_simulated_scene(archive_dir: Path) -> tuple[Scenario, int, np.ndarray]:
         "deformations": EllipticalDeformation,
         "deposits": DepositFill,
         "obstacles": BoxObstacle,
+        "bands": WallBand,
     }
     for key, cls in nested.items():
         raw[key] = tuple(cls(**item) for item in raw.get(key, []))

@@ -70,6 +70,8 @@ SURFACE_OBSTACLE = 4
 """Surface id of a box obstacle."""
 SURFACE_WATER = 5
 """Surface id of the water's surface (:class:`~pipescan.simulator.sensors.WaterLevel`)."""
+SURFACE_BAND = 6
+"""Surface id of attached deposits (a band on the wall, :class:`WallBand`)."""
 
 COVERAGE_BIN_DEG = 2.0
 """Angular bin (degrees, around the pipe axis) of the true coverage."""
@@ -146,6 +148,49 @@ class BoxObstacle:
     y_max_m: float
     z_min_m: float
     z_max_m: float
+
+
+def clock_angle_rad(hours: float | np.ndarray) -> float | np.ndarray:
+    """Pipe-frame angle ``atan2(z, y)`` (radians, in [0, 2π)) of a clock position in hours.
+
+    12 is the crown and 3 the right-hand side of someone looking downstream (pipe-frame
+    ``-y``); clockwise in that view is increasing angle.
+
+    >>> [round(math.degrees(float(clock_angle_rad(h)))) for h in (12, 3, 6, 9)]
+    [90, 180, 270, 0]
+    """
+    return np.mod(np.radians(90.0 + 30.0 * np.asarray(hours, dtype=np.float64)), 2.0 * np.pi)
+
+
+@dataclass(frozen=True)
+class WallBand:
+    """Attached deposits (encrustation, grease): a layer of ``thickness_m`` on the wall.
+
+    It covers ``[start_m, end_m]`` along the axis and the arc running clockwise from
+    ``clock_from_h`` to ``clock_to_h`` (clock positions in hours looking downstream, 12 at the
+    crown, 3 on the right; see :func:`clock_angle_rad`). Its inner face is the cylinder of
+    radius ``r - thickness_m`` (the nominal radius less the thickness), its ends are planes
+    across the axis and its sides radial planes, so it stands off the wall with square edges.
+    Where a deformation brings the wall inside that face, the band is not there.
+    """
+
+    start_m: float
+    end_m: float
+    clock_from_h: float
+    clock_to_h: float
+    thickness_m: float
+
+    @property
+    def arc_rad(self) -> tuple[float, float]:
+        """Its pipe-frame angles ``(first, last)``, radians; ``last > first`` (may pass 2π)."""
+        first = float(clock_angle_rad(self.clock_from_h))
+        last = float(clock_angle_rad(self.clock_to_h))
+        return first, last if last > first else last + 2.0 * np.pi
+
+    def covers(self, angle_rad: np.ndarray) -> np.ndarray:
+        """Whether each pipe-frame angle (radians) lies on the band's arc."""
+        first, last = self.arc_rad
+        return np.mod(np.asarray(angle_rad) - first, 2.0 * np.pi) <= last - first
 
 
 @dataclass(frozen=True)
@@ -287,6 +332,7 @@ class Scenario:
     deformations: tuple[EllipticalDeformation, ...] = ()
     deposits: tuple[DepositFill, ...] = ()
     obstacles: tuple[BoxObstacle, ...] = ()
+    bands: tuple[WallBand, ...] = ()
     truth_ray_stride: int = 4
     asset_id: str = "SIM-CUSTOM"
     upstream_node: str | None = "SIM-MH1"
@@ -352,15 +398,52 @@ class Scenario:
                 raise ValueError(f"Deposit {f} needs end_m - start_m >= 2 ramp_m > 0.")
             if not 0 <= f.peak_height_ratio < 1:
                 raise ValueError(f"Deposit {f} peak_height_ratio must be in [0, 1).")
-        for kind, items in (("deformations", self.deformations), ("obstacles", self.obstacles)):
-            spans = sorted((item.start_m, item.end_m) for item in items)
-            for first, second in itertools.pairwise(spans):
-                if second[0] < first[1]:
-                    raise ValueError(f"Scenario.{kind} must not overlap: spans {first}, {second}.")
+        spans = sorted((item.start_m, item.end_m) for item in self.deformations)
+        for first, second in itertools.pairwise(spans):
+            if second[0] < first[1]:
+                raise ValueError(
+                    f"Scenario.deformations must not overlap: spans {first}, {second}."
+                )
+        # Obstacles may share a stretch of pipe (one at the crown, one at the invert), not space.
+        for a, b in itertools.combinations(self.obstacles, 2):
+            if (
+                a.start_m < b.end_m
+                and b.start_m < a.end_m
+                and a.y_min_m < b.y_max_m
+                and b.y_min_m < a.y_max_m
+                and a.z_min_m < b.z_max_m
+                and b.z_min_m < a.z_max_m
+            ):
+                raise ValueError(f"Scenario.obstacles must not overlap: {a}, {b}.")
         for b in self.obstacles:
             if not (b.start_m < b.end_m and b.y_min_m < b.y_max_m and b.z_min_m < b.z_max_m):
                 raise ValueError(f"Obstacle {b} must have min < max on every axis.")
+        self._check_bands()
         self._check_sensor_path()
+
+    def _check_bands(self) -> None:
+        for band in self.bands:
+            if not (band.start_m < band.end_m and 0 < band.thickness_m < 0.5 * self.radius_m):
+                raise ValueError(f"Band {band} needs start_m < end_m and 0 < thickness_m < r / 2.")
+            first, last = band.arc_rad
+            if not 0 < last - first < 2.0 * np.pi - 1e-9:
+                raise ValueError(f"Band {band} must cover part of the circumference, not all.")
+            # The free area subtracts each solid on its own: a band may not share space with
+            # an obstacle or another band.
+            for other in (*self.obstacles, *self.bands):
+                if other is band or other.end_m <= band.start_m or other.start_m >= band.end_m:
+                    continue
+                if isinstance(other, WallBand):
+                    o_first, o_last = other.arc_rad
+                    angles = np.linspace(o_first, o_last, 181)
+                else:
+                    y = np.linspace(other.y_min_m, other.y_max_m, 41)
+                    z = np.linspace(other.z_min_m, other.z_max_m, 41)
+                    yy, zz = np.meshgrid(y, z)
+                    inside = np.hypot(yy, zz) >= self.radius_m - band.thickness_m
+                    angles = np.arctan2(zz[inside], yy[inside])
+                if band.covers(angles).any():
+                    raise ValueError(f"Band {band} overlaps {other}.")
 
     def _check_sensor_path(self) -> None:
         # The ray caster assumes the sensor is in free space at every position; the crawler
@@ -387,6 +470,9 @@ class Scenario:
                 )
             if b.start_m - c < 0 < b.end_m + c and b.z_min_m < z + c:
                 raise ValueError(f"Obstacle {b} encloses the scan start.")
+        for band in self.bands:
+            if math.hypot(y, z) + c >= self.radius_m - band.thickness_m:
+                raise ValueError(f"The sensor (y = {y} m, z = {z} m) would touch band {band}.")
 
     @property
     def radius_m(self) -> float:
@@ -894,6 +980,52 @@ def _apply_occluders(
             hit = (dz < 0) & (t_w > 0) & (t_w < t) & (x_w >= water.start_m) & (x_w <= water.end_m)
             t[hit] = t_w[hit]
             surface[hit] = SURFACE_WATER
+        for band in scenario.bands:
+            cand = np.flatnonzero((x_far >= band.start_m) & (ox <= band.end_m))
+            if cand.size:
+                t_band = _band_t(scenario, band, o, d[cand])
+                hit = t_band < t[cand]
+                sel = cand[hit]
+                t[sel] = t_band[hit]
+                surface[sel] = SURFACE_BAND
+
+
+def _band_t(scenario: Scenario, band: WallBand, o: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Distance along each ray (origin ``o`` inside the band's inner face) to its first hit on
+    ``band``: the inner face, an end face or a side face; ``inf`` where it misses."""
+    ox, oy, oz = o
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+    inner = scenario.radius_m - band.thickness_m
+    first, last = band.arc_rad
+    best = np.full(len(d), np.inf)
+
+    def keep(t_hit: np.ndarray, valid: np.ndarray) -> None:
+        ok = valid & (t_hit > 0) & (t_hit < best)
+        best[ok] = t_hit[ok]
+
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_face = _circle_exit_t(oy, oz, dy, dz, inner)
+        x, y, z = ox + t_face * dx, oy + t_face * dy, oz + t_face * dz
+        keep(t_face, (x >= band.start_m) & (x <= band.end_m) & band.covers(np.arctan2(z, y)))
+        for x_end in (band.start_m, band.end_m):
+            t_end = (x_end - ox) / dx
+            y, z = oy + t_end * dy, oz + t_end * dz
+            rho = np.hypot(y, z)
+            keep(t_end, (rho >= inner) & (rho <= scenario.radius_m) & band.covers(np.arctan2(z, y)))
+        for angle in (first, last):
+            c, s = math.cos(angle), math.sin(angle)
+            # The radial half-plane at this angle: points (y, z) = rho (c, s), rho > 0.
+            t_side = (oy * s - oz * c) / (dz * c - dy * s)
+            x, y, z = ox + t_side * dx, oy + t_side * dy, oz + t_side * dz
+            rho = y * c + z * s
+            keep(
+                t_side,
+                (x >= band.start_m)
+                & (x <= band.end_m)
+                & (rho >= inner)
+                & (rho <= scenario.radius_m),
+            )
+    return best
 
 
 def _cast_free(
@@ -974,6 +1106,31 @@ def surface_normals(
         slope = (deposit_top_z_m(scenario, xd + h) - deposit_top_z_m(scenario, xd - h)) / (2 * h)
         slope = np.where(np.isfinite(slope), slope, 0.0)
         normals[deposit] = np.column_stack((-slope, np.zeros(xd.size), np.ones(xd.size)))
+    banded = np.flatnonzero(surface == SURFACE_BAND)
+    for band in scenario.bands:
+        q = p[banded]
+        inner = scenario.radius_m - band.thickness_m
+        rho = np.hypot(q[:, 1], q[:, 2])
+        first, last = band.arc_rad
+        angle = np.arctan2(q[:, 2], q[:, 1])
+        gaps = np.column_stack(
+            (
+                np.abs(rho - inner),
+                np.minimum(np.abs(q[:, 0] - band.start_m), np.abs(q[:, 0] - band.end_m)),
+                rho * np.abs(np.sin(angle - first)),
+                rho * np.abs(np.sin(angle - last)),
+            )
+        )
+        face = np.argmin(gaps, axis=1)
+        on = (q[:, 0] >= band.start_m - 1e-6) & (q[:, 0] <= band.end_m + 1e-6)
+        on &= np.mod(angle - first + 1e-6, 2.0 * np.pi) <= last - first + 2e-6
+        radial = np.column_stack((np.zeros(len(q)), q[:, 1], q[:, 2]))
+        tangent_first = np.tile([0.0, -math.sin(first), math.cos(first)], (len(q), 1))
+        tangent_last = np.tile([0.0, -math.sin(last), math.cos(last)], (len(q), 1))
+        choices = np.stack(
+            (radial, np.tile([1.0, 0.0, 0.0], (len(q), 1)), tangent_first, tangent_last)
+        )
+        normals[banded[on]] = choices[face, np.arange(len(q))][on]
     obstacle = np.flatnonzero(surface == SURFACE_OBSTACLE)
     if obstacle.size:
         best = np.full(obstacle.size, np.inf)
@@ -1022,6 +1179,21 @@ def surface_residual_m(scenario: Scenario, points_pipe_m: np.ndarray) -> np.ndar
         q = np.abs(p - centre) - half
         sdf = np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
         res = np.minimum(res, np.abs(sdf))
+    for band in scenario.bands:
+        # Distance to the band's faces, for points over the band's span and arc (or at its
+        # ends): enough to check that points seen on it lie on it.
+        inner = scenario.radius_m - band.thickness_m
+        on_arc = band.covers(theta)
+        along = (x >= band.start_m) & (x <= band.end_m)
+        res = np.where(along & on_arc, np.minimum(res, np.abs(rho - inner)), res)
+        in_ring = (rho >= inner) & (rho <= scenario.radius_m) & on_arc
+        for x_end in (band.start_m, band.end_m):
+            res = np.where(in_ring, np.minimum(res, np.abs(x - x_end)), res)
+        first, last = band.arc_rad
+        for angle in (first, last):
+            side = rho * np.abs(np.sin(theta - angle))
+            near = along & (rho >= inner) & (rho <= scenario.radius_m) & (np.cos(theta - angle) > 0)
+            res = np.where(near, np.minimum(res, side), res)
     return res
 
 
@@ -1055,7 +1227,31 @@ def free_area_m2(scenario: Scenario, x_m: float) -> float:
         upper = np.minimum(half, box.z_max_m)
         overlap = np.clip(upper - lower, 0.0, None) * a * np.sin(phi)
         area -= float(np.sum((overlap[1:] + overlap[:-1]) * np.diff(phi)) / 2.0)
+    for band in scenario.bands:
+        if band.start_m <= x_m < band.end_m:
+            area -= _band_area_m2(band, scenario.radius_m, a, b, z_dep)
     return area
+
+
+def _band_area_m2(band: WallBand, radius_m: float, a: float, b: float, z_dep: float) -> float:
+    """Area (m²) of a band's cross-section between its inner face and the wall ellipse
+    (semi-axes ``a`` across, ``b`` up), less the part below the deposit top ``z_dep``: the
+    polar integral ``∫ ½ (ρ_hi² − ρ_lo²) dθ`` over the arc, by the trapezoid rule."""
+    first, last = band.arc_rad
+    theta = np.linspace(first, last, AREA_QUADRATURE_POINTS)
+    c, s = np.cos(theta), np.sin(theta)
+    hi = a * b / np.hypot(b * c, a * s)
+    lo = np.full_like(theta, radius_m - band.thickness_m)
+    if np.isfinite(z_dep):
+        with np.errstate(divide="ignore", invalid="ignore"):
+            crossing = z_dep / s  # where the ray at theta meets the deposit top
+        below = s < 0
+        # Looking down, the deposit fills beyond its top; looking up, below it.
+        hi = np.where(below, np.where(z_dep >= 0, 0.0, np.minimum(hi, crossing)), hi)
+        lo = np.where((s > 0) & (z_dep > 0), np.maximum(lo, crossing), lo)
+        lo = np.where((s == 0) & (z_dep > 0), hi, lo)
+    strip = 0.5 * np.clip(hi * hi - lo * lo, 0.0, None) * (hi > lo)
+    return float(np.sum((strip[1:] + strip[:-1]) * np.diff(theta)) / 2.0)
 
 
 # --------------------------------------------------------------------------- the scan

@@ -14,6 +14,7 @@ import numpy as np
 from prefect import task
 
 from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
+from pipescan.core.coding import code_sections
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
@@ -221,16 +222,19 @@ def grade(
     blockage_threshold_ratio: float,
     flag_grade: int,
 ) -> GradeResult:
-    """Grade sections and merge flagged ones into defects. ``pipe_class="auto"`` takes the pipe
-    class (rigid or flexible: the BAA deformation rule) from the archive's material."""
+    """Code and grade sections, and follow their features into defects (docs/coding.md).
+    ``pipe_class="auto"`` takes the pipe class (rigid or flexible: the BAA deformation rule)
+    from the archive's material."""
     choice = choose_grading(material, pipe_class=pipe_class, table=table_name)
     table = load_table(choice.table)
-    graded = grade_sections(sections, table, pipe_class=choice.pipe_class)
+    codings = code_sections(sections)
+    graded = grade_sections(sections, table, pipe_class=choice.pipe_class, codings=codings)
     defects = merge_defects(
         graded,
         table,
         blockage_threshold_ratio=blockage_threshold_ratio,
         flag_grade=flag_grade,
         pipe_class=choice.pipe_class,
+        codings=codings,
     )
     return GradeResult(graded, defects, choice.table, choice.pipe_class, choice.reason)

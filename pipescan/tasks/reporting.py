@@ -9,7 +9,7 @@ from pathlib import Path
 from prefect import task
 
 import pipescan
-from pipescan.core.grading import load_table
+from pipescan.core.grading import load_table, worst_defect
 from pipescan.core.wording import plural
 from pipescan.reports.context import (
     EarlierInspection,
@@ -30,6 +30,7 @@ from pipescan.storage.database.db import connect
 from pipescan.storage.database.network import placements
 from pipescan.storage.database.queries import (
     defect_counts,
+    defects_by_inspection,
     earlier_inspections,
     earlier_scans,
     network_inspections,
@@ -140,6 +141,7 @@ def load_network_input(
                 for r in records
             },
         )
+        defects = defects_by_inspection(engine, ids)
     finally:
         engine.dispose()
     pipes = []
@@ -155,6 +157,7 @@ def load_network_input(
                 inspected_at=r.inspected_at,
                 sections=profiles[r.id],
                 defect_count=counts[r.id],
+                worst_defect=worst_defect(defects[r.id]),
                 earlier=[
                     EarlierScan(e.id, e.inspected_at, e.peak_blockage_ratio)
                     for e in reversed(history[r.id])

@@ -69,6 +69,9 @@ DEFECT_CSV_COLUMNS: tuple[str, ...] = (
     "peak_value",
     "peak_blockage_ratio",
     "grade",
+    "clock_from_h",
+    "clock_to_h",
+    "characterisation",
 )
 """Header of the defects CSV, in order."""
 
@@ -207,6 +210,9 @@ def _defect_rows(
         DefectRow.peak_value,
         DefectRow.peak_blockage_ratio,
         DefectRow.grade,
+        DefectRow.clock_from_h,
+        DefectRow.clock_to_h,
+        DefectRow.characterisation,
     ).join(DefectRow, DefectRow.inspection_id == Inspection.id)
     statement = _filtered(statement, asset_id, inspection_id).order_by(
         Inspection.asset_id,
@@ -247,6 +253,9 @@ def _defect_csv_cells(record: Mapping[str, Any]) -> list[str]:
         _float_cell(record["peak_value"]),
         _float_cell(record["peak_blockage_ratio"]),
         _int_cell(record["grade"]),
+        _float_cell(record["clock_from_h"]),
+        _float_cell(record["clock_to_h"]),
+        text_cell(record["characterisation"]),
     ]
 
 
@@ -299,7 +308,11 @@ def export_defects_csv(
     """Write stored defects as CSV, one row per defect, header :data:`DEFECT_CSV_COLUMNS`.
 
     Parameters and formatting are those of :func:`export_sections_csv`; ``peak_value`` is
-    the governing measure's worst value, a ratio.
+    the worst value of the measure the defect is graded on, a ratio. ``code`` is the EN 13508-2
+    main code (or ``unclassified``); ``clock_from_h`` and ``clock_to_h`` the arc it takes, in
+    hours clockwise looking in the survey's direction (12 at the crown), empty for a
+    deformation; ``characterisation`` the EN 13508-2 characterisation where the geometry tells
+    it (docs/coding.md).
 
     Returns
     -------
@@ -386,8 +399,9 @@ def export_defects_jsonl(
     :data:`DEFECT_CSV_COLUMNS`.
 
     Numbers are written at full precision, unknown figures (``peak_blockage_ratio``,
-    ``grade``) as ``null``, ``inspected_at`` as ISO 8601 UTC text. Selection and order are
-    those of :func:`export_defects_csv`.
+    ``grade``, the clock positions of a deformation or of a defect stored before coding, a
+    missing ``characterisation``) as ``null``, ``inspected_at`` as ISO 8601 UTC text.
+    Selection and order are those of :func:`export_defects_csv`.
 
     Returns
     -------
@@ -398,5 +412,5 @@ def export_defects_jsonl(
         out,
         DEFECT_CSV_COLUMNS,
         _defect_rows(engine, asset_id, inspection_id),
-        ("peak_blockage_ratio",),
+        ("peak_blockage_ratio", "clock_from_h", "clock_to_h"),
     )

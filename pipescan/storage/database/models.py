@@ -218,7 +218,8 @@ class Section(Base):
 
 
 class DefectRow(Base):
-    """Adjacent flagged sections merged into one span (``pipescan.core.model.Defect``)."""
+    """One coded feature along the pipe (``pipescan.core.model.Defect``); the clock positions
+    and characterisation are NULL for defects stored before coding."""
 
     __tablename__ = "defects"
 
@@ -234,6 +235,9 @@ class DefectRow(Base):
     peak_value: Mapped[float] = mapped_column(sa.Float())
     peak_blockage_ratio: Mapped[float | None] = mapped_column(sa.Float())
     grade: Mapped[int | None] = mapped_column(sa.Integer())
+    clock_from_h: Mapped[float | None] = mapped_column(sa.Float())
+    clock_to_h: Mapped[float | None] = mapped_column(sa.Float())
+    characterisation: Mapped[str | None] = mapped_column(sa.String())
 
     inspection: Mapped[Inspection] = relationship(back_populates="defects")
 

@@ -27,11 +27,12 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
-from pipescan.core.model import SectionMeasures
+from pipescan.core.model import Defect, SectionMeasures
 from pipescan.storage.database.db import StorageError, session_scope
 from pipescan.storage.database.models import DefectRow, Inspection, Section
 from pipescan.storage.database.repository import (
     InspectionRecord,
+    defect_from_row,
     inspection_records,
     record_statement,
     section_from_row,
@@ -40,6 +41,7 @@ from pipescan.storage.database.repository import (
 __all__ = [
     "ScanRecord",
     "defect_counts",
+    "defects_by_inspection",
     "earlier_inspections",
     "earlier_scans",
     "earlier_scans_statement",
@@ -319,6 +321,22 @@ def defect_counts(engine: Engine, inspection_ids: Sequence[int]) -> dict[int, in
         for inspection_id, count in session.execute(statement):
             counts[inspection_id] = count
     return counts
+
+
+def defects_by_inspection(engine: Engine, inspection_ids: Sequence[int]) -> dict[int, list[Defect]]:
+    """The defects of each inspection, by start chainage (an empty list for one without)."""
+    out: dict[int, list[Defect]] = {i: [] for i in inspection_ids}
+    if not inspection_ids:
+        return out
+    statement = (
+        sa.select(DefectRow)
+        .where(DefectRow.inspection_id.in_(list(inspection_ids)))
+        .order_by(DefectRow.inspection_id, DefectRow.chainage_start_m, DefectRow.id)
+    )
+    with session_scope(engine) as session:
+        for row in session.scalars(statement):
+            out[row.inspection_id].append(defect_from_row(row))
+    return out
 
 
 def network_inspections(

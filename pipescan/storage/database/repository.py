@@ -45,6 +45,7 @@ __all__ = [
     "InspectionToSave",
     "TrendPoint",
     "canonical_params_json",
+    "defect_from_row",
     "find_inspection",
     "get_defects",
     "get_frame_quality",
@@ -372,6 +373,9 @@ def _defect_row(defect: Defect) -> dict[str, Any]:
         "peak_value": _require_finite(defect.peak_value, "peak_value", where),
         "peak_blockage_ratio": _finite_or_none(defect.peak_blockage_ratio),
         "grade": None if defect.grade is None else int(defect.grade),
+        "clock_from_h": _finite_or_none(defect.clock_from_h),
+        "clock_to_h": _finite_or_none(defect.clock_to_h),
+        "characterisation": defect.characterisation,
     }
 
 
@@ -1021,19 +1025,24 @@ def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
     )
     with session_scope(engine) as session:
         _require_inspection(session, inspection_id)
-        return [
-            Defect(
-                code=row.code,
-                measure=row.measure,
-                chainage_start_m=row.chainage_start_m,
-                chainage_end_m=row.chainage_end_m,
-                peak_chainage_m=row.peak_chainage_m,
-                peak_value=row.peak_value,
-                peak_blockage_ratio=row.peak_blockage_ratio,
-                grade=row.grade,
-            )
-            for row in session.scalars(statement)
-        ]
+        return [defect_from_row(row) for row in session.scalars(statement)]
+
+
+def defect_from_row(row: DefectRow) -> Defect:
+    """The :class:`Defect` a stored defect row holds."""
+    return Defect(
+        code=row.code,
+        measure=row.measure,
+        chainage_start_m=row.chainage_start_m,
+        chainage_end_m=row.chainage_end_m,
+        peak_chainage_m=row.peak_chainage_m,
+        peak_value=row.peak_value,
+        peak_blockage_ratio=row.peak_blockage_ratio,
+        grade=row.grade,
+        clock_from_h=row.clock_from_h,
+        clock_to_h=row.clock_to_h,
+        characterisation=row.characterisation,
+    )
 
 
 def get_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
