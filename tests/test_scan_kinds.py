@@ -11,9 +11,10 @@ import pytest
 from pipescan.core.axis import fit_axis
 from pipescan.core.errors import GeometryError
 from pipescan.core.measures import measure_section
-from pipescan.core.model import SectionStatus
+from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.core.start import cloud_start
+from pipescan.core.water import explain_invert_shadows
 from pipescan.simulator.archive import world_cloud, write_simulated_archive
 from pipescan.simulator.scan import get_scenario, simulate_scan
 from pipescan.simulator.sensors import WaterLevel
@@ -223,3 +224,40 @@ def test_simulate_ring_with_water_and_a_bag_from_the_command_line(tmp_path):
     )
     assert wrong.exit_code == 2
     assert "layout must be" in wrong.output
+
+
+def _section(start_m, status, *, deposit=None, water=None):
+    return SectionMeasures(
+        chainage_start_m=start_m,
+        chainage_end_m=start_m + 0.1,
+        nominal_area_m2=0.196,
+        point_count=5000,
+        status=status,
+        coverage_ratio=1.0 if status == SectionStatus.OK else 0.7,
+        deposit_height_ratio=deposit,
+        water_depth_ratio=water,
+    )
+
+
+def test_a_shadow_behind_a_deposit_is_not_water():
+    """The demo's deposit (28 % high) cast a shadow read as 27-14 % of water behind it."""
+    ok, wet, low = SectionStatus.OK, SectionStatus.INVERT_UNDER_WATER, SectionStatus.LOW_COVERAGE
+    sections = [
+        _section(3.8, ok, deposit=0.285, water=0.0),
+        _section(3.9, low),
+        _section(4.0, wet, water=0.27),
+        _section(4.1, wet, water=0.21),
+        _section(4.2, low),
+        _section(4.3, ok, deposit=0.001, water=0.0),
+        # Water further on, with nothing as high beside it, stays water.
+        _section(5.0, ok, deposit=0.0, water=0.0),
+        _section(5.1, wet, water=0.15),
+        _section(5.2, wet, water=0.15),
+        _section(5.3, ok, deposit=0.02, water=0.0),
+    ]
+    out = explain_invert_shadows(list(reversed(sections)))
+    assert [s.chainage_start_m for s in out] == [s.chainage_start_m for s in sections]
+    assert [s.status for s in out[2:4]] == [low, low]
+    assert [s.water_depth_ratio for s in out[2:4]] == [None, None]
+    assert [s.status for s in out[7:9]] == [wet, wet]
+    assert out[7].water_depth_ratio == 0.15

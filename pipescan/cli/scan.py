@@ -297,10 +297,18 @@ def _print_summary(summary) -> None:
     if reg.get("frames"):
         typer.echo(
             f"  registration: {reg['engine']}, mean fitness {reg['mean_fitness']:.2f}, "
-            f"RMSE {1000 * reg['mean_rmse_m']:.1f} mm; along the axis, "
-            f"{reg['degenerate_frames']} of {reg['frames']} frames held to the "
-            f"{reg.get('along_axis_prior', 'odometer').replace('_', ' ')} (smooth pipe)"
+            f"RMSE {1000 * reg['mean_rmse_m']:.1f} mm"
         )
+        prior = reg.get("along_axis_prior", "odometer").replace("_", " ")
+        line = (
+            f"  along the axis: {reg['degenerate_frames']} of {reg['frames']} frames rested on "
+            f"the {prior} (too little geometry along the pipe)"
+        )
+        if "slides" in reg:
+            line += f", {plural(reg['slides'], 'frame')} slid"
+        if reg.get("chainage_uncertainty_m") is not None:
+            line += f"; chainage within ±{100 * reg['chainage_uncertainty_m']:.1f} cm at the end"
+        typer.echo(line)
         if reg.get("warning"):
             typer.secho(f"  warning: {reg['warning']}", fg=typer.colors.YELLOW)
     if summary.report_path:

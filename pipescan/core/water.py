@@ -8,11 +8,14 @@ wall. :func:`detect_water` tells them apart; docs/measures.md says how the figur
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.uncertainty import unseen_runs
 
 MIN_SURFACE_POINTS = 3
@@ -165,3 +168,68 @@ def detect_water(
     if depth <= 0:
         return None
     return WaterLevel(level_m=level, depth_ratio=depth, bins=run, from_surface=from_surface)
+
+
+SHADOW_LEVEL_MARGIN_RATIO = 0.01
+"""A deposit or obstacle whose top stands within this share of the diameter below a water
+level, or higher, explains a missing invert by its shadow (the line of sight over its top
+descends behind it, so a shadow's edge always lies below the top that casts it)."""
+
+
+def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionMeasures]:
+    """Take water back where a deposit or an obstacle beside it explains the missing invert.
+
+    A section reads as water (``invert_under_water``) when its invert is unseen below a level
+    chord with a few points on it. The shadow a deposit's or an obstacle's end casts on the
+    invert looks the same to one section: the wall stops at the same height on both sides,
+    and spurious returns or the ramp's grazing points lie on the chord. Along the pipe they
+    differ: a shadow begins where something stands at least as high as its edge. So, for each
+    stretch of sections that are not measured (water or shadowed, in chainage order), the
+    nearest sections on either side that have a deposit height are looked at: where one stands
+    within :data:`SHADOW_LEVEL_MARGIN_RATIO` of the water's depth or higher, the stretch's
+    water is the shadow's, and those sections become ``low_coverage`` without a water depth.
+    Water that really ponds against a deposit is then not reported either: no figure, rather
+    than a wrong one.
+
+    Parameters
+    ----------
+    sections
+        One scan's sections, in any order.
+
+    Returns
+    -------
+    list of SectionMeasures
+        The same sections, in chainage order, with shadowed "water" taken back.
+    """
+    ordered = sorted(sections, key=lambda s: s.chainage_start_m)
+    out = list(ordered)
+
+    def is_gap(s: SectionMeasures) -> bool:
+        return s.status in (SectionStatus.INVERT_UNDER_WATER, SectionStatus.LOW_COVERAGE)
+
+    def height_at(k: int) -> float | None:
+        s = ordered[k]
+        if s.is_ok and s.deposit_height_ratio is not None:
+            return s.deposit_height_ratio
+        return None
+
+    i = 0
+    while i < len(ordered):
+        if not is_gap(ordered[i]):
+            i += 1
+            continue
+        j = i
+        while j < len(ordered) and is_gap(ordered[j]):
+            j += 1
+        wet = [k for k in range(i, j) if ordered[k].status == SectionStatus.INVERT_UNDER_WATER]
+        before = height_at(i - 1) if i > 0 else None
+        after = height_at(j) if j < len(ordered) else None
+        beside = [h for h in (before, after) if h is not None]
+        for k in wet:
+            depth = ordered[k].water_depth_ratio
+            if depth is not None and any(h >= depth - SHADOW_LEVEL_MARGIN_RATIO for h in beside):
+                out[k] = dataclasses.replace(
+                    ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
+                )
+        i = j
+    return out

@@ -26,6 +26,7 @@ from pipescan.core.registration import (
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows
 from pipescan.core.summary import peak_blockage
+from pipescan.core.water import explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
 from pipescan.settings import get_settings
@@ -228,7 +229,9 @@ def inspect_archive(
             )
             for w in windows
         ]
-        sections = [s for f in window_futures for s in f.result()]
+        # Water read where a deposit's or obstacle's shadow explains the unseen invert is
+        # taken back (it takes sections on both sides of a window's edge).
+        sections = explain_invert_shadows([s for f in window_futures for s in f.result()])
         grading = grade(
             sections,
             params.threshold_table,
