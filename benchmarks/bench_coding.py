@@ -31,6 +31,7 @@ from bench_sections import REAL_SCAN, measure_all, registered_cloud_true_poses
 from pipescan.core.axis import fit_axis
 from pipescan.core.coding import CODE_FAMILIES, code_sections
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
+from pipescan.settings import use_settings
 from pipescan.simulator.coding_scenes import CODING_DIAMETERS_M, SCENES, coding_draws
 from pipescan.simulator.features import FeatureOutcome, score_defects, true_features
 from pipescan.simulator.scan import simulate_scan
@@ -174,12 +175,12 @@ def estimated(args: argparse.Namespace) -> None:
         for k, draw in enumerate(draws):
             archive = Path(tmp) / f"a{k}"
             write_simulated_archive(simulate_scan(draw.scenario, seed=draw.seed), archive)
-            summary = inspect_archive(
-                archive=str(archive),
-                database_url=db,
-                params=InspectionParams(),
-                work_dir=f"{tmp}/w",
-            )
+            with use_settings(database_url=db):  # a setting, not a flow parameter
+                summary = inspect_archive(
+                    archive=str(archive),
+                    params=InspectionParams(),
+                    work_dir=f"{tmp}/w",
+                )
             engine = connect(db)
             defects = get_defects(engine, summary.inspection_id)
             sections = get_sections(engine, summary.inspection_id)

@@ -457,16 +457,17 @@ def _flow_sections(archive: Path, work: Path):
     """Run the inspect-archive flow on the archive; its stored inspection."""
     from pipescan.flows.inspect import InspectionParams, inspect_archive
     from pipescan.flows.runners import make_task_runner
+    from pipescan.settings import use_settings
     from pipescan.tasks.network import load_stored_inspection
 
     db_url = f"sqlite:///{work / 'sweep.db'}"
     flow = inspect_archive.with_options(task_runner=make_task_runner("threads", 2))
-    summary = flow(
-        archive=str(archive),
-        database_url=db_url,
-        params=InspectionParams(),
-        work_dir=str(work / "scratch"),
-    )
+    with use_settings(database_url=db_url):  # a setting, not a flow parameter
+        summary = flow(
+            archive=str(archive),
+            params=InspectionParams(),
+            work_dir=str(work / "scratch"),
+        )
     return load_stored_inspection.fn(db_url, summary.inspection_id)
 
 

@@ -50,6 +50,7 @@ from pipescan.core.trends import (  # noqa: E402
     change_thresholds,
 )
 from pipescan.flows.inspect import InspectionParams, inspect_archive  # noqa: E402
+from pipescan.settings import use_settings  # noqa: E402
 from pipescan.simulator.archive import write_simulated_archive  # noqa: E402
 from pipescan.simulator.scan import Effects, get_scenario, simulate_scan  # noqa: E402
 from pipescan.storage.database.db import connect  # noqa: E402
@@ -98,12 +99,12 @@ def simulate_and_inspect(args: argparse.Namespace, work: Path, db_url: str) -> N
             archive = write_simulated_archive(
                 simulate_scan(scenario, seed=args.seed + i), work / f"survey-{i}"
             )
-            summary = inspect_archive(
-                archive=str(archive),
-                database_url=db_url,
-                params=InspectionParams(),
-                work_dir=str(work / "scratch"),
-            )
+            with use_settings(database_url=db_url):  # a setting, not a flow parameter
+                summary = inspect_archive(
+                    archive=str(archive),
+                    params=InspectionParams(),
+                    work_dir=str(work / "scratch"),
+                )
             print(
                 f"  survey {i}: {summary.sections_ok} of {summary.section_count} sections "
                 f"measured, peak {100 * (summary.max_blockage_ratio or 0):.2f} % "

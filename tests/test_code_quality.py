@@ -60,3 +60,44 @@ def test_docs_build_makes_its_figures(tmp_path):
     assert result.returncode == 0, result.stderr[-3000:]
     page = tmp_path / "report-page-1.png"
     assert page.read_bytes().startswith(b"\x89PNG")
+
+
+def test_benchmarks_call_the_flows_with_their_parameters():
+    """Benchmarks are not run by the tests: a flow parameter that moved (the database URL
+    became a setting) must still not leave them calling the flow with it."""
+    import ast
+    import inspect
+
+    from pipescan.flows.inspect import inspect_archive
+    from pipescan.flows.network import inspect_network
+
+    accepted = {
+        flow.fn.__name__: set(inspect.signature(flow.fn).parameters)
+        for flow in (inspect_archive, inspect_network)
+    }
+    wrong = []
+    for path in sorted((ROOT / "benchmarks").glob("*.py")):
+        tree = ast.parse(path.read_text(), filename=str(path))
+        # Calls of a flow by name, or of a name bound to flow.with_options(...).
+        aliases = {name: name for name in accepted}
+        for node in ast.walk(tree):
+            if (
+                isinstance(node, ast.Assign)
+                and isinstance(node.value, ast.Call)
+                and isinstance(node.value.func, ast.Attribute)
+                and node.value.func.attr == "with_options"
+                and isinstance(node.value.func.value, ast.Name)
+                and node.value.func.value.id in accepted
+            ):
+                for target in node.targets:
+                    if isinstance(target, ast.Name):
+                        aliases[target.id] = node.value.func.value.id
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
+                flow_name = aliases.get(node.func.id)
+                if flow_name is None:
+                    continue
+                for kw in node.keywords:
+                    if kw.arg is not None and kw.arg not in accepted[flow_name]:
+                        wrong.append(f"{path.name}:{node.lineno}: {flow_name}({kw.arg}=...)")
+    assert not wrong, wrong
