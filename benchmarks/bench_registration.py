@@ -451,6 +451,7 @@ class DrawFigures:
     seconds: float
     weak: int = 0
     smeared: int = 0
+    shadows_ok_wrong: int = 0
 
 
 def _flow_sections(archive: Path, work: Path):
@@ -519,7 +520,7 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
 SWEEP_HEADER = (
     "| draw | frames | odometer err % | travel err % | ok | ok away from edges | "
     "mean pp | max pp | dishonest (>2 pp within ±u) | dishonest at same chainage | "
-    "worst pp | shadows ok/all | u max m | RT 1 core | weak reg. | smeared |\n"
+    "worst pp | shadows ok (off beyond their ±)/all | u max m | RT 1 core | weak reg. | smeared |\n"
     "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
 
@@ -529,8 +530,8 @@ def _sweep_row(f: DrawFigures) -> str:
         f"| {f.name} | {f.frames} | {100 * f.odometer_error_ratio:+.2f} | "
         f"{100 * f.travel_error_ratio:+.2f} | {f.ok} | {f.ok_away} | {f.mean_pp:.2f} | "
         f"{f.max_pp:.2f} | {f.dishonest} | {f.dishonest_naive} | {f.worst_pp:.1f} | "
-        f"{f.shadows_ok}/{f.shadows} | {f.u_max_m:.3f} | {f.realtime:.1f}× | {f.weak} | "
-        f"{f.smeared} |"
+        f"{f.shadows_ok} ({f.shadows_ok_wrong})/{f.shadows} | {f.u_max_m:.3f} | "
+        f"{f.realtime:.1f}× | {f.weak} | {f.smeared} |"
     )
 
 
