@@ -304,6 +304,17 @@ class SectionScore:
     shadows_ok_wrong: int = 0
 
 
+def _closest_error(sec, truth: TrueBlockage) -> tuple[float, float | None]:
+    """A section's chainage uncertainty ``u`` and the smallest |blockage - truth| over every
+    place within ±u (a ratio); None when it has no blockage or the truth does not reach.
+    Sections that state no uncertainty (stored before it was recorded) claim 0."""
+    u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
+    shifted = truth.around(round(sec.chainage_start_m, 3), u)
+    if sec.blockage_ratio is None or not np.isfinite(shifted).all():
+        return u, None
+    return u, float(np.min(np.abs(sec.blockage_ratio - shifted)))
+
+
 def score_sections(sections, truth: TrueBlockage) -> SectionScore:
     """Score measured sections (``SectionMeasures``) against the truth (see
     :class:`SectionScore`)."""
@@ -316,16 +327,13 @@ def score_sections(sections, truth: TrueBlockage) -> SectionScore:
         by_start[start] = sec
         if not sec.is_ok or sec.blockage_ratio is None:
             continue
-        # Sections that state no uncertainty (stored before it was recorded) claim 0.
-        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
-        shifted = truth.around(start, u)
-        if not np.isfinite(shifted).all():
+        u, closest_ratio = _closest_error(sec, truth)
+        if closest_ratio is None:
             continue
         ok += 1
         u_max = max(u_max, u)
-        b = sec.blockage_ratio
-        naive = abs(b - float(truth.section(np.array([start]))[0])) * 100
-        closest = float(np.min(np.abs(b - shifted))) * 100
+        naive = abs(sec.blockage_ratio - float(truth.section(np.array([start]))[0])) * 100
+        closest = closest_ratio * 100
         worst = max(worst, closest)
         dishonest += closest > DISHONEST_PP
         naive_dishonest += naive > DISHONEST_PP
@@ -341,12 +349,9 @@ def score_sections(sections, truth: TrueBlockage) -> SectionScore:
     ]
     shadows_ok_wrong = 0
     for sec in shadow_ok:
-        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
+        closest_ratio = _closest_error(sec, truth)[1]
         stated = float(getattr(sec, "blockage_uncertainty_ratio", None) or 0.0)
-        shifted = truth.around(round(sec.chainage_start_m, 3), u)
-        if sec.blockage_ratio is None or not np.isfinite(shifted).all():
-            continue
-        shadows_ok_wrong += float(np.min(np.abs(sec.blockage_ratio - shifted))) > stated
+        shadows_ok_wrong += closest_ratio is not None and closest_ratio > stated
     e = np.array(errors) if errors else np.array([np.nan])
     return SectionScore(
         ok=ok,
