@@ -387,6 +387,7 @@ def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5
         registration_evidence,
     )
     from pipescan.core.sections import measure_window, plan_windows
+    from pipescan.core.water import explain_invert_shadows
 
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
     trajectory = chain_trajectories(
@@ -415,4 +416,4 @@ def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5
             nominal_diameter_m=scan.scenario.nominal_diameter_m,
             evidence=evidence,
         )
-    return trajectory, sections
+    return trajectory, explain_invert_shadows(sections)
