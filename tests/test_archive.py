@@ -536,6 +536,11 @@ def test_inspection_toml_value_forms() -> None:
     )
     meta = _meta(base + 'asset_id = "A"\ninspected_at = 2024-05-17\n' + frames)
     assert [f.odometer_m for f in meta.frames] == [0.0, 0.10, 0.09, 0.2]
+    assert meta.odometer_uncertainty_ratio is None  # registration's default applies
+    meta = _meta(
+        base + 'asset_id = "A"\ninspected_at = 2024-05-17\nodometer_uncertainty_ratio = 0.05\n'
+    )
+    assert meta.odometer_uncertainty_ratio == 0.05
 
 
 @pytest.mark.parametrize(
@@ -552,6 +557,8 @@ def test_inspection_toml_value_forms() -> None:
         ),
         ("chainage_offset_m = nan\n", "chainage_offset_m", "finite"),
         ("nominal_diameter_m = 0.02\n", "nominal_diameter_m", "not a plausible pipe diameter"),
+        ("odometer_uncertainty_ratio = 3\n", "odometer_uncertainty_ratio", "less than or equal"),
+        ("odometer_uncertainty_ratio = 0\n", "odometer_uncertainty_ratio", "greater than 0"),
     ],
 )
 def test_inspection_toml_errors(extra: str, field: str, message: str) -> None:

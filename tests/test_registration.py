@@ -124,6 +124,10 @@ def test_featureless_pipe_is_held_to_the_odometer(clean_scan, monkeypatch):
     u = traj.quality[-1].chainage_uncertainty_m
     assert 0.03 * travel <= u <= 0.03 * travel * 1.05 + 0.003
     assert held["along_final_m"] <= u
+    # A crawler whose odometer states 5 % (inspection.toml) gets 5 %.
+    stated = register_frames(_frames(clean_scan), params.for_odometer(0.05))
+    u5 = stated.quality[-1].chainage_uncertainty_m
+    assert 0.05 * travel <= u5 <= 0.05 * travel * 1.05 + 0.003
     # ICP alone slides along the axis: the fusion is what holds it.
     _trusting_icp(monkeypatch)
     free = _errors(clean_scan, register_frames(_frames(clean_scan), params))

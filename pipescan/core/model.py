@@ -51,6 +51,8 @@ class InspectionMeta:
     together or not at all (docs/archive.md).
     ``start_xyz`` is the sensor's first position in a registered cloud's frame (where its
     scan starts: docs/archive.md); ``ros`` names a bag's topics.
+    ``odometer_uncertainty_ratio`` is the crawler's odometer's stated uncertainty, a share of
+    the distance (None: registration's default, 3 %).
     """
 
     asset_id: str
@@ -68,6 +70,7 @@ class InspectionMeta:
     crs: str | None = None
     start_xyz: tuple[float, float, float] | None = None
     ros: RosTopics | None = None
+    odometer_uncertainty_ratio: float | None = None
 
     @property
     def nominal_area_m2(self) -> float:

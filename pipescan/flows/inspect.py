@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 from prefect import flow
@@ -141,6 +141,11 @@ def inspect_archive(
         staged = stage_archive(archive, run_dir, get_settings().input_limits())
         meta = staged.meta
         log.info(f"archive {staged.name}: asset {meta.asset_id}, {staged.frame_count} frames")
+        # The crawler's own odometer uncertainty, where inspection.toml states it, is what
+        # registration uses and what is stored with the inspection.
+        params = replace(
+            params, registration=params.registration.for_odometer(meta.odometer_uncertainty_ratio)
+        )
         if reuse_stored:
             # The same choice as the grade task's, so the same parameters and hash as a save.
             choice = choose_grading(

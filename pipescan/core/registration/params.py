@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
@@ -127,6 +128,19 @@ class RegistrationParams:
                 "RegistrationParams.degeneracy_ratio must be in [0, 1), "
                 f"got {self.degeneracy_ratio!r}."
             )
+
+    def for_odometer(self, uncertainty_ratio: float | None) -> RegistrationParams:
+        """These parameters with the crawler's own stated odometer uncertainty (from
+        ``inspection.toml``), or unchanged when it states none.
+
+        >>> RegistrationParams().for_odometer(0.05).odometer_scale_error_ratio
+        0.05
+        >>> RegistrationParams().for_odometer(None) == RegistrationParams()
+        True
+        """
+        if uncertainty_ratio is None:
+            return self
+        return dataclasses.replace(self, odometer_scale_error_ratio=float(uncertainty_ratio))
 
     @property
     def label(self) -> str:

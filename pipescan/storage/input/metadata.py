@@ -207,6 +207,7 @@ class InspectionDocument(BaseModel):
 
     start_xyz: list[float] | None = None
     ros: _RosTable | None = None
+    odometer_uncertainty_ratio: float | None = Field(default=None, gt=0.0, le=0.5)
 
     @field_validator("start_xyz")
     @classmethod
@@ -406,6 +407,7 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         ros=None
         if doc.ros is None
         else RosTopics(doc.ros.points_topic, doc.ros.odometry_topic, doc.ros.imu_topic),
+        odometer_uncertainty_ratio=doc.odometer_uncertainty_ratio,
     )
 
 
