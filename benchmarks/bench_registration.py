@@ -452,6 +452,7 @@ class DrawFigures:
     weak: int = 0
     smeared: int = 0
     shadows_ok_wrong: int = 0
+    stretches_worse: str = ""
 
 
 def _flow_sections(archive: Path, work: Path):
@@ -491,7 +492,11 @@ def _registered(archive: Path, params: RegistrationParams):
 def evaluate_draw(draw, work: Path) -> DrawFigures:
     """Simulate one draw, inspect it with the flow, and score its sections against the truth."""
     from pipescan.simulator.archive import write_simulated_archive
-    from pipescan.simulator.sweep import TrueBlockage, score_sections
+    from pipescan.simulator.sweep import (
+        TrueBlockage,
+        score_sections,
+        stretches_worse_than_odometer,
+    )
 
     scan = simulate_scan(draw.scenario, draw.seed)
     archive = write_simulated_archive(scan, work / "archive")
@@ -514,14 +519,16 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
         seconds=time.perf_counter() - started,
         weak=sum(s.status.value == "weak_registration" for s in stored.sections),
         smeared=sum(s.status.value == "smeared_wall" for s in stored.sections),
+        stretches_worse="{}/{}".format(*stretches_worse_than_odometer(trajectory, scan)),
     )
 
 
 SWEEP_HEADER = (
     "| draw | frames | odometer err % | travel err % | ok | ok away from edges | "
     "mean pp | max pp | dishonest (>2 pp within ±u) | dishonest at same chainage | "
-    "worst pp | shadows ok (off beyond their ±)/all | u max m | RT 1 core | weak reg. | smeared |\n"
-    "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    "worst pp | shadows ok (off beyond their ±)/all | u max m | RT 1 core | weak reg. | smeared | "
+    "0.5 m stretches worse than the odometer |\n"
+    "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
 
 
@@ -531,7 +538,7 @@ def _sweep_row(f: DrawFigures) -> str:
         f"{100 * f.travel_error_ratio:+.2f} | {f.ok} | {f.ok_away} | {f.mean_pp:.2f} | "
         f"{f.max_pp:.2f} | {f.dishonest} | {f.dishonest_naive} | {f.worst_pp:.1f} | "
         f"{f.shadows_ok} ({f.shadows_ok_wrong})/{f.shadows} | {f.u_max_m:.3f} | "
-        f"{f.realtime:.1f}× | {f.weak} | {f.smeared} |"
+        f"{f.realtime:.1f}× | {f.weak} | {f.smeared} | {f.stretches_worse} |"
     )
 
 

@@ -20,6 +20,7 @@ from pipescan.simulator.sweep import (
     measure_scan,
     random_effects,
     score_sections,
+    stretches_worse_than_odometer,
 )
 
 MAX_RANGE_M = 5.0
@@ -98,6 +99,9 @@ def test_estimated_poses_hold_on_random_effects(draw, diameter_m):
     travel_error_m = abs((positions[-1] - positions[0]) @ axis - true_m)
     odometer_error_m = abs(scan.odometer_m[-1] - true_m)
     assert travel_error_m <= odometer_error_m + 0.005 * true_m, effects
+    # And over every half metre: never further off than the odometer there.
+    worse, stretches = stretches_worse_than_odometer(trajectory, scan)
+    assert stretches >= 5 and worse == 0, (worse, stretches, effects)
     # The chainage uncertainty bounds the error where no slip fooled the odometer unseen.
     if not len(scan.slip_frames):
         assert travel_error_m <= trajectory.quality[-1].chainage_uncertainty_m + 0.005

@@ -18,6 +18,7 @@ without IMU. ``benchmarks/bench_registration.py sweep`` runs them; the slow test
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass
 
 import numpy as np
@@ -366,6 +367,41 @@ def score_sections(sections, truth: TrueBlockage) -> SectionScore:
         u_max_m=u_max,
         shadows_ok_wrong=shadows_ok_wrong,
     )
+
+
+STRETCH_M = 0.5
+"""Length of true travel over which registration is compared with the odometer."""
+STRETCH_TOLERANCE_M = 0.01
+"""Registration is worse than the odometer over a stretch when its along-axis error there
+exceeds the odometer's by more than this (a centimetre: the odometer's reading noise and
+ICP's own error over half a metre)."""
+
+
+def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
+    """Stretches of :data:`STRETCH_M` of true travel over which registration moved the sensor
+    along the axis further from the truth than the odometer did (by more than
+    :data:`STRETCH_TOLERANCE_M`), and how many stretches there were.
+
+    Registration's target is the odometer's own error or better *where it is*: over a whole
+    run the odometer's scale error and its slips can cancel, so comparing end points alone
+    can make registration, which removed the scale error where features held it, look worse
+    than an odometer whose errors happened to cancel.
+    """
+    positions = trajectory.positions_m()
+    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
+    row = {int(i): k for k, i in enumerate(trajectory.frame_indices)}
+    frames = np.array(sorted(row))
+    est = (positions[[row[i] for i in frames]] - positions[row[frames[0]]]) @ axis
+    true = scan.true_travel_m[frames] - scan.true_travel_m[frames[0]]
+    odo = scan.odometer_m[frames] - scan.odometer_m[frames[0]]
+    edges = np.unique(np.searchsorted(true, np.arange(0.0, true[-1], STRETCH_M)))
+    worse = total = 0
+    for a, b in itertools.pairwise(edges):
+        total += 1
+        reg_error = (est[b] - est[a]) - (true[b] - true[a])
+        odo_error = (odo[b] - odo[a]) - (true[b] - true[a])
+        worse += bool(abs(reg_error) > abs(odo_error) + STRETCH_TOLERANCE_M)
+    return worse, total
 
 
 def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5.0):
