@@ -184,8 +184,8 @@ def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionM
     invert looks the same to one section: the wall stops at the same height on both sides,
     and spurious returns or the ramp's grazing points lie on the chord. Along the pipe they
     differ: a shadow begins where something stands at least as high as its edge. So, for each
-    stretch of sections that are not measured (water or shadowed, in chainage order), the
-    nearest sections on either side that have a deposit height are looked at: where one stands
+    stretch of sections that are water or too little seen (in chainage order), the sections
+    just before and after it are looked at, where they are measured: where one stands
     within :data:`SHADOW_LEVEL_MARGIN_RATIO` of the water's depth or higher, the stretch's
     water is the shadow's, and those sections become ``low_coverage`` without a water depth.
     Water that really ponds against a deposit is then not reported either: no figure, rather
