@@ -223,7 +223,7 @@ def _run_one(archive: Path, profile_dir: Path | None, sections_dir: Path | None)
             print(proc.stdout[-3000:], proc.stderr[-3000:], sep="\n", file=sys.stderr)
             raise SystemExit(f"{archive}: pipescan inspect failed ({proc.returncode})")
         result = json.loads(out_json.read_text(encoding="utf-8"))
-        summary = json.loads(proc.stdout[proc.stdout.index("{") :])
+        summary = json.JSONDecoder().raw_decode(proc.stdout[proc.stdout.index("{") :])[0]
         if sections_dir is not None:  # the figures, to compare runs of two versions
             sections_dir.mkdir(parents=True, exist_ok=True)
             subprocess.run(
