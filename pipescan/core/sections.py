@@ -7,7 +7,7 @@ by integer millimetres so that the same section of two inspections has the same 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -70,6 +70,44 @@ def plan_windows(
         windows.append(ChainageWindow(start, end, step_mm))
         start = end
     return windows
+
+
+def windows_reached(
+    spans_m: Sequence[tuple[float, float]], windows: Sequence[ChainageWindow], reach_m: float
+) -> list[list[int]]:
+    """For each window, the spans whose points can fall in it.
+
+    Parameters
+    ----------
+    spans_m : sequence of (chainage_min_m, chainage_max_m)
+        Where the sensor stood while it recorded each span (a chunk of frames).
+    windows : sequence of ChainageWindow
+    reach_m : float
+        How far from the sensor, along the axis, a span's points can lie (the range they were
+        cropped to, with a margin for a bent axis).
+
+    Returns
+    -------
+    list of list of int
+        Per window, the indices of the spans within ``reach_m`` of it, ascending: once those
+        are placed, the window can be measured.
+
+    Examples
+    --------
+    >>> ws = plan_windows(0.0, 6.0, window_m=2.0)
+    >>> windows_reached([(0.0, 1.0), (1.0, 2.0), (5.5, 6.0)], ws, reach_m=1.0)
+    [[0, 1], [0, 1], [2]]
+    """
+    reached = []
+    for w in windows:
+        reached.append(
+            [
+                k
+                for k, (lo, hi) in enumerate(spans_m)
+                if lo - reach_m < w.end_m and hi + reach_m >= w.start_m
+            ]
+        )
+    return reached
 
 
 def iter_section_points(

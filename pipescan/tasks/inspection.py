@@ -6,7 +6,9 @@ dataclasses). Only I/O is retried; geometry errors are deterministic and fail at
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -28,7 +30,12 @@ from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.core.start import cloud_start
 from pipescan.storage.input.archive import open_archive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
-from pipescan.storage.scratch import read_window_offsets, write_buckets
+from pipescan.storage.scratch import (
+    Bucketed,
+    FrameStore,
+    read_window_offsets,
+    write_buckets,
+)
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 log = logging.getLogger("pipescan")
@@ -63,22 +70,40 @@ def _odometer(meta: InspectionMeta, i: int) -> float | None:
     return meta.frames[i].odometer_m if meta.frames else None
 
 
+def _crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """The points within ``max_range_m`` of the sensor (the sections' range)."""
+    return points_m[np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2]
+
+
 @task(name="register-chunk")
 def register_chunk(
-    staged: StagedArchive, first: int, last: int, params: RegistrationParams
+    staged: StagedArchive,
+    first: int,
+    last: int,
+    params: RegistrationParams,
+    frame_store: FrameStore | None = None,
+    keep_range_m: float = np.inf,
 ) -> Trajectory:
     """Register frames ``first..last`` (inclusive) relative to frame ``first``.
 
     Frames stream from the archive one at a time; only the local map stays in memory. The
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
+    With ``frame_store``, each frame's points within ``keep_range_m`` are also written there
+    as they are read, so that the sections never decode the archive again.
     """
     meta = staged.meta
-    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
-        frames = (
-            (i, pts, _odometer(meta, i), meta.frames[i].gravity if meta.frames else None)
-            for i, pts in arc.iter_frames(range(first, last + 1))
-        )
-        trajectory = register_frames(frames, params)
+    with contextlib.ExitStack() as stack:
+        arc = stack.enter_context(open_archive(staged.root, limits=staged.limits, name=staged.name))
+        keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
+
+        def frames():
+            for i, pts in arc.iter_frames(range(first, last + 1)):
+                if keep is not None:
+                    keep.add(i, _crop(pts, keep_range_m))
+                gravity = meta.frames[i].gravity if meta.frames else None
+                yield i, pts, _odometer(meta, i), gravity
+
+        trajectory = register_frames(frames(), params)
     held = sum(q.degenerate for q in trajectory.quality)
     log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
     if held and trajectory.along_axis_prior != "odometer":
@@ -93,9 +118,21 @@ def register_chunk(
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
     def cropped():
         for i, pts in arc.iter_frames(indices):
-            yield i, pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+            yield i, _crop(pts, max_range_m)
 
     yield from iter_registered_points(cropped(), trajectory)
+
+
+def _stored_frames(
+    frame_store: FrameStore, chunks: Sequence[tuple[int, int]], indices: Sequence[int]
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Frames ``indices`` (ascending) as the registration pass stored them (cropped)."""
+    wanted = sorted(set(indices))
+    for first, last in chunks:
+        mine = [i for i in wanted if first <= i <= last]
+        wanted = [i for i in wanted if i > last]
+        if mine:
+            yield from frame_store.iter_frames(first, mine)
 
 
 @task(name="fit-axis")
@@ -105,12 +142,15 @@ def fit_pipe_axis(
     *,
     max_range_m: float,
     sample_frames: int = 40,
+    frame_store: FrameStore | None = None,
+    chunks: Sequence[tuple[int, int]] = (),
 ) -> AxisFit:
     """Fit the pipe axis on a sample of the registered points, and the chainage they span.
 
     A registered cloud's start is chosen by ``pipescan.core.start.cloud_start``; up is the
     cloud's +z. For frames, up is against the IMU's gravity at the first frame, where given,
-    else the first frame's +z.
+    else the first frame's +z. With ``frame_store`` (written by :func:`register_chunk` for
+    ``chunks``, cropped to ``max_range_m``), the sample frames are read from it.
     """
     meta = staged.meta
     diameter = meta.nominal_diameter_m
@@ -118,6 +158,8 @@ def fit_pipe_axis(
     with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
         if trajectory is None:
             points = arc.read_cloud()
+            if frame_store is not None:  # decoded once: the sections read it from here
+                frame_store.save_cloud(points)
             choice = cloud_start(
                 points,
                 axis_direction(points, diameter),
@@ -130,7 +172,12 @@ def fit_pipe_axis(
             indices = trajectory.frame_indices[::stride]
             rng = np.random.default_rng(0)
             parts = []
-            for pts in _frame_points_world(arc, trajectory, indices, max_range_m):
+            sample = (
+                iter_registered_points(_stored_frames(frame_store, chunks, indices), trajectory)
+                if frame_store is not None
+                else _frame_points_world(arc, trajectory, indices, max_range_m)
+            )
+            for pts in sample:
                 take = min(len(pts), 5000)
                 parts.append(pts[rng.choice(len(pts), take, replace=False)])
             points = np.concatenate(parts)
@@ -165,14 +212,29 @@ def bucket_points(
     windows: list[ChainageWindow],
     bucket_root: Path,
     max_range_m: float,
-) -> int:
-    """Write the registered points of frames ``first..last`` (or the cloud) into window files."""
-    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
-        if trajectory is None:
-            return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
-        pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))
+    frame_store: FrameStore | None = None,
+) -> Bucketed:
+    """Write the registered points of frames ``first..last`` (or the cloud) into window files.
+
+    With ``frame_store``, the frames are those :func:`register_chunk` stored for the chunk
+    that starts at ``first`` (already cropped to ``max_range_m``): the archive is not read.
+    A registered cloud that :func:`fit_pipe_axis` kept there is placed by rows: ``first`` to
+    ``last`` (exclusive).
+    """
+    if trajectory is None and frame_store is not None and frame_store.cloud_rows():
+        rows = frame_store.read_cloud_rows(first, last)
+        return write_buckets(rows, axis, windows, bucket_root, f"cloud_{first:011d}")
+    if trajectory is not None and frame_store is not None:
+        stored = frame_store.iter_frames(first)
+        pts = list(iter_registered_points(stored, trajectory))
+    else:
+        with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
+            if trajectory is None:
+                return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
+            frames = range(first, last + 1)
+            pts = list(_frame_points_world(arc, trajectory, frames, max_range_m))
     if not pts:  # every frame of the chunk slid along the axis: none is placed
-        return 0
+        return Bucketed()
     return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
 
 
