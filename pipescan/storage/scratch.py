@@ -13,8 +13,10 @@ A frame in float32 keeps a sensor-frame coordinate to better than 1 µm within t
 range; it is half the bytes of float64 and, unlike a compressed archive, costs no decoding to
 read again.
 
-Points are stored as float32 offsets from the axis origin: float32 keeps 0.1 mm at 1 km from the
-origin, and offsets stay small even for georeferenced clouds with large coordinates.
+Bucketed points are stored in section coordinates, float32: millimetres along the axis from
+the window's start (0.1 µm resolution over a 2 m window), then across and up in the section
+plane. A point's chainage and plane position are computed once, when it is bucketed; a window
+task reads them as they are.
 """
 
 from __future__ import annotations
@@ -283,7 +285,8 @@ def write_buckets(
     bucket_root: Path,
     tag: str,
 ) -> Bucketed:
-    """Split registered points by chainage window and write one file per window.
+    """Split registered points by chainage window and write one file per window, in section
+    coordinates (see :func:`read_window_rows`).
 
     Parameters
     ----------
@@ -304,29 +307,39 @@ def write_buckets(
     """
     if len(points_world_m) == 0 or not windows:
         return Bucketed()
-    chain_mm = axis.chainage(points_world_m) * 1000.0
+    # The one place a point's chainage and section-plane position are computed (along a bent
+    # axis, the costly part: a nearest-node search per point).
+    chain_m, plane = axis.section_coordinates(points_world_m)
+    chain_mm = chain_m * 1000.0
     edges = np.array([w.start_mm for w in windows] + [windows[-1].end_mm], dtype=np.float64)
     which = np.searchsorted(edges, chain_mm, side="right") - 1
     keep = (which >= 0) & (which < len(windows))
-    offsets = (points_world_m - axis.origin_m).astype(np.float32)
     written = 0
     into = []
     for w_index in np.unique(which[keep]):
-        sel = which == w_index
-        out_dir = window_dir(bucket_root, windows[int(w_index)])
+        sel = np.flatnonzero(which == w_index)
+        window = windows[int(w_index)]
+        rows = np.empty((len(sel), 3), dtype=np.float32)
+        rows[:, 0] = chain_mm[sel] - window.start_mm
+        # float32 rounding must not carry a point onto the next window's start.
+        below_end = np.nextafter(np.float32(window.end_mm - window.start_mm), np.float32(0))
+        np.minimum(rows[:, 0], below_end, out=rows[:, 0])
+        rows[:, 1:] = plane[sel]
+        out_dir = window_dir(bucket_root, window)
         out_dir.mkdir(parents=True, exist_ok=True)
         tmp = out_dir / f".{tag}.npy.tmp"
         with tmp.open("wb") as fh:
-            np.save(fh, offsets[sel])
+            np.save(fh, rows)
         tmp.replace(out_dir / f"{tag}.npy")
-        written += int(sel.sum())
-        into.append(windows[int(w_index)].start_mm)
+        written += len(sel)
+        into.append(window.start_mm)
     return Bucketed(written, tuple(into))
 
 
-def read_window_offsets(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
-    """All registered points of one window as float32 offsets from the axis origin, (N, 3),
-    metres: pass them on with ``relative=True``."""
+def read_window_rows(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
+    """All registered points of one window in section coordinates, (N, 3) float32: millimetres
+    along the axis from the window's start, then across and up in the section plane (metres).
+    Pass them on as ``section_rows``."""
     files = sorted(window_dir(bucket_root, window).glob("*.npy"))
     if not files:
         return np.empty((0, 3), dtype=np.float32)

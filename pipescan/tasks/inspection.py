@@ -33,7 +33,7 @@ from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.scratch import (
     Bucketed,
     FrameStore,
-    read_window_offsets,
+    read_window_rows,
     write_buckets,
 )
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
@@ -248,15 +248,15 @@ def measure_sections(
     evidence: RegistrationEvidence | None = None,
 ) -> list[SectionMeasures]:
     """Measure every section of one chainage window (with what registration says of it)."""
-    points = read_window_offsets(bucket_root, window)
+    points = read_window_rows(bucket_root, window)
     sections = measure_window(
         points,
         axis,
         window,
         nominal_diameter_m=nominal_diameter_m,
         params=params,
-        relative=True,
         evidence=evidence,
+        section_rows=points,
     )
     log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
     return sections
