@@ -111,8 +111,11 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
     import laspy
 
     _check_layout(path, where)
+    # In a LAS 1.4 point format 6-10 LAZ, each field is compressed on its own: decode only
+    # x, y, z (older formats decode whole records, whatever is asked).
+    xyz = laspy.DecompressionSelection.xy_returns_channel() | laspy.DecompressionSelection.Z
     try:
-        with laspy.open(path, laz_backend=_laz_backend()) as reader:
+        with laspy.open(path, laz_backend=_laz_backend(), decompression_selection=xyz) as reader:
             declared = _declared(reader, path, where)
             compressed = reader.header.are_points_compressed
             # LAS was sized above, so its count can be trusted; a LAZ is collected chunk by
