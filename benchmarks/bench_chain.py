@@ -235,10 +235,22 @@ def _run_one(archive: Path, profile_dir: Path | None, sections_dir: Path | None)
         return result
 
 
+_PLUMBING = re.compile(
+    r"\((threading|concurrent/futures/|prefect/|anyio/|asyncio/|runpy|typer/|click/|"
+    r"<frozen|bench_chain|pipescan/cli/|contextlib|site-packages/uvicorn)"
+)
+"""Frames of the machinery around the work (threads, the task engine, the CLI): on every
+stack, they would fill the top of a cumulative list."""
+
+
+SKIP = ("process ", "thread ")
+
+
 def top_cumulative(raw: Path, n: int = 10) -> list[tuple[str, float]]:
     """The ``n`` functions with the largest share of samples on the stack (cumulative),
-    from py-spy's collapsed stacks; idle threads (waiting on a lock, a queue, a socket or
-    a sleep) are left out, so shares are of the samples where work was done."""
+    from py-spy's collapsed stacks, leaving out the machinery around the work
+    (:data:`_PLUMBING`); idle threads (waiting on a lock, a queue, a socket or a sleep) are
+    left out, so shares are of the samples where work was done."""
     idle = re.compile(r"\b(wait|_wait_for_tstate_lock|select|poll|sleep|acquire|recv|get)\b")
     totals: Counter[str] = Counter()
     busy = 0
@@ -251,7 +263,9 @@ def top_cumulative(raw: Path, n: int = 10) -> list[tuple[str, float]]:
         if idle.search(leaf):
             continue
         busy += int(count)
-        names = {f for f in frames if not f.startswith(("process ", "thread "))}
+        # A frame reads "function (file:line)": one function, whatever line it was on.
+        names = {re.sub(r":\d+\)$", ")", f) for f in frames if not f.startswith(SKIP)}
+        names = {f for f in names if not _PLUMBING.search(f)}
         for name in names:
             totals[name] += int(count)
     return [(name, count / max(busy, 1)) for name, count in totals.most_common(n)]
@@ -343,14 +357,20 @@ def main() -> None:
     p.add_argument("--lengths", type=float, nargs="+", default=[10.0, 30.0])
     p.add_argument("--no-cloud", action="store_true", help="skip the registered clouds")
     r = sub.add_parser("run", help="time pipescan inspect on archives")
-    r.add_argument("archives", type=Path, nargs="+")
+    r.add_argument("archives", type=Path, nargs="*")
     r.add_argument("--profile", type=Path, default=None, help="record with py-spy into DIR")
+    r.add_argument(
+        "--top", type=Path, default=None, help="only print the top 10 of a recorded profile"
+    )
     r.add_argument(
         "--sections", type=Path, default=None, help="export each run's sections as DIR/<scan>.csv"
     )
     args = parser.parse_args()
     if args.command == "prepare":
         prepare(args.out, args.lengths, not args.no_cloud)
+    elif args.top is not None:
+        for name, share in top_cumulative(args.top):
+            print(f"{100 * share:5.1f} %  {name}")
     else:
         run(args.archives, args.profile, args.sections)
 
