@@ -4,6 +4,7 @@
     python benchmarks/bench_chain.py run /tmp/chain-scans/long10-laz /tmp/chain-scans/long30-laz
     python benchmarks/bench_chain.py run --profile /tmp/chain-profile /tmp/chain-scans/long30-laz
     python benchmarks/bench_chain.py run --sections /tmp/chain-sections /tmp/chain-scans/long10-npy
+    python benchmarks/bench_chain.py run --baseline /tmp/pipescan-main /tmp/chain-scans/long30-laz
 
 ``prepare`` simulates the ``long`` scenario (a forward-looking sensor, 10 frames a second, about
 25k points a frame in a 0.5 m pipe, 0.15 m/s) over each length once as ``.npy`` frames, then
@@ -22,6 +23,11 @@ read from pipescan's own log lines, so what is timed is the command a user runs:
 - ``axis``: the pipe axis fitted;
 - ``first window``: the first chainage window measured;
 - ``sections``: every window measured, graded and stored.
+
+With ``--baseline DIR`` (another pipescan checkout, e.g. ``git archive main | tar -x -C DIR``),
+each scan runs under that version and then under this one, back to back: on a shared machine
+the two rows of a pair are what can be compared. With ``--sections DIR``, each run's sections
+are exported (``DIR/<scan>.csv``, ``-baseline.csv``) to compare the figures.
 
 With ``--profile DIR``, each run is recorded by py-spy (all processes, 100 samples a second)
 and the top 10 functions by cumulative time are printed (``DIR/<archive>.txt`` keeps the raw
@@ -198,9 +204,13 @@ def _child(archive: str, out_json: str) -> None:
     Path(out_json).write_text(json.dumps({"marks": marks, "peak": peak}), encoding="utf-8")
 
 
-def _run_one(archive: Path, profile_dir: Path | None, sections_dir: Path | None) -> dict:
+def _run_one(
+    archive: Path, profile_dir: Path | None, sections_dir: Path | None, source: Path | None = None
+) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-chain-") as tmp:
         env = dict(os.environ)
+        if source is not None:  # another pipescan checkout, ahead of the installed one
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(source), env.get("PYTHONPATH")]))
         env.update(
             PREFECT_SERVER_ANALYTICS_ENABLED="false",
             PIPESCAN_DATABASE_URL=f"sqlite:///{tmp}/bench.db",
@@ -227,7 +237,13 @@ def _run_one(archive: Path, profile_dir: Path | None, sections_dir: Path | None)
         if sections_dir is not None:  # the figures, to compare runs of two versions
             sections_dir.mkdir(parents=True, exist_ok=True)
             subprocess.run(
-                [*PIPESCAN, "export", "sections", "-o", str(sections_dir / f"{archive.name}.csv")],
+                [
+                    *PIPESCAN,
+                    "export",
+                    "sections",
+                    "-o",
+                    str(sections_dir / f"{archive.name}{'-baseline' if source else ''}.csv"),
+                ],
                 env=env,
                 check=True,
             )
@@ -275,11 +291,19 @@ def _fmt_mb(b: float) -> str:
     return f"{b / 2**20:,.0f}"
 
 
-def run(archives: list[Path], profile_dir: Path | None, sections_dir: Path | None) -> None:
+def run(
+    archives: list[Path],
+    profile_dir: Path | None,
+    sections_dir: Path | None,
+    baseline: Path | None = None,
+) -> None:
     rows = []
-    for archive in archives:
-        print(f"running {archive} ...", flush=True)
-        result = _run_one(archive, profile_dir, sections_dir)
+    # With a baseline checkout, each scan runs under it and then under this pipescan, one
+    # after the other: on a shared machine, compare the two rows of a pair.
+    runs = [(a, src) for a in archives for src in ([baseline, None] if baseline else [None])]
+    for archive, source in runs:
+        print(f"running {archive}{f' with {source}' if source else ''} ...", flush=True)
+        result = _run_one(archive, profile_dir, sections_dir, source)
         recording = _recording_s(archive)
         marks = result["marks"]
         print(f"\n{archive.name}: {result['summary']['frame_count']} frames, "
@@ -301,7 +325,7 @@ def run(archives: list[Path], profile_dir: Path | None, sections_dir: Path | Non
         reg = marks.get("registered", marks["axis"])[0] - start_t if frames else float("nan")
         peak = result["peak"]
         row = {
-            "scan": archive.name,
+            "scan": archive.name + (" (baseline)" if source else ""),
             "frames": frames,
             "points": result["summary"]["point_count"],
             "recorded_s": recording,
@@ -358,6 +382,12 @@ def main() -> None:
     p.add_argument("--no-cloud", action="store_true", help="skip the registered clouds")
     r = sub.add_parser("run", help="time pipescan inspect on archives")
     r.add_argument("archives", type=Path, nargs="*")
+    r.add_argument(
+        "--baseline",
+        type=Path,
+        default=None,
+        help="a checkout of another pipescan version: each scan runs under it, then this one",
+    )
     r.add_argument("--profile", type=Path, default=None, help="record with py-spy into DIR")
     r.add_argument(
         "--top", type=Path, default=None, help="only print the top 10 of a recorded profile"
@@ -372,7 +402,7 @@ def main() -> None:
         for name, share in top_cumulative(args.top):
             print(f"{100 * share:5.1f} %  {name}")
     else:
-        run(args.archives, args.profile, args.sections)
+        run(args.archives, args.profile, args.sections, args.baseline)
 
 
 if __name__ == "__main__":
