@@ -287,6 +287,53 @@ def top_cumulative(raw: Path, n: int = 10) -> list[tuple[str, float]]:
     return [(name, count / max(busy, 1)) for name, count in totals.most_common(n)]
 
 
+def truth_errors(sections_csv: Path, archive: Path) -> str:
+    """The exported sections against the simulator's ground truth: how many are ``ok``, and
+    the error of their blockage, deposit height and deformation (percentage points: mean,
+    95th percentile, max), and how often the blockage is within its stated 95 % uncertainty."""
+    import csv
+
+    import numpy as np
+
+    from pipescan.simulator.archive import read_ground_truth
+
+    _, truth = read_ground_truth(archive)
+    true_by_start = {round(t.chainage_start_m, 1): t for t in truth}
+    with sections_csv.open(encoding="utf-8") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+    rows = [r for r in rows if round(float(r["chainage_start_m"]), 1) in true_by_start]
+    parts = [f"{len(rows)} ok sections"]
+    for column in ("blockage_ratio", "deposit_height_ratio", "deformation_ratio"):
+        err = np.array(
+            [
+                100
+                * abs(
+                    float(r[column])
+                    - getattr(true_by_start[round(float(r["chainage_start_m"]), 1)], column)
+                )
+                for r in rows
+                if r[column] != ""  # a figure a section does not have (e.g. no deposit)
+            ]
+        )
+        name = column.removesuffix("_ratio").replace("_", " ")
+        parts.append(
+            f"{name} error mean {err.mean():.2f} / p95 {np.percentile(err, 95):.2f} / "
+            f"max {err.max():.2f} pp"
+        )
+    within = np.mean(
+        [
+            abs(
+                float(r["blockage_ratio"])
+                - true_by_start[round(float(r["chainage_start_m"]), 1)].blockage_ratio
+            )
+            <= float(r["blockage_uncertainty_ratio"])
+            for r in rows
+        ]
+    )
+    parts.append(f"blockage within its stated uncertainty: {100 * within:.0f} %")
+    return "; ".join(parts)
+
+
 def _fmt_mb(b: float) -> str:
     return f"{b / 2**20:,.0f}"
 
@@ -346,6 +393,9 @@ def run(
               f"with start-up {row['rt_total']:.1f}x")  # fmt: skip
         print(f"  peak RSS: process tree {_fmt_mb(peak['tree_rss'])} MB, "
               f"pipescan process {_fmt_mb(peak['main_rss'])} MB")  # fmt: skip
+        if sections_dir is not None and (archive / "ground_truth").is_dir():
+            csv_name = f"{archive.name}{'-baseline' if source else ''}.csv"
+            print("  against ground truth:", truth_errors(sections_dir / csv_name, archive))
         if result["raw_profile"]:
             print("  top 10 by cumulative share of busy samples:")
             for name, share in top_cumulative(Path(result["raw_profile"])):
