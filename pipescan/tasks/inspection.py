@@ -28,7 +28,8 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.core.start import cloud_start
-from pipescan.storage.input.archive import open_archive
+from pipescan.storage.input.archive import ScanArchive
+from pipescan.storage.input.bags import BagIndex
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.scratch import (
     Bucketed,
@@ -53,6 +54,21 @@ class StagedArchive:
     frame_count: int
     cloud_member: str | None
     limits: InputLimits = DEFAULT_LIMITS
+    bag: BagIndex | None = None
+    """For an archive holding a ROS bag, what :func:`stage_archive` found in it."""
+
+    def reopen(self) -> ScanArchive:
+        """The staged archive, as staging validated it. Its layout is not inspected again:
+        that parses ``inspection.toml`` and resolves every frame's path, which for 2,000
+        frames cost each chunk task as much as registering 20 of its frames."""
+        return ScanArchive(
+            name=self.name,
+            root=self.root,
+            meta=self.meta,
+            cloud_member=self.cloud_member,
+            limits=self.limits,
+            bag=self.bag,
+        )
 
 
 @dataclass(frozen=True)
@@ -93,7 +109,7 @@ def register_chunk(
     """
     meta = staged.meta
     with contextlib.ExitStack() as stack:
-        arc = stack.enter_context(open_archive(staged.root, limits=staged.limits, name=staged.name))
+        arc = stack.enter_context(staged.reopen())
         keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
 
         def frames():
@@ -155,7 +171,7 @@ def fit_pipe_axis(
     meta = staged.meta
     diameter = meta.nominal_diameter_m
     up = np.array([0.0, 0.0, 1.0])
-    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
+    with staged.reopen() as arc:
         if trajectory is None:
             points = arc.read_cloud()
             if frame_store is not None:  # decoded once: the sections read it from here
@@ -228,7 +244,7 @@ def bucket_points(
         stored = frame_store.iter_frames(first)
         pts = list(iter_registered_points(stored, trajectory))
     else:
-        with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
+        with staged.reopen() as arc:
             if trajectory is None:
                 return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
             frames = range(first, last + 1)
