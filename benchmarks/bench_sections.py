@@ -222,7 +222,7 @@ def throughput() -> None:
 
 def _memory_child(travel_m: float) -> dict:
     """Run the section stage the way the flow does (bucket per chunk, then window by window)."""
-    from pipescan.storage.scratch import read_window_offsets, write_buckets
+    from pipescan.storage.scratch import read_window_rows, write_buckets
 
     scan = simulate_scan(get_scenario("long", travel_m=travel_m), seed=0)
     T0 = np.linalg.inv(scan.T_world_sensor[0])
@@ -253,8 +253,10 @@ def _memory_child(travel_m: float) -> dict:
             write_buckets(np.concatenate(chunk), axis, windows, Path(tmp), f"chunk_{first:07d}")
         n_sections = 0
         for w in windows:
-            pts = read_window_offsets(Path(tmp), w)
-            n_sections += len(measure_window(pts, axis, w, nominal_diameter_m=0.5, relative=True))
+            rows = read_window_rows(Path(tmp), w)
+            n_sections += len(
+                measure_window(rows, axis, w, nominal_diameter_m=0.5, section_rows=rows)
+            )
     return {
         "travel_m": travel_m,
         "frames": len(scan.times_s),

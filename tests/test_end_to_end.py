@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import io
 import json
+from collections import Counter
 
 import pytest
 from prefect.testing.utilities import prefect_test_harness
@@ -13,10 +14,13 @@ from pypdf import PdfReader
 from typer.testing import CliRunner
 
 from pipescan.cli import app
+from pipescan.core.registration import plan_chunks
 from pipescan.flows.inspect import InspectionParams, inspect_archive
 from pipescan.settings import use_settings
 from pipescan.simulator.archive import read_ground_truth, write_simulated_archive
 from pipescan.simulator.scan import get_scenario, simulate_scan
+from pipescan.storage.input import archive as archive_module
+from pipescan.storage.input.metadata import read_inspection_toml
 
 pytestmark = pytest.mark.e2e
 
@@ -34,11 +38,25 @@ def archive(tmp_path_factory):
     return write_simulated_archive(scan, tmp_path_factory.mktemp("scan") / "arc")
 
 
+_decoded: Counter[str] = Counter()
+"""How many times the inspection decoded each frame file."""
+
+
 @pytest.fixture(scope="module")
 def inspected(prefect, archive, tmp_path_factory):
     work = tmp_path_factory.mktemp("run")
     db_url = f"sqlite:///{work / 'pipescan.db'}"
-    with use_settings(database_url=db_url):  # the database is a setting, not a flow parameter
+    read_points = archive_module.read_points
+
+    def counted(path, **kwargs):
+        _decoded[kwargs.get("member") or str(path)] += 1
+        return read_points(path, **kwargs)
+
+    with (
+        use_settings(database_url=db_url),  # the database is a setting, not a flow parameter
+        pytest.MonkeyPatch.context() as mp,
+    ):
+        mp.setattr(archive_module, "read_points", counted)
         summary = inspect_archive(
             archive=str(archive),
             report_path=str(work / "report.pdf"),
@@ -46,6 +64,19 @@ def inspected(prefect, archive, tmp_path_factory):
             work_dir=str(work / "scratch"),
         )
     return summary, db_url, work
+
+
+def test_each_frame_is_decoded_once(inspected, archive):
+    """Registration decodes each frame once (the frame two chunks share: once per chunk);
+    the axis and the sections read what it kept, never the archive."""
+    summary, _, _ = inspected
+    meta_files = [
+        f.file for f in read_inspection_toml(archive / "inspection.toml", archive="arc").frames
+    ]
+    shared = {meta_files[b] for _, b in plan_chunks(summary.frame_count, 50)[:-1]}
+    assert len(_decoded) == summary.frame_count > 100
+    assert {f for f, n in _decoded.items() if n != 1} == shared
+    assert {_decoded[f] for f in shared} == {2}
 
 
 def _exported_sections(db_url: str, inspection_id: int) -> list[dict[str, str]]:

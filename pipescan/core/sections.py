@@ -7,7 +7,7 @@ by integer millimetres so that the same section of two inspections has the same 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +72,44 @@ def plan_windows(
     return windows
 
 
+def windows_reached(
+    spans_m: Sequence[tuple[float, float]], windows: Sequence[ChainageWindow], reach_m: float
+) -> list[list[int]]:
+    """For each window, the spans whose points can fall in it.
+
+    Parameters
+    ----------
+    spans_m : sequence of (chainage_min_m, chainage_max_m)
+        Where the sensor stood while it recorded each span (a chunk of frames).
+    windows : sequence of ChainageWindow
+    reach_m : float
+        How far from the sensor, along the axis, a span's points can lie (the range they were
+        cropped to, with a margin for a bent axis).
+
+    Returns
+    -------
+    list of list of int
+        Per window, the indices of the spans within ``reach_m`` of it, ascending: once those
+        are placed, the window can be measured.
+
+    Examples
+    --------
+    >>> ws = plan_windows(0.0, 6.0, window_m=2.0)
+    >>> windows_reached([(0.0, 1.0), (1.0, 2.0), (5.5, 6.0)], ws, reach_m=1.0)
+    [[0, 1], [0, 1], [2]]
+    """
+    reached = []
+    for w in windows:
+        reached.append(
+            [
+                k
+                for k, (lo, hi) in enumerate(spans_m)
+                if lo - reach_m < w.end_m and hi + reach_m >= w.start_m
+            ]
+        )
+    return reached
+
+
 def iter_section_points(
     points_m: np.ndarray,
     axis: PipeAxis,
@@ -79,6 +117,7 @@ def iter_section_points(
     *,
     max_points_per_section: int | None = None,
     relative: bool = False,
+    section_rows: np.ndarray | None = None,
 ) -> Iterator[tuple[int, np.ndarray, int]]:
     """Yield ``(section_start_mm, points_local, point_count)`` for every section of a window.
 
@@ -92,8 +131,12 @@ def iter_section_points(
         A denser section is thinned to about this many points, at random with a fixed seed,
         before anything else is done with them (the per-angle medians do not need more).
     relative : bool
-        ``points_m`` are offsets from ``axis.origin_m`` (as the run's bucket files store them,
-        in float32), not world coordinates.
+        ``points_m`` are offsets from ``axis.origin_m`` (float32 is kept), not world
+        coordinates.
+    section_rows : (N, 3) float, optional
+        The points already in section coordinates, as the run's bucket files store them:
+        millimetres along the axis from the window's start, then across and up in the
+        section plane (metres). ``points_m`` and ``axis`` are then not used to place them.
 
     Yields
     ------
@@ -104,8 +147,12 @@ def iter_section_points(
     point_count : int
         Points in the section before any thinning.
     """
-    chain_m, plane = axis.section_coordinates(points_m, relative=relative)
-    chain_mm = chain_m * 1000.0
+    if section_rows is not None:
+        chain_mm = window.start_mm + section_rows[:, 0].astype(np.float64)
+        plane = section_rows[:, 1:]
+    else:
+        chain_m, plane = axis.section_coordinates(points_m, relative=relative)
+        chain_mm = chain_m * 1000.0
     inside = np.flatnonzero((chain_mm >= window.start_mm) & (chain_mm < window.end_mm))
     n_sections = len(window.section_starts_mm())
     index = ((chain_mm[inside] - window.start_mm) // window.step_mm).astype(np.int64)
@@ -135,6 +182,7 @@ def measure_window(
     params: MeasureParams = MeasureParams(),
     relative: bool = False,
     evidence: RegistrationEvidence | None = None,
+    section_rows: np.ndarray | None = None,
 ) -> list[SectionMeasures]:
     """Measure every section of a chainage window.
 
@@ -151,6 +199,9 @@ def measure_window(
     evidence : RegistrationEvidence, optional
         What registration says about each section: its chainage uncertainty, and whether its
         registration is weak (then its status is ``weak_registration``).
+    section_rows : (N, 3) float, optional
+        The window's points already in section coordinates (see ``iter_section_points``);
+        ``points_m`` is then not used.
 
     Returns
     -------
@@ -159,7 +210,12 @@ def measure_window(
     """
     sections = []
     for start_mm, local, count in iter_section_points(
-        points_m, axis, window, max_points_per_section=params.max_points, relative=relative
+        points_m,
+        axis,
+        window,
+        max_points_per_section=params.max_points,
+        relative=relative,
+        section_rows=section_rows,
     ):
         start_m, end_m = start_mm / 1000.0, (start_mm + window.step_mm) / 1000.0
         uncertainty, weak = evidence.for_section(start_m, end_m) if evidence else (None, False)

@@ -11,6 +11,7 @@ import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
+import numpy as np
 from prefect import flow
 
 import pipescan
@@ -24,14 +25,14 @@ from pipescan.core.registration import (
     registration_summary,
 )
 from pipescan.core.sanitize import strip_credentials
-from pipescan.core.sections import plan_windows
+from pipescan.core.sections import plan_windows, windows_reached
 from pipescan.core.summary import peak_blockage
 from pipescan.core.water import explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
-from pipescan.storage.scratch import remove_workspace
+from pipescan.storage.scratch import FrameStore, remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
     fit_pipe_axis,
@@ -183,12 +184,26 @@ def inspect_archive(
 
         trajectory = None
         chunks = plan_chunks(staged.frame_count, params.chunk_frames)
+        # Each frame is decoded once: registration keeps what the sections need here.
+        frame_store = FrameStore(run_dir / "frames")
         if chunks:
             log.info(f"registering {staged.frame_count} frames in {len(chunks)} chunks")
-            futures = [register_chunk.submit(staged, a, b, params.registration) for a, b in chunks]
+            futures = [
+                register_chunk.submit(
+                    staged, a, b, params.registration, frame_store, params.max_section_range_m
+                )
+                for a, b in chunks
+            ]
             trajectory = chain_trajectories([f.result() for f in futures])
+            log.info(f"registered {staged.frame_count} frames")
 
-        fit = fit_pipe_axis(staged, trajectory, max_range_m=params.max_section_range_m)
+        fit = fit_pipe_axis(
+            staged,
+            trajectory,
+            max_range_m=params.max_section_range_m,
+            frame_store=frame_store,
+            chunks=chunks,
+        )
         windows = plan_windows(
             max(fit.chainage_min_m, meta.chainage_offset_m)
             if meta.direction == "downstream"
@@ -212,28 +227,64 @@ def inspect_archive(
             else None
         )
         bucket_root = run_dir / "buckets"
-        spans = chunks or [(0, 0)]
-        counts = [
-            bucket_points.submit(
-                staged,
-                trajectory,
-                a,
-                b,
-                fit.axis,
-                windows,
-                bucket_root,
-                params.max_section_range_m,
-            )
-            for a, b in spans
+        # Frames are placed by chunk; a registered cloud by slices of its rows.
+        rows = frame_store.cloud_rows() if trajectory is None else 0
+        spans = chunks or [
+            (i, min(i + CLOUD_SLICE_POINTS, rows)) for i in range(0, rows, CLOUD_SLICE_POINTS)
         ]
-        point_count = sum(c.result() for c in counts)
+        # A window is measured as soon as the chunks whose points can reach it are placed:
+        # chunks are submitted in order along the pipe, each followed by the windows it
+        # completes, so that placing and measuring overlap on the pool's workers.
+        reached = windows_reached(
+            _chunk_chainages(trajectory, fit.axis, spans),
+            windows,
+            reach_m=params.max_section_range_m + BENT_AXIS_MARGIN_M,
+        )
+        last_needed = [max(r, default=-1) for r in reached]
+        bucket_futures = []
+        window_futures: list = [None] * len(windows)
 
-        window_futures = [
-            measure_sections.submit(
-                bucket_root, w, fit.axis, meta.nominal_diameter_m, params.measure, evidence
+        def submit_window(w: int, after: list) -> None:
+            window_futures[w] = measure_sections.submit(
+                bucket_root,
+                windows[w],
+                fit.axis,
+                meta.nominal_diameter_m,
+                params.measure,
+                evidence,
+                wait_for=after,
             )
-            for w in windows
-        ]
+
+        for k, (a, b) in enumerate(spans):
+            bucket_futures.append(
+                bucket_points.submit(
+                    staged,
+                    trajectory,
+                    a,
+                    b,
+                    fit.axis,
+                    windows,
+                    bucket_root,
+                    params.max_section_range_m,
+                    frame_store,
+                )
+            )
+            for w in range(len(windows)):
+                if window_futures[w] is None and last_needed[w] <= k:
+                    submit_window(w, [bucket_futures[j] for j in reached[w]])
+        for w in range(len(windows)):  # reached by no chunk (nothing to place)
+            if window_futures[w] is None:
+                submit_window(w, bucket_futures)
+        placed = [f.result() for f in bucket_futures]
+        point_count = sum(p.points for p in placed)
+        # A bent axis can carry a chunk's points further than the margin: measure again any
+        # window that such a chunk wrote into after the window was measured.
+        for k, p in enumerate(placed):
+            for w, window in enumerate(windows):
+                if window.start_mm in p.windows_mm and k not in reached[w]:
+                    log.info(f"window at {window.start_m:.1f} m measured again: a chunk reached it")
+                    reached[w].append(k)
+                    submit_window(w, bucket_futures)
         # Water read where a deposit's or obstacle's shadow explains the unseen invert is
         # taken back (it takes sections on both sides of a window's edge).
         sections = explain_invert_shadows([s for f in window_futures for s in f.result()])
@@ -307,6 +358,26 @@ def _flags(params: InspectionParams) -> dict:
         "blockage_threshold_ratio": params.blockage_threshold_ratio,
         "flag_grade": params.flag_grade,
     }
+
+
+CLOUD_SLICE_POINTS = 4_000_000
+"""Rows of a registered cloud placed by one task (about 100 MB as float64)."""
+
+BENT_AXIS_MARGIN_M = 0.5
+"""Added to the section range when planning which chunks a window waits for: along a bent axis
+a point's chainage can differ from its sensor's by a little more than its range."""
+
+
+def _chunk_chainages(trajectory, axis, spans) -> list[tuple[float, float]]:
+    """The chainage range the sensor covered in each chunk (every chunk: a cloud's only one)."""
+    if trajectory is None:
+        return [(-np.inf, np.inf)] * len(spans)
+    chain = axis.chainage(trajectory.positions_m())
+    row = {i: k for k, i in enumerate(trajectory.frame_indices)}
+    return [
+        (float(chain[row[a] : row[b] + 1].min()), float(chain[row[a] : row[b] + 1].max()))
+        for a, b in spans
+    ]
 
 
 def _summarise(

@@ -1,12 +1,22 @@
-"""Scratch space of one inspection run: registered points bucketed by chainage window.
+"""Scratch space of one inspection run: the frames as read once, and registered points
+bucketed by chainage window.
 
-Registration streams frames once and writes each frame chunk's registered points into one file
-per chainage window (``win_<start_mm>/chunk_<first>.npy``). A window task then reads only its own
+Registration reads (decodes) each frame once. As it streams a chunk of frames, it keeps what
+the sections need, each frame's points within the section range as float32 in the sensor frame,
+in one file per chunk (``frames/chunk_<first>.f32``, :class:`FrameStore`). Once the poses and
+the axis are known, each chunk's stored frames are placed and written into one file per
+chainage window (``win_<start_mm>/chunk_<first>.npy``). A window task then reads only its own
 files, so peak memory is set by the window, not by the length of the pipe, and chunks never
 append to a shared file (they can run in parallel, on other machines).
 
-Points are stored as float32 offsets from the axis origin: float32 keeps 0.1 mm at 1 km from the
-origin, and offsets stay small even for georeferenced clouds with large coordinates.
+A frame in float32 keeps a sensor-frame coordinate to better than 1 µm within the 5 m section
+range; it is half the bytes of float64 and, unlike a compressed archive, costs no decoding to
+read again.
+
+Bucketed points are stored in section coordinates, float32: millimetres along the axis from
+the window's start (0.1 µm resolution over a 2 m window), then across and up in the section
+plane. A point's chainage and plane position are computed once, when it is bucketed; a window
+task reads them as they are.
 """
 
 from __future__ import annotations
@@ -17,7 +27,7 @@ import os
 import shutil
 import socket
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -147,8 +157,125 @@ def sweep_stale_runs(work_dir: Path) -> Sweep:
     return Sweep(tuple(removed), tuple(orphans))
 
 
+_FRAME_INDEX = ".index"
+
+
+class FrameStore:
+    """The frames of one run as read once: per chunk, one file of float32 ``(x, y, z)`` rows
+    (``chunk_<first>.f32``) and its index (``.f32.index``, int64: each frame's archive index,
+    then each frame's first row).
+
+    Write a chunk with :meth:`writer`; read it back with :meth:`iter_frames`. A chunk's file
+    appears under its final name only once all its frames are written.
+    """
+
+    def __init__(self, root: Path) -> None:
+        self.root = Path(root)
+
+    def __repr__(self) -> str:
+        return f"FrameStore({str(self.root)!r})"
+
+    def chunk_path(self, first: int) -> Path:
+        return self.root / f"chunk_{first:07d}.f32"
+
+    def writer(self, first: int) -> FrameWriter:
+        """A writer for the chunk that starts at frame ``first``."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        return FrameWriter(self.chunk_path(first))
+
+    def has_chunk(self, first: int) -> bool:
+        path = self.chunk_path(first)
+        return path.is_file() and path.with_name(path.name + _FRAME_INDEX).is_file()
+
+    def iter_frames(
+        self, first: int, indices: Sequence[int] | None = None
+    ) -> Iterator[tuple[int, np.ndarray]]:
+        """Yield ``(frame_index, points)`` for the frames of the chunk that starts at ``first``
+        (all, or those in ``indices``), in order; ``points`` is (N, 3) float32, sensor frame.
+        Frames are read one at a time."""
+        path = self.chunk_path(first)
+        table = np.fromfile(path.with_name(path.name + _FRAME_INDEX), dtype=np.int64)
+        frames, starts = table.reshape(2, -1)
+        wanted = None if indices is None else set(int(i) for i in indices)
+        with path.open("rb") as fh:
+            for k, i in enumerate(frames[:-1]):
+                if wanted is not None and int(i) not in wanted:
+                    continue
+                rows = int(starts[k + 1] - starts[k])
+                fh.seek(int(starts[k]) * 12)
+                pts = np.fromfile(fh, dtype=np.float32, count=3 * rows).reshape(rows, 3)
+                yield int(i), pts
+
+    # A registered cloud is kept whole, as float64 rows (it may be georeferenced: float32
+    # would lose millimetres there), and placed in slices of rows.
+    def _cloud_path(self) -> Path:
+        return self.root / "cloud.f64"
+
+    def save_cloud(self, points_m: np.ndarray) -> None:
+        """Keep a registered cloud, (N, 3) metres, for :meth:`read_cloud_rows`."""
+        self.root.mkdir(parents=True, exist_ok=True)
+        tmp = self.root / ".cloud.f64.tmp"
+        np.ascontiguousarray(points_m, dtype=np.float64).tofile(tmp)
+        tmp.replace(self._cloud_path())
+
+    def cloud_rows(self) -> int:
+        """Points of the kept cloud (0 when there is none)."""
+        path = self._cloud_path()
+        return path.stat().st_size // 24 if path.is_file() else 0
+
+    def read_cloud_rows(self, first: int, stop: int) -> np.ndarray:
+        """Rows ``first`` to ``stop`` (exclusive) of the kept cloud, (K, 3) float64."""
+        with self._cloud_path().open("rb") as fh:
+            fh.seek(first * 24)
+            data = np.fromfile(fh, dtype=np.float64, count=3 * max(0, stop - first))
+        return data.reshape(-1, 3)
+
+
+class FrameWriter:
+    """Appends one chunk's frames to its file (see :class:`FrameStore`); a context manager.
+    The file gets its final name on a clean exit only."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = Path(path)
+        self._tmp = self.path.with_name(f".{self.path.name}.tmp")
+        self._fh = self._tmp.open("wb")
+        self._frames: list[int] = []
+        self._starts: list[int] = [0]
+
+    def add(self, frame_index: int, points_m: np.ndarray) -> None:
+        """Append one frame's (N, 3) points (stored as float32)."""
+        pts = np.ascontiguousarray(points_m, dtype=np.float32).reshape(-1, 3)
+        pts.tofile(self._fh)
+        self._frames.append(int(frame_index))
+        self._starts.append(self._starts[-1] + len(pts))
+
+    def __enter__(self) -> FrameWriter:
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> None:
+        self._fh.close()
+        if exc_type is not None:
+            self._tmp.unlink(missing_ok=True)
+            return
+        # Row 0: archive frame indices (with a -1 after the last); row 1: each frame's first row.
+        table = np.array([[*self._frames, -1], self._starts], dtype=np.int64)
+        index_tmp = self.path.with_name(f".{self.path.name}{_FRAME_INDEX}.tmp")
+        table.tofile(index_tmp)
+        self._tmp.replace(self.path)
+        index_tmp.replace(self.path.with_name(self.path.name + _FRAME_INDEX))
+
+
 def window_dir(bucket_root: Path, window: ChainageWindow) -> Path:
     return Path(bucket_root) / f"win_{window.start_mm:09d}"
+
+
+@dataclass(frozen=True)
+class Bucketed:
+    """What :func:`write_buckets` wrote: how many points, into which windows (their
+    ``start_mm``)."""
+
+    points: int = 0
+    windows_mm: tuple[int, ...] = ()
 
 
 def write_buckets(
@@ -157,8 +284,9 @@ def write_buckets(
     windows: Sequence[ChainageWindow],
     bucket_root: Path,
     tag: str,
-) -> int:
-    """Split registered points by chainage window and write one file per window.
+) -> Bucketed:
+    """Split registered points by chainage window and write one file per window, in section
+    coordinates (see :func:`read_window_rows`).
 
     Parameters
     ----------
@@ -174,32 +302,44 @@ def write_buckets(
 
     Returns
     -------
-    int
-        Points written.
+    Bucketed
+        Points written, and the windows they went to.
     """
     if len(points_world_m) == 0 or not windows:
-        return 0
-    chain_mm = axis.chainage(points_world_m) * 1000.0
+        return Bucketed()
+    # The one place a point's chainage and section-plane position are computed (along a bent
+    # axis, the costly part: a nearest-node search per point).
+    chain_m, plane = axis.section_coordinates(points_world_m)
+    chain_mm = chain_m * 1000.0
     edges = np.array([w.start_mm for w in windows] + [windows[-1].end_mm], dtype=np.float64)
     which = np.searchsorted(edges, chain_mm, side="right") - 1
     keep = (which >= 0) & (which < len(windows))
-    offsets = (points_world_m - axis.origin_m).astype(np.float32)
     written = 0
+    into = []
     for w_index in np.unique(which[keep]):
-        sel = which == w_index
-        out_dir = window_dir(bucket_root, windows[int(w_index)])
+        sel = np.flatnonzero(which == w_index)
+        window = windows[int(w_index)]
+        rows = np.empty((len(sel), 3), dtype=np.float32)
+        rows[:, 0] = chain_mm[sel] - window.start_mm
+        # float32 rounding must not carry a point onto the next window's start.
+        below_end = np.nextafter(np.float32(window.end_mm - window.start_mm), np.float32(0))
+        np.minimum(rows[:, 0], below_end, out=rows[:, 0])
+        rows[:, 1:] = plane[sel]
+        out_dir = window_dir(bucket_root, window)
         out_dir.mkdir(parents=True, exist_ok=True)
         tmp = out_dir / f".{tag}.npy.tmp"
         with tmp.open("wb") as fh:
-            np.save(fh, offsets[sel])
+            np.save(fh, rows)
         tmp.replace(out_dir / f"{tag}.npy")
-        written += int(sel.sum())
-    return written
+        written += len(sel)
+        into.append(window.start_mm)
+    return Bucketed(written, tuple(into))
 
 
-def read_window_offsets(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
-    """All registered points of one window as float32 offsets from the axis origin, (N, 3),
-    metres: pass them on with ``relative=True``."""
+def read_window_rows(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
+    """All registered points of one window in section coordinates, (N, 3) float32: millimetres
+    along the axis from the window's start, then across and up in the section plane (metres).
+    Pass them on as ``section_rows``."""
     files = sorted(window_dir(bucket_root, window).glob("*.npy"))
     if not files:
         return np.empty((0, 3), dtype=np.float32)

@@ -6,7 +6,9 @@ dataclasses). Only I/O is retried; geometry errors are deterministic and fail at
 
 from __future__ import annotations
 
+import contextlib
 import logging
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,9 +29,15 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.core.start import cloud_start
-from pipescan.storage.input.archive import open_archive
+from pipescan.storage.input.archive import ScanArchive
+from pipescan.storage.input.bags import BagIndex
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
-from pipescan.storage.scratch import read_window_offsets, write_buckets
+from pipescan.storage.scratch import (
+    Bucketed,
+    FrameStore,
+    read_window_rows,
+    write_buckets,
+)
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 log = logging.getLogger("pipescan")
@@ -47,6 +55,21 @@ class StagedArchive:
     frame_count: int
     cloud_member: str | None
     limits: InputLimits = DEFAULT_LIMITS
+    bag: BagIndex | None = None
+    """For an archive holding a ROS bag, what :func:`stage_archive` found in it."""
+
+    def reopen(self) -> ScanArchive:
+        """The staged archive, as staging validated it. Its layout is not inspected again:
+        that parses ``inspection.toml`` and resolves every frame's path, which for 2,000
+        frames cost each chunk task as much as registering 20 of its frames."""
+        return ScanArchive(
+            name=self.name,
+            root=self.root,
+            meta=self.meta,
+            cloud_member=self.cloud_member,
+            limits=self.limits,
+            bag=self.bag,
+        )
 
 
 @dataclass(frozen=True)
@@ -64,22 +87,40 @@ def _odometer(meta: InspectionMeta, i: int) -> float | None:
     return meta.frames[i].odometer_m if meta.frames else None
 
 
+def _crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """The points within ``max_range_m`` of the sensor (the sections' range)."""
+    return points_m[np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2]
+
+
 @task(name="register-chunk")
 def register_chunk(
-    staged: StagedArchive, first: int, last: int, params: RegistrationParams
+    staged: StagedArchive,
+    first: int,
+    last: int,
+    params: RegistrationParams,
+    frame_store: FrameStore | None = None,
+    keep_range_m: float = np.inf,
 ) -> Trajectory:
     """Register frames ``first..last`` (inclusive) relative to frame ``first``.
 
     Frames stream from the archive one at a time; only the local map stays in memory. The
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
+    With ``frame_store``, each frame's points within ``keep_range_m`` are also written there
+    as they are read, so that the sections never decode the archive again.
     """
     meta = staged.meta
-    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
-        frames = (
-            (i, pts, _odometer(meta, i), meta.frames[i].gravity if meta.frames else None)
-            for i, pts in arc.iter_frames(range(first, last + 1))
-        )
-        trajectory = register_frames(frames, params)
+    with contextlib.ExitStack() as stack:
+        arc = stack.enter_context(staged.reopen())
+        keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
+
+        def frames():
+            for i, pts in arc.iter_frames(range(first, last + 1)):
+                if keep is not None:
+                    keep.add(i, _crop(pts, keep_range_m))
+                gravity = meta.frames[i].gravity if meta.frames else None
+                yield i, pts, _odometer(meta, i), gravity
+
+        trajectory = register_frames(frames(), params)
     held = sum(q.degenerate for q in trajectory.quality)
     log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
     if held and trajectory.along_axis_prior != "odometer":
@@ -94,9 +135,21 @@ def register_chunk(
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
     def cropped():
         for i, pts in arc.iter_frames(indices):
-            yield i, pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+            yield i, _crop(pts, max_range_m)
 
     yield from iter_registered_points(cropped(), trajectory)
+
+
+def _stored_frames(
+    frame_store: FrameStore, chunks: Sequence[tuple[int, int]], indices: Sequence[int]
+) -> Iterator[tuple[int, np.ndarray]]:
+    """Frames ``indices`` (ascending) as the registration pass stored them (cropped)."""
+    wanted = sorted(set(indices))
+    for first, last in chunks:
+        mine = [i for i in wanted if first <= i <= last]
+        wanted = [i for i in wanted if i > last]
+        if mine:
+            yield from frame_store.iter_frames(first, mine)
 
 
 @task(name="fit-axis")
@@ -106,19 +159,24 @@ def fit_pipe_axis(
     *,
     max_range_m: float,
     sample_frames: int = 40,
+    frame_store: FrameStore | None = None,
+    chunks: Sequence[tuple[int, int]] = (),
 ) -> AxisFit:
     """Fit the pipe axis on a sample of the registered points, and the chainage they span.
 
     A registered cloud's start is chosen by ``pipescan.core.start.cloud_start``; up is the
     cloud's +z. For frames, up is against the IMU's gravity at the first frame, where given,
-    else the first frame's +z.
+    else the first frame's +z. With ``frame_store`` (written by :func:`register_chunk` for
+    ``chunks``, cropped to ``max_range_m``), the sample frames are read from it.
     """
     meta = staged.meta
     diameter = meta.nominal_diameter_m
     up = np.array([0.0, 0.0, 1.0])
-    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
+    with staged.reopen() as arc:
         if trajectory is None:
             points = arc.read_cloud()
+            if frame_store is not None:  # decoded once: the sections read it from here
+                frame_store.save_cloud(points)
             choice = cloud_start(
                 points,
                 axis_direction(points, diameter),
@@ -131,7 +189,12 @@ def fit_pipe_axis(
             indices = trajectory.frame_indices[::stride]
             rng = np.random.default_rng(0)
             parts = []
-            for pts in _frame_points_world(arc, trajectory, indices, max_range_m):
+            sample = (
+                iter_registered_points(_stored_frames(frame_store, chunks, indices), trajectory)
+                if frame_store is not None
+                else _frame_points_world(arc, trajectory, indices, max_range_m)
+            )
+            for pts in sample:
                 take = min(len(pts), 5000)
                 parts.append(pts[rng.choice(len(pts), take, replace=False)])
             points = np.concatenate(parts)
@@ -166,14 +229,29 @@ def bucket_points(
     windows: list[ChainageWindow],
     bucket_root: Path,
     max_range_m: float,
-) -> int:
-    """Write the registered points of frames ``first..last`` (or the cloud) into window files."""
-    with open_archive(staged.root, limits=staged.limits, name=staged.name) as arc:
-        if trajectory is None:
-            return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
-        pts = list(_frame_points_world(arc, trajectory, range(first, last + 1), max_range_m))
+    frame_store: FrameStore | None = None,
+) -> Bucketed:
+    """Write the registered points of frames ``first..last`` (or the cloud) into window files.
+
+    With ``frame_store``, the frames are those :func:`register_chunk` stored for the chunk
+    that starts at ``first`` (already cropped to ``max_range_m``): the archive is not read.
+    A registered cloud that :func:`fit_pipe_axis` kept there is placed by rows: ``first`` to
+    ``last`` (exclusive).
+    """
+    if trajectory is None and frame_store is not None and frame_store.cloud_rows():
+        rows = frame_store.read_cloud_rows(first, last)
+        return write_buckets(rows, axis, windows, bucket_root, f"cloud_{first:011d}")
+    if trajectory is not None and frame_store is not None:
+        stored = frame_store.iter_frames(first)
+        pts = list(iter_registered_points(stored, trajectory))
+    else:
+        with staged.reopen() as arc:
+            if trajectory is None:
+                return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
+            frames = range(first, last + 1)
+            pts = list(_frame_points_world(arc, trajectory, frames, max_range_m))
     if not pts:  # every frame of the chunk slid along the axis: none is placed
-        return 0
+        return Bucketed()
     return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
 
 
@@ -187,15 +265,15 @@ def measure_sections(
     evidence: RegistrationEvidence | None = None,
 ) -> list[SectionMeasures]:
     """Measure every section of one chainage window (with what registration says of it)."""
-    points = read_window_offsets(bucket_root, window)
+    points = read_window_rows(bucket_root, window)
     sections = measure_window(
         points,
         axis,
         window,
         nominal_diameter_m=nominal_diameter_m,
         params=params,
-        relative=True,
         evidence=evidence,
+        section_rows=points,
     )
     log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
     return sections

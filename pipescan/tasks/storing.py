@@ -36,6 +36,7 @@ def stage_archive(
             frame_count=arc.frame_count,
             cloud_member=arc.cloud_member,
             limits=limits,
+            bag=arc.bag,
         )
 
 

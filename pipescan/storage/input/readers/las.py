@@ -47,6 +47,15 @@ def _errors():
     )
 
 
+def _laz_backend():
+    """lazrs in parallel mode: a LAZ file's chunks (50,000 points each, as written by common
+    tools) are decompressed on all cores; a small frame is one chunk, decoded as before."""
+    import laspy
+
+    parallel = laspy.LazBackend.LazrsParallel
+    return parallel if parallel.is_available() else laspy.LazBackend.Lazrs
+
+
 _VLR_HEADER_BYTES = 54
 _EVLR_HEADER_BYTES = 60
 
@@ -102,8 +111,11 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
     import laspy
 
     _check_layout(path, where)
+    # In a LAS 1.4 point format 6-10 LAZ, each field is compressed on its own: decode only
+    # x, y, z (older formats decode whole records, whatever is asked).
+    xyz = laspy.DecompressionSelection.xy_returns_channel() | laspy.DecompressionSelection.Z
     try:
-        with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
+        with laspy.open(path, laz_backend=_laz_backend(), decompression_selection=xyz) as reader:
             declared = _declared(reader, path, where)
             compressed = reader.header.are_points_compressed
             # LAS was sized above, so its count can be trusted; a LAZ is collected chunk by
@@ -152,7 +164,7 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
     import laspy
 
     try:
-        with laspy.open(path, laz_backend=laspy.LazBackend.Lazrs) as reader:
+        with laspy.open(path, laz_backend=_laz_backend()) as reader:
             if "gps_time" not in reader.header.point_format.dimension_names:
                 return None
             parts = [

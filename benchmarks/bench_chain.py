@@ -1,0 +1,459 @@
+"""The whole chain, archive to stored sections, timed stage by stage against the recording.
+
+    python benchmarks/bench_chain.py prepare --out /tmp/chain-scans --lengths 10 30
+    python benchmarks/bench_chain.py run /tmp/chain-scans/long10-laz /tmp/chain-scans/long30-laz
+    python benchmarks/bench_chain.py run --profile /tmp/chain-profile /tmp/chain-scans/long30-laz
+    python benchmarks/bench_chain.py run --sections /tmp/chain-sections /tmp/chain-scans/long10-npy
+    python benchmarks/bench_chain.py run --baseline /tmp/pipescan-main /tmp/chain-scans/long30-laz
+
+``prepare`` simulates the ``long`` scenario (a forward-looking sensor, 10 frames a second, about
+25k points a frame in a 0.5 m pipe, 0.15 m/s) over each length once as ``.npy`` frames, then
+writes the same frames as LAZ and LAS (0.1 mm grid) and the same scan as one registered cloud
+(``cloud.laz``, with GPS time). Scans are large (30 m: 2,000 frames, 0.6 GB as ``.npy``):
+write them outside the repository.
+
+``run`` runs ``pipescan inspect`` on each archive in a fresh process (SQLite database and work
+directory in a temporary directory) and prints, per archive, the wall and CPU time of each
+stage, the real-time factor (recording time / wall time) and the peak resident memory of the
+process tree (pipescan, its task workers and the Prefect API server it starts). Stages are
+read from pipescan's own log lines, so what is timed is the command a user runs:
+
+- ``start``: process start to the archive staged (imports, the Prefect API server);
+- ``register``: frames registered (all chunks);
+- ``axis``: the pipe axis fitted;
+- ``first window``: the first chainage window measured;
+- ``sections``: every window measured, graded and stored.
+
+With ``--baseline DIR`` (another pipescan checkout, e.g. ``git archive main | tar -x -C DIR``),
+each scan runs under that version and then under this one, back to back: on a shared machine
+the two rows of a pair are what can be compared. With ``--sections DIR``, each run's sections
+are exported (``DIR/<scan>.csv``, ``-baseline.csv``) to compare the figures.
+
+With ``--profile DIR``, each run is recorded by py-spy (all processes, 100 samples a second)
+and the top 10 functions by cumulative time are printed (``DIR/<archive>.txt`` keeps the raw
+collapsed stacks). Figures are printed, nothing is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import tomllib
+from collections import Counter
+from pathlib import Path
+
+STAGES = (
+    ("staged", re.compile(r"^archive .*: asset ")),
+    ("registered", re.compile(r"^(registered \d+ frames|axis fitted)")),
+    ("axis", re.compile(r"^axis fitted")),
+    ("first window", re.compile(r"^measured ")),
+    ("stored", re.compile(r"^stored inspection ")),
+)
+PIPESCAN = (sys.executable, "-m", "pipescan.cli")
+
+
+# --- prepare ----------------------------------------------------------------------------------
+
+
+def _simulate(out: Path, length_m: float, layout: str) -> None:
+    if (out / "inspection.toml").is_file():
+        print(f"{out}: exists, kept")
+        return
+    print(f"simulating {length_m:g} m ({layout}) into {out} ...", flush=True)
+    options = ["--scenario", "long", "--travel-m", str(length_m), "--layout", layout]
+    subprocess.run(
+        [*PIPESCAN, "simulate", str(out), *options],
+        check=True,
+        stdout=subprocess.DEVNULL,
+    )
+
+
+def _convert_frames(src: Path, dst: Path, suffix: str) -> None:
+    """The same archive with every ``.npy`` frame written as ``suffix`` (LAS/LAZ: 0.1 mm)."""
+    import numpy as np
+
+    from pipescan.storage.input.pointfiles import write_points
+
+    if (dst / "inspection.toml").is_file():
+        print(f"{dst}: exists, kept")
+        return
+    print(f"writing {dst} ...", flush=True)
+    tmp = dst.with_name(dst.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    (tmp / "frames").mkdir(parents=True)
+    for f in sorted((src / "frames").glob("*.npy")):
+        write_points(tmp / "frames" / (f.stem + suffix), np.load(f).astype(np.float64))
+    text = (src / "inspection.toml").read_text(encoding="utf-8")
+    (tmp / "inspection.toml").write_text(
+        re.sub(r'(file = "frames/\d+)\.npy"', rf'\1{suffix}"', text), encoding="utf-8"
+    )
+    shutil.copytree(src / "ground_truth", tmp / "ground_truth")
+    tmp.rename(dst)
+
+
+def prepare(out: Path, lengths: list[float], cloud: bool) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    for length in lengths:
+        name = f"long{length:g}"
+        npy = out / f"{name}-npy"
+        _simulate(npy, length, "frames")
+        _convert_frames(npy, out / f"{name}-laz", ".laz")
+        _convert_frames(npy, out / f"{name}-las", ".las")
+        if cloud:
+            _simulate(out / f"{name}-cloud", length, "cloud")
+
+
+# --- run --------------------------------------------------------------------------------------
+
+
+def _recording_s(archive: Path) -> float:
+    """Seconds of recording: first to last frame time, or the cloud's GPS-time span."""
+    with (archive / "inspection.toml").open("rb") as fh:
+        doc = tomllib.load(fh)
+    frames = doc.get("frames") or []
+    if frames:
+        return float(frames[-1]["time_s"] - frames[0]["time_s"])
+    from pipescan.storage.input.pointfiles import read_point_time
+
+    cloud = next(p for p in archive.iterdir() if p.name.startswith("cloud."))
+    t = read_point_time(cloud)
+    return float(t.max() - t.min()) if t is not None else float("nan")
+
+
+def _child(archive: str, out_json: str) -> None:
+    """Run ``pipescan inspect`` in this process, sampling the process tree, and write the
+    stage marks and peaks to ``out_json``."""
+    import logging
+
+    import psutil
+
+    me = psutil.Process()
+    t0 = time.perf_counter()
+    marks: dict[str, tuple[float, float]] = {}
+    peak = {"tree_rss": 0, "main_rss": 0}
+    dead_cpu = {"s": 0.0}
+    seen: dict[int, float] = {}
+
+    def tree_cpu() -> float:
+        """CPU seconds of this process and its children, live or finished, without the Prefect
+        API server (it serves the run; it is not the chain's work)."""
+        total = sum(me.cpu_times()[:4])
+        live = {}
+        for child in me.children(recursive=True):
+            try:
+                if "uvicorn" in " ".join(child.cmdline()) or "prefect" in child.name():
+                    continue
+                live[child.pid] = sum(child.cpu_times()[:2])
+            except psutil.Error:
+                continue
+        for pid, cpu in seen.items():
+            if pid not in live:
+                dead_cpu["s"] += cpu
+        seen.clear()
+        seen.update(live)
+        return total + sum(live.values()) + dead_cpu["s"]
+
+    def sample() -> None:
+        while not done.is_set():
+            try:
+                rss = me.memory_info().rss
+                peak["main_rss"] = max(peak["main_rss"], rss)
+                for child in me.children(recursive=True):
+                    with contextlib.suppress(psutil.Error):
+                        rss += child.memory_info().rss
+                peak["tree_rss"] = max(peak["tree_rss"], rss)
+            except psutil.Error:
+                pass
+            done.wait(0.1)
+
+    class Marks(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            message = record.getMessage()
+            for stage, pattern in STAGES:
+                if stage not in marks and pattern.search(message):
+                    marks[stage] = (time.perf_counter() - t0, tree_cpu())
+
+    done = threading.Event()
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    from pipescan.cli import _app, app
+
+    setup_logging = _app._setup_logging
+
+    def with_marks(verbose: bool) -> None:  # the CLI sets pipescan's handlers: add ours after
+        setup_logging(verbose)
+        logging.getLogger("pipescan").addHandler(Marks())
+
+    _app._setup_logging = with_marks
+
+    try:
+        app(["inspect", archive, "--json"], standalone_mode=False)
+    finally:
+        done.set()
+        sampler.join()
+    marks["end"] = (time.perf_counter() - t0, tree_cpu())
+    Path(out_json).write_text(json.dumps({"marks": marks, "peak": peak}), encoding="utf-8")
+
+
+def _run_one(
+    archive: Path, profile_dir: Path | None, sections_dir: Path | None, source: Path | None = None
+) -> dict:
+    with tempfile.TemporaryDirectory(prefix="bench-chain-") as tmp:
+        env = dict(os.environ)
+        if source is not None:  # another pipescan checkout, ahead of the installed one
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(source), env.get("PYTHONPATH")]))
+        env.update(
+            PREFECT_SERVER_ANALYTICS_ENABLED="false",
+            PIPESCAN_DATABASE_URL=f"sqlite:///{tmp}/bench.db",
+            PIPESCAN_WORK_DIR=f"{tmp}/work",
+            PREFECT_HOME=f"{tmp}/prefect",
+        )
+        out_json = Path(tmp) / "marks.json"
+        cmd = [sys.executable, __file__, "_child", str(archive), str(out_json)]
+        raw = None
+        if profile_dir is not None:
+            profile_dir.mkdir(parents=True, exist_ok=True)
+            raw = profile_dir / f"{archive.name}.txt"
+            py_spy = str(Path(sys.executable).with_name("py-spy"))
+            options = ["record", "--subprocesses", "--rate", "100", "--format", "raw"]
+            cmd = [py_spy, *options, "--output", str(raw), "--", *cmd]
+        started = time.perf_counter()
+        proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+        wall = time.perf_counter() - started
+        if proc.returncode != 0 or not out_json.is_file():
+            print(proc.stdout[-3000:], proc.stderr[-3000:], sep="\n", file=sys.stderr)
+            raise SystemExit(f"{archive}: pipescan inspect failed ({proc.returncode})")
+        result = json.loads(out_json.read_text(encoding="utf-8"))
+        summary = json.JSONDecoder().raw_decode(proc.stdout[proc.stdout.index("{") :])[0]
+        if sections_dir is not None:  # the figures, to compare runs of two versions
+            sections_dir.mkdir(parents=True, exist_ok=True)
+            subprocess.run(
+                [
+                    *PIPESCAN,
+                    "export",
+                    "sections",
+                    "-o",
+                    str(sections_dir / f"{archive.name}{'-baseline' if source else ''}.csv"),
+                ],
+                env=env,
+                check=True,
+            )
+        result.update(process_wall=wall, summary=summary, raw_profile=str(raw) if raw else None)
+        return result
+
+
+_PLUMBING = re.compile(
+    r"\((threading|concurrent/futures/|prefect/|anyio/|asyncio/|runpy|typer/|click/|"
+    r"<frozen|bench_chain|pipescan/cli/|contextlib|site-packages/uvicorn)"
+)
+"""Frames of the machinery around the work (threads, the task engine, the CLI): on every
+stack, they would fill the top of a cumulative list."""
+
+
+SKIP = ("process ", "thread ")
+
+
+def top_cumulative(raw: Path, n: int = 10) -> list[tuple[str, float]]:
+    """The ``n`` functions with the largest share of samples on the stack (cumulative),
+    from py-spy's collapsed stacks, leaving out the machinery around the work
+    (:data:`_PLUMBING`); idle threads (waiting on a lock, a queue, a socket or a sleep) are
+    left out, so shares are of the samples where work was done."""
+    idle = re.compile(r"\b(wait|_wait_for_tstate_lock|select|poll|sleep|acquire|recv|get)\b")
+    totals: Counter[str] = Counter()
+    busy = 0
+    for line in raw.read_text(encoding="utf-8", errors="replace").splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack or not count.isdigit():
+            continue
+        frames = stack.split(";")
+        leaf = frames[-1].split(" (")[0]
+        if idle.search(leaf):
+            continue
+        busy += int(count)
+        # A frame reads "function (file:line)": one function, whatever line it was on.
+        names = {re.sub(r":\d+\)$", ")", f) for f in frames if not f.startswith(SKIP)}
+        names = {f for f in names if not _PLUMBING.search(f)}
+        for name in names:
+            totals[name] += int(count)
+    return [(name, count / max(busy, 1)) for name, count in totals.most_common(n)]
+
+
+def truth_errors(sections_csv: Path, archive: Path) -> str:
+    """The exported sections against the simulator's ground truth: how many are ``ok``, and
+    the error of their blockage, deposit height and deformation (percentage points: mean,
+    95th percentile, max), and how often the blockage is within its stated 95 % uncertainty."""
+    import csv
+
+    import numpy as np
+
+    from pipescan.simulator.archive import read_ground_truth
+
+    _, truth = read_ground_truth(archive)
+    true_by_start = {round(t.chainage_start_m, 1): t for t in truth}
+    with sections_csv.open(encoding="utf-8") as fh:
+        rows = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
+    rows = [r for r in rows if round(float(r["chainage_start_m"]), 1) in true_by_start]
+    parts = [f"{len(rows)} ok sections"]
+    for column in ("blockage_ratio", "deposit_height_ratio", "deformation_ratio"):
+        err = np.array(
+            [
+                100
+                * abs(
+                    float(r[column])
+                    - getattr(true_by_start[round(float(r["chainage_start_m"]), 1)], column)
+                )
+                for r in rows
+                if r[column] != ""  # a figure a section does not have (e.g. no deposit)
+            ]
+        )
+        name = column.removesuffix("_ratio").replace("_", " ")
+        parts.append(
+            f"{name} error mean {err.mean():.2f} / p95 {np.percentile(err, 95):.2f} / "
+            f"max {err.max():.2f} pp"
+        )
+    within = np.mean(
+        [
+            abs(
+                float(r["blockage_ratio"])
+                - true_by_start[round(float(r["chainage_start_m"]), 1)].blockage_ratio
+            )
+            <= float(r["blockage_uncertainty_ratio"])
+            for r in rows
+        ]
+    )
+    parts.append(f"blockage within its stated uncertainty: {100 * within:.0f} %")
+    return "; ".join(parts)
+
+
+def _fmt_mb(b: float) -> str:
+    return f"{b / 2**20:,.0f}"
+
+
+def run(
+    archives: list[Path],
+    profile_dir: Path | None,
+    sections_dir: Path | None,
+    baseline: Path | None = None,
+) -> None:
+    rows = []
+    # With a baseline checkout, each scan runs under it and then under this pipescan, one
+    # after the other: on a shared machine, compare the two rows of a pair.
+    runs = [(a, src) for a in archives for src in ([baseline, None] if baseline else [None])]
+    for archive, source in runs:
+        print(f"running {archive}{f' with {source}' if source else ''} ...", flush=True)
+        result = _run_one(archive, profile_dir, sections_dir, source)
+        recording = _recording_s(archive)
+        marks = result["marks"]
+        print(f"\n{archive.name}: {result['summary']['frame_count']} frames, "
+              f"{result['summary']['point_count']:,} points, {recording:.0f} s recorded, "
+              f"{result['summary']['section_count']} sections "
+              f"({result['summary']['sections_ok']} ok)")  # fmt: skip
+        print(f"  {'stage':<14}{'ends at s':>10}{'wall s':>9}{'CPU s':>8}")
+        prev_t, prev_c = 0.0, 0.0
+        order = [s for s, _ in STAGES] + ["end"]
+        for stage in order:
+            if stage not in marks:
+                continue
+            t, c = marks[stage]
+            print(f"  {stage:<14}{t:>10.1f}{t - prev_t:>9.1f}{c - prev_c:>8.1f}")
+            prev_t, prev_c = t, c
+        start_t = marks["staged"][0]
+        chain = marks["stored"][0] - start_t
+        frames = result["summary"]["frame_count"]
+        reg = marks.get("registered", marks["axis"])[0] - start_t if frames else float("nan")
+        peak = result["peak"]
+        row = {
+            "scan": archive.name + (" (baseline)" if source else ""),
+            "frames": frames,
+            "points": result["summary"]["point_count"],
+            "recorded_s": recording,
+            "start_s": start_t,
+            "register_s": reg,
+            "sections_s": marks["stored"][0] - marks.get("registered", marks["axis"])[0],
+            "chain_s": chain,
+            "total_s": marks["end"][0],
+            "rt_register": recording / reg,
+            "rt_chain": recording / chain,
+            "rt_total": recording / marks["end"][0],
+            "tree_rss_mb": peak["tree_rss"] / 2**20,
+            "main_rss_mb": peak["main_rss"] / 2**20,
+        }
+        rows.append(row)
+        print(f"  real time / chain (staged to stored): {row['rt_chain']:.1f}x; "
+              f"registration {row['rt_register']:.1f}x; "
+              f"with start-up {row['rt_total']:.1f}x")  # fmt: skip
+        print(f"  peak RSS: process tree {_fmt_mb(peak['tree_rss'])} MB, "
+              f"pipescan process {_fmt_mb(peak['main_rss'])} MB")  # fmt: skip
+        if sections_dir is not None and (archive / "ground_truth").is_dir():
+            csv_name = f"{archive.name}{'-baseline' if source else ''}.csv"
+            print("  against ground truth:", truth_errors(sections_dir / csv_name, archive))
+        if result["raw_profile"]:
+            print("  top 10 by cumulative share of busy samples:")
+            for name, share in top_cumulative(Path(result["raw_profile"])):
+                print(f"    {100 * share:5.1f} %  {name}")
+    print(TABLE_HEAD)
+    for r in rows:
+        print(TABLE_ROW.format(**r).replace("nan", "-"))
+
+
+TABLE_HEAD = """
+| scan | frames | points | recorded s | start-up s | register s | axis to stored s | chain s \
+| total s | register x | chain x | total x | peak RSS tree MB | peak RSS pipescan MB |
+|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|""".replace("\\\n", "")
+TABLE_ROW = (
+    "| {scan} | {frames:,} | {points:,} | {recorded_s:.0f} | {start_s:.1f} | {register_s:.1f} "
+    "| {sections_s:.1f} | {chain_s:.1f} | {total_s:.1f} | {rt_register:.1f} | {rt_chain:.1f} "
+    "| {rt_total:.1f} | {tree_rss_mb:,.0f} | {main_rss_mb:,.0f} |"
+)
+"""Columns: start-up is process start to the archive staged (imports, the Prefect API);
+register is staged to every frame registered; axis to stored is the axis fit, placing,
+measuring, grading and storing; chain is staged to stored (the real-time factors: recorded
+over these)."""
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "_child":
+        _child(sys.argv[2], sys.argv[3])
+        return
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+    p = sub.add_parser("prepare", help="simulate the scans once (outside the repository)")
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--lengths", type=float, nargs="+", default=[10.0, 30.0])
+    p.add_argument("--no-cloud", action="store_true", help="skip the registered clouds")
+    r = sub.add_parser("run", help="time pipescan inspect on archives")
+    r.add_argument("archives", type=Path, nargs="*")
+    r.add_argument(
+        "--baseline",
+        type=Path,
+        default=None,
+        help="a checkout of another pipescan version: each scan runs under it, then this one",
+    )
+    r.add_argument("--profile", type=Path, default=None, help="record with py-spy into DIR")
+    r.add_argument(
+        "--top", type=Path, default=None, help="only print the top 10 of a recorded profile"
+    )
+    r.add_argument(
+        "--sections", type=Path, default=None, help="export each run's sections as DIR/<scan>.csv"
+    )
+    args = parser.parse_args()
+    if args.command == "prepare":
+        prepare(args.out, args.lengths, not args.no_cloud)
+    elif args.top is not None:
+        for name, share in top_cumulative(args.top):
+            print(f"{100 * share:5.1f} %  {name}")
+    else:
+        run(args.archives, args.profile, args.sections, args.baseline)
+
+
+if __name__ == "__main__":
+    main()
