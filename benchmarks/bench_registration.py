@@ -41,6 +41,7 @@ from pipescan.core.registration import (
     trajectory_errors,
 )
 from pipescan.simulator.scan import get_scenario, simulate_scan
+from pipescan.simulator.sweep import SectionScore
 
 FRAME_RATE_HZ = 10.0
 SECTION_RANGE_M = 5.0  # the flow's max_section_range_m
@@ -437,21 +438,11 @@ class DrawFigures:
     frames: int
     odometer_error_ratio: float
     travel_error_ratio: float
-    ok: int
-    ok_away: int
-    mean_pp: float
-    max_pp: float
-    dishonest: int
-    dishonest_naive: int
-    worst_pp: float
-    shadows: int
-    shadows_ok: int
-    u_max_m: float
+    score: SectionScore
     realtime: float
     seconds: float
     weak: int = 0
     smeared: int = 0
-    shadows_ok_wrong: int = 0
     stretches_worse: str = ""
 
 
@@ -514,7 +505,7 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
         frames=len(scan),
         odometer_error_ratio=float(scan.odometer_m[-1] / true_travel - 1.0),
         travel_error_ratio=travel / true_travel - 1.0,
-        **dataclasses.asdict(score),
+        score=score,
         realtime=duration_s / reg_seconds,
         seconds=time.perf_counter() - started,
         weak=sum(s.status.value == "weak_registration" for s in stored.sections),
@@ -533,11 +524,12 @@ SWEEP_HEADER = (
 
 
 def _sweep_row(f: DrawFigures) -> str:
+    sc = f.score
     return (
         f"| {f.name} | {f.frames} | {100 * f.odometer_error_ratio:+.2f} | "
-        f"{100 * f.travel_error_ratio:+.2f} | {f.ok} | {f.ok_away} | {f.mean_pp:.2f} | "
-        f"{f.max_pp:.2f} | {f.dishonest} | {f.dishonest_naive} | {f.worst_pp:.1f} | "
-        f"{f.shadows_ok} ({f.shadows_ok_wrong})/{f.shadows} | {f.u_max_m:.3f} | "
+        f"{100 * f.travel_error_ratio:+.2f} | {sc.ok} | {sc.ok_away} | {sc.mean_pp:.2f} | "
+        f"{sc.max_pp:.2f} | {sc.dishonest} | {sc.dishonest_naive} | {sc.worst_pp:.1f} | "
+        f"{sc.shadows_ok} ({sc.shadows_ok_wrong})/{sc.shadows} | {sc.u_max_m:.3f} | "
         f"{f.realtime:.1f}× | {f.weak} | {f.smeared} | {f.stretches_worse} |"
     )
 
@@ -569,9 +561,9 @@ def bench_sweep(args) -> None:
                 f = evaluate_draw(draw, Path(tmp))
             figures.append(f)
             print(_sweep_row(f), flush=True)
-    worst = max(figures, key=lambda f: (f.dishonest, f.max_pp))
+    worst = max(figures, key=lambda f: (f.score.dishonest, f.score.max_pp))
     print(f"\nworst draw: {worst.name} ({worst.seconds:.0f} s)")
-    total_dishonest = sum(f.dishonest for f in figures)
+    total_dishonest = sum(f.score.dishonest for f in figures)
     print(f"dishonest ok sections over all draws: {total_dishonest}")
 
 
