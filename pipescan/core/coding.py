@@ -44,6 +44,7 @@ import numpy as np
 
 from pipescan.core.model import SectionMeasures
 from pipescan.core.summary import touches
+from pipescan.core.uncertainty import unseen_runs
 
 __all__ = [
     "BAA",
@@ -448,23 +449,7 @@ def _robust_wall(
 
 def _runs(mask: np.ndarray) -> list[np.ndarray]:
     """Circular runs of True in ``mask``, each as an array of bin indices in order."""
-    bins = len(mask)
-    if not mask.any():
-        return []
-    if mask.all():
-        return [np.arange(bins)]
-    start = int(np.argmin(mask))  # a False bin: no run wraps past it
-    order = np.roll(np.arange(bins), -start)
-    runs, current = [], []
-    for i in order:
-        if mask[i]:
-            current.append(i)
-        elif current:
-            runs.append(np.array(current))
-            current = []
-    if current:
-        runs.append(np.array(current))
-    return runs
+    return unseen_runs(~np.asarray(mask, dtype=bool))
 
 
 def _close_gaps(mask: np.ndarray, gap_bins: int) -> np.ndarray:
