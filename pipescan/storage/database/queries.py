@@ -35,6 +35,7 @@ from pipescan.storage.database.repository import (
     defect_from_row,
     inspection_records,
     record_statement,
+    require_inspection,
     section_from_row,
 )
 
@@ -201,11 +202,7 @@ def earlier_inspections(
         If there is no inspection with that id.
     """
     with session_scope(engine) as session:
-        if session.get(Inspection, inspection_id) is None:
-            raise StorageError(
-                f"no inspection with id {inspection_id}",
-                hint="list the stored inspections with `pipescan inspections`",
-            )
+        require_inspection(session, inspection_id)
     return earlier_scans(engine, [inspection_id], limit=limit)[inspection_id]
 
 

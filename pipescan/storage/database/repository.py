@@ -898,7 +898,8 @@ def _no_inspection(inspection_id: int) -> StorageError:
     )
 
 
-def _require_inspection(session: Session, inspection_id: int) -> None:
+def require_inspection(session: Session, inspection_id: int) -> None:
+    """Raise the one "no inspection with id" error when the inspection is not stored."""
     if session.get(Inspection, inspection_id) is None:
         raise _no_inspection(inspection_id)
 
@@ -1006,7 +1007,7 @@ def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:
         .order_by(Section.chainage_start_mm)
     )
     with session_scope(engine) as session:
-        _require_inspection(session, inspection_id)
+        require_inspection(session, inspection_id)
         return [section_from_row(row) for row in session.scalars(statement)]
 
 
@@ -1024,7 +1025,7 @@ def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
         .order_by(DefectRow.chainage_start_m, DefectRow.id)
     )
     with session_scope(engine) as session:
-        _require_inspection(session, inspection_id)
+        require_inspection(session, inspection_id)
         return [defect_from_row(row) for row in session.scalars(statement)]
 
 
@@ -1059,7 +1060,7 @@ def get_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
         .order_by(FrameQualityRow.frame_index)
     )
     with session_scope(engine) as session:
-        _require_inspection(session, inspection_id)
+        require_inspection(session, inspection_id)
         return [
             FrameQuality(
                 index=row.frame_index,
