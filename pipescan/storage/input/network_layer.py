@@ -125,16 +125,14 @@ def read_network_layer(
     by_name = dict(zip(columns, values, strict=True))
 
     ids = [_text(v, i, id_field, where, required=True) for i, v in enumerate(by_name[id_field])]
-    first_seen: dict[str, int] = {}
-    for i, gis_id in enumerate(ids):
-        if gis_id in first_seen:
-            raise LayerError(
-                f"id {gis_id!r} is on feature {first_seen[gis_id]} and on feature {i}",
-                file=where,
-                field=id_field,
-                hint="every pipe needs its own id: choose the layer's unique id field",
-            )
-        first_seen[str(gis_id)] = i
+    if (twice := _first_repeat(ids)) is not None:
+        gis_id, first, again = twice
+        raise LayerError(
+            f"id {gis_id!r} is on feature {first} and on feature {again}",
+            file=where,
+            field=id_field,
+            hint="every pipe needs its own id: choose the layer's unique id field",
+        )
     refs = (
         ids
         if asset_field is None
@@ -143,16 +141,14 @@ def read_network_layer(
             for i, v in enumerate(by_name[asset_field])
         ]
     )
-    seen_refs: dict[str, int] = {}
-    for i, ref in enumerate(refs):
-        if ref in seen_refs:
-            raise LayerError(
-                f"asset id {ref!r} is on feature {seen_refs[ref]} and on feature {i}",
-                file=where,
-                field=asset_field,
-                hint="each asset can be one pipe of the layer only",
-            )
-        seen_refs[str(ref)] = i
+    if (twice := _first_repeat(refs)) is not None:
+        ref, first, again = twice
+        raise LayerError(
+            f"asset id {ref!r} is on feature {first} and on feature {again}",
+            file=where,
+            field=asset_field,
+            hint="each asset can be one pipe of the layer only",
+        )
     froms = _optional_texts(by_name, from_field, where, len(ids))
     tos = _optional_texts(by_name, to_field, where, len(ids))
 
@@ -233,6 +229,17 @@ def _text(value: Any, index: int, field: str | None, where: str, *, required: bo
             field=field,
         )
     return text
+
+
+def _first_repeat(values: list[Any]) -> tuple[Any, int, int] | None:
+    """The first value that stands on two features, with both feature indices; None when
+    every value is unique."""
+    first_seen: dict[Any, int] = {}
+    for i, value in enumerate(values):
+        if value in first_seen:
+            return value, first_seen[value], i
+        first_seen[value] = i
+    return None
 
 
 def _optional_texts(
