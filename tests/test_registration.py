@@ -16,6 +16,7 @@ from pipescan.core.registration import (
     AxialFilter,
     RegistrationParams,
     SlideDetector,
+    SlipLog,
     Trajectory,
     chain_trajectories,
     iter_registered_points,
@@ -25,6 +26,7 @@ from pipescan.core.registration import (
     registration_evidence,
     registration_summary,
     trajectory_errors,
+    unseen_slip_allowance,
 )
 from pipescan.simulator.scan import Effects, get_scenario, simulate_scan
 from pipescan.simulator.sweep import smooth_scene
@@ -192,6 +194,9 @@ def test_features_override_an_odometer_that_slipped():
     # the odometer's slip (the sections stay measured: ICP placed them).
     assert any(q.fault == "odometer_slip" for q in traj.quality)
     assert not any(q.fault == "slide" for q in traj.quality)
+    # Each slip is kept, once, by its size: they tell how this odometer slips.
+    assert 1 <= len(traj.odometer_slips_m) <= sum(q.fault == "odometer_slip" for q in traj.quality)
+    assert max(traj.odometer_slips_m) > 0.03
 
 
 def test_featureless_pipe_without_odometer_says_where_it_could_not(clean_scan):
@@ -391,6 +396,42 @@ def test_chained_chunks_add_their_uncertainties():
     )
 
 
+def test_unseen_slips_are_allowed_for_at_the_rate_and_size_seen():
+    steps = np.full(60, 0.1)
+    steps[0] = 0.0
+    held = np.zeros(60, dtype=bool)
+    held[10:20] = True  # 1.0 m held to the odometer
+    held[30:32] = True  # 0.2 m: inside a window that features carry, a slip there is seen
+    held[40:51] = True  # 1.1 m, one frame of features in it: a window over it is held
+    held[45] = False
+    # Three slips caught in the 5.9 m run (0.51 per metre), the largest 0.3 m: from the
+    # first held frame, one may hide; past 1.97 m held in all, two.
+    got = unseen_slip_allowance(steps, held, [0.2, 0.3, 0.1], window_m=0.5)
+    want = np.zeros(60)
+    want[10:49] = 0.3
+    want[49:] = 0.6
+    assert got == pytest.approx(want)
+    # An odometer never caught slipping, or a run with no stretch to hide in: nothing.
+    assert not unseen_slip_allowance(steps, held, [], window_m=0.5).any()
+    assert not unseen_slip_allowance(steps, np.zeros(60, bool), [0.3], window_m=0.5).any()
+    # No feature anywhere: nothing was seen, so nothing says how the odometer slips.
+    assert not unseen_slip_allowance(steps, np.ones(60, bool), [0.3], window_m=0.5).any()
+
+
+def test_chaining_allows_for_the_slips_seen_in_every_chunk():
+    def chunk(first, held, slips):
+        q = tuple(FrameQuality(first + k, 1.0, 0.0, held, 0.0 if held else 1.0) for k in range(11))
+        T = np.repeat(np.eye(4)[None], 11, axis=0)
+        T[:, 0, 3] = 0.1 * np.arange(11)
+        return Trajectory(T, q, tuple(range(first, first + 11)), odometer_slips_m=slips)
+
+    # 1 m seen with a 0.25 m slip, then 1 m held: one slip of 0.25 m may hide in it.
+    chained = chain_trajectories([chunk(0, False, (0.25,)), chunk(10, True, ())])
+    u = [q.chainage_uncertainty_m for q in chained.quality]
+    assert chained.odometer_slips_m == (0.25,)
+    assert u[:11] == pytest.approx([0.0] * 11) and u[11:] == pytest.approx([0.25] * 10)
+
+
 def test_registration_evidence_of_a_section():
     q = tuple(
         FrameQuality(i, 1.0, 0.0, False, 1.0, chainage_uncertainty_m=0.01 * i,
@@ -414,3 +455,24 @@ def test_registration_evidence_of_a_section():
     )
     evidence = registration_evidence(guessed, np.arange(10) * 1.0, seen_from_m=2.0)
     assert evidence.for_section(3.0, 3.1)[1] and not evidence.for_section(8.0, 8.1)[1]
+
+
+def test_a_slip_is_sized_from_the_window_that_caught_it_to_where_it_stopped():
+    log = SlipLog(window_m=0.5)
+    # The crawler sticks for 30 frames while the count runs on 1 cm a frame: registered and
+    # odometer travel drift 1 cm a frame apart. Caught 5 cm in (the window's disagreement),
+    # then again 25 cm later; 30 cm in all.
+    gap, odometer = 0.0, 0.0
+    for k in range(200):
+        odometer += 0.01
+        gap -= 0.01 if 10 <= k < 40 else 0.0
+        caught = {14: -0.05, 39: -0.25}.get(k)
+        log.add(odometer, odometer + gap, caught, slide=False)
+        if k == 45:
+            assert log.sizes_m == pytest.approx((0.30,))  # still followed
+    assert log.sizes_m == pytest.approx((0.30,))  # closed two windows after the last catch
+    log.add(odometer + 0.01, odometer + gap + 0.01, -0.06, slide=False)
+    assert len(log.sizes_m) == 2  # a later catch is another slip
+    log.add(odometer + 0.02, odometer + gap, None, slide=True)  # a slide ends it
+    log.add(odometer + 0.03, odometer + gap - 0.5, None, slide=False)
+    assert log.sizes_m[1] == pytest.approx(0.06)

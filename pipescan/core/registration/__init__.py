@@ -16,8 +16,10 @@ exactly the information that is missing, and let ICP slide along the pipe. The s
 ``fusion``
     Along the axis, ICP's correction is weighed against the odometer by ICP's information
     along the axis (the Hessian, less what a smooth wall fakes) and the odometer's stated
-    uncertainty; a window of travel catches slides. About the axis, roll is held where the
-    Hessian is degenerate, at an attitude turned to agree with the IMU's gravity.
+    uncertainty; a window of travel catches slides, and the odometer's slips it caught are
+    allowed for where it was alone (:func:`unseen_slip_allowance`). About the axis, roll is
+    held where the Hessian is degenerate, at an attitude turned to agree with the IMU's
+    gravity.
 ``registrar``
     :class:`FrameRegistrar` and :func:`register_frames`: the streaming loop.
 ``trajectory``
@@ -34,10 +36,12 @@ from pipescan.core.registration.engines import LocalMap, icp_point_to_point, kab
 from pipescan.core.registration.fusion import (
     AxialFilter,
     SlideDetector,
+    SlipLog,
     axial_information,
     degenerate_directions,
     gravity_corrected,
     point_to_plane_hessian,
+    unseen_slip_allowance,
 )
 from pipescan.core.registration.metrics import (
     RegistrationEvidence,
@@ -83,6 +87,7 @@ __all__ = [
     "RegistrationMethod",
     "RegistrationParams",
     "SlideDetector",
+    "SlipLog",
     "Trajectory",
     "TrajectoryErrors",
     "axial_information",
@@ -105,5 +110,6 @@ __all__ = [
     "slide_spans",
     "trajectory_errors",
     "transform",
+    "unseen_slip_allowance",
     "voxel_downsample",
 ]

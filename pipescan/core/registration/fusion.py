@@ -19,6 +19,10 @@ Slides
     slid (a fault, not a measurement): the frame goes back to the odometer and the map is
     restarted. If ICP carried the weight throughout (features in view), the odometer slipped
     (the crawler stuck on debris, or sliding) and ICP stands (:class:`SlideDetector`).
+Unseen slips
+    Where the frames were held to the odometer, a slip leaves no trace. The slips seen where
+    features were in view tell how often and how far this odometer slips; the chainage
+    uncertainty allows for as many there (:func:`unseen_slip_allowance`).
 About the axis
     Roll is held where the Hessian is degenerate (rotation-dominated eigenvectors below
     ``degeneracy_ratio`` of the largest), at the previous attitude turned to agree with the
@@ -28,6 +32,7 @@ About the axis
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
 
@@ -299,6 +304,117 @@ class AxialFilter:
     def widen(self, by_m: float) -> None:
         """Add ``by_m`` to the chainage uncertainty (a disagreement nobody could resolve)."""
         self._widened_m += abs(by_m)
+
+
+class SlipLog:
+    """The odometer's slips caught against features, one size per slip.
+
+    A slip is caught as soon as its slide window disagrees beyond the odometer's error
+    (:class:`SlideDetector`), usually before it ends: a crawler stuck for two seconds is
+    caught a third of the way in, and caught again once the window has refilled if it is
+    still stuck. A slip's size is how far the registered and the odometer's travel drift
+    apart from the start of the window that first caught it, at most, until two windows of
+    odometer travel pass without a catch. A slide (ICP's fault, put back on the odometer)
+    ends the slip being followed.
+    """
+
+    def __init__(self, window_m: float) -> None:
+        self.window_m = window_m
+        self._closed: list[float] = []
+        self._open: tuple[float, float, float] | None = None  # (start gap, size, last catch)
+
+    def add(self, odometer_m: float, along_m: float, caught_m: float | None, slide: bool) -> None:
+        """One frame: its odometer reading and registered position along the axis (m);
+        ``caught_m`` the window's disagreement when the frame caught a slip, ``slide`` when
+        it caught a slide instead."""
+        gap = along_m - odometer_m
+        if slide:
+            self._close()
+            return
+        if caught_m is not None:
+            if self._open is None:
+                self._open = (gap - caught_m, 0.0, odometer_m)
+            else:
+                self._open = (self._open[0], self._open[1], odometer_m)
+        if self._open is not None:
+            start, size, last = self._open
+            self._open = (start, max(size, abs(gap - start)), last)
+            if abs(odometer_m - last) > 2.0 * self.window_m:
+                self._close()
+
+    def _close(self) -> None:
+        if self._open is not None:
+            self._closed.append(self._open[1])
+            self._open = None
+
+    @property
+    def sizes_m(self) -> tuple[float, ...]:
+        """The slips so far (the one being followed included), m."""
+        return (*self._closed, *(() if self._open is None else (self._open[1],)))
+
+
+def unseen_slip_allowance(
+    steps_m: np.ndarray, held: np.ndarray, slips_m: Sequence[float], window_m: float
+) -> np.ndarray:
+    """What the odometer may have slipped unseen by each frame, (F,) m, for the chainage
+    uncertainty.
+
+    An odometer slips wherever the crawler does (stuck on debris while the count runs on,
+    sliding on a slimy invert while it stands), by more than its stated scale error covers.
+    Registration catches a slip only where features carry its slide window
+    (:class:`SlideDetector`). Where the frames were held to the odometer (``held``: ICP's
+    along-axis weight below one half) a slip leaves no trace: over stretches held for at
+    least a slide window, counting a stretch of features shorter than a window as held (a
+    window over it is mostly held, and a disagreement there is taken for a slide).
+
+    The run's own caught slips tell how this odometer slips in this pipe: how often
+    (``rate``, the slips caught per metre of the whole run: a floor, since the held stretches
+    hid theirs; per metre where they could be caught would be a ceiling, and a wild one when
+    that is a few decimetres) and by how much at most (``largest``). After ``L`` metres held
+    in all, as many slips as that rate expects may have hidden there, rounded up and at least
+    one from the first held frame on: ``max(1, ⌈rate · L⌉)``, each by as much as ``largest``
+    and of either sign (so they add up: the allowance is a bound, like the rest of the
+    chainage uncertainty).
+
+    A run whose odometer was never caught slipping (or that saw no feature at all) gets
+    nothing: nothing in it says the odometer slips, and its stated scale error stands alone.
+
+    Parameters
+    ----------
+    steps_m : (F,) float
+        Each frame's travel from the previous one (0 for the first).
+    held : (F,) bool
+        Frames held to the odometer.
+    slips_m : sequence of float
+        Sizes of the slips caught, one per slip.
+    window_m : float
+        The slide window's travel.
+    """
+    steps = np.asarray(steps_m, dtype=float)
+    held = np.asarray(held, dtype=bool)
+    allowance = np.zeros(len(steps))
+    if not len(slips_m):
+        return allowance
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], held.astype(np.int8), [0]))))
+    runs: list[list[int]] = []
+    for a, b in zip(edges[::2], edges[1::2], strict=True):
+        if runs and steps[runs[-1][1] : a].sum() < window_m:
+            runs[-1][1] = b  # features for less than a window between: one stretch
+        else:
+            runs.append([a, b])
+    stretches = [(a, b) for a, b in runs if steps[a:b].sum() >= window_m]
+    if not stretches or held.all():
+        return allowance
+    rate = len(slips_m) / float(steps.sum())
+    largest = float(max(slips_m))
+    before_m, done = 0.0, 0
+    for a, b in stretches:
+        allowance[done:a] = largest * np.ceil(rate * before_m)
+        held_by_m = before_m + np.cumsum(steps[a:b])
+        allowance[a:b] = largest * np.maximum(1.0, np.ceil(rate * held_by_m))
+        before_m, done = float(held_by_m[-1]), b
+    allowance[done:] = largest * max(1.0, np.ceil(rate * before_m))
+    return allowance
 
 
 @dataclass

@@ -14,6 +14,7 @@ from pipescan.core.registration.fusion import (
     AxialFilter,
     Fault,
     SlideDetector,
+    SlipLog,
     axial_information,
     degenerate_directions,
     from_small_motion,
@@ -64,6 +65,7 @@ class FrameRegistrar:
         self._down_world: np.ndarray | None = None
         self.slid: list[tuple[int, int]] = []
         """Runs of frames (first, last, counted from 0) that slid along the axis."""
+        self._slips = SlipLog(params.slide_window_m)
         self.odometer_frames = 0
         self.count = 0
 
@@ -268,6 +270,9 @@ class FrameRegistrar:
         along = float(T[:3, 3] @ self._axis_world)
         fault: Fault | None
         fault, disagreement = self._slides.add(odometer_m, along, w, self._axial.last_icp_var)
+        self._slips.add(
+            odometer_m, along, disagreement if fault == "odometer_slip" else None, fault == "slide"
+        )
         if fault is None:
             return T, quality
         if fault == "slide":
@@ -288,6 +293,11 @@ class FrameRegistrar:
         idx, dist = self._map.nearest(transform(T, pts))
         ok = (idx >= 0) & (dist <= self.params.max_correspondence_m)
         return np.flatnonzero(ok), idx[ok]
+
+    @property
+    def odometer_slips_m(self) -> tuple[float, ...]:
+        """Sizes of the odometer slips caught against features so far, one per slip (m)."""
+        return self._slips.sizes_m
 
     @property
     def along_axis_prior(self) -> AlongAxisPrior:
@@ -364,4 +374,11 @@ def register_frames(
         for k in range(max(first, 1), last + 1):
             if quality[k].fault is None:
                 quality[k] = dataclasses.replace(quality[k], fault="slide")
-    return Trajectory(np.asarray(poses), tuple(quality), tuple(indices), reg.along_axis_prior)
+    return Trajectory(
+        np.asarray(poses),
+        tuple(quality),
+        tuple(indices),
+        reg.along_axis_prior,
+        odometer_slips_m=reg.odometer_slips_m,
+        slip_window_m=params.slide_window_m,
+    )

@@ -11,6 +11,7 @@ import numpy as np
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
 from pipescan.core.registration.engines import transform
+from pipescan.core.registration.fusion import unseen_slip_allowance
 from pipescan.core.registration.params import AlongAxisPrior
 
 
@@ -33,12 +34,21 @@ class Trajectory:
         What held degenerate frames: the odometer, or without one a constant-velocity
         extrapolation (which is not a measurement: such frames were *not* registered along
         the axis), or a mix when only some frames had an odometer reading.
+    odometer_slips_m : tuple of float
+        Sizes (m) of the odometer slips registration saw against features in view, one per
+        slip; they tell how the odometer slips where nothing could see it
+        (:func:`~pipescan.core.registration.fusion.unseen_slip_allowance`).
+    slip_window_m : float
+        The travel over which registration compared itself with the odometer (a stretch held
+        to the odometer for less than this could not hide a slip).
     """
 
     T_world_frame: np.ndarray
     quality: tuple[FrameQuality, ...]
     frame_indices: tuple[int, ...]
     along_axis_prior: AlongAxisPrior = "odometer"
+    odometer_slips_m: tuple[float, ...] = ()
+    slip_window_m: float = 0.5
 
     def positions_m(self) -> np.ndarray:
         """Sensor positions in the world frame, (F, 3)."""
@@ -68,7 +78,9 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
 
     Chunk k's first frame is chunk k−1's last; its poses are re-expressed in the world frame
     of chunk 0: ``T_world_frame = T_world_shared @ T_chunk_frame``. Chainage uncertainties
-    add up: chunk k's start where chunk k−1 ended.
+    add up: chunk k's start where chunk k−1 ended. Once the whole run is known, the slips the
+    odometer made where features were in view are allowed for wherever it was alone
+    (:func:`~pipescan.core.registration.fusion.unseen_slip_allowance`): chain a run once.
     """
     if not chunks:
         raise RegistrationError("no chunks to chain")
@@ -90,7 +102,20 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
         indices.extend(chunk.frame_indices[1:])
     priors = {c.along_axis_prior for c in chunks}
     prior: AlongAxisPrior = priors.pop() if len(priors) == 1 else "mixed"
-    return Trajectory(np.concatenate(poses), tuple(quality), tuple(indices), prior)
+    T = np.concatenate(poses)
+    slips = tuple(s for c in chunks for s in c.odometer_slips_m)
+    window = max(c.slip_window_m for c in chunks)
+    steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0, prepend=T[:1, :3, 3]), axis=1)
+    allowance = unseen_slip_allowance(
+        steps, np.array([q.degenerate for q in quality], dtype=bool), slips, window
+    )
+    quality = [
+        dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
+        if a > 0
+        else q
+        for q, a in zip(quality, allowance, strict=True)
+    ]
+    return Trajectory(T, tuple(quality), tuple(indices), prior, slips, window)
 
 
 def iter_registered_points(
