@@ -224,6 +224,11 @@ def _run_one(
             profile_dir.mkdir(parents=True, exist_ok=True)
             raw = profile_dir / f"{archive.name}.txt"
             py_spy = str(Path(sys.executable).with_name("py-spy"))
+            if not Path(py_spy).is_file():
+                raise SystemExit(
+                    f"--profile needs py-spy beside {sys.executable}: "
+                    "pip install -e '.[bench]' (or pip install py-spy)"
+                )
             options = ["record", "--subprocesses", "--rate", "100", "--format", "raw"]
             cmd = [py_spy, *options, "--output", str(raw), "--", *cmd]
         started = time.perf_counter()

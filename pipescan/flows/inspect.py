@@ -30,6 +30,7 @@ from pipescan.core.summary import peak_blockage
 from pipescan.core.water import explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
+from pipescan.flows.runners import engine_threads
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
@@ -188,9 +189,11 @@ def inspect_archive(
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
             log.info(f"registering {staged.frame_count} frames in {len(chunks)} chunks")
+            # How the work is split, not the figures: kept out of the stored parameters.
+            registering = replace(params.registration, num_threads=engine_threads())
             futures = [
                 register_chunk.submit(
-                    staged, a, b, params.registration, frame_store, params.max_section_range_m
+                    staged, a, b, registering, frame_store, params.max_section_range_m
                 )
                 for a, b in chunks
             ]

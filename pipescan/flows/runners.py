@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import os
+
+from prefect.context import FlowRunContext
 from prefect.task_runners import ProcessPoolTaskRunner, TaskRunner, ThreadPoolTaskRunner
 
 RUNNER_KINDS = ("threads", "processes", "dask")
@@ -15,7 +18,9 @@ def make_task_runner(
     Parameters
     ----------
     kind
-        ``threads`` (default; Open3D and NumPy release the GIL in their heavy loops),
+        ``threads`` (default; NumPy and Open3D release the GIL in their heavy loops;
+        small_gicp does not, so registration's own calls use the pool's cores instead:
+        :func:`engine_threads`),
         ``processes`` (spawned workers: true parallelism, a few seconds to start) or ``dask``
         (the tasks run on the Dask cluster whose scheduler is at ``dask_address``).
     workers
@@ -44,3 +49,20 @@ def make_task_runner(
     if kind == "threads":
         return ThreadPoolTaskRunner(max_workers=workers)
     raise ValueError(f"unknown task runner {kind!r}: use one of {', '.join(RUNNER_KINDS)}")
+
+
+def engine_threads() -> int:
+    """Threads a native engine may use within one task of the running flow.
+
+    small_gicp holds the GIL for the whole of each call (two threads registering one chunk
+    each took as long as one thread registering both, measured on this project's 2-core
+    machine), so on a thread pool two chunks never register at the same time: each call
+    then uses as many threads as the pool has workers, at most the machine's cores. Under a
+    process pool or Dask every task has its own interpreter and core: 1.
+    """
+    context = FlowRunContext.get()
+    runner = context.task_runner if context is not None else None
+    if not isinstance(runner, ThreadPoolTaskRunner):
+        return 1
+    workers = getattr(runner, "_max_workers", 1) or 1
+    return max(1, min(int(workers), os.cpu_count() or 1))

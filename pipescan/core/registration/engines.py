@@ -187,7 +187,8 @@ def _align_small_gicp(m: LocalMap, source: np.ndarray, init: np.ndarray) -> np.n
     sg, p = m._sg, m.params
     cloud = sg.PointCloud(source)
     if p.method == "gicp":
-        sg.estimate_covariances(cloud, sg.KdTree(cloud), NORMAL_NEIGHBOURS, p.num_threads)
+        tree = sg.KdTree(cloud, num_threads=p.num_threads)
+        sg.estimate_covariances(cloud, tree, NORMAL_NEIGHBOURS, p.num_threads)
     result = sg.align(
         m.sg_cloud,
         cloud,

@@ -68,7 +68,9 @@ class RegistrationParams:
         uses ``voxel_m``.
     num_threads : int
         Threads the engine may use for one frame. 1 by default: parallelism comes from
-        registering chunks of frames in parallel.
+        registering chunks of frames in parallel, in processes. On a thread pool, small_gicp
+        (which holds the GIL) registers one chunk at a time, and the inspect flow gives each
+        call the pool's cores instead (:func:`pipescan.flows.runners.engine_threads`).
 
     Raises
     ------
