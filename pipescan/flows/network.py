@@ -24,6 +24,7 @@ from pathlib import Path
 from urllib.parse import urlsplit
 
 from prefect import flow, get_run_logger, tags, task
+from prefect.cache_policies import NO_CACHE
 from prefect.futures import as_completed
 from prefect.runtime import flow_run
 from prefect.settings import PREFECT_API_URL, temporary_settings
@@ -281,7 +282,7 @@ def _write_network_report(
 # --- the per-archive task and the flow --------------------------------------------------------
 
 
-@task(name="archive")
+@task(name="archive", cache_policy=NO_CACHE)
 def inspect_one_archive(
     archive: str,
     label: str,

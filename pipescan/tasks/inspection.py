@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 from prefect import task
+from prefect.cache_policies import NO_CACHE
 
 from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
 from pipescan.core.coding import code_sections
@@ -92,7 +93,7 @@ def _crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
     return points_m[np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2]
 
 
-@task(name="register-chunk")
+@task(name="register-chunk", cache_policy=NO_CACHE)
 def register_chunk(
     staged: StagedArchive,
     first: int,
@@ -152,7 +153,7 @@ def _stored_frames(
             yield from frame_store.iter_frames(first, mine)
 
 
-@task(name="fit-axis")
+@task(name="fit-axis", cache_policy=NO_CACHE)
 def fit_pipe_axis(
     staged: StagedArchive,
     trajectory: Trajectory | None,
@@ -219,7 +220,7 @@ def fit_pipe_axis(
     )
 
 
-@task(name="bucket-points", **IO_RETRY_OPTIONS)
+@task(name="bucket-points", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def bucket_points(
     staged: StagedArchive,
     trajectory: Trajectory | None,
@@ -255,7 +256,7 @@ def bucket_points(
     return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
 
 
-@task(name="measure-window", **IO_RETRY_OPTIONS)
+@task(name="measure-window", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def measure_sections(
     bucket_root: Path,
     window: ChainageWindow,
@@ -290,7 +291,7 @@ class GradeResult:
     pipe_class_reason: str
 
 
-@task(name="grade")
+@task(name="grade", cache_policy=NO_CACHE)
 def grade(
     sections: list[SectionMeasures],
     table_name: str,

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import PurePosixPath
 
 from prefect import task
+from prefect.cache_policies import NO_CACHE
 
 from pipescan.core.errors import (
     PipescanError,
@@ -132,7 +133,7 @@ def find_archives(store: str) -> list[str]:
     return [fs.unstrip_protocol(p) for p in found]
 
 
-@task(name="discover-archives", **IO_RETRY_OPTIONS)
+@task(name="discover-archives", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def discover_archives(store: str) -> list[str]:
     """List the scan archives of a store (see :func:`find_archives`)."""
     return find_archives(store)
@@ -165,7 +166,7 @@ def stored_inspection_id(
         engine.dispose()
 
 
-@task(name="find-stored-inspection", **IO_RETRY_OPTIONS)
+@task(name="find-stored-inspection", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def find_stored_inspection(
     database_url: str, asset_id: str, content_hash: str, params_hash: str
 ) -> int | None:
@@ -173,7 +174,7 @@ def find_stored_inspection(
     return stored_inspection_id(database_url, asset_id, content_hash, params_hash)
 
 
-@task(name="load-stored-inspection", **IO_RETRY_OPTIONS)
+@task(name="load-stored-inspection", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def load_stored_inspection(database_url: str, inspection_id: int) -> StoredInspection:
     """Read a stored inspection with its sections and defects."""
     engine = connect(database_url)

@@ -7,6 +7,7 @@ from datetime import UTC, datetime
 from pathlib import Path
 
 from prefect import task
+from prefect.cache_policies import NO_CACHE
 
 import pipescan
 from pipescan.core.grading import load_table, worst_defect
@@ -180,7 +181,7 @@ def load_network_input(
     )
 
 
-@task(name="render-report", **IO_RETRY_OPTIONS)
+@task(name="render-report", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def render_report(database_url: str, inspection_id: int, out_path: Path) -> Path:
     """Render one inspection's PDF condition report from the database."""
     return render_pdf(load_report_input(database_url, inspection_id), out_path)

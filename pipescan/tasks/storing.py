@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from prefect import task
+from prefect.cache_policies import NO_CACHE
 
 from pipescan.storage.database.db import connect
 from pipescan.storage.database.repository import InspectionToSave, save_inspection
@@ -14,7 +15,7 @@ from pipescan.tasks.inspection import StagedArchive
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 
-@task(name="stage-archive", **IO_RETRY_OPTIONS)
+@task(name="stage-archive", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def stage_archive(
     archive: str, run_dir: Path, limits: InputLimits = DEFAULT_LIMITS
 ) -> StagedArchive:
@@ -40,7 +41,7 @@ def stage_archive(
         )
 
 
-@task(name="save-results", **IO_RETRY_OPTIONS)
+@task(name="save-results", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
 def save_results(database_url: str, inspection: InspectionToSave) -> int:
     """Write the inspection and all its rows in one transaction; returns its id."""
     engine = connect(database_url)
