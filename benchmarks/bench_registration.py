@@ -389,6 +389,17 @@ def bench_parallel(args) -> None:
             wall, cpu = time.perf_counter(), _cpu_s()
             threaded = list(pool.map(lambda c: _register_chunk_in_worker(root, *c, params), chunks))
             rows["2 threads"] = (time.perf_counter() - wall, _cpu_s() - cpu)
+            # What the inspect flow does on its thread pool (small_gicp holds the GIL, so each
+            # call gets the pool's cores instead): pipescan.flows.runners.engine_threads.
+            two = dataclasses.replace(params, num_threads=2)
+            wall, cpu = time.perf_counter(), _cpu_s()
+            threaded_two = list(
+                pool.map(lambda c: _register_chunk_in_worker(root, *c, two), chunks)
+            )
+            rows["2 threads, small_gicp num_threads=2 (the flow)"] = (
+                time.perf_counter() - wall,
+                _cpu_s() - cpu,
+            )
         cpu = _cpu_s()
         with ProcessPoolExecutor(2) as pool:
             started = time.perf_counter()
@@ -414,7 +425,7 @@ def bench_parallel(args) -> None:
         whole = register_frames((f.index, f.points_sensor, f.odometer_m) for f in scan.frames())
         parts_by = (
             ("serial", serial), ("num_threads=2", one_two), ("threads", threaded),
-            ("processes", processed),
+            ("threads, num_threads=2", threaded_two), ("processes", processed),
         )  # fmt: skip
         for name, parts in parts_by:
             e = trajectory_errors(chain_trajectories(parts).T_world_frame, scan.T_world_sensor)
