@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -46,3 +47,30 @@ def test_help_lists_the_registered_contour_methods(tmp_path):
     result = run_cli(["inspect", "--help"], tmp_path, COLUMNS="200")
     assert result.returncode == 0
     assert " or ".join(CONTOUR_METHODS) in result.stdout
+
+
+def test_the_summary_says_the_odometer_slipped_and_where_that_widened_the_chainage(capsys):
+    from pipescan.cli.scan import _print_summary
+    from pipescan.flows.inspect import InspectionSummary
+
+    reg = {
+        "engine": "small_gicp gicp", "mean_fitness": 0.99, "mean_rmse_m": 0.007, "frames": 300,
+        "degenerate_frames": 120, "slides": 0, "chainage_uncertainty_m": 0.62,
+        "odometer_slips_caught_m": [0.21, 0.4384],
+    }  # fmt: skip
+    summary = InspectionSummary(
+        1, "A", "2024-05-14", "scan", 300, 10, 4.0, 40, 30, 0, None, None, {}, reg, None, None, 1.0
+    )
+    _print_summary(summary)
+    out = capsys.readouterr().out
+    assert "chainage within ±62.0 cm at the end" in out
+    assert (
+        "the odometer slipped twice where features were in view (up to 44 cm); the ± above "
+        "allows for as many where it was alone"
+    ) in out
+    # Where no frame rested on the odometer there is nothing to allow for.
+    _print_summary(dataclasses.replace(summary, registration=reg | {"degenerate_frames": 0}))
+    out = capsys.readouterr().out
+    assert "(up to 44 cm)\n" in out and "allows for" not in out
+    _print_summary(dataclasses.replace(summary, registration=reg | {"odometer_slips_caught_m": []}))
+    assert "slipped" not in capsys.readouterr().out

@@ -197,6 +197,8 @@ def test_features_override_an_odometer_that_slipped():
     # Each slip is kept, once, by its size: they tell how this odometer slips.
     assert 1 <= len(traj.odometer_slips_m) <= sum(q.fault == "odometer_slip" for q in traj.quality)
     assert max(traj.odometer_slips_m) > 0.03
+    summary = registration_summary(traj, RegistrationParams())
+    assert summary["odometer_slips_caught_m"] == [round(m, 4) for m in traj.odometer_slips_m]
 
 
 def test_featureless_pipe_without_odometer_says_where_it_could_not(clean_scan):

@@ -309,6 +309,15 @@ def _print_summary(summary) -> None:
         if reg.get("chainage_uncertainty_m") is not None:
             line += f"; chainage within ±{100 * reg['chainage_uncertainty_m']:.1f} cm at the end"
         typer.echo(line)
+        if slips := reg.get("odometer_slips_caught_m"):
+            times = {1: "once", 2: "twice"}.get(len(slips), f"{len(slips)} times")
+            line = (
+                f"  the odometer slipped {times} where features were in view "
+                f"(up to {100 * max(slips):.0f} cm)"
+            )
+            if reg["degenerate_frames"]:
+                line += "; the ± above allows for as many where it was alone"
+            typer.echo(line)
         if reg.get("warning"):
             typer.secho(f"  warning: {reg['warning']}", fg=typer.colors.YELLOW)
     if summary.report_path:

@@ -49,7 +49,9 @@ def registration_summary(
     ``warning`` says so. ``travel_m`` is the registered travel (first to last position);
     ``odometer_travel_m`` the odometer's (when ``odometer_m``, its first and last readings,
     is given). ``chainage_uncertainty_m`` bounds the last frame's along-axis position.
-    ``slides`` and ``odometer_slips`` count the faults found over the slide window.
+    ``slides`` and ``odometer_slips`` count the faults found over the slide window;
+    ``odometer_slips_caught_m`` sizes each slip caught (what the chainage uncertainty allows
+    for where the odometer was alone).
     """
     q = trajectory.quality[1:] or trajectory.quality
     positions = trajectory.positions_m()
@@ -81,6 +83,7 @@ def registration_summary(
         ),
         "slides": sum(x.fault == "slide" for x in q),
         "odometer_slips": sum(x.fault == "odometer_slip" for x in q),
+        "odometer_slips_caught_m": [round(float(m), 4) for m in trajectory.odometer_slips_m],
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
     }
     if odometer_m is not None and None not in odometer_m:
