@@ -608,3 +608,21 @@ def test_network_report_from_the_database(report_db, tmp_path):
     assert "MH1042-MH1043" not in later and "MH7-MH8" not in later  # both from 2025-03-14
     with pytest.raises(StorageError, match="no inspection with id 999"):
         render_network_report(url, tmp_path / "bad.pdf", inspection_ids=[999])
+
+
+def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_allows_for_it():
+    from pipescan.reports.context import _registration_only_rows
+
+    inp = make_input()
+    reg = inp.registration | {
+        "chainage_uncertainty_m": 0.62,
+        "odometer_slips_caught_m": [0.21, 0.44],
+    }
+    rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=reg)))
+    assert plain(rows["chainage uncertainty"]).startswith("up to ±0.62 m at the end")
+    assert "possible slips" in rows["chainage uncertainty"]
+    assert plain(rows["odometer slips caught"]) == (
+        "2 with features in view, up to 0.44 m; allowed for where it was alone"
+    )
+    # An odometer never caught slipping: no such row.
+    assert "odometer slips caught" not in dict(_registration_only_rows(inp))

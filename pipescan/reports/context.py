@@ -423,7 +423,17 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
         rows.append(
             (
                 "chainage uncertainty",
-                f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel)",
+                f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel and its "
+                "possible slips)",
+            )
+        )
+    caught = reg.get("odometer_slips_caught_m")
+    if caught:
+        allowed = "; allowed for where it was alone" if degenerate else ""
+        rows.append(
+            (
+                "odometer slips caught",
+                f"{len(caught)} with features in view, up to {fmt_m(max(caught))}{allowed}",
             )
         )
     slides = reg.get("slides")
