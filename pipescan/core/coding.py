@@ -918,30 +918,24 @@ def _deformation_feature(
     perimeter = math.pi * (a + b) * (1 + 3 * h / (10 + math.sqrt(4 - 3 * h)))
     kept = abs(perimeter / (2 * math.pi * nominal_r) - 1.0)
     tol = p.deformation_axis_tol_deg
+
+    def unclassified(rule: str) -> WallFeature:
+        return WallFeature(
+            UNCLASSIFIED, None, None, 0.0, 2.0 * amplitude, measure="deformation_ratio", rule=rule
+        )
+
     if min(major_deg, 180.0 - major_deg) <= tol:
         characterisation, words = "A", "vertical"  # long axis across: squeezed from above
     elif abs(major_deg - 90.0) <= tol:
         characterisation, words = "B", "horizontal"
     else:
-        return WallFeature(
-            UNCLASSIFIED,
-            None,
-            None,
-            0.0,
-            2.0 * amplitude,
-            measure="deformation_ratio",
-            rule=f"the wall is elliptical with its long axis at {major_deg:.0f}°: not vertical "
-            "or horizontal",
+        return unclassified(
+            f"the wall is elliptical with its long axis at {major_deg:.0f}°: not vertical "
+            "or horizontal"
         )
     if kept > p.perimeter_tol_ratio:
-        return WallFeature(
-            UNCLASSIFIED,
-            None,
-            None,
-            0.0,
-            2.0 * amplitude,
-            measure="deformation_ratio",
-            rule=f"the wall is elliptical but its perimeter is {100 * kept:.0f} % off the nominal",
+        return unclassified(
+            f"the wall is elliptical but its perimeter is {100 * kept:.0f} % off the nominal"
         )
     return WallFeature(
         BAA,
