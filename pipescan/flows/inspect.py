@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 from prefect import flow
+from prefect.utilities.annotations import quote
 
 import pipescan
 from pipescan.core.grading import choose_grading, is_flagged
@@ -189,11 +190,15 @@ def inspect_archive(
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
             log.info(f"registering {staged.frame_count} frames in {len(chunks)} chunks")
+            # Large arguments without futures in them (the staged archive's frame list, the
+            # trajectory, the axis, the windows, the evidence) are quoted: Prefect would
+            # otherwise walk every element of them for every task, under the GIL (10 % of a
+            # 30 m run's busy samples, measured with py-spy).
             # How the work is split, not the figures: kept out of the stored parameters.
             registering = replace(params.registration, num_threads=engine_threads())
             futures = [
                 register_chunk.submit(
-                    staged, a, b, registering, frame_store, params.max_section_range_m
+                    quote(staged), a, b, registering, frame_store, params.max_section_range_m
                 )
                 for a, b in chunks
             ]
@@ -201,8 +206,8 @@ def inspect_archive(
             log.info(f"registered {staged.frame_count} frames")
 
         fit = fit_pipe_axis(
-            staged,
-            trajectory,
+            quote(staged),
+            quote(trajectory),
             max_range_m=params.max_section_range_m,
             frame_store=frame_store,
             chunks=chunks,
@@ -251,22 +256,22 @@ def inspect_archive(
             window_futures[w] = measure_sections.submit(
                 bucket_root,
                 windows[w],
-                fit.axis,
+                quote(fit.axis),
                 meta.nominal_diameter_m,
                 params.measure,
-                evidence,
+                quote(evidence),
                 wait_for=after,
             )
 
         for k, (a, b) in enumerate(spans):
             bucket_futures.append(
                 bucket_points.submit(
-                    staged,
-                    trajectory,
+                    quote(staged),
+                    quote(trajectory),
                     a,
                     b,
-                    fit.axis,
-                    windows,
+                    quote(fit.axis),
+                    quote(windows),
                     bucket_root,
                     params.max_section_range_m,
                     frame_store,
