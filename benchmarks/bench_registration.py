@@ -5,6 +5,7 @@
     python benchmarks/bench_registration.py sections    # defect chainages, blockage est vs true
     python benchmarks/bench_registration.py parallel    # register_chunk in 1 vs 2 threads/procs
     python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
+    python benchmarks/bench_registration.py converge    # ICP stopping thresholds, short draws
     python benchmarks/bench_registration.py all
 
 Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
@@ -578,6 +579,96 @@ def bench_sweep(args) -> None:
     print(f"dishonest ok sections over all draws: {total_dishonest}")
 
 
+# --------------------------------------------------------------------------- convergence
+
+
+def _converge_draw(job: tuple[str, float, float]) -> tuple[str, str, dict]:
+    """One draw registered and measured in memory (the flow's stages without Prefect) with
+    ICP stopping at the given rotation and translation steps; its row and its figures."""
+    from pipescan.core.registration import trajectory_errors
+    from pipescan.simulator.sweep import (
+        TrueBlockage,
+        measure_scan,
+        score_sections,
+        stretches_worse_than_odometer,
+        sweep_draws,
+    )
+
+    name, rotation_rad, translation_m = job
+    draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
+    scan = simulate_scan(draw.scenario, draw.seed)
+    params = RegistrationParams(
+        converged_rotation_rad=rotation_rad, converged_translation_m=translation_m
+    )
+    started = time.process_time()
+    trajectory, sections = measure_scan(scan, params=params)
+    cpu_s = time.process_time() - started
+    score = score_sections(sections, TrueBlockage(scan))
+    errors = trajectory_errors(
+        trajectory.T_world_frame, scan.T_world_sensor[list(trajectory.frame_indices)]
+    )
+    worse, stretches = stretches_worse_than_odometer(trajectory, scan)
+    frames = len(trajectory.frame_indices)
+    row = (
+        f"| {rotation_rad:g} rad, {translation_m:g} m | {name} | {frames} | "
+        f"{1000 * errors.across_rms_m:.2f} | {errors.tilt_rms_deg:.3f} | {score.ok} | "
+        f"{score.mean_pp:.2f} | {score.max_pp:.2f} | {score.dishonest} | {worse}/{stretches} |"
+    )
+    return row, name, {
+        "frames": frames, "cpu_s": cpu_s, "worse": worse, "stretches": stretches,
+        "max_pp": score.max_pp, "mean_pp": score.mean_pp, "dishonest": score.dishonest,
+        "across_mm": 1000 * errors.across_rms_m,
+    }  # fmt: skip
+
+
+def bench_converge(args) -> None:
+    """The sweep's short draws registered with several ICP convergence thresholds, in memory,
+    two draws at a time: accuracy against the truth, and the CPU the whole of each draw's
+    in-memory chain took (registration is most of it)."""
+    from pipescan.simulator.sweep import sweep_draws
+
+    names = [d.name for d in sweep_draws(long_run=False)]
+    if args.only:
+        names = [n for n in names if any(o in n for o in args.only)]
+    settings = [tuple(float(x) for x in s.split(",")) for s in args.converged]
+    print(
+        f"{len(names)} draws × {len(settings)} settings; load average "
+        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. across/tilt: RMS pose error "
+        "against the truth; mean/max pp: ok sections away from defect edges; dishonest: ok "
+        "sections > 2 pp off within ±u; worse: 0.5 m stretches worse than the odometer by "
+        "> 1 cm.\n"
+    )
+    print(
+        "| ICP stops below | draw | frames | across rms mm | tilt rms ° | ok | mean pp | max pp"
+        " | dishonest | worse |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"
+    )
+    totals = []
+    with ProcessPoolExecutor(2) as pool:
+        for rotation_rad, translation_m in settings:
+            figures = []
+            jobs = [(n, rotation_rad, translation_m) for n in names]
+            for row, _, f in pool.map(_converge_draw, jobs):
+                print(row, flush=True)
+                figures.append(f)
+            totals.append(((rotation_rad, translation_m), figures))
+    print(
+        "\n| ICP stops below | CPU ms a frame (whole in-memory chain) | worse stretches | "
+        "max pp | largest mean pp | mean across mm | dishonest |\n"
+        "|---|---:|---:|---:|---:|---:|---:|"
+    )
+    for (rotation_rad, translation_m), figures in totals:
+        frames = sum(f["frames"] for f in figures)
+        print(
+            f"| {rotation_rad:g} rad, {translation_m:g} m | "
+            f"{1000 * sum(f['cpu_s'] for f in figures) / frames:.1f} | "
+            f"{sum(f['worse'] for f in figures)}/{sum(f['stretches'] for f in figures)} | "
+            f"{max(f['max_pp'] for f in figures):.2f} | "
+            f"{max(f['mean_pp'] for f in figures):.2f} | "
+            f"{np.mean([f['across_mm'] for f in figures]):.2f} | "
+            f"{sum(f['dishonest'] for f in figures)} |"
+        )
+
+
 # --------------------------------------------------------------------------- memory
 
 
@@ -645,6 +736,7 @@ def main() -> None:
             "parallel",
             "memory",
             "sweep",
+            "converge",
             "all",
             "memory-child",
         ],
@@ -652,6 +744,12 @@ def main() -> None:
     parser.add_argument("--random-draws", type=int, default=8, help="sweep: random draws")
     parser.add_argument("--no-long", action="store_true", help="sweep: leave the 30 m run out")
     parser.add_argument("--only", nargs="+", help="sweep: draws whose name contains one of these")
+    parser.add_argument(
+        "--converged",
+        nargs="+",
+        default=["1e-4,1e-4", "5e-4,5e-4", "1.745e-3,1e-3"],
+        help="converge: ICP stopping steps, ROTATION_RAD,TRANSLATION_M each",
+    )
     parser.add_argument("--travel-m", type=float, default=4.5, help="length of the paper scan")
     parser.add_argument("--frames", type=int, nargs="+", default=[100, 400], help="memory runs")
     parser.add_argument("--seed", type=int, default=3)
@@ -667,9 +765,10 @@ def main() -> None:
         "parallel": bench_parallel,
         "memory": bench_memory,
         "sweep": bench_sweep,
+        "converge": bench_converge,
     }
     for name, step in steps.items():
-        if args.what == name or (args.what == "all" and name != "sweep"):
+        if args.what == name or (args.what == "all" and name not in ("sweep", "converge")):
             print(f"\n## {name}\n", flush=True)
             step(args)
 

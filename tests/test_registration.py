@@ -314,6 +314,8 @@ def test_bad_parameters_are_clear_errors():
         RegistrationParams(method="gicp", engine="open3d")
     with pytest.raises(ValueError, match="voxel_m"):
         RegistrationParams(voxel_m=0.0)
+    with pytest.raises(ValueError, match="converged_translation_m"):
+        RegistrationParams(converged_translation_m=0.0)
     assert set(REGISTRATION_ENGINES) == {"small_gicp", "open3d", "open3d_tensor"}
     with pytest.raises(ValueError, match=r"\(N, 3\)"):
         register_frames(iter([(0, np.zeros((100, 2)), 0.0)]))
@@ -478,3 +480,22 @@ def test_a_slip_is_sized_from_the_window_that_caught_it_to_where_it_stopped():
     log.add(odometer + 0.02, odometer + gap, None, slide=True)  # a slide ends it
     log.add(odometer + 0.03, odometer + gap - 0.5, None, slide=False)
     assert log.sizes_m[1] == pytest.approx(0.06)
+
+
+def test_icp_stops_at_the_stated_convergence_steps():
+    """The stopping thresholds reach small_gicp: a step tolerance of 10 cm stops ICP after its
+    first step, which leaves frames away from where the default's iterations take them; a
+    tighter tolerance than the default changes them by a fraction of a millimetre."""
+    from pipescan.simulator.scan import get_scenario, simulate_scan
+
+    scan = simulate_scan(get_scenario("paper", travel_m=0.3), seed=1)
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+
+    def positions(**converged):
+        return register_frames(iter(frames), RegistrationParams(**converged)).positions_m()
+
+    default = positions()
+    tight = positions(converged_rotation_rad=1e-6, converged_translation_m=1e-6)
+    loose = positions(converged_rotation_rad=0.1, converged_translation_m=0.1)
+    assert np.abs(tight - default).max() < 1e-3
+    assert np.abs(loose - default).max() > 2 * np.abs(tight - default).max()

@@ -404,11 +404,12 @@ def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
     return worse, total
 
 
-def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5.0):
+def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5.0, params=None):
     """The inspect flow's stages on a simulated scan, in memory and without Prefect:
     registration in chunks (chained), the axis, each section's registration evidence, and
     the sections. For tests and studies of a scan small enough to hold in memory (the flow
-    buckets points on disk instead).
+    buckets points on disk instead). ``params``: the ``RegistrationParams`` to register with
+    (the defaults when None).
 
     Returns
     -------
@@ -416,6 +417,7 @@ def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5
     """
     from pipescan.core.axis import fit_axis
     from pipescan.core.registration import (
+        RegistrationParams,
         chain_trajectories,
         iter_registered_points,
         plan_chunks,
@@ -428,7 +430,7 @@ def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
     trajectory = chain_trajectories(
         [
-            register_frames(iter(frames[a : b + 1]))
+            register_frames(iter(frames[a : b + 1]), params or RegistrationParams())
             for a, b in plan_chunks(len(frames), chunk_frames)
         ]
     )

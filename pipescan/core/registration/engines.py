@@ -198,8 +198,8 @@ def _align_small_gicp(m: LocalMap, source: np.ndarray, init: np.ndarray) -> np.n
         max_correspondence_distance=p.max_correspondence_m,
         num_threads=p.num_threads,
         max_iterations=p.max_iterations,
-        rotation_epsilon=1e-4,
-        translation_epsilon=1e-4,
+        rotation_epsilon=p.converged_rotation_rad,
+        translation_epsilon=p.converged_translation_m,
     )
     return np.asarray(result.T_target_source)
 

@@ -66,6 +66,12 @@ class RegistrationParams:
     source_voxel_m : float, optional
         Voxel size of each frame, coarser than the map's: fewer points, faster ICP. ``None``
         uses ``voxel_m``.
+    converged_rotation_rad, converged_translation_m : float
+        small_gicp stops iterating once a step turns the frame by less than this and moves it
+        by less than that. 0.5 mrad (1 mm at 2 m) and 0.5 mm: a fraction of the across-axis
+        error the sweep measures with any setting (1-2 mm RMS); tighter, the last iterations
+        only creep along the axis, where the fusion weighs ICP by its information anyway
+        (swept: ``docs/registration.md``, *Convergence*).
     num_threads : int
         Threads the engine may use for one frame. 1 by default: parallelism comes from
         registering chunks of frames in parallel, in processes. On a thread pool, small_gicp
@@ -91,6 +97,8 @@ class RegistrationParams:
     odometer_noise_m: float = 0.001
     slide_window_m: float = 0.5
     source_voxel_m: float | None = 0.045
+    converged_rotation_rad: float = 5e-4
+    converged_translation_m: float = 5e-4
     num_threads: int = 1
 
     def __post_init__(self) -> None:
@@ -109,6 +117,7 @@ class RegistrationParams:
         positive = (
             "voxel_m", "max_range_m", "max_correspondence_m", "keyframe_distance_m",
             "odometer_scale_error_ratio", "odometer_noise_m", "slide_window_m",
+            "converged_rotation_rad", "converged_translation_m",
         )  # fmt: skip
         for name in positive:
             if not getattr(self, name) > 0:
