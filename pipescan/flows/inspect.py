@@ -190,12 +190,12 @@ def inspect_archive(
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
             log.info(f"registering {staged.frame_count} frames in {len(chunks)} chunks")
-            # Large arguments without futures in them (the staged archive's frame list, the
-            # trajectory, the axis, the windows, the evidence) are quoted: Prefect would
-            # otherwise walk every element of them for every task, under the GIL (10 % of a
-            # 30 m run's busy samples, measured with py-spy).
             # How the work is split, not the figures: kept out of the stored parameters.
             registering = replace(params.registration, num_threads=engine_threads())
+            # Large arguments without futures in them (the staged archive's frame list, here
+            # and below the trajectory, the axis, the windows, the evidence) are quoted:
+            # Prefect would otherwise walk every element of them for every task, under the
+            # GIL (10 % of a 30 m run's samples, measured with py-spy).
             futures = [
                 register_chunk.submit(
                     quote(staged), a, b, registering, frame_store, params.max_section_range_m

@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -30,6 +31,9 @@ from pipescan.simulator.scan import (
     EllipticalDeformation,
     Scenario,
 )
+
+if TYPE_CHECKING:
+    from pipescan.core.registration import RegistrationParams
 
 _DEPOSIT_PEAK_RATIO = 0.2851
 
@@ -404,7 +408,13 @@ def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
     return worse, total
 
 
-def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5.0, params=None):
+def measure_scan(
+    scan,
+    *,
+    chunk_frames: int = 60,
+    max_section_range_m: float = 5.0,
+    params: RegistrationParams | None = None,
+):
     """The inspect flow's stages on a simulated scan, in memory and without Prefect:
     registration in chunks (chained), the axis, each section's registration evidence, and
     the sections. For tests and studies of a scan small enough to hold in memory (the flow
@@ -427,10 +437,11 @@ def measure_scan(scan, *, chunk_frames: int = 60, max_section_range_m: float = 5
     from pipescan.core.sections import measure_window, plan_windows
     from pipescan.core.water import explain_invert_shadows
 
+    params = params or RegistrationParams()
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
     trajectory = chain_trajectories(
         [
-            register_frames(iter(frames[a : b + 1]), params or RegistrationParams())
+            register_frames(iter(frames[a : b + 1]), params)
             for a, b in plan_chunks(len(frames), chunk_frames)
         ]
     )
