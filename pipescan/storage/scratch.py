@@ -27,7 +27,7 @@ import os
 import shutil
 import socket
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -278,20 +278,31 @@ class Bucketed:
     windows_mm: tuple[int, ...] = ()
 
 
+PLACE_BLOCK_ROWS = 262_144
+"""Points placed at a time. Placing along a bent axis holds about ten temporary arrays the size
+of what is placed (float64, three columns): 60 MB for a block of this size, against 330 MB for
+a whole chunk of 60 frames of 23,000 points, and 1 GB for a slice of a registered cloud."""
+
+
 def write_buckets(
-    points_world_m: np.ndarray,
+    points_world_m: np.ndarray | Iterable[np.ndarray],
     axis: PipeAxis,
     windows: Sequence[ChainageWindow],
     bucket_root: Path,
     tag: str,
 ) -> Bucketed:
-    """Split registered points by chainage window and write one file per window, in section
-    coordinates (see :func:`read_window_rows`).
+    """Split registered points by chainage window and write them to the windows' files, in
+    section coordinates (see :func:`read_window_rows`).
+
+    Points are placed a block of :data:`PLACE_BLOCK_ROWS` at a time, so that what this holds
+    is bounded by the block, not by the chunk or the cloud; each block writes one file per
+    window it reaches, named so that a window's files sort in the order the points came.
 
     Parameters
     ----------
-    points_world_m : (N, 3) float
-        Registered points, world frame, metres.
+    points_world_m : (N, 3) float, or an iterable of them
+        Registered points, world frame, metres: one array, or consecutive arrays (a chunk's
+        frames, in order), placed without first joining them all.
     axis : PipeAxis
     windows : sequence of ChainageWindow
         Consecutive windows; points outside all of them are dropped.
@@ -305,8 +316,43 @@ def write_buckets(
     Bucketed
         Points written, and the windows they went to.
     """
-    if len(points_world_m) == 0 or not windows:
+    if not windows:
         return Bucketed()
+    written, into = 0, set()
+    for k, block in enumerate(_blocks(points_world_m, PLACE_BLOCK_ROWS)):
+        n, reached = _write_block(block, axis, windows, bucket_root, f"{tag}-{k:05d}")
+        written += n
+        into.update(reached)
+    return Bucketed(written, tuple(sorted(into)))
+
+
+def _blocks(points: np.ndarray | Iterable[np.ndarray], rows: int) -> Iterator[np.ndarray]:
+    """``points`` in consecutive blocks of about ``rows`` rows (an array: views of it)."""
+    if isinstance(points, np.ndarray):
+        for start in range(0, len(points), rows):
+            yield points[start : start + rows]
+        return
+    pending: list[np.ndarray] = []
+    count = 0
+    for part in points:
+        pending.append(part)
+        count += len(part)
+        if count >= rows:
+            yield np.concatenate(pending)
+            pending, count = [], 0
+    if count:
+        yield np.concatenate(pending)
+
+
+def _write_block(
+    points_world_m: np.ndarray,
+    axis: PipeAxis,
+    windows: Sequence[ChainageWindow],
+    bucket_root: Path,
+    tag: str,
+) -> tuple[int, list[int]]:
+    if len(points_world_m) == 0:
+        return 0, []
     # The one place a point's chainage and section-plane position are computed (along a bent
     # axis, the costly part: a nearest-node search per point).
     chain_m, plane = axis.section_coordinates(points_world_m)
@@ -333,7 +379,7 @@ def write_buckets(
         tmp.replace(out_dir / f"{tag}.npy")
         written += len(sel)
         into.append(window.start_mm)
-    return Bucketed(written, tuple(into))
+    return written, into
 
 
 def read_window_rows(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
