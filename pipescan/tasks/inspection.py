@@ -39,6 +39,7 @@ from pipescan.storage.scratch import (
     read_window_rows,
     write_buckets,
 )
+from pipescan.tasks.memory import releases_memory
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 log = logging.getLogger("pipescan")
@@ -221,6 +222,7 @@ def fit_pipe_axis(
 
 
 @task(name="bucket-points", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
+@releases_memory
 def bucket_points(
     staged: StagedArchive,
     trajectory: Trajectory | None,
@@ -242,21 +244,21 @@ def bucket_points(
     if trajectory is None and frame_store is not None and frame_store.cloud_rows():
         rows = frame_store.read_cloud_rows(first, last)
         return write_buckets(rows, axis, windows, bucket_root, f"cloud_{first:011d}")
+    tag = f"chunk_{first:07d}"
     if trajectory is not None and frame_store is not None:
-        stored = frame_store.iter_frames(first)
-        pts = list(iter_registered_points(stored, trajectory))
-    else:
-        with staged.reopen() as arc:
-            if trajectory is None:
-                return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
-            frames = range(first, last + 1)
-            pts = list(_frame_points_world(arc, trajectory, frames, max_range_m))
-    if not pts:  # every frame of the chunk slid along the axis: none is placed
-        return Bucketed()
-    return write_buckets(np.concatenate(pts), axis, windows, bucket_root, f"chunk_{first:07d}")
+        # Frames that slid along the axis are not placed (iter_registered_points).
+        placed = iter_registered_points(frame_store.iter_frames(first), trajectory)
+        return write_buckets(placed, axis, windows, bucket_root, tag)
+    with staged.reopen() as arc:
+        if trajectory is None:
+            return write_buckets(arc.read_cloud(), axis, windows, bucket_root, "cloud")
+        frames = range(first, last + 1)
+        placed = _frame_points_world(arc, trajectory, frames, max_range_m)
+        return write_buckets(placed, axis, windows, bucket_root, tag)
 
 
 @task(name="measure-window", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
+@releases_memory
 def measure_sections(
     bucket_root: Path,
     window: ChainageWindow,
