@@ -140,6 +140,7 @@ def _child(archive: str, out_json: str) -> None:
     t0 = time.perf_counter()
     marks: dict[str, tuple[float, float]] = {}
     peak = {"tree_rss": 0, "main_rss": 0}
+    stage_peak: dict[str, int] = {}  # the pipescan process's peak within each stage
     dead_cpu = {"s": 0.0}
     seen: dict[int, float] = {}
 
@@ -167,6 +168,8 @@ def _child(archive: str, out_json: str) -> None:
             try:
                 rss = me.memory_info().rss
                 peak["main_rss"] = max(peak["main_rss"], rss)
+                stage = next((s for s, _ in STAGES if s not in marks), "end")
+                stage_peak[stage] = max(stage_peak.get(stage, 0), rss)
                 for child in me.children(recursive=True):
                     with contextlib.suppress(psutil.Error):
                         rss += child.memory_info().rss
@@ -201,7 +204,9 @@ def _child(archive: str, out_json: str) -> None:
         done.set()
         sampler.join()
     marks["end"] = (time.perf_counter() - t0, tree_cpu())
-    Path(out_json).write_text(json.dumps({"marks": marks, "peak": peak}), encoding="utf-8")
+    Path(out_json).write_text(
+        json.dumps({"marks": marks, "peak": peak, "stage_peak": stage_peak}), encoding="utf-8"
+    )
 
 
 def _run_one(
@@ -362,14 +367,15 @@ def run(
               f"{result['summary']['point_count']:,} points, {recording:.0f} s recorded, "
               f"{result['summary']['section_count']} sections "
               f"({result['summary']['sections_ok']} ok)")  # fmt: skip
-        print(f"  {'stage':<14}{'ends at s':>10}{'wall s':>9}{'CPU s':>8}")
+        print(f"  {'stage':<14}{'ends at s':>10}{'wall s':>9}{'CPU s':>8}{'peak RSS MB':>13}")
         prev_t, prev_c = 0.0, 0.0
         order = [s for s, _ in STAGES] + ["end"]
         for stage in order:
             if stage not in marks:
                 continue
             t, c = marks[stage]
-            print(f"  {stage:<14}{t:>10.1f}{t - prev_t:>9.1f}{c - prev_c:>8.1f}")
+            stage_mb = result.get("stage_peak", {}).get(stage, 0) / 2**20
+            print(f"  {stage:<14}{t:>10.1f}{t - prev_t:>9.1f}{c - prev_c:>8.1f}{stage_mb:>13,.0f}")
             prev_t, prev_c = t, c
         start_t = marks["staged"][0]
         chain = marks["stored"][0] - start_t
