@@ -15,12 +15,14 @@ from pipescan.tasks.memory import release_free_memory, releases_memory
 # kept, so that freeing the large ones leaves holes that free() cannot hand back.
 _FRAGMENT = textwrap.dedent(
     """
+    import os
+
     import numpy as np
     from pipescan.tasks.memory import release_free_memory
 
     def rss_mb():
         with open("/proc/self/statm") as f:
-            return int(f.read().split()[1]) * 4096 / 2**20
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
 
     big = np.ones(30 * 2**20 // 8)
     del big
