@@ -582,7 +582,7 @@ def bench_sweep(args) -> None:
 # --------------------------------------------------------------------------- convergence
 
 
-def _converge_draw(job: tuple[str, float, float]) -> tuple[str, str, dict]:
+def _converge_draw(job: tuple[str, float, float]) -> tuple[str, dict]:
     """One draw registered and measured in memory (the flow's stages without Prefect) with
     ICP stopping at the given rotation and translation steps; its row and its figures."""
     from pipescan.core.registration import trajectory_errors
@@ -614,7 +614,7 @@ def _converge_draw(job: tuple[str, float, float]) -> tuple[str, str, dict]:
         f"{1000 * errors.across_rms_m:.2f} | {errors.tilt_rms_deg:.3f} | {score.ok} | "
         f"{score.mean_pp:.2f} | {score.max_pp:.2f} | {score.dishonest} | {worse}/{stretches} |"
     )
-    return row, name, {
+    return row, {
         "frames": frames, "cpu_s": cpu_s, "worse": worse, "stretches": stretches,
         "max_pp": score.max_pp, "mean_pp": score.mean_pp, "dishonest": score.dishonest,
         "across_mm": 1000 * errors.across_rms_m,
@@ -647,7 +647,7 @@ def bench_converge(args) -> None:
         for rotation_rad, translation_m in settings:
             figures = []
             jobs = [(n, rotation_rad, translation_m) for n in names]
-            for row, _, f in pool.map(_converge_draw, jobs):
+            for row, f in pool.map(_converge_draw, jobs):
                 print(row, flush=True)
                 figures.append(f)
             totals.append(((rotation_rad, translation_m), figures))
@@ -743,7 +743,7 @@ def main() -> None:
     )
     parser.add_argument("--random-draws", type=int, default=8, help="sweep: random draws")
     parser.add_argument("--no-long", action="store_true", help="sweep: leave the 30 m run out")
-    parser.add_argument("--only", nargs="+", help="sweep: draws whose name contains one of these")
+    parser.add_argument("--only", nargs="+", help="sweep, converge: draws named with one of these")
     parser.add_argument(
         "--converged",
         nargs="+",
