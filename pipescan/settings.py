@@ -57,6 +57,11 @@ class Settings(BaseSettings):
     chunk_frames: int = Field(60, ge=2, description="frames registered per task")
     workers: int = Field(2, ge=1, description="parallel task workers")
     task_runner: Literal["threads", "processes"] = "threads"
+    engine_processes: bool = Field(
+        True,
+        description="on threads, register chunks in lean worker processes, one per worker "
+        "(docs/throughput.md); false: in the flow's own process",
+    )
     threshold_table: str = "vsa-2023"
     pipe_class: Literal["auto", "rigid", "flexible"] = Field(
         "auto", description="BAA deformation rule: from the archive's material, or set for a run"

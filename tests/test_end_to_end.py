@@ -8,19 +8,23 @@ import io
 import json
 from collections import Counter
 
+import numpy as np
 import pytest
 from prefect.testing.utilities import prefect_test_harness
 from pypdf import PdfReader
 from typer.testing import CliRunner
 
 from pipescan.cli import app
-from pipescan.core.registration import plan_chunks
+from pipescan.core.registration import RegistrationParams, plan_chunks
 from pipescan.flows.inspect import InspectionParams, inspect_archive
 from pipescan.settings import use_settings
 from pipescan.simulator.archive import read_ground_truth, write_simulated_archive
 from pipescan.simulator.scan import get_scenario, simulate_scan
 from pipescan.storage.input import archive as archive_module
 from pipescan.storage.input.metadata import read_inspection_toml
+from pipescan.storage.scratch import FrameStore, create_run_dir
+from pipescan.tasks.inspection import register_chunk
+from pipescan.tasks.storing import stage_archive
 
 pytestmark = pytest.mark.e2e
 
@@ -66,17 +70,53 @@ def inspected(prefect, archive, tmp_path_factory):
     return summary, db_url, work
 
 
-def test_each_frame_is_decoded_once(inspected, archive):
+def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
     """Registration decodes each frame once (the frame two chunks share: once per chunk);
-    the axis and the sections read what it kept, never the archive."""
+    the axis and the sections read what it kept, never the archive. In the flow, chunks
+    register in the engine pool's processes: the flow's own process decodes nothing. The
+    same chunks registered here count what registration decodes."""
     summary, _, _ = inspected
+    assert summary.frame_count > 100
+    assert not _decoded, "the flow's own process decoded frames"
+    staged = stage_archive.fn(str(archive), create_run_dir(tmp_path / "work"))
     meta_files = [
         f.file for f in read_inspection_toml(archive / "inspection.toml", archive="arc").frames
     ]
-    shared = {meta_files[b] for _, b in plan_chunks(summary.frame_count, 50)[:-1]}
-    assert len(_decoded) == summary.frame_count > 100
-    assert {f for f, n in _decoded.items() if n != 1} == shared
-    assert {_decoded[f] for f in shared} == {2}
+    chunks = plan_chunks(summary.frame_count, 50)
+    read_points = archive_module.read_points
+    decoded: Counter[str] = Counter()
+
+    def counted(path, **kwargs):
+        decoded[kwargs.get("member") or str(path)] += 1
+        return read_points(path, **kwargs)
+
+    store = FrameStore(tmp_path / "frames")
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(archive_module, "read_points", counted)
+        for a, b in chunks:
+            register_chunk.fn(staged, a, b, RegistrationParams(), store, 6.0)
+    shared = {meta_files[b] for _, b in chunks[:-1]}
+    assert len(decoded) == summary.frame_count
+    assert {f for f, n in decoded.items() if n != 1} == shared
+    assert {decoded[f] for f in shared} == {2}
+
+
+def test_a_chunk_registers_the_same_in_an_engine_worker(archive, tmp_path):
+    """The engine pool's worker gives the trajectory this process gives, to the bit, and
+    stores the same frames for the sections."""
+    staged = stage_archive.fn(str(archive), create_run_dir(tmp_path / "work"))
+    params = RegistrationParams()
+    here = register_chunk.fn(staged, 40, 99, params, FrameStore(tmp_path / "here"), 6.0)
+    there = register_chunk.fn(
+        staged, 40, 99, params, FrameStore(tmp_path / "there"), 6.0, engine_processes=2
+    )
+    assert there.frame_indices == here.frame_indices
+    assert np.array_equal(there.T_world_frame, here.T_world_frame)
+    assert repr(there.quality) == repr(here.quality)  # NaN where a figure does not apply
+    ours = list(FrameStore(tmp_path / "here").iter_frames(40))
+    theirs = list(FrameStore(tmp_path / "there").iter_frames(40))
+    assert [i for i, _ in theirs] == [i for i, _ in ours] == list(range(40, 100))
+    assert all(np.array_equal(p, q) for (_, p), (_, q) in zip(ours, theirs, strict=True))
 
 
 def _exported_sections(db_url: str, inspection_id: int) -> list[dict[str, str]]:

@@ -383,9 +383,10 @@ def test_a_remote_folder_is_copied_under_the_caps_but_without_a_ratio(tmp_path) 
         fs.rm(base, recursive=True)
 
 
-def test_a_bad_frame_found_mid_run_names_the_archive_given(tmp_path) -> None:
+@pytest.mark.parametrize("engine_processes", [0, 2], ids=["here", "engine-worker"])
+def test_a_bad_frame_found_mid_run_names_the_archive_given(tmp_path, engine_processes) -> None:
     """Tasks reopen the staged extraction; an error there still names the user's archive,
-    not the scratch directory."""
+    not the scratch directory, also when raised in an engine worker process."""
     from pipescan.core.errors import PointFileError
     from pipescan.core.registration import RegistrationParams
     from pipescan.storage.scratch import create_run_dir
@@ -399,5 +400,5 @@ def test_a_bad_frame_found_mid_run_names_the_archive_given(tmp_path) -> None:
         zf.writestr("frames/000000.ply", ply_list_then_vertices(tmp_path))
     staged = stage_archive.fn(str(zip_path), create_run_dir(tmp_path / "work"))
     with pytest.raises(PointFileError) as info:
-        register_chunk.fn(staged, 0, 0, RegistrationParams())
+        register_chunk.fn(staged, 0, 0, RegistrationParams(), engine_processes=engine_processes)
     assert info.value.archive == str(zip_path) and info.value.file == "frames/000000.ply"

@@ -31,10 +31,11 @@ from pipescan.core.summary import peak_blockage
 from pipescan.core.water import explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
-from pipescan.flows.runners import engine_threads
+from pipescan.flows.runners import engine_processes, engine_threads
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
+from pipescan.tasks import enginepool
 from pipescan.tasks.inspection import (
     bucket_points,
     fit_pipe_axis,
@@ -140,6 +141,9 @@ def inspect_archive(
     database_url = run_database_url(settings)
     params = params or InspectionParams()
     run_dir = start_run_dir(Path(work_dir or settings.work_dir))
+    pooled = engine_processes(settings.engine_processes)
+    if pooled:
+        enginepool.prestart(pooled)  # the workers import the engines while staging runs
     try:
         staged = stage_archive(archive, run_dir, get_settings().input_limits())
         meta = staged.meta
@@ -191,14 +195,23 @@ def inspect_archive(
         if chunks:
             log.info(f"registering {staged.frame_count} frames in {len(chunks)} chunks")
             # How the work is split, not the figures: kept out of the stored parameters.
-            registering = replace(params.registration, num_threads=engine_threads())
+            # In the engine pool's processes, one engine thread each: both cores are busy.
+            registering = replace(
+                params.registration, num_threads=1 if pooled else engine_threads()
+            )
             # Large arguments without futures in them (the staged archive's frame list, here
             # and below the trajectory, the axis, the windows, the evidence) are quoted:
             # Prefect would otherwise walk every element of them for every task, under the
             # GIL (10 % of a 30 m run's samples, measured with py-spy).
             futures = [
                 register_chunk.submit(
-                    quote(staged), a, b, registering, frame_store, params.max_section_range_m
+                    quote(staged),
+                    a,
+                    b,
+                    registering,
+                    frame_store,
+                    params.max_section_range_m,
+                    engine_processes=pooled,
                 )
                 for a, b in chunks
             ]

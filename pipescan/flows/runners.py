@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import multiprocessing
 import os
 
 from prefect.context import FlowRunContext
@@ -51,6 +52,32 @@ def make_task_runner(
     raise ValueError(f"unknown task runner {kind!r}: use one of {', '.join(RUNNER_KINDS)}")
 
 
+def _thread_workers() -> int:
+    """The running flow's thread-pool workers, at most the machine's cores; 0 when the flow
+    does not run on a thread pool."""
+    context = FlowRunContext.get()
+    runner = context.task_runner if context is not None else None
+    if not isinstance(runner, ThreadPoolTaskRunner):
+        return 0
+    workers = getattr(runner, "_max_workers", 1) or 1
+    return max(1, min(int(workers), os.cpu_count() or 1))
+
+
+def engine_processes(enabled: bool = True) -> int:
+    """Worker processes that register the running flow's chunks
+    (:mod:`pipescan.tasks.enginepool`), 0 for none.
+
+    On a thread pool of two or more workers (and cores), as many as it has: two chunks then
+    register at the same time, which threads cannot do (:func:`engine_threads`). Under a
+    process pool or Dask each task already has its own process, and a daemonic process (a
+    Dask worker running a whole inspection) may not start any: 0.
+    """
+    if multiprocessing.current_process().daemon:
+        return 0  # a pool's worker (Dask's, a process pool's) may not start processes
+    workers = _thread_workers()
+    return workers if enabled and workers >= 2 else 0
+
+
 def engine_threads() -> int:
     """Threads a native engine may use within one task of the running flow.
 
@@ -60,9 +87,4 @@ def engine_threads() -> int:
     then uses as many threads as the pool has workers, at most the machine's cores. Under a
     process pool or Dask every task has its own interpreter and core: 1.
     """
-    context = FlowRunContext.get()
-    runner = context.task_runner if context is not None else None
-    if not isinstance(runner, ThreadPoolTaskRunner):
-        return 1
-    workers = getattr(runner, "_max_workers", 1) or 1
-    return max(1, min(int(workers), os.cpu_count() or 1))
+    return max(1, _thread_workers())

@@ -6,7 +6,6 @@ dataclasses). Only I/O is retried; geometry errors are deterministic and fail at
 
 from __future__ import annotations
 
-import contextlib
 import logging
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
@@ -20,58 +19,27 @@ from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
 from pipescan.core.coding import code_sections
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
 from pipescan.core.measures import MeasureParams
-from pipescan.core.model import Defect, InspectionMeta, SectionMeasures
+from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.registration import (
     RegistrationEvidence,
     RegistrationParams,
     Trajectory,
     iter_registered_points,
-    register_frames,
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.core.start import cloud_start
-from pipescan.storage.input.archive import ScanArchive
-from pipescan.storage.input.bags import BagIndex
-from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.scratch import (
     Bucketed,
     FrameStore,
     read_window_rows,
     write_buckets,
 )
+from pipescan.tasks import enginepool
 from pipescan.tasks.memory import releases_memory
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
+from pipescan.tasks.staged import StagedArchive, crop, register_staged_frames
 
 log = logging.getLogger("pipescan")
-
-
-@dataclass(frozen=True)
-class StagedArchive:
-    """An archive ready to process: its content as a local directory, its metadata, and the
-    limits its point files are read under. ``name`` carries no credentials."""
-
-    name: str
-    root: Path
-    meta: InspectionMeta
-    content_hash: str
-    frame_count: int
-    cloud_member: str | None
-    limits: InputLimits = DEFAULT_LIMITS
-    bag: BagIndex | None = None
-    """For an archive holding a ROS bag, what :func:`stage_archive` found in it."""
-
-    def reopen(self) -> ScanArchive:
-        """The staged archive, as staging validated it. Its layout is not inspected again:
-        that parses ``inspection.toml`` and resolves every frame's path, which for 2,000
-        frames cost each chunk task as much as registering 20 of its frames."""
-        return ScanArchive(
-            name=self.name,
-            root=self.root,
-            meta=self.meta,
-            cloud_member=self.cloud_member,
-            limits=self.limits,
-            bag=self.bag,
-        )
 
 
 @dataclass(frozen=True)
@@ -85,15 +53,6 @@ class AxisFit:
     start_source: str = "first_frame"
 
 
-def _odometer(meta: InspectionMeta, i: int) -> float | None:
-    return meta.frames[i].odometer_m if meta.frames else None
-
-
-def _crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
-    """The points within ``max_range_m`` of the sensor (the sections' range)."""
-    return points_m[np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2]
-
-
 @task(name="register-chunk", cache_policy=NO_CACHE)
 def register_chunk(
     staged: StagedArchive,
@@ -102,27 +61,19 @@ def register_chunk(
     params: RegistrationParams,
     frame_store: FrameStore | None = None,
     keep_range_m: float = np.inf,
+    engine_processes: int = 0,
 ) -> Trajectory:
-    """Register frames ``first..last`` (inclusive) relative to frame ``first``.
-
-    Frames stream from the archive one at a time; only the local map stays in memory. The
-    IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
-    With ``frame_store``, each frame's points within ``keep_range_m`` are also written there
-    as they are read, so that the sections never decode the archive again.
-    """
-    meta = staged.meta
-    with contextlib.ExitStack() as stack:
-        arc = stack.enter_context(staged.reopen())
-        keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
-
-        def frames():
-            for i, pts in arc.iter_frames(range(first, last + 1)):
-                if keep is not None:
-                    keep.add(i, _crop(pts, keep_range_m))
-                gravity = meta.frames[i].gravity if meta.frames else None
-                yield i, pts, _odometer(meta, i), gravity
-
-        trajectory = register_frames(frames(), params)
+    """Register frames ``first..last`` (inclusive) relative to frame ``first``
+    (:func:`pipescan.tasks.staged.register_staged_frames`), in this process or, with
+    ``engine_processes`` > 0, in one of the engine pool's worker processes."""
+    if engine_processes:
+        trajectory = enginepool.run(
+            engine_processes,
+            register_staged_frames,
+            staged, first, last, params, frame_store, keep_range_m,
+        )  # fmt: skip
+    else:
+        trajectory = register_staged_frames(staged, first, last, params, frame_store, keep_range_m)
     held = sum(q.degenerate for q in trajectory.quality)
     log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
     if held and trajectory.along_axis_prior != "odometer":
@@ -137,7 +88,7 @@ def register_chunk(
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
     def cropped():
         for i, pts in arc.iter_frames(indices):
-            yield i, _crop(pts, max_range_m)
+            yield i, crop(pts, max_range_m)
 
     yield from iter_registered_points(cropped(), trajectory)
 

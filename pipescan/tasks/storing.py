@@ -11,8 +11,8 @@ from pipescan.storage.database.db import connect
 from pipescan.storage.database.repository import InspectionToSave, save_inspection
 from pipescan.storage.input.archive import open_archive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
-from pipescan.tasks.inspection import StagedArchive
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
+from pipescan.tasks.staged import StagedArchive
 
 
 @task(name="stage-archive", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)

@@ -1,0 +1,126 @@
+"""Lean worker processes for the native engines that hold the GIL.
+
+small_gicp holds the GIL for the whole of each call, and so does LAZ decoding: on the flow's
+thread pool two chunks never register at the same time, whatever the number of threads. The
+register-chunk task therefore hands its chunk to one of these processes and waits for the
+result, while the rest of the flow stays on threads (and in one process's memory).
+
+The workers import only what registering needs (NumPy, SciPy, Open3D, small_gicp and the
+archive readers; not Prefect nor the database): about 2 s and 160 MB each, paid once per
+process, since the pool is kept for every later flow run of the process (a network run
+inspects many archives). :func:`prestart` starts them while the archive is staged.
+
+A worker that dies (killed, out of memory) breaks the pool; the next call starts a new one,
+and a chunk whose worker died is tried once more there. A worker whose parent is gone exits
+within a second: it never outlives a killed run.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+from collections.abc import Callable
+from concurrent.futures import Future, ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from multiprocessing import get_context
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+_lock = threading.Lock()
+_pool: ProcessPoolExecutor | None = None
+_size = 0
+
+
+def _exit_with_parent(parent: int) -> None:
+    while True:
+        time.sleep(1.0)
+        if os.getppid() != parent:
+            os._exit(0)
+
+
+def _start_worker(parent: int) -> None:
+    # Ctrl-C is the parent's to handle: it stops the flow, and the pool with it.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
+    import open3d  # noqa: F401  (imported here, once, instead of in the first chunk)
+    import small_gicp  # noqa: F401
+
+    import pipescan.tasks.staged  # noqa: F401
+
+
+def _ready() -> int:
+    return os.getpid()
+
+
+def _call_in(cwd: str, fn: Callable[..., T], *args: Any) -> T:
+    # Relative paths (an archive given as ``inputs/scan``, a relative work directory) mean
+    # what they mean in the caller's process.
+    if os.getcwd() != cwd:
+        os.chdir(cwd)
+    return fn(*args)
+
+
+def _get(workers: int) -> ProcessPoolExecutor:
+    global _pool, _size
+    with _lock:
+        if _pool is None:
+            _pool = ProcessPoolExecutor(
+                max_workers=workers,
+                mp_context=get_context("spawn"),
+                initializer=_start_worker,
+                initargs=(os.getpid(),),
+            )
+            _size = workers
+        return _pool
+
+
+def _discard(broken: ProcessPoolExecutor) -> None:
+    global _pool
+    with _lock:
+        if _pool is broken:
+            _pool = None
+    broken.shutdown(wait=False, cancel_futures=True)
+
+
+def prestart(workers: int) -> list[Future]:
+    """Start the pool's ``workers`` processes now (they import the engines in the
+    background); a pool already running is left as it is."""
+    pool = _get(workers)
+    # Processes start on demand, one per job no idle worker can take.
+    return [pool.submit(_ready) for _ in range(workers)]
+
+
+def run(workers: int, fn: Callable[..., T], *args: Any) -> T:
+    """``fn(*args)`` in one of the pool's processes (``fn`` and its arguments must pickle);
+    its exceptions are raised here. A pool broken by a dying worker is replaced, and the call
+    tried once more."""
+    for attempt in (1, 2):
+        pool = _get(workers)
+        try:
+            return pool.submit(_call_in, os.getcwd(), fn, *args).result()
+        except BrokenProcessPool:
+            _discard(pool)
+            if attempt == 2:
+                raise RuntimeError(
+                    "an engine worker process died twice on the same chunk (killed, or out "
+                    "of memory); run with PIPESCAN_ENGINE_PROCESSES=0 to register in the "
+                    "flow's own process"
+                ) from None
+    raise AssertionError("unreachable")
+
+
+def pool_size() -> int:
+    """The running pool's number of workers (0 when none runs)."""
+    return _size if _pool is not None else 0
+
+
+def shutdown() -> None:
+    """Stop the pool's workers (the next call starts a new pool)."""
+    global _pool
+    with _lock:
+        pool, _pool = _pool, None
+    if pool is not None:
+        pool.shutdown(wait=True, cancel_futures=True)

@@ -1,0 +1,87 @@
+"""A staged archive, and registering a chunk of its frames: the work of the register-chunk
+task, without Prefect, so that it also runs in the engine pool's lean worker processes
+(:mod:`pipescan.tasks.enginepool`)."""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from pipescan.core.model import InspectionMeta
+from pipescan.core.registration import RegistrationParams, Trajectory, register_frames
+from pipescan.storage.input.archive import ScanArchive
+from pipescan.storage.input.bags import BagIndex
+from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
+from pipescan.storage.scratch import FrameStore
+
+
+@dataclass(frozen=True)
+class StagedArchive:
+    """An archive ready to process: its content as a local directory, its metadata, and the
+    limits its point files are read under. ``name`` carries no credentials."""
+
+    name: str
+    root: Path
+    meta: InspectionMeta
+    content_hash: str
+    frame_count: int
+    cloud_member: str | None
+    limits: InputLimits = DEFAULT_LIMITS
+    bag: BagIndex | None = None
+    """For an archive holding a ROS bag, what :func:`stage_archive` found in it."""
+
+    def reopen(self) -> ScanArchive:
+        """The staged archive, as staging validated it. Its layout is not inspected again:
+        that parses ``inspection.toml`` and resolves every frame's path, which for 2,000
+        frames cost each chunk task as much as registering 20 of its frames."""
+        return ScanArchive(
+            name=self.name,
+            root=self.root,
+            meta=self.meta,
+            cloud_member=self.cloud_member,
+            limits=self.limits,
+            bag=self.bag,
+        )
+
+
+def odometer_at(meta: InspectionMeta, i: int) -> float | None:
+    """Frame ``i``'s odometer reading, if the archive gives one."""
+    return meta.frames[i].odometer_m if meta.frames else None
+
+
+def crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
+    """The points within ``max_range_m`` of the sensor (the sections' range)."""
+    return points_m[np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2]
+
+
+def register_staged_frames(
+    staged: StagedArchive,
+    first: int,
+    last: int,
+    params: RegistrationParams,
+    frame_store: FrameStore | None = None,
+    keep_range_m: float = np.inf,
+) -> Trajectory:
+    """Register frames ``first..last`` (inclusive) relative to frame ``first``.
+
+    Frames stream from the archive one at a time; only the local map stays in memory. The
+    IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
+    With ``frame_store``, each frame's points within ``keep_range_m`` are also written there
+    as they are read, so that the sections never decode the archive again.
+    """
+    meta = staged.meta
+    with contextlib.ExitStack() as stack:
+        arc = stack.enter_context(staged.reopen())
+        keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
+
+        def frames():
+            for i, pts in arc.iter_frames(range(first, last + 1)):
+                if keep is not None:
+                    keep.add(i, crop(pts, keep_range_m))
+                gravity = meta.frames[i].gravity if meta.frames else None
+                yield i, pts, odometer_at(meta, i), gravity
+
+        return register_frames(frames(), params)

@@ -1,0 +1,104 @@
+"""The engine pool: chunks registered in lean worker processes, with the results, the errors
+and the lifetime of a call made in the flow's own process."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from pipescan.core.errors import PointFileError
+from pipescan.tasks import enginepool
+
+
+def _raise_point_file_error(file: str) -> None:
+    raise PointFileError("truncated: 12 of 24 bytes", archive="scan.zip", file=file)
+
+
+def test_a_call_runs_in_another_process_and_returns_its_result():
+    assert enginepool.run(2, os.getpid) != os.getpid()
+    assert enginepool.pool_size() == 2
+
+
+def test_an_error_comes_back_as_raised_with_its_file():
+    with pytest.raises(PointFileError) as caught:
+        enginepool.run(2, _raise_point_file_error, "frames/000007.laz")
+    assert caught.value.file == "frames/000007.laz"
+    assert str(caught.value) == (
+        "archive scan.zip, file frames/000007.laz: truncated: 12 of 24 bytes"
+    )
+
+
+def test_a_dying_worker_is_replaced_and_its_call_tried_once_more():
+    before = enginepool.run(2, os.getpid)
+    with pytest.raises(RuntimeError, match="died twice"):
+        enginepool.run(2, os._exit, 9)
+    after = enginepool.run(2, os.getpid)  # a new pool, new workers
+    assert after != before
+    assert enginepool.pool_size() == 2
+
+
+def test_workers_do_not_outlive_a_killed_parent(tmp_path):
+    script = textwrap.dedent(
+        """
+        import os, sys
+        from pipescan.tasks import enginepool
+        for f in enginepool.prestart(2):
+            f.result()
+        print("ready", flush=True)
+        sys.stdin.read()
+        """
+    )
+    parent = subprocess.Popen(
+        [sys.executable, "-c", script],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert parent.stdout.readline().strip() == "ready"
+        # Both workers, started by prestart before any work, and multiprocessing's tracker.
+        workers = _children(parent.pid)
+        assert sum("resource_tracker" not in _cmdline(p) for p in workers) == 2
+        assert all(_alive(p) for p in workers)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait(timeout=10)
+        deadline = time.monotonic() + 10
+        while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(_alive(p) for p in workers)
+    finally:
+        parent.kill()
+
+
+def _children(pid: int) -> list[int]:
+    found: list[int] = []
+    for task in os.listdir(f"/proc/{pid}/task"):
+        with open(f"/proc/{pid}/task/{task}/children") as fh:
+            found += [int(c) for c in fh.read().split()]
+    return found
+
+
+def _cmdline(pid: int) -> str:
+    with open(f"/proc/{pid}/cmdline", "rb") as fh:
+        return fh.read().decode(errors="replace")
+
+
+def _alive(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as fh:
+            return fh.read().split(")")[-1].split()[0] != "Z"
+    except FileNotFoundError:
+        return False
+
+
+def test_relative_paths_mean_what_they_mean_to_the_caller(tmp_path, monkeypatch):
+    (tmp_path / "inputs").mkdir()
+    monkeypatch.chdir(tmp_path)
+    assert enginepool.run(2, os.path.abspath, "inputs") == str(tmp_path / "inputs")
