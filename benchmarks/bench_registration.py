@@ -429,17 +429,17 @@ def bench_parallel(args) -> None:
             # What the inspect flow does on its thread pool: each chunk's task hands the chunk
             # to one of two lean worker processes (pipescan.tasks.enginepool), started while
             # the archive is staged.
-            cpu = _cpu_s()
             started = time.perf_counter()
             for ready in enginepool.prestart(2):
                 ready.result()
             warm = time.perf_counter() - started
+            cpu = _cpu_s()
             wall = time.perf_counter()
             processed = list(
                 pool.map(lambda c: _register_chunk_in_worker(root, *c, params, 2), chunks)
             )
             wall = time.perf_counter() - wall
-        # CPU includes the workers' start-up (their own CPU is not counted: see cores used).
+        # CPU: this process's and the workers' while registering (not their start-up).
         rows["2 engine processes (the flow)"] = (wall, _cpu_s() - cpu)
         print(f"\n{n} frames of the paper scan from an archive, chunks {chunks}\n")
         print("| workers | wall time (s) | speed-up | frames/s | real-time factor | cores used |")
