@@ -227,7 +227,7 @@ def _run_one(
         raw = None
         if profile_dir is not None:
             profile_dir.mkdir(parents=True, exist_ok=True)
-            raw = profile_dir / f"{archive.name}.txt"
+            raw = profile_dir / f"{archive.name}{'-baseline' if source else ''}.txt"
             py_spy = str(Path(sys.executable).with_name("py-spy"))
             if not Path(py_spy).is_file():
                 raise SystemExit(
@@ -263,10 +263,11 @@ def _run_one(
 
 _PLUMBING = re.compile(
     r"\((threading|concurrent/futures/|prefect/|anyio/|asyncio/|runpy|typer/|click/|"
-    r"<frozen|bench_chain|pipescan/cli/|contextlib|site-packages/uvicorn)"
+    r"<frozen|bench_chain|pipescan/cli/|contextlib|site-packages/uvicorn|multiprocessing/|"
+    r"<string>|pipescan/tasks/enginepool)"
 )
-"""Frames of the machinery around the work (threads, the task engine, the CLI): on every
-stack, they would fill the top of a cumulative list."""
+"""Frames of the machinery around the work (threads, worker processes, the task engine, the
+CLI): on every stack, they would fill the top of a cumulative list."""
 
 
 SKIP = ("process ", "thread ")
@@ -291,7 +292,8 @@ def top_cumulative(raw: Path, n: int = 10) -> list[tuple[str, float]]:
         busy += int(count)
         # A frame reads "function (file:line)": one function, whatever line it was on.
         names = {re.sub(r":\d+\)$", ")", f) for f in frames if not f.startswith(SKIP)}
-        names = {f for f in names if not _PLUMBING.search(f)}
+        # (A spawned worker's command line holds a ';' and so reads as a frame of its own.)
+        names = {f for f in names if not _PLUMBING.search(f) and "multiprocessing-fork" not in f}
         for name in names:
             totals[name] += int(count)
     return [(name, count / max(busy, 1)) for name, count in totals.most_common(n)]
