@@ -72,5 +72,43 @@ def test_the_summary_says_the_odometer_slipped_and_where_that_widened_the_chaina
     _print_summary(dataclasses.replace(summary, registration=reg | {"degenerate_frames": 0}))
     out = capsys.readouterr().out
     assert "(up to 44 cm)\n" in out and "allows for" not in out
-    _print_summary(dataclasses.replace(summary, registration=reg | {"odometer_slips_caught_m": []}))
-    assert "slipped" not in capsys.readouterr().out
+    _print_summary(dataclasses.replace(summary, registration=reg | {"degenerate_frames": 0}))
+    assert "rested on the odometer alone" not in capsys.readouterr().out
+
+
+def test_the_summary_says_what_the_chainage_cannot_allow_for_when_no_slip_was_caught(capsys):
+    """Held frames and no slip caught: the ± is the odometer's own, and the user is told."""
+    from pipescan.cli.scan import _print_summary
+    from pipescan.flows.inspect import InspectionSummary
+
+    reg = {
+        "engine": "small_gicp gicp", "mean_fitness": 0.99, "mean_rmse_m": 0.007, "frames": 300,
+        "degenerate_frames": 120, "slides": 0, "chainage_uncertainty_m": 0.09,
+        "odometer_slips_caught_m": [], "odometer_uncertainty_ratio": 0.03,
+        "along_axis_prior": "odometer",
+        "unconstrained_spans": [
+            {"first_frame": 10, "last_frame": 70, "start_travel_m": 0.3, "end_travel_m": 1.2},
+            {"first_frame": 200, "last_frame": 260, "start_travel_m": 3.0, "end_travel_m": 3.9},
+        ],
+    }  # fmt: skip
+    summary = InspectionSummary(
+        1, "A", "2024-05-14", "scan", 300, 10, 4.0, 40, 30, 0, None, None, {}, reg, None, None, 1.0
+    )
+    _print_summary(summary)
+    out = capsys.readouterr().out
+    assert "slipped" not in out
+    assert (
+        "  1.8 m of travel rested on the odometer alone: the ± there is the odometer's 3 % and "
+        "allows for no slip (none was caught where features were in view; one where it was "
+        "alone would not be seen)\n"
+    ) in out
+    # Slips caught: the ± allows for them (the line of the test above), no caveat.
+    _print_summary(
+        dataclasses.replace(summary, registration=reg | {"odometer_slips_caught_m": [0.2]})
+    )
+    assert "rested on the odometer alone" not in capsys.readouterr().out
+    # No odometer at all: the summary's warning says the chainage is extrapolated instead.
+    _print_summary(
+        dataclasses.replace(summary, registration=reg | {"along_axis_prior": "constant_velocity"})
+    )
+    assert "rested on the odometer alone" not in capsys.readouterr().out

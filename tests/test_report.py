@@ -624,5 +624,23 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
     assert plain(rows["odometer slips caught"]) == (
         "2 with features in view, up to 0.44 m; allowed for where it was alone"
     )
-    # An odometer never caught slipping: no such row.
-    assert "odometer slips caught" not in dict(_registration_only_rows(inp))
+    assert "unseen odometer slips" not in rows
+    # An odometer never caught slipping: no such row; the ± claims no slips, and where frames
+    # rested on the odometer the block says what it cannot allow for.
+    held = inp.registration | {
+        "chainage_uncertainty_m": 0.09,
+        "odometer_slips_caught_m": [],
+        "degenerate_frames": 120,
+        "along_axis_prior": "odometer",
+        "odometer_uncertainty_ratio": 0.05,
+        "unconstrained_spans": [{"start_travel_m": 0.5, "end_travel_m": 2.0}],
+    }
+    rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=held)))
+    assert "odometer slips caught" not in rows
+    assert plain(rows["chainage uncertainty"]) == (
+        "up to ±0.09 m at the end (odometer-held travel)"
+    )
+    assert plain(rows["unseen odometer slips"]).startswith(
+        "1.5 m of travel rested on the odometer alone: the ± there is the odometer's 5 % and "
+        "allows for no slip"
+    )

@@ -318,6 +318,10 @@ def _print_summary(summary) -> None:
             if reg["degenerate_frames"]:
                 line += "; the ± above allows for as many where it was alone"
             typer.echo(line)
+        from pipescan.core.registration.metrics import unseen_slip_caveat
+
+        if caveat := unseen_slip_caveat(reg):
+            typer.echo(f"  {caveat}")
         if reg.get("warning"):
             typer.secho(f"  warning: {reg['warning']}", fg=typer.colors.YELLOW)
     if summary.report_path:

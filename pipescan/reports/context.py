@@ -17,6 +17,7 @@ from typing import Any, TypeGuard
 
 from pipescan.core.grading import ThresholdTable, is_flagged, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
+from pipescan.core.registration.metrics import unseen_slip_caveat
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.summary import ADJACENT_TOL_M, adjacent_runs, blockage_summary, peak_blockage
 from pipescan.core.trends import (
@@ -424,9 +425,13 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
             (
                 "chainage uncertainty",
                 f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel and its "
-                "possible slips)",
+                "possible slips)"
+                if reg.get("odometer_slips_caught_m")
+                else f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel)",
             )
         )
+    if caveat := unseen_slip_caveat(reg):
+        rows.append(("unseen odometer slips", caveat))
     caught = reg.get("odometer_slips_caught_m")
     if caught:
         allowed = "; allowed for where it was alone" if degenerate else ""

@@ -51,6 +51,7 @@ from pipescan.core.registration.metrics import (
     registration_summary,
     slide_spans,
     trajectory_errors,
+    unseen_slip_caveat,
 )
 from pipescan.core.registration.params import (
     REGISTRATION_ENGINES,
@@ -111,5 +112,6 @@ __all__ = [
     "trajectory_errors",
     "transform",
     "unseen_slip_allowance",
+    "unseen_slip_caveat",
     "voxel_downsample",
 ]

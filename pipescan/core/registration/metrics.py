@@ -85,6 +85,7 @@ def registration_summary(
         "odometer_slips": sum(x.fault == "odometer_slip" for x in q),
         "odometer_slips_caught_m": [round(float(m), 4) for m in trajectory.odometer_slips_m],
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
+        "odometer_uncertainty_ratio": params.odometer_scale_error_ratio,
     }
     if odometer_m is not None and None not in odometer_m:
         first, last = odometer_m
@@ -96,6 +97,50 @@ def registration_summary(
             "along the pipe axis: their chainage is extrapolated, not measured"
         )
     return summary
+
+
+def unseen_slip_caveat(summary: dict) -> str | None:
+    """What the chainage uncertainty cannot allow for, in words, or None.
+
+    Where frames were held to the odometer, a slip (the count running on while the crawler
+    stands, or standing while it slides) leaves no trace in the frames. The chainage
+    uncertainty allows for slips there as often and as large as those caught where features
+    were in view; when none was caught, it is the odometer's stated uncertainty alone, and a
+    user must be told that it holds only if the odometer did not slip where it was alone.
+    ``summary`` is a stored :func:`registration_summary`.
+
+    >>> text = unseen_slip_caveat({"degenerate_frames": 40, "along_axis_prior": "odometer",
+    ...     "odometer_slips_caught_m": [], "odometer_uncertainty_ratio": 0.03,
+    ...     "unconstrained_spans": [{"start_travel_m": 1.0, "end_travel_m": 3.5}]})
+    >>> text.split(": ")[0], "the odometer's 3 % and allows for no slip" in text
+    ('2.5 m of travel rested on the odometer alone', True)
+    >>> unseen_slip_caveat({"degenerate_frames": 200, "frames": 201,
+    ...     "odometer_slips_caught_m": []}).split("(")[1].split(";")[0]
+    'no features were in view to catch one'
+    >>> unseen_slip_caveat({"degenerate_frames": 40, "along_axis_prior": "odometer",
+    ...     "odometer_slips_caught_m": [0.2]}) is None
+    True
+    """
+    if not summary.get("degenerate_frames") or summary.get("odometer_slips_caught_m"):
+        return None
+    if summary.get("along_axis_prior", "odometer") == "constant_velocity":
+        return None  # no odometer at all: the summary's warning says the chainage is not measured
+    spans = summary.get("unconstrained_spans") or []
+    held_m = sum(s["end_travel_m"] - s["start_travel_m"] for s in spans)
+    ratio = summary.get("odometer_uncertainty_ratio")
+    stated = f"the odometer's {100 * ratio:.3g} %" if ratio else "the odometer's uncertainty"
+    travel = f"{held_m:.1f} m of travel" if held_m > 0 else "Travel"
+    frames = summary.get("frames") or 0
+    # The first frame has no step of its own: all others held means no feature was in view.
+    why = (
+        "no features were in view to catch one"
+        if frames and summary["degenerate_frames"] >= frames - 1
+        else "none was caught where features were in view"
+    )
+    return (
+        f"{travel} rested on the odometer alone: the ± there is {stated} and allows for no "
+        f"slip ({why}; one where it was alone would not be seen)"
+    )
 
 
 @dataclass(frozen=True)
