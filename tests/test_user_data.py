@@ -221,3 +221,30 @@ def test_only_a_marked_run_directory_is_ever_deleted(tmp_path: Path) -> None:
     remove_workspace(run)
     assert not run.exists()
     remove_workspace(run)  # gone already: no error
+
+
+def test_a_run_directory_written_to_while_removed_keeps_its_marker(tmp_path, monkeypatch):
+    """An interrupted run's tasks may still write while its directory is removed: whatever
+    they leave stays marked, so that the next run can remove it (an unmarked directory is
+    never deleted, and would stay forever)."""
+    import shutil
+
+    from pipescan.storage import scratch
+
+    run = create_run_dir(tmp_path / "work")
+    (run / "frames").mkdir()
+    (run / "frames" / "chunk_0000000.f32").write_bytes(b"\0" * 12)
+    real_rmtree = shutil.rmtree
+
+    def rmtree_while_a_task_writes(path, *args, **kwargs):
+        real_rmtree(path, *args, **kwargs)
+        (run / "buckets" / "w0").mkdir(parents=True, exist_ok=True)  # a late bucket file
+        (run / "buckets" / "w0" / "b-00000.npy").write_bytes(b"late")
+
+    monkeypatch.setattr(scratch.shutil, "rmtree", rmtree_while_a_task_writes)
+    remove_workspace(run)
+    assert (run / RUN_MARKER).is_file()
+    assert not (run / "frames").exists()
+    monkeypatch.setattr(scratch.shutil, "rmtree", real_rmtree)
+    remove_workspace(run)  # the writer is done: the next removal takes it all
+    assert not run.exists()

@@ -411,4 +411,23 @@ def remove_workspace(path: Path) -> None:
     if path.is_symlink() or not (path / RUN_MARKER).is_file():
         log.warning("not deleting %s: it is not a pipescan run directory", path)
         return
-    shutil.rmtree(path, ignore_errors=True)
+    # The marker goes last, and only once nothing else is left: a task still writing (an
+    # interrupted run's threads, an engine worker finishing its chunk) may create files while
+    # this runs, and a directory that lost its marker could never be swept again.
+    marker = (path / RUN_MARKER).read_text(encoding="utf-8")
+    for entry in list(path.iterdir()):
+        if entry.name == RUN_MARKER:
+            continue
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+    if any(entry.name != RUN_MARKER for entry in path.iterdir()):
+        log.info("%s is still being written to: the next run removes it", path)
+        return
+    (path / RUN_MARKER).unlink(missing_ok=True)
+    try:
+        path.rmdir()
+    except OSError:  # written to in the last instant: marked again, for the next run
+        (path / RUN_MARKER).write_text(marker, encoding="utf-8")
+        log.info("%s was written to as it was removed: the next run removes it", path)
