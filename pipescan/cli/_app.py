@@ -2,10 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
+import signal
 import sys
+import threading
 import traceback
 from enum import StrEnum
 from pathlib import Path
@@ -57,6 +60,85 @@ def _error_line(text: str) -> None:
     typer.secho(f"error: {text}", fg=typer.colors.RED, err=True)
 
 
+_INTERRUPTED = threading.Event()
+"""Set by the first Ctrl-C (SIGINT) of a command."""
+
+INTERRUPTED_EXIT_CODE = 130
+"""What a shell reports for a command stopped by Ctrl-C (128 + SIGINT)."""
+
+INTERRUPT_GRACE_S = 10.0
+"""How long the first Ctrl-C lets the command unwind before it is stopped."""
+
+_INTERRUPTED_LINE = (
+    "error: interrupted: nothing more was stored (an inspection is stored whole or not at "
+    "all; the next run removes this run's scratch files)\n"
+)
+
+
+def _on_interrupt(signum: int, frame: Any) -> None:
+    """Ctrl-C. The first unwinds the command as Python does (a KeyboardInterrupt: files being
+    written are removed, transactions rolled back) and stops it once that is done, or after
+    :data:`INTERRUPT_GRACE_S`; a second stops it at once.
+
+    In a terminal, Ctrl-C reaches the whole foreground process group, and Prefect's temporary
+    API server stops with it. Prefect then tries to report the run's end to the stopped server
+    for a minute or more (71.8 s measured on a 10 m scan, each failed attempt logged with its
+    whole event), and its exit hooks wait for it for longer still (over 200 s): nothing of
+    that can succeed, so Prefect's logging is silenced from the first Ctrl-C and the process
+    does not wait for it. Stopping is safe: the database commits an inspection whole or not
+    at all, the engine pool's workers exit with their parent, and the next run removes the
+    scratch directory (``pipescan.flows.housekeeping``).
+    """
+    if _INTERRUPTED.is_set():
+        _stop_now(_INTERRUPTED_LINE.replace("interrupted:", "interrupted again: stopped at once;"))
+    _INTERRUPTED.set()
+    # What Prefect says from here on (failed logs and events, each with its payload) is
+    # about its stopped server; pipescan's own lines go straight to the terminal (fd 2).
+    logging.disable(logging.CRITICAL)
+    for logger in list(logging.root.manager.loggerDict.values()):
+        if isinstance(logger, logging.Logger):  # Prefect's own ignore logging.disable
+            logger.disabled = True
+    sys.stderr = open(os.devnull, "w")  # noqa: SIM115  (for the rest of the process)
+    os.write(2, b"interrupted: stopping (Ctrl-C again to stop at once)\n")
+    timer = threading.Timer(INTERRUPT_GRACE_S, _stop_now, args=(_INTERRUPTED_LINE,))
+    timer.daemon = True
+    timer.start()
+    raise KeyboardInterrupt
+
+
+def _stop_now(line: str) -> NoReturn:
+    """Say ``line``, stop the Prefect API server this process started (still running when
+    only pipescan got the SIGINT) and end the process without the interpreter's exit hooks."""
+    from pipescan.flows.housekeeping import prefect_servers_started_here, stop_orphaned_server
+
+    os.write(2, line.encode())
+    for server in prefect_servers_started_here():
+        stop_orphaned_server(server)
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(INTERRUPTED_EXIT_CODE)
+
+
+def _interrupted() -> NoReturn:
+    """The command was interrupted and has unwound."""
+    _stop_now(_INTERRUPTED_LINE)
+
+
+def _catch_interrupts() -> Any:
+    """Handle Ctrl-C as :func:`_on_interrupt` says, unless SIGINT is ignored (a background job
+    of a non-interactive shell) or handled by whoever called the command; the handler it
+    replaced (to put back), or None."""
+    _INTERRUPTED.clear()
+    if threading.current_thread() is not threading.main_thread():
+        return None
+    previous = signal.getsignal(signal.SIGINT)
+    if previous is not signal.default_int_handler:
+        return None
+    signal.signal(signal.SIGINT, _on_interrupt)
+    return previous
+
+
 class _PipescanGroup(TyperGroup):
     """The top-level command: every error a user can cause is one line on stderr.
 
@@ -64,13 +146,24 @@ class _PipescanGroup(TyperGroup):
       error (a bad option value, a missing argument) print ``error: ...`` and exit with 2;
       with ``--debug`` or ``PIPESCAN_DEBUG=1`` the traceback comes first.
     - Anything else is a bug: its traceback, then a line saying how to report it; exit 1.
+    - Ctrl-C, and whatever fails after it, is ``error: interrupted: ...`` and exit 130.
     """
 
     def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
         if not standalone_mode:
             return super().main(*args, standalone_mode=False, **kwargs)
+        previous = _catch_interrupts()
+        try:
+            self._standalone(*args, **kwargs)
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGINT, previous)
+
+    def _standalone(self, *args: Any, **kwargs: Any) -> NoReturn:
         try:
             code = super().main(*args, standalone_mode=False, **kwargs)
+        except KeyboardInterrupt:
+            _interrupted()
         except click_errors.NoArgsIsHelpError as exc:
             exc.show()  # the help text itself
             sys.exit(exc.exit_code)
@@ -82,19 +175,29 @@ class _PipescanGroup(TyperGroup):
             _error_line(exc.format_message())
             sys.exit(exc.exit_code)
         except typer.Abort:
+            if _INTERRUPTED.is_set():  # click turns a KeyboardInterrupt into Abort
+                _interrupted()
             typer.echo("aborted", err=True)
             sys.exit(1)
         except PipescanError as exc:
+            if _INTERRUPTED.is_set():
+                _interrupted()
             if _debugging():
                 traceback.print_exception(exc)
             _error_line(str(exc))
             sys.exit(2)
         except OSError as exc:
+            if _INTERRUPTED.is_set():
+                _interrupted()
             if exc.errno == errno.EPIPE:  # output piped into `head`: not an error
                 sys.stdout = PacifyFlushWrapper(sys.stdout)  # type: ignore[assignment]
                 sys.exit(1)
             _unexpected(exc)
         except Exception as exc:
+            # After Ctrl-C, what fails next (Prefect's API server, stopped by the same Ctrl-C)
+            # is the interrupt, not a bug.
+            if _INTERRUPTED.is_set():
+                _interrupted()
             expected = _prefect_did_not_start(exc)
             if expected is None:
                 _unexpected(exc)
@@ -102,6 +205,8 @@ class _PipescanGroup(TyperGroup):
                 traceback.print_exception(exc)
             _error_line(str(expected))
             sys.exit(2)
+        if _INTERRUPTED.is_set():  # typer turns a KeyboardInterrupt into exit code 130
+            _interrupted()
         sys.exit(code if isinstance(code, int) else 0)
 
 

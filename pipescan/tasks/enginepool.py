@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from multiprocessing import get_context
+from multiprocessing import get_context, resource_tracker
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -63,10 +63,28 @@ def _call_in(cwd: str, fn: Callable[..., T], *args: Any) -> T:
     return fn(*args)
 
 
+def _start_quiet_tracker() -> None:
+    # The pool's queues and locks are named semaphores that multiprocessing's resource
+    # tracker (a helper process) removes if this process dies without doing so. When it
+    # does (a second Ctrl-C stops pipescan at once), the tracker cleans up and then warns
+    # about "leaked semaphore objects" on the user's terminal: keep it to the cleaning.
+    saved = os.environ.get("PYTHONWARNINGS")
+    quiet = "ignore::UserWarning:multiprocessing.resource_tracker"
+    os.environ["PYTHONWARNINGS"] = f"{saved},{quiet}" if saved else quiet
+    try:
+        resource_tracker.ensure_running()
+    finally:
+        if saved is None:
+            del os.environ["PYTHONWARNINGS"]
+        else:
+            os.environ["PYTHONWARNINGS"] = saved
+
+
 def _get(workers: int) -> ProcessPoolExecutor:
     global _pool, _size
     with _lock:
         if _pool is None:
+            _start_quiet_tracker()
             _pool = ProcessPoolExecutor(
                 max_workers=workers,
                 mp_context=get_context("spawn"),
