@@ -102,3 +102,22 @@ def test_relative_paths_mean_what_they_mean_to_the_caller(tmp_path, monkeypatch)
     (tmp_path / "inputs").mkdir()
     monkeypatch.chdir(tmp_path)
     assert enginepool.run(2, os.path.abspath, "inputs") == str(tmp_path / "inputs")
+
+
+def test_staging_starts_the_workers_for_frames_and_not_for_a_cloud(tmp_path, monkeypatch):
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.scan import get_scenario, simulate_scan
+    from pipescan.storage.scratch import create_run_dir
+    from pipescan.tasks.storing import stage_archive
+
+    started: list[int] = []
+    monkeypatch.setattr(enginepool, "prestart", started.append)
+    frames = simulate_scan(get_scenario("paper", travel_m=0.3), seed=0)
+    cloud = simulate_scan(get_scenario("ring", travel_m=0.5), seed=0)  # one registered cloud
+    for scan, name, expected in ((frames, "frames", [2]), (cloud, "cloud", [2])):
+        root = write_simulated_archive(scan, tmp_path / name)
+        staged = stage_archive.fn(str(root), create_run_dir(tmp_path / "work"), engine_processes=2)
+        assert (staged.frame_count > 0) == (name == "frames")
+        assert started == expected  # started for the frames; the cloud starts nothing more
+    stage_archive.fn(str(tmp_path / "frames"), create_run_dir(tmp_path / "work"))
+    assert started == [2]  # and only when asked

@@ -35,7 +35,6 @@ from pipescan.flows.runners import engine_processes, engine_threads
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
-from pipescan.tasks import enginepool
 from pipescan.tasks.inspection import (
     bucket_points,
     fit_pipe_axis,
@@ -142,10 +141,9 @@ def inspect_archive(
     params = params or InspectionParams()
     run_dir = start_run_dir(Path(work_dir or settings.work_dir))
     pooled = engine_processes(settings.engine_processes)
-    if pooled:
-        enginepool.prestart(pooled)  # the workers import the engines while staging runs
     try:
-        staged = stage_archive(archive, run_dir, get_settings().input_limits())
+        # With frames, the engine pool's workers start as the archive opens.
+        staged = stage_archive(archive, run_dir, get_settings().input_limits(), pooled)
         meta = staged.meta
         log.info(f"archive {staged.name}: asset {meta.asset_id}, {staged.frame_count} frames")
         # The crawler's own odometer uncertainty, where inspection.toml states it, is what
