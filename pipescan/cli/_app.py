@@ -111,9 +111,9 @@ def _stop_now(line: str) -> NoReturn:
     only pipescan got the SIGINT) and end the process without the interpreter's exit hooks."""
     from pipescan.flows.housekeeping import prefect_servers_started_here, stop_orphaned_server
 
-    os.write(2, line.encode())
-    for server in prefect_servers_started_here():
+    for server in prefect_servers_started_here():  # first: what it says comes before
         stop_orphaned_server(server)
+    os.write(2, line.encode())
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
             stream.flush()

@@ -17,11 +17,12 @@ within a second: it never outlives a killed run.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from multiprocessing import get_context, resource_tracker
@@ -39,6 +40,23 @@ def _exit_with_parent(parent: int) -> None:
         time.sleep(1.0)
         if os.getppid() != parent:
             os._exit(0)
+
+
+@contextlib.contextmanager
+def _spawning_without_sigint() -> Iterator[None]:
+    """Processes started in this block (``submit`` starts them, in the calling thread) begin
+    with SIGINT blocked, which they inherit from this thread: a Ctrl-C while one is still
+    starting (importing) would otherwise print its traceback. The parent handles Ctrl-C."""
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+
+
+def _submit(pool: ProcessPoolExecutor, fn: Callable[..., T], *args: Any) -> Future[T]:
+    with _spawning_without_sigint():
+        return pool.submit(fn, *args)
 
 
 def _start_worker(parent: int) -> None:
@@ -108,7 +126,7 @@ def prestart(workers: int) -> list[Future]:
     background); a pool already running is left as it is."""
     pool = _get(workers)
     # Processes start on demand, one per job no idle worker can take.
-    return [pool.submit(_ready) for _ in range(workers)]
+    return [_submit(pool, _ready) for _ in range(workers)]
 
 
 def run(workers: int, fn: Callable[..., T], *args: Any) -> T:
@@ -118,7 +136,7 @@ def run(workers: int, fn: Callable[..., T], *args: Any) -> T:
     for attempt in (1, 2):
         pool = _get(workers)
         try:
-            return pool.submit(_call_in, os.getcwd(), fn, *args).result()
+            return _submit(pool, _call_in, os.getcwd(), fn, *args).result()
         except BrokenProcessPool:
             _discard(pool)
             if attempt == 2:
