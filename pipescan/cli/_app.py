@@ -159,9 +159,23 @@ class _PipescanGroup(TyperGroup):
             if previous is not None:
                 signal.signal(signal.SIGINT, previous)
 
-    def _standalone(self, *args: Any, **kwargs: Any) -> NoReturn:
+    def _run(self, *args: Any, **kwargs: Any) -> Any:
+        """The command; after a Ctrl-C, whatever it ends with (an exception, Prefect's API
+        server stopped by the same Ctrl-C; click's Abort; typer's exit code 130) is the
+        interrupt, not a bug."""
         try:
             code = super().main(*args, standalone_mode=False, **kwargs)
+        except BaseException:
+            if _INTERRUPTED.is_set():
+                _interrupted()
+            raise
+        if _INTERRUPTED.is_set():
+            _interrupted()
+        return code
+
+    def _standalone(self, *args: Any, **kwargs: Any) -> NoReturn:
+        try:
+            code = self._run(*args, **kwargs)
         except KeyboardInterrupt:
             _interrupted()
         except click_errors.NoArgsIsHelpError as exc:
@@ -175,29 +189,19 @@ class _PipescanGroup(TyperGroup):
             _error_line(exc.format_message())
             sys.exit(exc.exit_code)
         except typer.Abort:
-            if _INTERRUPTED.is_set():  # click turns a KeyboardInterrupt into Abort
-                _interrupted()
             typer.echo("aborted", err=True)
             sys.exit(1)
         except PipescanError as exc:
-            if _INTERRUPTED.is_set():
-                _interrupted()
             if _debugging():
                 traceback.print_exception(exc)
             _error_line(str(exc))
             sys.exit(2)
         except OSError as exc:
-            if _INTERRUPTED.is_set():
-                _interrupted()
             if exc.errno == errno.EPIPE:  # output piped into `head`: not an error
                 sys.stdout = PacifyFlushWrapper(sys.stdout)  # type: ignore[assignment]
                 sys.exit(1)
             _unexpected(exc)
         except Exception as exc:
-            # After Ctrl-C, what fails next (Prefect's API server, stopped by the same Ctrl-C)
-            # is the interrupt, not a bug.
-            if _INTERRUPTED.is_set():
-                _interrupted()
             expected = _prefect_did_not_start(exc)
             if expected is None:
                 _unexpected(exc)
@@ -205,8 +209,6 @@ class _PipescanGroup(TyperGroup):
                 traceback.print_exception(exc)
             _error_line(str(expected))
             sys.exit(2)
-        if _INTERRUPTED.is_set():  # typer turns a KeyboardInterrupt into exit code 130
-            _interrupted()
         sys.exit(code if isinstance(code, int) else 0)
 
 
