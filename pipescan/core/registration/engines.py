@@ -183,12 +183,22 @@ def icp_point_to_point(
 # --------------------------------------------------------------------------- engines
 
 
-def _align_small_gicp(m: LocalMap, source: np.ndarray, init: np.ndarray) -> np.ndarray:
+def small_gicp_source(m: LocalMap, source: np.ndarray) -> Any:
+    """A frame as small_gicp aligns it: its cloud, with covariances for GICP."""
     sg, p = m._sg, m.params
     cloud = sg.PointCloud(source)
     if p.method == "gicp":
         tree = sg.KdTree(cloud, num_threads=p.num_threads)
         sg.estimate_covariances(cloud, tree, NORMAL_NEIGHBOURS, p.num_threads)
+    return cloud
+
+
+def small_gicp_steps(
+    m: LocalMap, cloud: Any, init: np.ndarray, iterations: int
+) -> tuple[np.ndarray, bool]:
+    """At most ``iterations`` of small_gicp from ``init``; the pose, and whether a step fell
+    below both convergence thresholds."""
+    sg, p = m._sg, m.params
     result = sg.align(
         m.sg_cloud,
         cloud,
@@ -197,11 +207,15 @@ def _align_small_gicp(m: LocalMap, source: np.ndarray, init: np.ndarray) -> np.n
         registration_type="GICP" if p.method == "gicp" else "PLANE_ICP",
         max_correspondence_distance=p.max_correspondence_m,
         num_threads=p.num_threads,
-        max_iterations=p.max_iterations,
+        max_iterations=iterations,
         rotation_epsilon=p.converged_rotation_rad,
         translation_epsilon=p.converged_translation_m,
     )
-    return np.asarray(result.T_target_source)
+    return np.asarray(result.T_target_source), bool(result.converged)
+
+
+def _align_small_gicp(m: LocalMap, source: np.ndarray, init: np.ndarray) -> np.ndarray:
+    return small_gicp_steps(m, small_gicp_source(m, source), init, m.params.max_iterations)[0]
 
 
 def _open3d_estimation(params: RegistrationParams):

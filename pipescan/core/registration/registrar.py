@@ -9,7 +9,13 @@ import numpy as np
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
-from pipescan.core.registration.engines import LocalMap, aligner, transform
+from pipescan.core.registration.engines import (
+    LocalMap,
+    aligner,
+    small_gicp_source,
+    small_gicp_steps,
+    transform,
+)
 from pipescan.core.registration.fusion import (
     AxialFilter,
     Fault,
@@ -28,6 +34,11 @@ from pipescan.core.registration.trajectory import Trajectory
 
 _MIN_FRAME_POINTS = 50
 _MIN_CORRESPONDENCES = 30
+# small_gicp's iterations before the frame's evidence is read to see whether ICP is only
+# creeping along directions the fusion will discard (the axis without facing surfaces, a
+# degenerate roll). Frames with features in view converge in 3-4 (the 30 m scan's median);
+# a smooth stretch converges across the axis and in tilt by then and creeps on along it.
+_ITERATIONS_BEFORE_EVIDENCE = 4
 
 
 class FrameRegistrar:
@@ -192,7 +203,7 @@ class FrameRegistrar:
         self, pts: np.ndarray, pred: np.ndarray, index: int, step_bound: float
     ) -> tuple[np.ndarray, FrameQuality]:
         m = self._map
-        T = self._align(m, pts, pred)
+        T = self._icp(pts, pred)
         if not np.isfinite(T).all():
             raise RegistrationError(f"frame {index}: ICP diverged (non-finite pose)")
         # Correspondences at the solution, the same for every engine: they give the fitness,
@@ -222,6 +233,85 @@ class FrameRegistrar:
             chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
         )
 
+    def _icp(self, pts: np.ndarray, pred: np.ndarray) -> np.ndarray:
+        """ICP from the prior pose ``pred``.
+
+        With small_gicp, iterating stops once the steps are below the convergence thresholds
+        in every direction the fusion keeps: a step along the axis while the frame sees no
+        surface facing along it (no information: ICP's weight there is 0), or about the axis
+        while roll is degenerate (held), changes nothing the fusion returns. In a smooth
+        stretch ICP otherwise creeps along the axis and about it to the iteration cap, a
+        millimetre and two milliradians a step: 14 iterations where 4 converge.
+        """
+        p, m = self.params, self._map
+        if p.engine != "small_gicp" or p.method == "point_to_point":
+            return self._align(m, pts, pred)
+        cloud = small_gicp_source(m, pts)
+        first = min(_ITERATIONS_BEFORE_EVIDENCE, p.max_iterations)
+        T, converged = small_gicp_steps(m, cloud, pred, first)
+        left = p.max_iterations - first
+        if converged or left <= 0 or not np.isfinite(T).all():
+            return T
+        discarded = self._discarded_directions(pts, T, pred)
+        if discarded is None:
+            return small_gicp_steps(m, cloud, T, left)[0]
+        basis, scale = discarded
+        for _ in range(left):
+            T_next, converged = small_gicp_steps(m, cloud, T, 1)
+            x = small_motion(np.linalg.inv(T) @ T_next) * scale
+            x = (x - basis @ (basis.T @ x)) / scale
+            T = T_next
+            if converged or (
+                np.linalg.norm(x[:3]) < p.converged_rotation_rad
+                and np.linalg.norm(x[3:]) < p.converged_translation_m
+            ):
+                break
+        return T
+
+    def _discarded_directions(
+        self, pts: np.ndarray, T: np.ndarray, pred: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray] | None:
+        """The directions of a correction about the sensor that the fusion will discard at
+        pose ``T``, as an orthonormal basis in balanced coordinates (and the scale to them),
+        or None when it keeps every direction."""
+        m = self._map
+        src_idx, tgt_idx = self._correspondences(pts, T)
+        if len(src_idx) < _MIN_CORRESPONDENCES:
+            return None
+        src = pts[src_idx]
+        resid = np.einsum("ij,ij->i", transform(T, src) - m.points[tgt_idx], m.normals[tgt_idx])
+        information, weak, scale, axis_sensor = self._evidence(
+            src, m.normals[tgt_idx], m.surface_variation[tgt_idx], resid, pred
+        )
+        directions = [weak]
+        if information <= 0:
+            directions.append(np.concatenate(([0.0, 0.0, 0.0], axis_sensor))[:, None])
+        stacked = np.hstack(directions)
+        if stacked.shape[1] == 0:
+            return None
+        return np.linalg.qr(stacked)[0], scale
+
+    def _evidence(
+        self,
+        src: np.ndarray,
+        normals_world: np.ndarray,
+        surface_variation: np.ndarray,
+        resid: np.ndarray,
+        pred: np.ndarray,
+    ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """What the frame's correspondences tell about the pose, about the sensor at ``pred``:
+        ICP's information along the axis, the weak roll directions (balanced coordinates),
+        the scale to those coordinates and the axis in the sensor frame."""
+        assert self._axis_world is not None
+        axis_sensor = pred[:3, :3].T @ self._axis_world
+        normals_sensor = normals_world @ pred[:3, :3]
+        information = axial_information(normals_sensor, surface_variation, resid, axis_sensor)
+        length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
+        hessian = point_to_plane_hessian(src, normals_sensor)
+        weak, scale = degenerate_directions(hessian, length, self.params.degeneracy_ratio)
+        weak = weak[:, np.linalg.norm(weak[:3], axis=0) > 0.5]  # rotation-dominated: roll
+        return information, weak, scale, axis_sensor
+
     def _fuse(
         self,
         src: np.ndarray,
@@ -239,16 +329,11 @@ class FrameRegistrar:
         if p.method == "point_to_point":
             # The paper's point-to-point ICP is kept as printed, without fusion.
             return T, 1.0
-        assert self._axis_world is not None
-        axis_sensor = pred[:3, :3].T @ self._axis_world
-        normals_sensor = normals_world @ pred[:3, :3]
-        information = axial_information(normals_sensor, surface_variation, resid, axis_sensor)
+        information, weak, scale, axis_sensor = self._evidence(
+            src, normals_world, surface_variation, resid, pred
+        )
         x = small_motion(np.linalg.inv(pred) @ T)
         weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
-        length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
-        hessian = point_to_plane_hessian(src, normals_sensor)
-        weak, scale = degenerate_directions(hessian, length, p.degeneracy_ratio)
-        weak = weak[:, np.linalg.norm(weak[:3], axis=0) > 0.5]  # rotation-dominated: roll
         # Express the ICP correction relative to the prior, about the sensor, in balanced
         # coordinates; drop it along the weak roll directions and keep ICP's share ``weight``
         # of it along the axis.
