@@ -470,3 +470,37 @@ def test_weak_registration_is_a_status_and_uncertainty_is_kept():
         registration_weak=True,
     )  # fmt: skip
     assert s.status == SectionStatus.LOW_COVERAGE
+
+
+def _window_medians(radii, bin_of, bin_radii, window_bins=5):
+    """Each bin's median absolute residual over the bins around it, one window at a time."""
+    bins = len(bin_radii)
+    res = np.abs(radii - bin_radii[bin_of])
+    finite = np.isfinite(res)
+    res, which = res[finite], bin_of[finite]
+    half = window_bins // 2
+    out = np.empty(bins)
+    for b in range(bins):
+        near = np.isin(which, [(b + d) % bins for d in range(-half, half + 1)])
+        out[b] = np.median(res[near]) if near.any() else np.median(res)
+    return out
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_residual_spread_is_the_median_over_the_bins_around_each(seed):
+    from pipescan.core.uncertainty import residual_sigma_m
+
+    rng = np.random.default_rng(seed)
+    bins = int(rng.choice([8, 72, 360]))
+    bin_of = rng.integers(0, bins, int(rng.integers(1, 3000)))
+    if seed % 2:
+        bin_of = bin_of[bin_of < bins // 2]  # half the circle unseen: empty windows
+    bin_radii = rng.uniform(0.2, 0.3, bins)
+    bin_radii[rng.random(bins) < 0.2] = np.nan  # points in unseen bins do not count
+    radii = np.round(rng.normal(0.25, 0.005, len(bin_of)), 4)  # ties
+    sigma = residual_sigma_m(radii, bin_of, bin_radii)
+    expected = _window_medians(radii, bin_of, bin_radii)
+    # The same robust scale for every bin: the ratio is constant (1.4826 and the small-n
+    # correction), and every bin's median is the window's.
+    ratio = sigma / expected
+    assert np.allclose(ratio, ratio[0], rtol=1e-12, atol=0) and 1.48 < ratio[0] < 2.5

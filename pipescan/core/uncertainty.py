@@ -104,19 +104,27 @@ def residual_sigma_m(
     per_bin = np.bincount(which, minlength=bins)
     n = float(np.median(per_bin[per_bin > 0]))
     scale = 1.4826 / (1.0 - 1.2 / max(n, 3.0))
-    order = np.argsort(which, kind="stable")
-    res = res[order]
-    bounds = np.concatenate(([0], np.cumsum(per_bin)))
+    # Every residual counts in the windows of the ``window_bins`` bins around its own. List
+    # each once per window, in ascending order of residual, then sort stably by window: each
+    # window's residuals come out sorted, and its median is read at its middle.
     half = window_bins // 2
-    overall = float(np.median(res))
-    sigma = np.empty(bins)
-    for b in range(bins):
-        parts = [
-            res[bounds[k % bins] : bounds[k % bins + 1]] for k in range(b - half, b + half + 1)
-        ]
-        window = np.concatenate(parts)
-        sigma[b] = scale * (float(np.median(window)) if len(window) else overall)
-    return sigma
+    order = np.argsort(res)
+    res = res[order]
+    # (A circle holds far fewer than 32,768 bins: as int16, NumPy sorts by radix.)
+    dtype = np.int16 if bins < 2**15 else np.int64
+    key = which[order].astype(dtype)[:, None] + np.arange(-half, half + 1, dtype=dtype)
+    key[key < 0] += bins
+    key[key >= bins] -= bins
+    key = key.ravel()
+    values = np.repeat(res, window_bins)[np.argsort(key, kind="stable")]
+    counts = np.bincount(key, minlength=bins)
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    low = starts + np.maximum(counts - 1, 0) // 2
+    high = starts + counts // 2
+    seen = counts > 0
+    medians = np.full(bins, float(np.median(res)))
+    medians[seen] = (values[low[seen]] + values[high[seen]]) / 2.0
+    return scale * medians
 
 
 def unseen_runs(seen: np.ndarray) -> list[np.ndarray]:
