@@ -71,7 +71,9 @@ class RegistrationParams:
         by less than that. 0.5 mrad (1 mm at 2 m) and 0.5 mm: a fraction of the across-axis
         error the sweep measures with any setting (1-2 mm RMS); tighter, the last iterations
         only creep along the axis, where the fusion weighs ICP by its information anyway
-        (swept: ``docs/registration.md``, *Convergence*).
+        (swept: ``docs/registration.md``, *Convergence*). Steps along the axis where ICP has
+        no information, and about it where roll is held, are not counted: the fusion
+        discards them (``FrameRegistrar._icp``).
     num_threads : int
         Threads the engine may use for one frame. 1 by default: parallelism comes from
         registering chunks of frames in parallel, in processes. On a thread pool, small_gicp
