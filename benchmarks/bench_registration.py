@@ -6,6 +6,7 @@
     python benchmarks/bench_registration.py parallel    # register_chunk in 1 vs 2 threads/procs
     python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
     python benchmarks/bench_registration.py converge    # ICP stopping thresholds, short draws
+    python benchmarks/bench_registration.py icp-work --archive DIR   # ICP's iterations a frame
     python benchmarks/bench_registration.py all
 
 Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
@@ -607,6 +608,60 @@ def bench_sweep(args) -> None:
     print(f"dishonest ok sections over all draws: {total_dishonest}")
 
 
+# --------------------------------------------------------------------------- ICP's work
+
+
+def bench_icp_work(args) -> None:
+    """How much small_gicp iterates on a scan's frames: every second 60-frame chunk of an
+    archive registered in memory on one thread, small_gicp's calls counted and timed. The
+    count of iterations does not depend on the machine's load; the times do. Run it from two
+    checkouts (``PYTHONPATH=<checkout>``) to compare versions."""
+    import small_gicp
+
+    from pipescan.storage.input.archive import open_archive
+    from pipescan.tasks.staged import StagedArchive, register_staged_frames
+
+    if not args.archive:
+        sys.exit("icp-work: give --archive DIR (python benchmarks/bench_chain.py prepare)")
+    iterations: list[int] = []
+    align_cpu = [0.0]
+    align = small_gicp.align
+
+    def counted(*a, **k):
+        started = time.thread_time()
+        result = align(*a, **k)
+        align_cpu[0] += time.thread_time() - started
+        iterations.append(result.iterations)
+        return result
+
+    small_gicp.align = counted
+    try:
+        with open_archive(args.archive) as arc:
+            staged = StagedArchive(
+                name=arc.name, root=Path(args.archive), meta=arc.meta, content_hash="",
+                frame_count=arc.frame_count, cloud_member=arc.cloud_member,
+            )  # fmt: skip
+        register_staged_frames(staged, 0, 3, RegistrationParams())  # imports, first calls
+        iterations.clear()
+        align_cpu[0] = 0.0
+        frames = 0
+        started = time.process_time()
+        for first in range(0, staged.frame_count - 60, 120):
+            register_staged_frames(staged, first, first + 59, RegistrationParams())
+            frames += 60
+        cpu = time.process_time() - started
+    finally:
+        small_gicp.align = align
+    print(
+        f"{args.archive}: {frames} frames in {frames // 60} chunks, one thread, load "
+        f"{os.getloadavg()[0]:.1f}\n"
+        f"  small_gicp calls a frame       {len(iterations) / frames:.2f}\n"
+        f"  iterations a frame (reported)  {sum(iterations) / frames:.2f}\n"
+        f"  small_gicp CPU ms a frame      {1000 * align_cpu[0] / frames:.1f}\n"
+        f"  registration CPU ms a frame    {1000 * cpu / frames:.1f} (reading included)"
+    )
+
+
 # --------------------------------------------------------------------------- convergence
 
 
@@ -765,6 +820,7 @@ def main() -> None:
             "memory",
             "sweep",
             "converge",
+            "icp-work",
             "all",
             "memory-child",
         ],
@@ -778,6 +834,7 @@ def main() -> None:
         default=["1e-4,1e-4", "5e-4,5e-4", "1.745e-3,1e-3"],
         help="converge: ICP stopping steps, ROTATION_RAD,TRANSLATION_M each",
     )
+    parser.add_argument("--archive", help="icp-work: an archive of frames")
     parser.add_argument("--travel-m", type=float, default=4.5, help="length of the paper scan")
     parser.add_argument("--frames", type=int, nargs="+", default=[100, 400], help="memory runs")
     parser.add_argument("--seed", type=int, default=3)
@@ -794,9 +851,12 @@ def main() -> None:
         "memory": bench_memory,
         "sweep": bench_sweep,
         "converge": bench_converge,
+        "icp-work": bench_icp_work,
     }
     for name, step in steps.items():
-        if args.what == name or (args.what == "all" and name not in ("sweep", "converge")):
+        if args.what == name or (
+            args.what == "all" and name not in ("sweep", "converge", "icp-work")
+        ):
             print(f"\n## {name}\n", flush=True)
             step(args)
 
