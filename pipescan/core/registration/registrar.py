@@ -43,6 +43,21 @@ _MIN_CORRESPONDENCES = 30
 _ITERATIONS_BEFORE_EVIDENCE = 4
 
 
+@dataclasses.dataclass(frozen=True)
+class _Matches:
+    """A frame's correspondences with the local map at a pose: the frame's points (sensor
+    frame) and, for the map points they match, normals (world) and surface variation."""
+
+    src: np.ndarray
+    target: np.ndarray
+    normals_world: np.ndarray
+    surface_variation: np.ndarray
+
+    def residuals(self, T: np.ndarray) -> np.ndarray:
+        """Point-to-plane residuals with the frame at pose ``T`` (m)."""
+        return np.einsum("ij,ij->i", transform(T, self.src) - self.target, self.normals_world)
+
+
 class FrameRegistrar:
     """Streaming frame-to-local-map registration.
 
@@ -204,28 +219,23 @@ class FrameRegistrar:
     def _register(
         self, pts: np.ndarray, pred: np.ndarray, index: int, step_bound: float
     ) -> tuple[np.ndarray, FrameQuality]:
-        m = self._map
         T = self._icp(pts, pred)
         if not np.isfinite(T).all():
             raise RegistrationError(f"frame {index}: ICP diverged (non-finite pose)")
         # Correspondences at the solution, the same for every engine: they give the fitness,
         # the point-to-plane RMSE, the Hessian and the information along the axis.
-        src_idx, tgt_idx = self._correspondences(pts, T)
-        if len(src_idx) < _MIN_CORRESPONDENCES:
+        matches = self._matches(pts, T)
+        if len(matches.src) < _MIN_CORRESPONDENCES:
             raise RegistrationError(
-                f"frame {index}: ICP found only {len(src_idx)} correspondences",
+                f"frame {index}: ICP found only {len(matches.src)} correspondences",
                 hint="the frame does not overlap the previous ones; check frame order",
             )
-        src, normals_world = pts[src_idx], m.normals[tgt_idx]
-        resid = np.einsum("ij,ij->i", transform(T, src) - m.points[tgt_idx], normals_world)
-        T, weight = self._fuse(
-            src, normals_world, m.surface_variation[tgt_idx], resid, pred, T, step_bound
-        )
+        T, weight = self._fuse(matches, pred, T, step_bound)
         # The residuals at the fused pose, with the ICP solution's correspondences: the fusion
         # moves the frame along the wall, where point-to-plane residuals hardly change.
-        resid = np.einsum("ij,ij->i", transform(T, src) - m.points[tgt_idx], normals_world)
+        resid = matches.residuals(T)
         rmse = float(np.sqrt(np.mean(resid**2)))
-        fitness = len(src_idx) / len(pts)
+        fitness = len(matches.src) / len(pts)
         return T, FrameQuality(
             index=index,
             fitness=fitness,
@@ -276,15 +286,10 @@ class FrameRegistrar:
         """The directions of a correction about the sensor that the fusion will discard at
         pose ``T``, as an orthonormal basis in balanced coordinates (and the scale to them),
         or None when it keeps every direction."""
-        m = self._map
-        src_idx, tgt_idx = self._correspondences(pts, T)
-        if len(src_idx) < _MIN_CORRESPONDENCES:
+        matches = self._matches(pts, T)
+        if len(matches.src) < _MIN_CORRESPONDENCES:
             return None
-        src = pts[src_idx]
-        resid = np.einsum("ij,ij->i", transform(T, src) - m.points[tgt_idx], m.normals[tgt_idx])
-        information, weak, scale, axis_sensor = self._evidence(
-            src, m.normals[tgt_idx], m.surface_variation[tgt_idx], resid, pred
-        )
+        information, weak, scale, axis_sensor = self._evidence(matches, matches.residuals(T), pred)
         directions = [weak]
         if information <= 0:
             directions.append(np.concatenate(([0.0, 0.0, 0.0], axis_sensor))[:, None])
@@ -294,20 +299,19 @@ class FrameRegistrar:
         return np.linalg.qr(stacked)[0], scale
 
     def _evidence(
-        self,
-        src: np.ndarray,
-        normals_world: np.ndarray,
-        surface_variation: np.ndarray,
-        resid: np.ndarray,
-        pred: np.ndarray,
+        self, matches: _Matches, resid: np.ndarray, pred: np.ndarray
     ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """What the frame's correspondences tell about the pose, about the sensor at ``pred``:
-        ICP's information along the axis, the weak roll directions (balanced coordinates),
-        the scale to those coordinates and the axis in the sensor frame."""
+        """What the frame's correspondences (with residuals ``resid``) tell about the pose,
+        about the sensor at ``pred``: ICP's information along the axis, the weak roll
+        directions (balanced coordinates), the scale to those coordinates and the axis in
+        the sensor frame."""
         assert self._axis_world is not None
+        src = matches.src
         axis_sensor = pred[:3, :3].T @ self._axis_world
-        normals_sensor = normals_world @ pred[:3, :3]
-        information = axial_information(normals_sensor, surface_variation, resid, axis_sensor)
+        normals_sensor = matches.normals_world @ pred[:3, :3]
+        information = axial_information(
+            normals_sensor, matches.surface_variation, resid, axis_sensor
+        )
         length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
         hessian = point_to_plane_hessian(src, normals_sensor)
         weak, scale = degenerate_directions(hessian, length, self.params.degeneracy_ratio)
@@ -315,14 +319,7 @@ class FrameRegistrar:
         return information, weak, scale, axis_sensor
 
     def _fuse(
-        self,
-        src: np.ndarray,
-        normals_world: np.ndarray,
-        surface_variation: np.ndarray,
-        resid: np.ndarray,
-        pred: np.ndarray,
-        T: np.ndarray,
-        step_bound: float,
+        self, matches: _Matches, pred: np.ndarray, T: np.ndarray, step_bound: float
     ) -> tuple[np.ndarray, float]:
         """Weigh ICP's correction from the prior: along the axis by its information against
         the prior's uncertainty, about the axis (roll) held where the Hessian is degenerate.
@@ -331,9 +328,7 @@ class FrameRegistrar:
         if p.method == "point_to_point":
             # The paper's point-to-point ICP is kept as printed, without fusion.
             return T, 1.0
-        information, weak, scale, axis_sensor = self._evidence(
-            src, normals_world, surface_variation, resid, pred
-        )
+        information, weak, scale, axis_sensor = self._evidence(matches, matches.residuals(T), pred)
         x = small_motion(np.linalg.inv(pred) @ T)
         weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
         # Express the ICP correction relative to the prior, about the sensor, in balanced
@@ -376,10 +371,12 @@ class FrameRegistrar:
             chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
         )
 
-    def _correspondences(self, pts: np.ndarray, T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        idx, dist = self._map.nearest(transform(T, pts))
+    def _matches(self, pts: np.ndarray, T: np.ndarray) -> _Matches:
+        m = self._map
+        idx, dist = m.nearest(transform(T, pts))
         ok = (idx >= 0) & (dist <= self.params.max_correspondence_m)
-        return np.flatnonzero(ok), idx[ok]
+        target = idx[ok]
+        return _Matches(pts[ok], m.points[target], m.normals[target], m.surface_variation[target])
 
     @property
     def odometer_slips_m(self) -> tuple[float, ...]:
