@@ -644,3 +644,9 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
         "1.5 m of travel rested on the odometer alone: the ± there is the odometer's 5 % and "
         "allows for no slip"
     )
+    # Every frame placed against features: the ± is registration's own, whatever was caught.
+    anchored = reg | {"degenerate_frames": 0}
+    rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=anchored)))
+    assert plain(rows["chainage uncertainty"]) == (
+        "up to ±0.62 m at the end (registration's own error: no frame rested on the odometer)"
+    )

@@ -421,15 +421,14 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
         )
     uncertainty_m = reg.get("chainage_uncertainty_m")
     if _finite(uncertainty_m):
-        rows.append(
-            (
-                "chainage uncertainty",
-                f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel and its "
-                "possible slips)"
-                if reg.get("odometer_slips_caught_m")
-                else f"up to ±{fmt_m(uncertainty_m)} at the end (odometer-held travel)",
-            )
-        )
+        if degenerate == 0:
+            # Every frame was placed against features: the ± is registration's own error.
+            what = "registration's own error: no frame rested on the odometer"
+        elif reg.get("odometer_slips_caught_m"):
+            what = "odometer-held travel and its possible slips"
+        else:
+            what = "odometer-held travel"
+        rows.append(("chainage uncertainty", f"up to ±{fmt_m(uncertainty_m)} at the end ({what})"))
     if caveat := unseen_slip_caveat(reg):
         rows.append(("unseen odometer slips", caveat))
     caught = reg.get("odometer_slips_caught_m")
