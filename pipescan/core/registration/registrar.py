@@ -289,7 +289,7 @@ class FrameRegistrar:
         matches = self._matches(pts, T)
         if len(matches.src) < _MIN_CORRESPONDENCES:
             return None
-        information, weak, scale, axis_sensor = self._evidence(matches, matches.residuals(T), pred)
+        information, weak, scale, axis_sensor = self._evidence(matches, T, pred)
         directions = [weak]
         if information <= 0:
             directions.append(np.concatenate(([0.0, 0.0, 0.0], axis_sensor))[:, None])
@@ -299,9 +299,9 @@ class FrameRegistrar:
         return np.linalg.qr(stacked)[0], scale
 
     def _evidence(
-        self, matches: _Matches, resid: np.ndarray, pred: np.ndarray
+        self, matches: _Matches, T: np.ndarray, pred: np.ndarray
     ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
-        """What the frame's correspondences (with residuals ``resid``) tell about the pose,
+        """What the frame's correspondences tell about the pose, with the frame at ``T``,
         about the sensor at ``pred``: ICP's information along the axis, the weak roll
         directions (balanced coordinates), the scale to those coordinates and the axis in
         the sensor frame."""
@@ -310,7 +310,7 @@ class FrameRegistrar:
         axis_sensor = pred[:3, :3].T @ self._axis_world
         normals_sensor = matches.normals_world @ pred[:3, :3]
         information = axial_information(
-            normals_sensor, matches.surface_variation, resid, axis_sensor
+            normals_sensor, matches.surface_variation, matches.residuals(T), axis_sensor
         )
         length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
         hessian = point_to_plane_hessian(src, normals_sensor)
@@ -328,7 +328,7 @@ class FrameRegistrar:
         if p.method == "point_to_point":
             # The paper's point-to-point ICP is kept as printed, without fusion.
             return T, 1.0
-        information, weak, scale, axis_sensor = self._evidence(matches, matches.residuals(T), pred)
+        information, weak, scale, axis_sensor = self._evidence(matches, T, pred)
         x = small_motion(np.linalg.inv(pred) @ T)
         weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
         # Express the ICP correction relative to the prior, about the sensor, in balanced
