@@ -12,6 +12,7 @@ import pytest
 
 from pipescan.core.axis import fit_axis
 from pipescan.core.measures import MeasureParams
+from pipescan.core.registration import Trajectory
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.simulator.scan import get_scenario, simulate_scan
 from pipescan.simulator.sweep import (
@@ -21,6 +22,7 @@ from pipescan.simulator.sweep import (
     random_effects,
     score_sections,
     stretches_worse_than_odometer,
+    true_shifts,
 )
 
 MAX_RANGE_M = 5.0
@@ -105,8 +107,10 @@ def test_estimated_poses_hold_on_random_effects(draw, diameter_m):
     # The chainage uncertainty bounds the error where no slip fooled the odometer unseen.
     if not len(scan.slip_frames):
         assert travel_error_m <= trajectory.quality[-1].chainage_uncertainty_m + 0.005
-    score = score_sections(sections, TrueBlockage(scan))
+    score = score_sections(sections, TrueBlockage(scan), true_shifts(scan, trajectory))
     assert score.ok >= 10
+    # Each ok section's points really were within its chainage uncertainty of it.
+    assert score.beyond_u == 0, score
     # Issue 12's targets, on ok sections away from every defect's edge by more than their
     # chainage uncertainty; and no ok section off by more than 2 pp anywhere.
     assert score.mean_pp <= 0.3 and score.max_pp <= 1.0, score
@@ -114,3 +118,22 @@ def test_estimated_poses_hold_on_random_effects(draw, diameter_m):
     # A section in a shadow may be ok only where what was seen of it bounds its figure (a
     # far section just under the shadow's coverage, sampled whole, can be).
     assert score.shadows_ok_wrong == 0, score
+
+
+def test_true_shifts_say_where_a_drifted_section_really_was():
+    """A section's true place follows the registered poses' error along the axis."""
+    scene = defect_scene(0.5, 1.5, name="shifts")
+    scan = simulate_scan(dataclasses.replace(scene, points_per_s=40_000), seed=5)
+    frames = len(scan)
+    exact = Trajectory(scan.T_world_sensor.copy(), (), tuple(range(frames)))
+    assert set(true_shifts(scan, exact).values()) == {0.0}
+    # From the middle frame on, every frame registered 0.2 m too far along the pipe: what
+    # those frames alone saw lies 0.2 m before where its sections say.
+    drifted = scan.T_world_sensor.copy()
+    axis_world = scan.T_world_pipe[:3, 0]
+    drifted[frames // 2 :, :3, 3] += 0.2 * axis_world
+    shifts = true_shifts(scan, Trajectory(drifted, (), tuple(range(frames))))
+    far = [v for k, v in shifts.items() if k >= scene.chainage_offset_m + 5.9]
+    near = [v for k, v in shifts.items() if k < scene.chainage_offset_m + 0.5]
+    assert far and all(v == pytest.approx(-0.2) for v in far)
+    assert near and all(v == 0.0 for v in near)

@@ -294,6 +294,12 @@ class SectionScore:
     and ``shadows_ok_wrong`` those of them off the truth (anywhere within ±u) by more than
     their own stated 95 % blockage uncertainty: a shadow's figure may be trusted only where
     what was seen of it bounds it.
+
+    With the sections' true shifts (:func:`true_shifts`), ``shadows_ok_true`` counts ok
+    sections whose true place (start plus shift, to the nearest section) is a true shadow,
+    ``beyond_u`` ok sections whose true place is further from their chainage than their
+    chainage uncertainty (by more than :data:`SHIFT_TOLERANCE_M`), and ``beyond_u_max_m`` the
+    most any section's true place lies beyond its uncertainty (0 when none does).
     """
 
     ok: int
@@ -307,6 +313,9 @@ class SectionScore:
     shadows_ok: int
     u_max_m: float
     shadows_ok_wrong: int = 0
+    shadows_ok_true: int | None = None
+    beyond_u: int | None = None
+    beyond_u_max_m: float | None = None
 
 
 def _closest_error(sec, truth: TrueBlockage) -> tuple[float, float | None]:
@@ -320,9 +329,15 @@ def _closest_error(sec, truth: TrueBlockage) -> tuple[float, float | None]:
     return u, float(np.min(np.abs(sec.blockage_ratio - shifted)))
 
 
-def score_sections(sections, truth: TrueBlockage) -> SectionScore:
+SHIFT_TOLERANCE_M = 0.005
+"""The resolution of :func:`true_shifts`: a true place this close to the stated ± is within it."""
+
+
+def score_sections(
+    sections, truth: TrueBlockage, shifts: dict[float, float] | None = None
+) -> SectionScore:
     """Score measured sections (``SectionMeasures``) against the truth (see
-    :class:`SectionScore`)."""
+    :class:`SectionScore`); ``shifts`` from :func:`true_shifts` adds the true-place scores."""
     errors: list[float] = []
     ok = dishonest = naive_dishonest = 0
     worst = u_max = 0.0
@@ -357,6 +372,9 @@ def score_sections(sections, truth: TrueBlockage) -> SectionScore:
         closest_ratio = _closest_error(sec, truth)[1]
         stated = float(getattr(sec, "blockage_uncertainty_ratio", None) or 0.0)
         shadows_ok_wrong += closest_ratio is not None and closest_ratio > stated
+    true_place = {}
+    if shifts is not None:
+        true_place = _true_place_scores(sections, truth, shifts, shadows)
     e = np.array(errors) if errors else np.array([np.nan])
     return SectionScore(
         ok=ok,
@@ -370,7 +388,79 @@ def score_sections(sections, truth: TrueBlockage) -> SectionScore:
         shadows_ok=len(shadow_ok),
         u_max_m=u_max,
         shadows_ok_wrong=shadows_ok_wrong,
+        **true_place,
     )
+
+
+def _true_place_scores(sections, truth: TrueBlockage, shifts, shadows) -> dict:
+    """``shadows_ok_true``, ``beyond_u`` and ``beyond_u_max_m`` of :class:`SectionScore`."""
+    shadow_starts = {round(t.chainage_start_m, 3) for t in shadows}
+    in_shadow = beyond = 0
+    worst = 0.0
+    for sec in sections:
+        start = round(sec.chainage_start_m, 3)
+        if not sec.is_ok or start not in shifts:
+            continue
+        shift = shifts[start]
+        u = float(getattr(sec, "chainage_uncertainty_m", None) or 0.0)
+        worst = max(worst, abs(shift) - u)
+        beyond += abs(shift) > u + SHIFT_TOLERANCE_M
+        sections_off = round(shift / truth.step_m)
+        in_shadow += round(start + sections_off * truth.step_m, 3) in shadow_starts
+    return {"shadows_ok_true": in_shadow, "beyond_u": beyond, "beyond_u_max_m": worst}
+
+
+def true_shifts(
+    scan, trajectory, *, step_m: float = 0.1, max_range_m: float = 5.0
+) -> dict[float, float]:
+    """How far each registered section's points really are from where the section says:
+    for every section start (m, the truth's chainage frame) that registered points landed
+    in, the median of their true minus their registered chainage (m).
+
+    A point is placed twice: with its frame's registered pose (put in the pipe frame by the
+    first frame's true pose, where registration starts) and with its true pose. Its
+    registered chainage decides which section it falls in, as the inspection's does; the true
+    one says where in the pipe it was. Where registration drifted along the axis, a section's
+    figure describes the pipe at its start plus this shift, not at its stated chainage; the
+    section's chainage uncertainty claims to cover the difference.
+
+    Parameters
+    ----------
+    scan
+        The simulated scan (:class:`~pipescan.simulator.scan.SimulatedScan`).
+    trajectory
+        Its registered trajectory (``frame_indices`` into the scan's frames).
+    step_m, max_range_m
+        Section length, and the range beyond which returns are left out (the inspection's).
+    """
+    s = scan.scenario
+    rows = {int(i): k for k, i in enumerate(trajectory.frame_indices)}
+    first = int(trajectory.frame_indices[0])
+    T_align = scan.T_pipe_sensor(first) @ np.linalg.inv(trajectory.T_world_frame[rows[first]])
+    sections = int(np.ceil(s.end_wall_m / step_m)) + 1
+    # Shifts on a 5 mm grid, within ±4 m (a chainage error beyond that is reported as ±4 m).
+    bins = round(8.0 / TRUTH_STEP_M) + 1
+    counts = np.zeros((sections, bins), dtype=np.int64)
+    for frame in scan.frames():
+        k = rows.get(int(frame.index))
+        if k is None:
+            continue
+        p = frame.points_sensor.astype(np.float64)
+        p = p[np.einsum("ij,ij->i", p, p) <= max_range_m**2]
+        registered = T_align @ trajectory.T_world_frame[k]
+        true = scan.T_pipe_sensor(frame.index)
+        x_reg = p @ registered[0, :3] + registered[0, 3]
+        shift = (p @ true[0, :3] + true[0, 3]) - x_reg
+        i = np.floor(x_reg / step_m).astype(np.int64)
+        j = np.clip(np.round(shift / TRUTH_STEP_M).astype(np.int64) + bins // 2, 0, bins - 1)
+        keep = (i >= 0) & (i < sections)
+        np.add.at(counts, (i[keep], j[keep]), 1)
+    shifts: dict[float, float] = {}
+    for i in np.flatnonzero(counts.sum(axis=1)):
+        cum = np.cumsum(counts[i])
+        j = int(np.searchsorted(cum, cum[-1] / 2.0))
+        shifts[round(s.chainage_offset_m + i * step_m, 3)] = (j - bins // 2) * TRUTH_STEP_M
+    return shifts
 
 
 STRETCH_M = 0.5
