@@ -66,7 +66,7 @@ def test_the_summary_says_the_odometer_slipped_and_where_that_widened_the_chaina
     assert "chainage within ±62.0 cm at the end" in out
     assert (
         "the odometer slipped twice where features were in view (up to 44 cm); the ± above "
-        "allows for as many where it was alone"
+        "allows for slips at that rate where it was alone"
     ) in out
     # Where no frame rested on the odometer there is nothing to allow for.
     _print_summary(dataclasses.replace(summary, registration=reg | {"degenerate_frames": 0}))

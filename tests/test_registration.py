@@ -7,6 +7,7 @@ import itertools
 
 import numpy as np
 import pytest
+from scipy.special import gammaln
 from scipy.spatial.transform import Rotation
 
 from pipescan.core.errors import RegistrationError
@@ -400,6 +401,19 @@ def test_chained_chunks_add_their_uncertainties():
     )
 
 
+def _net_slips_within(mean_each: float, confidence: float = 0.95) -> int:
+    """Smallest k with P(|stuck - sliding| <= k) >= confidence, stuck and sliding independent
+    Poisson counts of ``mean_each``: summed over the two counts' joint pmf."""
+    n = np.arange(60)
+    pmf = np.exp(-mean_each + n * np.log(max(mean_each, 1e-300)) - gammaln(n + 1))
+    joint = np.outer(pmf, pmf)
+    diff = np.abs(n[:, None] - n[None, :])
+    k = 0
+    while joint[diff <= k].sum() < confidence:
+        k += 1
+    return k
+
+
 def test_unseen_slips_are_allowed_for_at_the_rate_and_size_seen():
     steps = np.full(60, 0.1)
     steps[0] = 0.0
@@ -408,13 +422,21 @@ def test_unseen_slips_are_allowed_for_at_the_rate_and_size_seen():
     held[30:32] = True  # 0.2 m: inside a window that features carry, a slip there is seen
     held[40:51] = True  # 1.1 m, one frame of features in it: a window over it is held
     held[45] = False
-    # Three slips caught in the 5.9 m run (0.51 per metre), the largest 0.3 m: from the
-    # first held frame, one may hide; past 1.97 m held in all, two.
+    # Three slips caught in the 3.8 m where they could be (5.9 m run, 2.1 m held): 0.79 per
+    # metre, the largest 0.3 m. After L metres held, the net of the stuck and the sliding
+    # slips at that rate, 95 % of the time, and at least one from the first held frame on.
     got = unseen_slip_allowance(steps, held, [0.2, 0.3, 0.1], window_m=0.5)
-    want = np.zeros(60)
-    want[10:49] = 0.3
-    want[49:] = 0.6
+    rate = 3 / 3.8
+    held_by = np.zeros(60)
+    held_by[10:20] = np.arange(1, 11) * 0.1
+    held_by[20:40] = 1.0
+    held_by[40:51] = 1.0 + np.arange(1, 12) * 0.1
+    held_by[51:] = 2.1
+    want = np.array(
+        [0.3 * max(1, _net_slips_within(rate * x / 2)) if x > 0 else 0.0 for x in held_by]
+    )
     assert got == pytest.approx(want)
+    assert got.max() > 0.3  # by 2.1 m held, more than one slip is allowed for
     # An odometer never caught slipping, or a run with no stretch to hide in: nothing.
     assert not unseen_slip_allowance(steps, held, [], window_m=0.5).any()
     assert not unseen_slip_allowance(steps, np.zeros(60, bool), [0.3], window_m=0.5).any()
@@ -429,11 +451,15 @@ def test_chaining_allows_for_the_slips_seen_in_every_chunk():
         T[:, 0, 3] = 0.1 * np.arange(11)
         return Trajectory(T, q, tuple(range(first, first + 11)), odometer_slips_m=slips)
 
-    # 1 m seen with a 0.25 m slip, then 1 m held: one slip of 0.25 m may hide in it.
+    # 1 m seen with a 0.25 m slip (one a metre), then 1 m held: one slip of 0.25 m may hide
+    # in it from its first frame, two once the held travel makes a net of two 5 % likely.
     chained = chain_trajectories([chunk(0, False, (0.25,)), chunk(10, True, ())])
     u = [q.chainage_uncertainty_m for q in chained.quality]
     assert chained.odometer_slips_m == (0.25,)
-    assert u[:11] == pytest.approx([0.0] * 11) and u[11:] == pytest.approx([0.25] * 10)
+    held_by = 0.1 * np.arange(1, 11)
+    want = [0.25 * max(1, _net_slips_within(1.0 * x / 2)) for x in held_by]
+    assert u[:11] == pytest.approx([0.0] * 11) and u[11:] == pytest.approx(want)
+    assert u[11] == pytest.approx(0.25) and u[-1] == pytest.approx(0.5)
 
 
 def test_registration_evidence_of_a_section():

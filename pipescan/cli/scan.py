@@ -316,7 +316,7 @@ def _print_summary(summary) -> None:
                 f"(up to {100 * max(slips):.0f} cm)"
             )
             if reg["degenerate_frames"]:
-                line += "; the ± above allows for as many where it was alone"
+                line += "; the ± above allows for slips at that rate where it was alone"
             typer.echo(line)
         from pipescan.core.registration.metrics import unseen_slip_caveat
 
