@@ -7,8 +7,8 @@ import itertools
 
 import numpy as np
 import pytest
-from scipy.special import gammaln
 from scipy.spatial.transform import Rotation
+from scipy.special import gammaln
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality

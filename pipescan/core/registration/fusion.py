@@ -383,8 +383,10 @@ def unseen_slip_allowance(
     count that this difference stays within with 95 % probability (``SLIP_CONFIDENCE``), and
     at least one slip from the first held frame on.
 
-    Why so, on the 17 draws of the sweep and of a sweep of slipping odometers that caught a
-    slip (``docs/registration.md``, *Unseen slips*): the slips caught per metre of the
+    Why so, on the 16 draws of 37 (a sweep of slipping odometers and the sweep's short
+    draws) that caught a slip (``docs/registration.md``, *Unseen slips*; the sweep's 30 m run
+    caught three and has no frame beyond its ± under either rule): the slips caught per metre
+    of the
     *whole* run, as many as that rate expects (the rule before), counts the held stretches,
     where no slip can be caught, as slip-free. It left frames further off than their ± (by
     more than 5 mm) on 9 of them, by up to 32 cm. This rule leaves 5, by up to 6.5 cm: one
