@@ -7,6 +7,7 @@
     python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
     python benchmarks/bench_registration.py converge    # ICP stopping thresholds, short draws
     python benchmarks/bench_registration.py icp-work --archive DIR   # ICP's iterations a frame
+    python benchmarks/bench_registration.py slips       # does the chainage ± cover unseen slips
     python benchmarks/bench_registration.py all
 
 Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
@@ -757,6 +758,69 @@ def bench_converge(args) -> None:
         )
 
 
+# --------------------------------------------------------------------------- slips
+
+
+def _slip_draw(name: str) -> str:
+    """One draw registered in memory as the flow chunks it; its row of ``bench_slips``."""
+    from pipescan.simulator.sweep import chainage_bound_misses, slip_draws, sweep_draws
+
+    draw = next(d for d in [*slip_draws(), *sweep_draws(long_run=False)] if d.name == name)
+    scan = simulate_scan(draw.scenario, draw.seed)
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    params = RegistrationParams()
+    trajectory = chain_trajectories(
+        [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
+    )
+    positions = trajectory.positions_m()
+    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
+    idx = np.asarray(trajectory.frame_indices)
+    error = (positions - positions[0]) @ axis - (scan.true_travel_m[idx] - scan.true_travel_m[0])
+    beyond, most = chainage_bound_misses(trajectory, scan)
+    slips = trajectory.odometer_slips_m
+    held = np.mean([q.degenerate for q in trajectory.quality])
+    caught = f"{len(slips)} ({100 * max(slips):.0f} cm)" if slips else "0"
+    return (
+        f"| {name} | {len(idx)} | {len(scan.slip_frames)} | {caught} | {100 * held:.0f} % | "
+        f"{np.abs(error).max():.2f} | {trajectory.quality[-1].chainage_uncertainty_m:.2f} | "
+        f"{beyond} | {most:.3f} |"
+    )
+
+
+def bench_slips(args) -> None:
+    """Does the chainage uncertainty cover the odometer's unseen slips? Draws whose odometer
+    slips often, and the sweep's short draws, registered in memory two at a time; each
+    frame's registered position along the axis against the truth and its stated ±."""
+    from pipescan.simulator.sweep import slip_draws, sweep_draws
+
+    names = [d.name for d in [*slip_draws(), *sweep_draws(long_run=False)]]
+    if args.only:
+        names = [n for n in names if any(o in n for o in args.only)]
+    print(
+        f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
+        "slip frames: frames during which the simulated odometer slipped; caught: slips the "
+        "registration caught against features (the largest); held: frames resting on the "
+        "odometer; beyond: frames further off along the axis than their chainage ± by more "
+        "than 5 mm.\n"
+    )
+    print(
+        "| draw | frames | slip frames | caught | held | max error m | ± at the end m | "
+        "frames beyond their ± | most beyond m |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|"
+    )
+    rows = []
+    with ProcessPoolExecutor(2) as pool:
+        for row in pool.map(_slip_draw, names):
+            print(row, flush=True)
+            rows.append(row.split(" | "))
+    caught = [r for r in rows if r[3] != "0"]
+    missed = [r for r in caught if int(r[7]) > 0]
+    worst = max((float(r[8].rstrip(" |")) for r in caught), default=0.0)
+    print(
+        f"\ndraws with a slip caught: {len(caught)}; with frames beyond their ±: {len(missed)} "
+        f"(most beyond: {worst:.3f} m)"
+    )
+
+
 # --------------------------------------------------------------------------- memory
 
 
@@ -826,13 +890,16 @@ def main() -> None:
             "sweep",
             "converge",
             "icp-work",
+            "slips",
             "all",
             "memory-child",
         ],
     )
     parser.add_argument("--random-draws", type=int, default=8, help="sweep: random draws")
     parser.add_argument("--no-long", action="store_true", help="sweep: leave the 30 m run out")
-    parser.add_argument("--only", nargs="+", help="sweep, converge: draws named with one of these")
+    parser.add_argument(
+        "--only", nargs="+", help="sweep, converge, slips: draws named with one of these"
+    )
     parser.add_argument(
         "--converged",
         nargs="+",
@@ -857,10 +924,11 @@ def main() -> None:
         "sweep": bench_sweep,
         "converge": bench_converge,
         "icp-work": bench_icp_work,
+        "slips": bench_slips,
     }
     for name, step in steps.items():
         if args.what == name or (
-            args.what == "all" and name not in ("sweep", "converge", "icp-work")
+            args.what == "all" and name not in ("sweep", "converge", "icp-work", "slips")
         ):
             print(f"\n## {name}\n", flush=True)
             step(args)

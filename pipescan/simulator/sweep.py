@@ -222,6 +222,23 @@ def sweep_draws(*, random_draws: int = 8, seed: int = 12, long_run: bool = True)
     return draws
 
 
+def slip_draws(count: int = 14, seed: int = 900) -> list[Draw]:
+    """Draws whose odometer slips often (0.15-0.5 slips a metre), for the chainage
+    uncertainty's allowance for unseen slips: random effects from issue 12's ranges
+    otherwise, 6-10 m of the defect scene, cycling over the 0.3, 0.5 and 0.6 m pipes. Each
+    draw has its own random stream (``seed + j``), so a draw does not change with ``count``.
+    """
+    draws = []
+    for j in range(count):
+        rng = np.random.default_rng(seed + j)
+        effects = dataclasses.replace(random_effects(rng), slip_per_m=float(rng.uniform(0.15, 0.5)))
+        d = (0.3, 0.5, 0.6)[j % 3]
+        scene = defect_scene(d, float(rng.uniform(6.0, 10.0)), effects=effects, name=f"slip{j}")
+        name = f"slips: draw {j}, {d} m, {scene.travel_m:.1f} m, {effects.slip_per_m:.2f}/m"
+        draws.append(Draw(name, "slips", scene, 500 + j))
+    return draws
+
+
 # --------------------------------------------------------------------------- scoring
 
 TRUTH_STEP_M = 0.005
@@ -496,6 +513,20 @@ def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
         odo_error = (odo[b] - odo[a]) - (true[b] - true[a])
         worse += bool(abs(reg_error) > abs(odo_error) + STRETCH_TOLERANCE_M)
     return worse, total
+
+
+def chainage_bound_misses(trajectory, scan, tolerance_m: float = 0.005) -> tuple[int, float]:
+    """Frames whose registered position along the axis is further from the truth than their
+    chainage uncertainty says (by more than ``tolerance_m``), and the most any frame is off
+    beyond it (m, 0 when none is)."""
+    positions = trajectory.positions_m()
+    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
+    frames = np.asarray(trajectory.frame_indices)
+    est = (positions - positions[0]) @ axis
+    true = scan.true_travel_m[frames] - scan.true_travel_m[frames[0]]
+    u = np.array([q.chainage_uncertainty_m for q in trajectory.quality])
+    beyond = np.abs(est - true) - u
+    return int((beyond > tolerance_m).sum()), float(max(0.0, beyond.max()))
 
 
 def measure_scan(
