@@ -12,15 +12,18 @@ import pytest
 
 from pipescan.core.axis import fit_axis
 from pipescan.core.measures import MeasureParams
+from pipescan.core.model import FrameQuality
 from pipescan.core.registration import Trajectory
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.simulator.scan import get_scenario, simulate_scan
 from pipescan.simulator.sweep import (
     TrueBlockage,
+    chainage_bound_misses,
     defect_scene,
     measure_scan,
     random_effects,
     score_sections,
+    slip_draws,
     stretches_worse_than_odometer,
     true_shifts,
 )
@@ -137,3 +140,33 @@ def test_true_shifts_say_where_a_drifted_section_really_was():
     near = [v for k, v in shifts.items() if k < scene.chainage_offset_m + 0.5]
     assert far and all(v == pytest.approx(-0.2) for v in far)
     assert near and all(v == 0.0 for v in near)
+
+
+def test_chainage_bound_misses_count_frames_off_beyond_their_uncertainty():
+    scan = simulate_scan(
+        dataclasses.replace(defect_scene(0.5, 1.0, name="bound"), points_per_s=20_000), seed=2
+    )
+    frames = len(scan)
+    # Registration's world is the first frame's sensor frame.
+    poses = np.linalg.inv(scan.T_world_sensor[0]) @ scan.T_world_sensor
+    # The last ten frames 4 cm too far along the pipe; their stated ± is 3 cm, the rest 1 cm.
+    poses[-10:, :3, 3] += 0.04 * (scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0])
+    quality = tuple(
+        FrameQuality(
+            i, 1.0, 0.0, False, 1.0, chainage_uncertainty_m=0.03 if i >= frames - 10 else 0.01
+        )
+        for i in range(frames)
+    )
+    trajectory = Trajectory(poses, quality, tuple(range(frames)))
+    beyond, most = chainage_bound_misses(trajectory, scan)
+    assert beyond == 10 and most == pytest.approx(0.01, abs=1e-6)
+    # Within the tolerance (5 mm), a frame is not counted.
+    quality = tuple(dataclasses.replace(q, chainage_uncertainty_m=0.036) for q in quality)
+    assert chainage_bound_misses(Trajectory(poses, quality, tuple(range(frames))), scan)[0] == 0
+
+
+def test_slip_draws_slip_often_and_do_not_change_with_their_count():
+    draws = slip_draws(4)
+    assert [d.name for d in draws] == [d.name for d in slip_draws(6)[:4]]
+    assert all(0.15 <= d.scenario.effects.slip_per_m <= 0.5 for d in draws)
+    assert len({d.seed for d in draws}) == 4

@@ -518,7 +518,8 @@ def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
 def chainage_bound_misses(trajectory, scan, tolerance_m: float = 0.005) -> tuple[int, float]:
     """Frames whose registered position along the axis is further from the truth than their
     chainage uncertainty says (by more than ``tolerance_m``), and the most any frame is off
-    beyond it (m, 0 when none is)."""
+    beyond it (m, 0 when none is). The trajectory is in registration's world, the first
+    frame's sensor frame (as ``register_frames`` gives it)."""
     positions = trajectory.positions_m()
     axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
     frames = np.asarray(trajectory.frame_indices)
