@@ -39,7 +39,6 @@ from typing import Literal
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-from scipy.stats import skellam
 
 # Gravity says nothing about roll about an axis within ~6° of vertical (a shaft): there the
 # components of gravity across the axis are below this and the IMU correction is skipped.
@@ -424,6 +423,8 @@ def unseen_slip_allowance(
     stretches = [(a, b) for a, b in runs if steps[a:b].sum() >= window_m]
     if not stretches or held.all():
         return allowance
+    from scipy.stats import skellam  # scipy.stats takes a while to import: only when needed
+
     held_m = sum(float(steps[a:b].sum()) for a, b in stretches)
     seen_m = max(float(steps.sum()) - held_m, window_m)
     rate = len(slips_m) / seen_m
