@@ -763,7 +763,12 @@ def bench_converge(args) -> None:
 
 def _slip_draw(name: str) -> str:
     """One draw registered in memory as the flow chunks it; its row of ``bench_slips``."""
-    from pipescan.simulator.sweep import chainage_bound_misses, slip_draws, sweep_draws
+    from pipescan.simulator.sweep import (
+        along_axis_travel,
+        chainage_bound_misses,
+        slip_draws,
+        sweep_draws,
+    )
 
     draw = next(d for d in [*slip_draws(), *sweep_draws(long_run=False)] if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
@@ -772,10 +777,8 @@ def _slip_draw(name: str) -> str:
     trajectory = chain_trajectories(
         [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
     )
-    positions = trajectory.positions_m()
-    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
-    idx = np.asarray(trajectory.frame_indices)
-    error = (positions - positions[0]) @ axis - (scan.true_travel_m[idx] - scan.true_travel_m[0])
+    idx, est, true = along_axis_travel(trajectory, scan)
+    error = est - true
     beyond, most = chainage_bound_misses(trajectory, scan)
     slips = trajectory.odometer_slips_m
     held = np.mean([q.degenerate for q in trajectory.quality])

@@ -488,6 +488,17 @@ exceeds the odometer's by more than this (a centimetre: the odometer's reading n
 ICP's own error over half a metre)."""
 
 
+def along_axis_travel(trajectory, scan) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The trajectory's frames (scan indices, in order), and their registered and true travel
+    along the pipe axis from the first of them (m). The trajectory is in registration's
+    world, the first frame's sensor frame (as ``register_frames`` gives it)."""
+    frames = np.asarray(trajectory.frame_indices)
+    positions = trajectory.positions_m()
+    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
+    est = (positions - positions[0]) @ axis
+    return frames, est, scan.true_travel_m[frames] - scan.true_travel_m[frames[0]]
+
+
 def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
     """Stretches of :data:`STRETCH_M` of true travel over which registration moved the sensor
     along the axis further from the truth than the odometer did (by more than
@@ -498,12 +509,7 @@ def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
     can make registration, which removed the scale error where features held it, look worse
     than an odometer whose errors happened to cancel.
     """
-    positions = trajectory.positions_m()
-    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
-    row = {int(i): k for k, i in enumerate(trajectory.frame_indices)}
-    frames = np.array(sorted(row))
-    est = (positions[[row[i] for i in frames]] - positions[row[frames[0]]]) @ axis
-    true = scan.true_travel_m[frames] - scan.true_travel_m[frames[0]]
+    frames, est, true = along_axis_travel(trajectory, scan)
     odo = scan.odometer_m[frames] - scan.odometer_m[frames[0]]
     edges = np.unique(np.searchsorted(true, np.arange(0.0, true[-1], STRETCH_M)))
     worse = total = 0
@@ -518,13 +524,8 @@ def stretches_worse_than_odometer(trajectory, scan) -> tuple[int, int]:
 def chainage_bound_misses(trajectory, scan, tolerance_m: float = 0.005) -> tuple[int, float]:
     """Frames whose registered position along the axis is further from the truth than their
     chainage uncertainty says (by more than ``tolerance_m``), and the most any frame is off
-    beyond it (m, 0 when none is). The trajectory is in registration's world, the first
-    frame's sensor frame (as ``register_frames`` gives it)."""
-    positions = trajectory.positions_m()
-    axis = scan.T_world_sensor[0, :3, :3].T @ scan.T_world_pipe[:3, 0]
-    frames = np.asarray(trajectory.frame_indices)
-    est = (positions - positions[0]) @ axis
-    true = scan.true_travel_m[frames] - scan.true_travel_m[frames[0]]
+    beyond it (m, 0 when none is); the trajectory as :func:`along_axis_travel` takes it."""
+    _, est, true = along_axis_travel(trajectory, scan)
     u = np.array([q.chainage_uncertainty_m for q in trajectory.quality])
     beyond = np.abs(est - true) - u
     return int((beyond > tolerance_m).sum()), float(max(0.0, beyond.max()))

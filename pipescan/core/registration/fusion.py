@@ -385,13 +385,12 @@ def unseen_slip_allowance(
     Why so, on the 16 draws of 37 (a sweep of slipping odometers and the sweep's short
     draws) that caught a slip (``docs/registration.md``, *Unseen slips*; the sweep's 30 m run
     caught three and has no frame beyond its ± under either rule): the slips caught per metre
-    of the
-    *whole* run, as many as that rate expects (the rule before), counts the held stretches,
-    where no slip can be caught, as slip-free. It left frames further off than their ± (by
-    more than 5 mm) on 9 of them, by up to 32 cm. This rule leaves 5, by up to 6.5 cm: one
-    odometer whose unseen slips were larger than the one it was caught in, and four by
-    0.7-4.3 cm, three of them registration's own error where features held (the same under
-    both rules). All of one sign at a Poisson 95 % count would leave 4, with a ± 1.5-2.6
+    of the *whole* run, as many as that rate expects (the rule before), counts the held
+    stretches, where no slip can be caught, as slip-free. It left frames further off than
+    their ± (by more than 5 mm) on 9 of them, by up to 32 cm. This rule leaves 5, by up to
+    6.5 cm: one odometer whose unseen slips were larger than the one it was caught in, and
+    four by 0.5-4.3 cm, three of them registration's own error where features held (the same
+    under both rules). All of one sign at a Poisson 95 % count would leave 4, with a ± 1.5-2.6
     times as wide.
 
     A run whose odometer was never caught slipping (or that saw no feature at all) gets
