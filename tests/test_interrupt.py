@@ -28,6 +28,10 @@ def archive(tmp_path_factory) -> Path:
     return write_simulated_archive(scan, tmp_path_factory.mktemp("scan") / "arc")
 
 
+def _sigint_at_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class _Run:
     """``pipescan inspect`` in a session of its own, as a terminal's foreground job."""
 
@@ -42,6 +46,9 @@ class _Run:
             stderr=subprocess.STDOUT,
             text=True,
             start_new_session=True,
+            # A terminal's foreground job has Ctrl-C at its default, even where the tests run
+            # in the background (a shell's background job inherits SIGINT ignored).
+            preexec_fn=_sigint_at_default,
         )  # fmt: skip
         self.lines: list[str] = []
         self._reader = threading.Thread(target=self._read, daemon=True)
