@@ -528,6 +528,7 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
     from pipescan.simulator.archive import write_simulated_archive
     from pipescan.simulator.sweep import (
         TrueBlockage,
+        along_axis_travel,
         score_sections,
         stretches_worse_than_odometer,
         true_shifts,
@@ -540,9 +541,7 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
     stored = _flow_sections(archive, work)
     shifts = true_shifts(scan, trajectory, max_range_m=InspectionParams().max_section_range_m)
     score = score_sections(stored.sections, TrueBlockage(scan), shifts)
-    axis = scan.T_world_pipe[:3, 0]
-    positions = trajectory.positions_m()
-    travel = float((positions[-1] - positions[0]) @ (scan.T_world_sensor[0, :3, :3].T @ axis))
+    travel = float(along_axis_travel(trajectory, scan)[1][-1])
     true_travel = float(scan.true_travel_m[-1])
     duration_s = len(scan) / scan.scenario.frame_rate_hz
     return DrawFigures(
