@@ -111,3 +111,27 @@ def test_the_summary_says_what_the_chainage_cannot_allow_for_when_no_slip_was_ca
         dataclasses.replace(summary, registration=reg | {"along_axis_prior": "constant_velocity"})
     )
     assert "rested on the odometer alone" not in capsys.readouterr().out
+
+
+def test_the_cli_keeps_prefects_log_handler_and_writes_to_the_stderr_of_the_moment(capsys):
+    """In a process whose Prefect logging was set up first (a test session, a notebook), a
+    command must not take Prefect's handler off the ``pipescan`` logger: that handler sends a
+    flow run's lines to its API (the network run's progress in the UI). And its own lines go
+    to the stderr of the moment, not to one a caller has closed since."""
+    import logging
+
+    from pipescan.cli._app import _setup_logging
+
+    logger = logging.getLogger("pipescan")
+    saved = (logger.handlers[:], logger.level, logger.propagate)
+    prefects = logging.NullHandler()  # stands for Prefect's API handler
+    try:
+        logger.handlers[:] = [prefects]
+        _setup_logging(verbose=False)
+        _setup_logging(verbose=False)  # a second command in the same process
+        assert logger.handlers[0] is prefects and len(logger.handlers) == 2
+        capsys.readouterr()
+        logger.info("windows measured")
+        assert "windows measured" in capsys.readouterr().err
+    finally:
+        logger.handlers[:], logger.level, logger.propagate = saved

@@ -346,15 +346,34 @@ def _stored_db_url(db: str | None) -> str:
     )
 
 
+class _StderrHandler(logging.StreamHandler):
+    """The CLI's log lines, to whatever ``sys.stderr`` is when a line is written (not the
+    stream it was when the command started, which a caller may have closed since)."""
+
+    @property  # type: ignore[override]
+    def stream(self):
+        return sys.stderr
+
+    @stream.setter
+    def stream(self, _value) -> None:
+        pass
+
+
 def _setup_logging(verbose: bool) -> None:
     if verbose:
         os.environ["PREFECT_LOGGING_LEVEL"] = "INFO"
         for name in _RUN_LOGGERS:
             os.environ[name] = "INFO"
-    handler = logging.StreamHandler(sys.stderr)
+    handler = _StderrHandler()
     handler.setFormatter(logging.Formatter("%(asctime)s  %(message)s", datefmt="%H:%M:%S"))
     logger = logging.getLogger("pipescan")
-    logger.handlers[:] = [handler]
+    # Replace only the CLI's own handler: Prefect's, which sends the lines of a flow run to
+    # its API (PREFECT_LOGGING_EXTRA_LOGGERS), stays when the command runs in a process that
+    # had set Prefect's logging up before (a test session, a notebook calling ``app``).
+    logger.handlers[:] = [
+        *(h for h in logger.handlers if not isinstance(h, _StderrHandler)),
+        handler,
+    ]
     logger.setLevel(logging.INFO)
     logger.propagate = False
 
