@@ -6,6 +6,8 @@
     python benchmarks/bench_registration.py parallel    # register_chunk in 1 vs 2 threads/procs
     python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
     python benchmarks/bench_registration.py converge    # ICP stopping thresholds, short draws
+    python benchmarks/bench_registration.py variants --variant '' source_voxel_m=0.06
+                                                        # any registration parameters, same
     python benchmarks/bench_registration.py icp-work --archive DIR   # ICP's iterations a frame
     python benchmarks/bench_registration.py slips       # does the chainage ± cover unseen slips
     python benchmarks/bench_registration.py all
@@ -601,7 +603,7 @@ def bench_sweep(args) -> None:
     )
     print(SWEEP_HEADER, flush=True)
     figures = []
-    with prefect_test_harness(server_startup_timeout=60):
+    with prefect_test_harness(server_startup_timeout=180):
         for draw in draws:
             with tempfile.TemporaryDirectory() as tmp:
                 f = evaluate_draw(draw, Path(tmp))
@@ -646,19 +648,21 @@ def bench_icp_work(args) -> None:
                 name=arc.name, root=Path(args.archive), meta=arc.meta, content_hash="",
                 frame_count=arc.frame_count, cloud_member=arc.cloud_member,
             )  # fmt: skip
-        register_staged_frames(staged, 0, 3, RegistrationParams())  # imports, first calls
+        params = registration_params(args.set)
+        register_staged_frames(staged, 0, 3, params)  # imports, first calls
         iterations.clear()
         align_cpu[0] = 0.0
         frames = 0
         started = time.process_time()
         for first in range(0, staged.frame_count - 60, 120):
-            register_staged_frames(staged, first, first + 59, RegistrationParams())
+            register_staged_frames(staged, first, first + 59, params)
             frames += 60
         cpu = time.process_time() - started
     finally:
         small_gicp.align = align
     print(
-        f"{args.archive}: {frames} frames in {frames // 60} chunks, one thread, load "
+        f"{args.archive}: {frames} frames in {frames // 60} chunks, one thread, "
+        f"registration {args.set or 'defaults'}, load "
         f"{os.getloadavg()[0]:.1f}\n"
         f"  small_gicp calls a frame       {len(iterations) / frames:.2f}\n"
         f"  iterations a frame (reported)  {sum(iterations) / frames:.2f}\n"
@@ -670,24 +674,42 @@ def bench_icp_work(args) -> None:
 # --------------------------------------------------------------------------- convergence
 
 
-def _converge_draw(job: tuple[str, float, float]) -> tuple[str, dict]:
+def registration_params(variant: str) -> RegistrationParams:
+    """``RegistrationParams`` with the fields a variant names changed: ``""`` for the
+    defaults, else ``key=value`` pairs separated by commas (``none`` for None)."""
+    defaults = RegistrationParams()
+    changes: dict[str, object] = {}
+    for item in filter(None, variant.split(",")):
+        key, sep, value = item.partition("=")
+        if not sep or not hasattr(defaults, key):
+            sys.exit(f"variant {variant!r}: {item!r} is not FIELD=VALUE of RegistrationParams")
+        default = getattr(defaults, key)
+        if value.lower() == "none":
+            changes[key] = None
+        elif isinstance(default, str):
+            changes[key] = value
+        else:
+            changes[key] = type(default if default is not None else 0.0)(value)
+    return dataclasses.replace(defaults, **changes)
+
+
+def _variant_draw(job: tuple[str, str]) -> tuple[str, dict]:
     """One draw registered and measured in memory (the flow's stages without Prefect) with
-    ICP stopping at the given rotation and translation steps; its row and its figures."""
+    the registration parameters of a variant; its row and its figures."""
     from pipescan.core.registration import trajectory_errors
     from pipescan.simulator.sweep import (
         TrueBlockage,
+        along_axis_travel,
         measure_scan,
         score_sections,
         stretches_worse_than_odometer,
         sweep_draws,
     )
 
-    name, rotation_rad, translation_m = job
+    name, variant = job
     draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
-    params = RegistrationParams(
-        converged_rotation_rad=rotation_rad, converged_translation_m=translation_m
-    )
+    params = registration_params(variant)
     started = time.process_time()
     trajectory, sections = measure_scan(scan, params=params)
     cpu_s = time.process_time() - started
@@ -696,65 +718,79 @@ def _converge_draw(job: tuple[str, float, float]) -> tuple[str, dict]:
         trajectory.T_world_frame, scan.T_world_sensor[list(trajectory.frame_indices)]
     )
     worse, stretches = stretches_worse_than_odometer(trajectory, scan)
+    _, est, true = along_axis_travel(trajectory, scan)
+    travel_pct = 100 * ((est[-1] - est[0]) / (true[-1] - true[0]) - 1)
     frames = len(trajectory.frame_indices)
     row = (
-        f"| {rotation_rad:g} rad, {translation_m:g} m | {name} | {frames} | "
+        f"| {variant or 'defaults'} | {name} | {frames} | {travel_pct:+.2f} | "
         f"{1000 * errors.across_rms_m:.2f} | {errors.tilt_rms_deg:.3f} | {score.ok} | "
         f"{score.mean_pp:.2f} | {score.max_pp:.2f} | {score.dishonest} | {worse}/{stretches} |"
     )
     return row, {
         "frames": frames, "cpu_s": cpu_s, "worse": worse, "stretches": stretches,
         "max_pp": score.max_pp, "mean_pp": score.mean_pp, "dishonest": score.dishonest,
-        "across_mm": 1000 * errors.across_rms_m,
+        "across_mm": 1000 * errors.across_rms_m, "ok": score.ok, "travel_pct": travel_pct,
     }  # fmt: skip
 
 
-def bench_converge(args) -> None:
-    """The sweep's short draws registered with several ICP convergence thresholds, in memory,
-    two draws at a time: accuracy against the truth, and the CPU the whole of each draw's
-    in-memory chain took (registration is most of it)."""
+def bench_variants(args, variants: list[str] | None = None) -> None:
+    """The sweep's short draws registered with several sets of registration parameters, in
+    memory, two draws at a time: accuracy against the truth, and the CPU the whole of each
+    draw's in-memory chain took (registration is most of it)."""
     from pipescan.simulator.sweep import sweep_draws
 
     names = [d.name for d in sweep_draws(long_run=False)]
     if args.only:
         names = [n for n in names if any(o in n for o in args.only)]
-    settings = [tuple(float(x) for x in s.split(",")) for s in args.converged]
+    variants = args.variant if variants is None else variants
+    for variant in variants:
+        registration_params(variant)  # a typo stops the run here, not an hour in
     print(
-        f"{len(names)} draws × {len(settings)} settings; load average "
-        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. across/tilt: RMS pose error "
-        "against the truth; mean/max pp: ok sections away from defect edges; dishonest: ok "
-        "sections > 2 pp off within ±u; worse: 0.5 m stretches worse than the odometer by "
-        "> 1 cm.\n"
+        f"{len(names)} draws × {len(variants)} variants; load average "
+        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. travel: registered against true "
+        "travel along the axis, first to last frame; across/tilt: RMS pose error against the "
+        "truth; mean/max pp: ok sections away from defect edges; dishonest: ok sections "
+        "> 2 pp off within ±u; worse: 0.5 m stretches worse than the odometer by > 1 cm.\n"
     )
     print(
-        "| ICP stops below | draw | frames | across rms mm | tilt rms ° | ok | mean pp | max pp"
-        " | dishonest | worse |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|"
+        "| registration | draw | frames | travel % | across rms mm | tilt rms ° | ok | mean pp"
+        " | max pp | dishonest | worse |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
     )
     totals = []
     with ProcessPoolExecutor(2) as pool:
-        for rotation_rad, translation_m in settings:
+        for variant in variants:
             figures = []
-            jobs = [(n, rotation_rad, translation_m) for n in names]
-            for row, f in pool.map(_converge_draw, jobs):
+            for row, f in pool.map(_variant_draw, [(n, variant) for n in names]):
                 print(row, flush=True)
                 figures.append(f)
-            totals.append(((rotation_rad, translation_m), figures))
+            totals.append((variant, figures))
     print(
-        "\n| ICP stops below | CPU ms a frame (whole in-memory chain) | worse stretches | "
-        "max pp | largest mean pp | mean across mm | dishonest |\n"
-        "|---|---:|---:|---:|---:|---:|---:|"
+        "\n| registration | CPU ms a frame (whole in-memory chain) | ok sections | worse "
+        "stretches | max pp | largest mean pp | mean across mm | largest travel error % | "
+        "dishonest |\n|---|---:|---:|---:|---:|---:|---:|---:|---:|"
     )
-    for (rotation_rad, translation_m), figures in totals:
+    for variant, figures in totals:
         frames = sum(f["frames"] for f in figures)
         print(
-            f"| {rotation_rad:g} rad, {translation_m:g} m | "
+            f"| {variant or 'defaults'} | "
             f"{1000 * sum(f['cpu_s'] for f in figures) / frames:.1f} | "
+            f"{sum(f['ok'] for f in figures)} | "
             f"{sum(f['worse'] for f in figures)}/{sum(f['stretches'] for f in figures)} | "
             f"{max(f['max_pp'] for f in figures):.2f} | "
             f"{max(f['mean_pp'] for f in figures):.2f} | "
             f"{np.mean([f['across_mm'] for f in figures]):.2f} | "
+            f"{max(abs(f['travel_pct']) for f in figures):.2f} | "
             f"{sum(f['dishonest'] for f in figures)} |"
         )
+
+
+def bench_converge(args) -> None:
+    """``variants`` over ICP's convergence thresholds (``--converged``)."""
+    variants = []
+    for setting in args.converged:
+        rotation, translation = setting.split(",")
+        variants.append(f"converged_rotation_rad={rotation},converged_translation_m={translation}")
+    bench_variants(args, variants)
 
 
 # --------------------------------------------------------------------------- slips
@@ -891,6 +927,7 @@ def main() -> None:
             "memory",
             "sweep",
             "converge",
+            "variants",
             "icp-work",
             "slips",
             "all",
@@ -907,6 +944,17 @@ def main() -> None:
         nargs="+",
         default=["1e-4,1e-4", "5e-4,5e-4", "1.745e-3,1e-3"],
         help="converge: ICP stopping steps, ROTATION_RAD,TRANSLATION_M each",
+    )
+    parser.add_argument(
+        "--variant",
+        nargs="+",
+        default=[""],
+        help="variants: registration parameters, FIELD=VALUE[,FIELD=VALUE] each ('' = defaults)",
+    )
+    parser.add_argument(
+        "--set",
+        default="",
+        help="icp-work: registration parameters, FIELD=VALUE[,FIELD=VALUE]",
     )
     parser.add_argument("--archive", help="icp-work: an archive of frames")
     parser.add_argument("--travel-m", type=float, default=4.5, help="length of the paper scan")
@@ -925,12 +973,14 @@ def main() -> None:
         "memory": bench_memory,
         "sweep": bench_sweep,
         "converge": bench_converge,
+        "variants": bench_variants,
         "icp-work": bench_icp_work,
         "slips": bench_slips,
     }
     for name, step in steps.items():
         if args.what == name or (
-            args.what == "all" and name not in ("sweep", "converge", "icp-work", "slips")
+            args.what == "all"
+            and name not in ("sweep", "converge", "variants", "icp-work", "slips")
         ):
             print(f"\n## {name}\n", flush=True)
             step(args)
