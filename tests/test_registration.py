@@ -559,3 +559,26 @@ def test_icp_does_not_creep_where_the_fusion_discards_it(misty_scan, monkeypatch
     assert moved.max() < 0.002
     across = [_errors(misty_scan, traj)["across_rms_m"] for traj in (stops, creeps)]
     assert across[0] < across[1] + 5e-4
+
+
+def test_a_faces_points_count_once_per_patch_along_the_axis():
+    """The points of one face do not err independently (its place in the map came from the
+    same few frames): more points on the same patches add no information along the axis, and
+    the same face spread over more patches adds one observation per patch."""
+    from pipescan.core.registration.fusion import FACE_PATCH_M, axial_information
+
+    rng = np.random.default_rng(4)
+    axis = np.array([1.0, 0.0, 0.0])
+    sigma = 1.4826 * 0.003  # the residuals' robust spread below
+
+    def information(count: int, side_m: float) -> float:
+        # An end wall 2 m ahead, facing the sensor, over a side_m square from (y, z) = (0, 0).
+        points = np.column_stack((np.full(count, 2.0), rng.uniform(0, side_m, (count, 2))))
+        residuals = np.resize([-0.003, 0.003], count)
+        normals = np.tile(-axis, (count, 1))
+        return axial_information(normals, np.full(count, 0.01), residuals, axis, points)
+
+    one_patch = 1.0 / sigma**2
+    assert information(100, FACE_PATCH_M) == pytest.approx(one_patch)
+    assert information(2000, FACE_PATCH_M) == pytest.approx(one_patch)
+    assert information(2000, 3 * FACE_PATCH_M) == pytest.approx(9 * one_patch)

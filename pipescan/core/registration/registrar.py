@@ -310,7 +310,7 @@ class FrameRegistrar:
         axis_sensor = pred[:3, :3].T @ self._axis_world
         normals_sensor = matches.normals_world @ pred[:3, :3]
         information = axial_information(
-            normals_sensor, matches.surface_variation, matches.residuals(T), axis_sensor
+            normals_sensor, matches.surface_variation, matches.residuals(T), axis_sensor, src
         )
         length = float(np.sqrt(np.mean(np.einsum("ij,ij->i", src, src))))
         hessian = point_to_plane_hessian(src, normals_sensor)
