@@ -32,9 +32,9 @@ from pipescan.flows.deploy import (
 from pipescan.settings import Settings, database_url
 from pipescan.storage.database.db import connect, upgrade
 from pipescan.storage.database.repository import list_inspections
-from tests.netstore import asset_id, write_store
+from tests.netstore import asset_id, write_bad_archive, write_store
 from tests.pg_cluster import free_port
-from tests.prefect_stack import PREFECT, PrefectServer, Worker
+from tests.prefect_stack import PIPESCAN, PREFECT, PrefectServer, Worker
 
 pytestmark = pytest.mark.e2e
 
@@ -180,6 +180,46 @@ def test_prefects_own_list_commands_work_against_the_server(server, deployed):
     assert "inspect-network" in outputs["flow-run"] and "SCHEDULED" in outputs["flow-run"]
     assert "inspect-network/network-nightly" in outputs["deployment"]
     assert POOL in outputs["work-pool"]
+
+
+def _run_log(server: PrefectServer, flow_run_id: str) -> list[str]:
+    """A flow run's log lines on the server, once its closing summary is there (logs reach
+    the API in batches)."""
+    body = {"logs": {"flow_run_id": {"any_": [flow_run_id]}}, "limit": 200}
+    deadline = time.monotonic() + 30
+    while True:
+        messages = [entry["message"] for entry in server.call("POST", "/logs/filter", body)]
+        if any(m.startswith("network run over") for m in messages) or time.monotonic() > deadline:
+            return messages
+        time.sleep(0.5)
+
+
+@pytest.mark.parametrize("verbose", [False, True])
+def test_a_run_the_cli_starts_logs_to_prefect_and_its_errors_once_to_the_terminal(
+    server, tmp_path, verbose
+):
+    """The network run's closing summary goes to its Prefect run only through the run's
+    logger, and a failed archive's error through Prefect's run loggers: both must reach the
+    server (its UI), while the terminal shows the failure as pipescan's one line, with
+    Prefect's own lines and traceback only under --verbose."""
+    store = tmp_path / "store"
+    write_bad_archive(store)
+    env = server.client_env() | {"PIPESCAN_DATABASE_URL": f"sqlite:///{tmp_path / 'n.db'}"}
+    command = [*PIPESCAN, *(["--verbose"] if verbose else [])]
+    command += ["inspect-network", str(store), "--no-network-report"]
+    run = subprocess.run(
+        command, env=env, cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
+    assert run.returncode == 1, run.stdout + run.stderr
+    assert "MH99-BAD" in run.stderr  # pipescan's own progress line names the failed archive
+    assert ("Traceback" in run.stderr) is verbose, run.stderr
+    assert ("Finished in state Failed" in run.stderr) is verbose, run.stderr
+    runs = [r for r in server.flow_runs() if r["parameters"].get("store") == str(store)]
+    assert len(runs) == 1
+    logged = _run_log(server, runs[0]["id"])
+    assert any(m.startswith("network run over") for m in logged), logged  # the summary
+    progress = [m for m in logged if m.startswith("[1/1] MH99-BAD FAILED")]
+    assert len(progress) == 1, "\n".join(logged)  # once: not again through pipescan's logger
 
 
 @pytest.mark.parametrize(

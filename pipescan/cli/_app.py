@@ -35,13 +35,18 @@ os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
 # The CLI logs its own stage lines outside flow runs too; those are not for the API.
 os.environ.setdefault("PREFECT_LOGGING_TO_API_WHEN_MISSING_FLOW", "ignore")
 # A bad archive is one line ("error: ..."), exit code 2; Prefect's run loggers would print the
-# same error again with a traceback. The run's state in the API keeps it; --verbose shows it.
-_RUN_LOGGERS = (
-    "PREFECT_LOGGING_LOGGERS_PREFECT_FLOW_RUNS_LEVEL",
-    "PREFECT_LOGGING_LOGGERS_PREFECT_TASK_RUNS_LEVEL",
+# same error again with a traceback. pipescan's logging file for Prefect keeps the run loggers
+# off the terminal and sends their lines (a run's progress, its summary, its error) to the
+# API, where the run's UI shows them; --verbose adds the terminal. A file the user set wins
+# (PREFECT_LOGGING_SETTINGS_PATH, or Prefect's default place for it in PREFECT_HOME).
+PREFECT_LOGGING_FILE = Path(__file__).with_name("prefect-logging.yml")
+_USER_LOGGING_FILE = Path(os.environ.get("PREFECT_HOME", "~/.prefect")).expanduser() / "logging.yml"
+if not _USER_LOGGING_FILE.is_file():
+    os.environ.setdefault("PREFECT_LOGGING_SETTINGS_PATH", str(PREFECT_LOGGING_FILE))
+_RUN_LOGGER_HANDLERS = (
+    "PREFECT_LOGGING_LOGGERS_PREFECT_FLOW_RUNS_HANDLERS",
+    "PREFECT_LOGGING_LOGGERS_PREFECT_TASK_RUNS_HANDLERS",
 )
-for _name in _RUN_LOGGERS:
-    os.environ.setdefault(_name, "CRITICAL")
 # Prefect waits 20 s for its temporary API server, which a busy machine (a network run's
 # workers on all cores) can miss: the run would fail before it starts.
 os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "90")
@@ -362,8 +367,8 @@ class _StderrHandler(logging.StreamHandler):
 def _setup_logging(verbose: bool) -> None:
     if verbose:
         os.environ["PREFECT_LOGGING_LEVEL"] = "INFO"
-        for name in _RUN_LOGGERS:
-            os.environ[name] = "INFO"
+        for name in _RUN_LOGGER_HANDLERS:
+            os.environ[name] = "api,console"
     handler = _StderrHandler()
     handler.setFormatter(logging.Formatter("%(asctime)s  %(message)s", datefmt="%H:%M:%S"))
     logger = logging.getLogger("pipescan")

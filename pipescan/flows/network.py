@@ -486,10 +486,11 @@ def inspect_network(
 
 def _progress(run_log, line: str, *, failed: bool = False) -> None:
     """A progress line: to the run's log in Prefect (its UI shows how far a run is, also for a
-    scheduled run) and to the ``pipescan`` logger (the CLI's stderr)."""
+    scheduled run) and to the ``pipescan`` logger for the terminal only (Prefect's handler on
+    that logger would send the line to the run's log a second time)."""
     level = logging.WARNING if failed else logging.INFO
     run_log.log(level, line)
-    log.log(level, line)
+    log.log(level, line, extra={"send_to_api": False})
 
 
 def network_report_name(run_name: str | None, when: datetime) -> str:
