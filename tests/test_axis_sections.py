@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipescan.core.axis import fit_axis, fit_circle_robust
+from pipescan.core.axis import fit_axis, fit_circle_robust, nearest_node
 from pipescan.core.errors import GeometryError
 from pipescan.core.sections import measure_window, plan_windows
 from tests.synthetic import (
@@ -144,3 +144,14 @@ def test_straight_pipe_stays_a_line():
     rng = np.random.default_rng(13)
     axis = fit_axis(pipe_cloud(length_m=4.0, rng=rng), start_m=np.zeros(3))
     assert not axis.is_curved
+
+
+def test_each_point_is_placed_at_its_nearest_node_of_a_bent_centreline():
+    rng = np.random.default_rng(3)
+    s = np.linspace(-0.5, 12.0, 250)
+    nodes = np.column_stack((s, 0.3 * np.sin(s / 2), 0.1 * np.cos(s / 3)))
+    points = nodes[rng.integers(0, len(s), 5000)] + rng.normal(0.0, 0.3, (5000, 3))
+    brute = np.argmin(((points[:, None, :] - nodes[None, :, :]) ** 2).sum(axis=2), axis=1)
+    assert np.array_equal(nearest_node(nodes, points), brute)
+    assert np.array_equal(nearest_node(nodes, points.astype(np.float32)), brute)
+    assert nearest_node(nodes, np.empty((0, 3))).shape == (0,)
