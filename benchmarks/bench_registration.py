@@ -10,6 +10,7 @@
                                                         # any registration parameters, same
     python benchmarks/bench_registration.py icp-work --archive DIR   # ICP's iterations a frame
     python benchmarks/bench_registration.py slips       # does the chainage ± cover unseen slips
+    python benchmarks/bench_registration.py axial-error # is ICP's stated axial error honest
     python benchmarks/bench_registration.py all
 
 Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
@@ -859,6 +860,113 @@ def bench_slips(args) -> None:
     )
 
 
+# --------------------------------------------------------------------------- axial error
+
+
+def _axial_error_draw(name: str) -> dict:
+    """One short sweep draw registered as the flow chunks it, recording for every frame with
+    information along the axis ICP's own solution there (before the fusion weighs it) and its
+    stated error ``1/√I``; returns the errors against the truth and the stated errors (m)."""
+    from pipescan.core.registration.registrar import FrameRegistrar
+    from pipescan.simulator.sweep import sweep_draws
+
+    class Recording(FrameRegistrar):
+        """Keeps ICP's solution and its information along the axis, frame by frame (a
+        benchmark's view into the filter: ``_fuse`` is where the two are weighed)."""
+
+        def __init__(self, params: RegistrationParams) -> None:
+            super().__init__(params)
+            self.icp: dict[int, tuple[np.ndarray, float]] = {}
+
+        def _fuse(self, matches, pred, T, step_bound):
+            self.icp[self.count] = (T[:3, 3].copy(), self._evidence(matches, T, pred)[0])
+            return super()._fuse(matches, pred, T, step_bound)
+
+    draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
+    scan = simulate_scan(draw.scenario, draw.seed)
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    errors, stated, anchored = [], [], []
+    for a, b in plan_chunks(len(frames), 60):
+        reg = Recording(RegistrationParams())
+        poses, faults, weights = [], [], []
+        for _, points, odometer, gravity in frames[a : b + 1]:
+            T, quality = reg.add(points, odometer, gravity)
+            poses.append(T[:3, 3])
+            faults.append(quality.fault)
+            weights.append(quality.along_axis_weight)
+        # The truth in the chunk's frame: travel along the pipe axis from its first frame.
+        axis = scan.T_world_sensor[a, :3, :3].T @ scan.T_world_pipe[:3, 0]
+        true = scan.true_travel_m[a : b + 1] - scan.true_travel_m[a]
+        error = np.asarray(poses) @ axis - true
+        for k, (position, information) in reg.icp.items():
+            if information <= 0 or faults[k] is not None:
+                continue
+            # ICP's solution against the truth, from where the frame before it was: the map
+            # it aligned to carries the error the frames before it left.
+            errors.append(position @ axis - true[k] - error[k - 1])
+            stated.append(1.0 / np.sqrt(information))
+            # Anchored: ICP carried the frames before it (mean weight of the last ten at
+            # least ½), so the frame before it sits where the map's features put it.
+            anchored.append(k > _ANCHOR_FRAMES and np.mean(weights[k - _ANCHOR_FRAMES : k]) >= 0.5)
+    return {
+        "name": name,
+        "errors": np.asarray(errors),
+        "stated": np.asarray(stated),
+        "anchored": np.asarray(anchored, dtype=bool),
+    }
+
+
+def _axial_error_row(name: str, errors: np.ndarray, stated: np.ndarray, anchored) -> str:
+    if len(errors) == 0:
+        return f"| {name} | 0 | - | - | - | - | - | - | 0 | - |"
+    z = np.abs(errors / stated)
+    za = z[anchored]
+    anchored_z = f"{len(za)} | {np.median(za):.2f}" if len(za) else "0 | -"
+    return (
+        f"| {name} | {len(z)} | {1000 * np.median(stated):.1f} | "
+        f"{1000 * np.median(np.abs(errors)):.1f} | {1000 * np.sqrt(np.mean(errors**2)):.1f} | "
+        f"{np.median(z):.2f} | {np.median(z) / _HONEST_MEDIAN_Z:.1f} | "
+        f"{100 * np.mean(z > 3):.0f} % | {anchored_z} |"
+    )
+
+
+_HONEST_MEDIAN_Z = 0.6745  # the median of |z| for a standard normal error
+_ANCHOR_FRAMES = 10
+
+
+def bench_axial_error(args) -> None:
+    """Is ICP's stated error along the axis honest? The fusion weighs ICP's correction along
+    the axis by its information ``I`` (its stated error ``1/√I``) against the odometer's. On
+    the sweep's short draws, registered as the flow does, each frame's ICP solution along the
+    axis is compared with the truth: if ``1/√I`` is honest, the median of ``|error| / (1/√I)``
+    is 0.67 and 0.3 % of frames lie beyond 3."""
+    from pipescan.simulator.sweep import sweep_draws
+
+    names = [d.name for d in sweep_draws(long_run=False)]
+    if args.only:
+        names = [n for n in names if any(o in n for o in args.only)]
+    print(
+        f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
+        "Frames with information along the axis, no fault; error: ICP's solution along the "
+        "axis against the truth, from where the frame before it was; z: error over the stated "
+        "error; too confident: the median |z| over an honest one's (0.67); anchored: frames whose "
+        "ten frames before them ICP carried (mean weight ≥ ½), so that the frame before sits "
+        "where the map's features put it.\n"
+    )
+    print(
+        "| draw | frames | stated error, median mm | error, median mm | error, RMS mm | "
+        "median z | too confident × | beyond 3 | anchored frames | anchored: median z |\n"
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+    )
+    pooled: dict[str, list[np.ndarray]] = {"errors": [], "stated": [], "anchored": []}
+    with ProcessPoolExecutor(2) as pool:
+        for f in pool.map(_axial_error_draw, names):
+            print(_axial_error_row(f["name"], f["errors"], f["stated"], f["anchored"]), flush=True)
+            for key, values in pooled.items():
+                values.append(f[key])
+    print(_axial_error_row("all draws", *(np.concatenate(pooled[k]) for k in pooled)))
+
+
 # --------------------------------------------------------------------------- memory
 
 
@@ -930,6 +1038,7 @@ def main() -> None:
             "variants",
             "icp-work",
             "slips",
+            "axial-error",
             "all",
             "memory-child",
         ],
@@ -937,7 +1046,9 @@ def main() -> None:
     parser.add_argument("--random-draws", type=int, default=8, help="sweep: random draws")
     parser.add_argument("--no-long", action="store_true", help="sweep: leave the 30 m run out")
     parser.add_argument(
-        "--only", nargs="+", help="sweep, converge, slips: draws named with one of these"
+        "--only",
+        nargs="+",
+        help="sweep, converge, variants, slips, axial-error: draws named with one of these",
     )
     parser.add_argument(
         "--converged",
@@ -976,11 +1087,12 @@ def main() -> None:
         "variants": bench_variants,
         "icp-work": bench_icp_work,
         "slips": bench_slips,
+        "axial-error": bench_axial_error,
     }
     for name, step in steps.items():
         if args.what == name or (
             args.what == "all"
-            and name not in ("sweep", "converge", "variants", "icp-work", "slips")
+            and name not in ("sweep", "converge", "variants", "icp-work", "slips", "axial-error")
         ):
             print(f"\n## {name}\n", flush=True)
             step(args)
