@@ -734,15 +734,19 @@ def _variant_draw(job: tuple[str, str]) -> tuple[str, dict]:
     }  # fmt: skip
 
 
+def _names(draws, only: list[str] | None) -> list[str]:
+    """The draws' names, only those that contain one of ``only`` when given (``--only``)."""
+    names = [d.name for d in draws]
+    return [n for n in names if any(o in n for o in only)] if only else names
+
+
 def bench_variants(args, variants: list[str] | None = None) -> None:
     """The sweep's short draws registered with several sets of registration parameters, in
     memory, two draws at a time: accuracy against the truth, and the CPU the whole of each
     draw's in-memory chain took (registration is most of it)."""
     from pipescan.simulator.sweep import sweep_draws
 
-    names = [d.name for d in sweep_draws(long_run=False)]
-    if args.only:
-        names = [n for n in names if any(o in n for o in args.only)]
+    names = _names(sweep_draws(long_run=False), args.only)
     variants = args.variant if variants is None else variants
     for variant in variants:
         registration_params(variant)  # a typo stops the run here, not an hour in
@@ -832,9 +836,7 @@ def bench_slips(args) -> None:
     frame's registered position along the axis against the truth and its stated ±."""
     from pipescan.simulator.sweep import slip_draws, sweep_draws
 
-    names = [d.name for d in [*slip_draws(), *sweep_draws(long_run=False)]]
-    if args.only:
-        names = [n for n in names if any(o in n for o in args.only)]
+    names = _names([*slip_draws(), *sweep_draws(long_run=False)], args.only)
     print(
         f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
         "slip frames: frames during which the simulated odometer slipped; caught: slips the "
@@ -942,9 +944,7 @@ def bench_axial_error(args) -> None:
     is 0.67 and 0.3 % of frames lie beyond 3."""
     from pipescan.simulator.sweep import sweep_draws
 
-    names = [d.name for d in sweep_draws(long_run=False)]
-    if args.only:
-        names = [n for n in names if any(o in n for o in args.only)]
+    names = _names(sweep_draws(long_run=False), args.only)
     print(
         f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
         "Frames with information along the axis, no fault; error: ICP's solution along the "
