@@ -961,10 +961,10 @@ def bench_axial_error(args) -> None:
     pooled: dict[str, list[np.ndarray]] = {"errors": [], "stated": [], "anchored": []}
     with ProcessPoolExecutor(2) as pool:
         for f in pool.map(_axial_error_draw, names):
-            print(_axial_error_row(f["name"], f["errors"], f["stated"], f["anchored"]), flush=True)
+            print(_axial_error_row(**f), flush=True)
             for key, values in pooled.items():
                 values.append(f[key])
-    print(_axial_error_row("all draws", *(np.concatenate(pooled[k]) for k in pooled)))
+    print(_axial_error_row("all draws", **{k: np.concatenate(v) for k, v in pooled.items()}))
 
 
 # --------------------------------------------------------------------------- memory
