@@ -191,8 +191,7 @@ def axial_information(
     >>> 0.5 < info * 0.005**2 / 4 < 2   # 5 mm noise, four 1 dm² patches: four observations
     True
     """
-    signed = normals_sensor @ axis_sensor
-    facing = np.abs(signed)
+    facing = np.abs(normals_sensor @ axis_sensor)
     use = (facing >= FACING_COS) & (surface_variation <= _MAX_SURFACE_VARIATION)
     if use.sum() < MIN_FACING_SUPPORT:
         return 0.0
@@ -205,7 +204,8 @@ def axial_information(
     patch = patch.ravel()
     count = np.bincount(patch)
     information = float(np.mean(facing[use] ** 2)) * len(count) / sigma**2
-    return information / _patches_disagree(patch, count, signed[use], r, sigma)
+    signed = (normals_sensor @ axis_sensor)[use]
+    return information / _patches_disagree(patch, count, signed, r, sigma)
 
 
 def _patches_disagree(
