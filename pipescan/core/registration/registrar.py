@@ -94,9 +94,6 @@ class FrameRegistrar:
         self.slid: list[tuple[int, int]] = []
         """Runs of frames (first, last, counted from 0) that slid along the axis."""
         self._slips = SlipLog(params.slide_window_m)
-        self._last_move = (0.0, float("inf"))
-        """This frame's move from the prior along the axis by ICP's share, and ICP's own error
-        where it overrode the odometer (else infinite): what the slide window needs."""
         self.odometer_frames = 0
         self.count = 0
 
@@ -184,7 +181,6 @@ class FrameRegistrar:
             step_bound = self._axial.predict(
                 step, map_extent_m=self._map_extent_m(pred[:3, 3]), odometer=has_odometer
             )
-            self._last_move = (0.0, float("inf"))
             T, quality = self._register(pts, pred, index, step_bound)
             if has_odometer:
                 assert odometer_m is not None
@@ -334,12 +330,7 @@ class FrameRegistrar:
             return T, 1.0
         information, weak, scale, axis_sensor = self._evidence(matches, T, pred)
         x = small_motion(np.linalg.inv(pred) @ T)
-        correction = float(x[3:] @ axis_sensor)
-        weight, overrode = self._axial.update(information, step_bound, correction)
-        self._last_move = (
-            weight * correction,
-            1.0 / float(np.sqrt(information)) if overrode else float("inf"),
-        )
+        weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
         # Express the ICP correction relative to the prior, about the sensor, in balanced
         # coordinates; drop it along the weak roll directions and keep ICP's share ``weight``
         # of it along the axis.
@@ -360,10 +351,7 @@ class FrameRegistrar:
         w = quality.along_axis_weight
         along = float(T[:3, 3] @ self._axis_world)
         fault: Fault | None
-        moved, override_sigma = self._last_move
-        fault, disagreement = self._slides.add(
-            odometer_m, along, w, self._axial.last_icp_var, moved, override_sigma
-        )
+        fault, disagreement = self._slides.add(odometer_m, along, w, self._axial.last_icp_var)
         self._slips.add(
             odometer_m, along, disagreement if fault == "odometer_slip" else None, fault == "slide"
         )
