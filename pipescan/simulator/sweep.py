@@ -310,7 +310,9 @@ class SectionScore:
     chainage. ``shadows_ok`` counts true shadows (``SHADOW_COVERAGE``) whose section is ok,
     and ``shadows_ok_wrong`` those of them off the truth (anywhere within ±u) by more than
     their own stated 95 % blockage uncertainty: a shadow's figure may be trusted only where
-    what was seen of it bounds it.
+    what was seen of it bounds it. ``beyond_stated`` counts every ok section so off: its
+    stated 95 % blockage uncertainty does not reach the truth anywhere within ±u (a 95 %
+    bound may miss one section in twenty).
 
     With the sections' true shifts (:func:`true_shifts`), ``shadows_ok_true`` counts ok
     sections whose true place (start plus shift, to the nearest section) is a true shadow,
@@ -330,6 +332,7 @@ class SectionScore:
     shadows_ok: int
     u_max_m: float
     shadows_ok_wrong: int = 0
+    beyond_stated: int = 0
     shadows_ok_true: int | None = None
     beyond_u: int | None = None
     beyond_u_max_m: float | None = None
@@ -346,6 +349,11 @@ def _closest_error(sec, truth: TrueBlockage) -> tuple[float, float | None]:
     return u, float(np.min(np.abs(sec.blockage_ratio - shifted)))
 
 
+def _stated_blockage_u(sec) -> float:
+    """A section's stated 95 % blockage uncertainty (a ratio; 0 where it states none)."""
+    return float(getattr(sec, "blockage_uncertainty_ratio", None) or 0.0)
+
+
 SHIFT_TOLERANCE_M = 0.005
 """The resolution of :func:`true_shifts`: a true place this close to the stated ± is within it."""
 
@@ -356,7 +364,7 @@ def score_sections(
     """Score measured sections (``SectionMeasures``) against the truth (see
     :class:`SectionScore`); ``shifts`` from :func:`true_shifts` adds the true-place scores."""
     errors: list[float] = []
-    ok = dishonest = naive_dishonest = 0
+    ok = dishonest = naive_dishonest = beyond_stated = 0
     worst = u_max = 0.0
     by_start = {}
     for sec in sections:
@@ -374,6 +382,7 @@ def score_sections(
         worst = max(worst, closest)
         dishonest += closest > DISHONEST_PP
         naive_dishonest += naive > DISHONEST_PP
+        beyond_stated += closest_ratio > _stated_blockage_u(sec)
         if truth.variation(start, u) * 100 <= FLAT_PP:
             errors.append(naive)
     shadows = [
@@ -387,8 +396,7 @@ def score_sections(
     shadows_ok_wrong = 0
     for sec in shadow_ok:
         closest_ratio = _closest_error(sec, truth)[1]
-        stated = float(getattr(sec, "blockage_uncertainty_ratio", None) or 0.0)
-        shadows_ok_wrong += closest_ratio is not None and closest_ratio > stated
+        shadows_ok_wrong += closest_ratio is not None and closest_ratio > _stated_blockage_u(sec)
     true_place = {}
     if shifts is not None:
         true_place = _true_place_scores(sections, truth, shifts, shadows)
@@ -405,6 +413,7 @@ def score_sections(
         shadows_ok=len(shadow_ok),
         u_max_m=u_max,
         shadows_ok_wrong=shadows_ok_wrong,
+        beyond_stated=beyond_stated,
         **true_place,
     )
 
