@@ -15,7 +15,7 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from pipescan.core.contour import DEFAULT_CONTOUR_METHOD, check_contour_method, contour_method
-from pipescan.core.contour.base import remove_stray_points
+from pipescan.core.contour.base import remove_stray_points, remove_veil_points
 from pipescan.core.contour.grid import GridParams
 from pipescan.core.contour.polar import PolarProfile, polar_profile
 from pipescan.core.errors import GeometryError
@@ -65,8 +65,12 @@ class MeasureParams:
     wall_tolerance_ratio : float
         Contour radii within this share of the nominal radius count as wall when measuring
         ovality and deformation; anything further in is a deposit or an obstacle.
-    stray_radius_m, stray_min_neighbours
-        Stray-point removal (see ``remove_stray_points``).
+    stray_radius_m, stray_min_neighbours, stray_relative_density
+        Stray-point removal (see ``remove_stray_points``): a point is kept when its
+        neighbourhood holds at least ``stray_relative_density`` of the section's median count.
+    veil_relative_density
+        The same share, for the veil of mixed returns behind an edge in a dense section
+        (``remove_veil_points``); 0 keeps the veil (only to measure what removing it does).
     max_points : int
         A denser section is thinned to this many points, evenly spaced: the
         per-angle medians do not need more, and the cost stays bounded.
@@ -95,6 +99,8 @@ class MeasureParams:
     wall_tolerance_ratio: float = 0.12
     stray_radius_m: float = 0.02
     stray_min_neighbours: int = 3
+    stray_relative_density: float = 0.02
+    veil_relative_density: float = 0.02
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
     max_wall_spread_m: float = 0.008
@@ -288,7 +294,10 @@ def measure_section(
         per_m = len(raw_used) / (math.pi * d_m)
         stray_radius_m = max(stray_radius_m, _STRAY_EXPECTED_NEIGHBOURS / (3.0 * per_m))
     pts = remove_stray_points(
-        raw_used, radius_m=stray_radius_m, min_neighbours=params.stray_min_neighbours
+        raw_used,
+        radius_m=stray_radius_m,
+        min_neighbours=params.stray_min_neighbours,
+        relative_density=params.stray_relative_density,
     )
     if sparse:
         bins = choose_sparse_bins(len(pts))
@@ -296,6 +305,9 @@ def measure_section(
         min_bin_share = 0.25 if slices == 1 else 0.0
     else:
         bins, slices, min_slices, min_bin_share = choose_bins(len(pts)), 4, 3, 0.0
+        # Rays that graze an edge leave a veil of mixed returns behind it; over many frames it
+        # fills the shadow, and would count as seen wall and as blockage.
+        pts = remove_veil_points(pts, bins=bins, relative_density=params.veil_relative_density)
     profile: PolarProfile = polar_profile(
         pts,
         bins=bins,

@@ -75,6 +75,41 @@ def remove_stray_points(
     return pts[others >= threshold]
 
 
+def remove_veil_points(
+    points: np.ndarray,
+    *,
+    bins: int,
+    radial_cell_m: float = 0.005,
+    relative_density: float = 0.02,
+) -> np.ndarray:
+    """Drop the veil of mixed returns that an edge leaves behind it (a dense section).
+
+    A ray that grazes an obstacle's edge returns a range between the edge and the surface
+    behind it. Over many frames such returns fill the gap behind the edge with a veil: a
+    region of the section plane, where a surface is a curve. So the veil's points are thin
+    in any band of radius about the centre as thin as a surface's noise, where a surface's
+    points are not, whatever the density along it. Points are counted on a polar grid of
+    ``bins`` angle bins and ``radial_cell_m`` rings; a point is kept when its cell and the 8
+    around it hold at least ``relative_density`` times the median such count.
+
+    The window (three rings, 15 mm by default) is half the radial gap at which two surfaces
+    are told apart (``polar_profile``'s ``layer_gap_m``), so a veil across such a gap is
+    spread over at least two windows; a surface's noise scales its own count and the median
+    alike. docs/measures.md gives what it does to the sections behind an obstacle.
+    """
+    pts = np.asarray(points, dtype=np.float64)
+    if len(pts) == 0:
+        return pts
+    ang = np.mod(np.arctan2(pts[:, 1], pts[:, 0]), 2.0 * np.pi)
+    b = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    k = (np.hypot(pts[:, 0], pts[:, 1]) / radial_cell_m).astype(np.int64) + 1
+    counts = np.zeros((bins, int(k.max()) + 2), dtype=np.int64)
+    np.add.at(counts, (b, k), 1)
+    block = ndimage.convolve(counts, np.ones((3, 3), dtype=np.int64), mode="wrap")
+    others = block[b, k] - 1
+    return pts[others >= relative_density * float(np.median(others))]
+
+
 def polygon_area(polygon: np.ndarray) -> float:
     """Area enclosed by a closed contour (M, 2), m².
 
