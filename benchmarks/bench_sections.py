@@ -5,6 +5,7 @@
     python benchmarks/bench_sections.py real          # the real S3DSS scan (800 mm concrete pipe)
     python benchmarks/bench_sections.py throughput    # points/s through slicing, contour, measures
     python benchmarks/bench_sections.py memory        # peak RSS of the section stage, 10 m vs 100 m
+    python benchmarks/bench_sections.py veil          # mixed pixels behind edges, removed or kept
     python benchmarks/bench_sections.py all
 
 Every figure is printed; nothing is asserted (the tests do that on smaller cases).
@@ -289,13 +290,124 @@ def memory(lengths: list[float]) -> None:
         )
 
 
+def _veil_section(rng, veil_points: int, tail_points: int) -> np.ndarray:
+    """A 0.5 m pipe's section seen by 40,000 points, its crown (60-120°) in an obstacle's
+    shadow: ``tail_points`` on the crown from the few frames that saw past the obstacle, and a
+    veil of ``veil_points`` mixed returns between the edge (0.1 m from the axis) and the wall
+    (the same section as ``tests/test_measures.py``'s)."""
+    radius = 0.25
+    theta = rng.uniform(0.0, 2.0 * np.pi, 40_000)
+    theta = theta[(theta < np.radians(60.0)) | (theta > np.radians(120.0))]
+    crown = rng.uniform(np.radians(60.0), np.radians(120.0), tail_points + veil_points)
+    r = np.concatenate(
+        (
+            radius + rng.normal(0.0, 0.002, len(theta) + tail_points),
+            rng.uniform(0.10, radius - 0.01, veil_points),
+        )
+    )
+    theta = np.concatenate((theta, crown))
+    pts = np.column_stack((r * np.cos(theta), r * np.sin(theta)))
+    return np.column_stack((pts, rng.uniform(0.0, 0.1, len(pts))))
+
+
+def veil(names: list[str]) -> None:
+    """What removing the veil of mixed pixels does: the sweep's draws measured with the true
+    poses with and without it, section by section, against the simulator's truth; then the
+    densest veil it removes, on a synthetic section."""
+    from pipescan.core.measures import measure_section
+    from pipescan.simulator.sweep import TrueBlockage, sweep_draws
+
+    kept, removed = MeasureParams(veil_relative_density=0.0), MeasureParams()
+    print("\n## veil: sweep draws, true poses, with the veil kept -> removed\n")
+    print("Changed: sections whose status changed or whose error moved by over 0.2 pp.\n")
+    print("| draw | ok | ok mean / max error pp | ok beyond their ± | measuring CPU s | changed |")
+    print("|---|---:|---:|---:|---:|---|")
+    draws = [d for d in sweep_draws(long_run=False) if any(n in d.name for n in names)]
+    for draw in draws:
+        scan = simulate_scan(draw.scenario, draw.seed)
+        # In the pipe's frame, where the truth is; chainage from the first sensor position.
+        points = scan.points_true_poses(max_range_m=MAX_RANGE_M)
+        start = scan.T_pipe_sensor(0)[:3, 3]
+        axis = fit_axis(
+            points, start_m=start, travel_m=scan.T_pipe_sensor(len(scan) - 1)[:3, 3] - start
+        )
+        nominal = scan.scenario.nominal_diameter_m
+        split = split_windows(points, axis)
+        truth = TrueBlockage(scan)
+        runs = []
+        for params in (kept, removed):
+            t0 = time.process_time()
+            secs = []
+            for w, offsets in split:
+                secs += measure_window(
+                    offsets, axis, w, nominal_diameter_m=nominal, params=params, relative=True
+                )
+            cpu = time.process_time() - t0
+            rows = {}
+            for sec in secs:
+                c = round(sec.chainage_start_m, 3)
+                true = float(truth.section(np.array([c]))[0])
+                rows[c] = (
+                    sec.status.value,
+                    sec.blockage_ratio,
+                    true,
+                    sec.blockage_uncertainty_ratio,
+                )
+            runs.append((rows, cpu))
+        cells, changed = [], []
+        for rows, _ in runs:
+            ok = [(abs(b - t), u or 0.0) for st, b, t, u in rows.values() if st == "ok"]
+            err = np.array([e for e, _ in ok]) * 100
+            beyond = sum(e > u + 0.001 for e, u in ok)
+            cells.append((len(ok), f"{err.mean():.3f} / {err.max():.2f}", beyond))
+        (a, cpu_a), (b, cpu_b) = runs
+        for c in sorted(set(a) & set(b)):
+            ea = abs(a[c][1] - a[c][2]) * 100 if a[c][1] is not None else float("nan")
+            eb = abs(b[c][1] - b[c][2]) * 100 if b[c][1] is not None else float("nan")
+            if a[c][0] != b[c][0] or abs(ea - eb) > 0.2:
+                changed.append(f"{c:.1f}: {a[c][0]} {ea:.2f} -> {b[c][0]} {eb:.2f} pp")
+        print(
+            f"| {draw.name} | {cells[0][0]} -> {cells[1][0]} | {cells[0][1]} -> {cells[1][1]} "
+            f"| {cells[0][2]} -> {cells[1][2]} | {cpu_a:.1f} -> {cpu_b:.1f} "
+            f"| {'; '.join(changed) or '-'} |",
+            flush=True,
+        )
+    print("\n## veil: synthetic shadowed section, 5 seeds (truth: 0 % blocked)\n")
+    print("| veil points (a degree; the wall: 111) | crown tail points | kept | removed |")
+    print("|---:|---:|---|---|")
+    for tail in (400, 0):
+        for n in (250, 500, 750, 1000, 1500):
+            cells = []
+            for params in (kept, removed):
+                oks, worst = 0, 0.0
+                for seed in range(5):
+                    m = measure_section(
+                        _veil_section(np.random.default_rng(seed), n, tail),
+                        chainage_start_m=1.0,
+                        chainage_end_m=1.1,
+                        nominal_diameter_m=0.5,
+                        params=params,
+                    )
+                    if m.status.value == "ok":
+                        oks += 1
+                        worst = max(worst, abs(m.blockage_ratio) * 100)
+                cells.append(f"{oks}/5 ok, {worst:.2f} pp")
+            print(f"| {n} ({n / 60:.0f}) | {tail} | {cells[0]} | {cells[1]} |", flush=True)
+
+
 def main() -> None:
     if len(sys.argv) == 3 and sys.argv[1] == "_memory_child":
         print(json.dumps(_memory_child(float(sys.argv[2]))))
         return
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument(
-        "what", choices=["accuracy", "obstacles", "real", "throughput", "memory", "all"]
+        "what", choices=["accuracy", "obstacles", "real", "throughput", "memory", "veil", "all"]
+    )
+    parser.add_argument(
+        "--draws",
+        nargs="+",
+        default=["combined", "mixed pixels"],
+        help="veil: the sweep's draws whose names contain one of these",
     )
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     parser.add_argument("--lengths", type=float, nargs="+", default=[10.0, 100.0])
@@ -310,6 +422,8 @@ def main() -> None:
         throughput()
     if args.what in ("memory", "all"):
         memory(args.lengths)
+    if args.what in ("veil", "all"):
+        veil(args.draws)
 
 
 if __name__ == "__main__":
