@@ -32,6 +32,7 @@ Z95 = 1.959963984540054
 """Standard normal quantile of a two-sided 95 % interval."""
 
 MEDIAN_EFFICIENCY = math.sqrt(math.pi / 2.0)
+"""Standard error of a median over that of a mean, for normal scatter."""
 
 
 def coverage_factor(seen_bins: int) -> float:
@@ -45,9 +46,6 @@ def coverage_factor(seen_bins: int) -> float:
     from scipy.stats import t
 
     return float(t.ppf(0.975, max(seen_bins - 1, 1)))
-
-
-"""Standard error of a median over that of a mean, for normal scatter."""
 
 
 @dataclass(frozen=True)
