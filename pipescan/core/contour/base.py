@@ -66,11 +66,7 @@ def remove_stray_points(
     if len(pts) <= min_neighbours:
         return pts[:0]
     ij = np.floor((pts[:, :2] - pts[:, :2].min(axis=0)) / radius_m).astype(np.int64) + 1
-    shape = tuple(ij.max(axis=0) + 2)
-    counts = np.zeros(shape, dtype=np.int64)
-    np.add.at(counts, (ij[:, 0], ij[:, 1]), 1)
-    block = ndimage.convolve(counts, np.ones((3, 3), dtype=np.int64), mode="constant")
-    others = block[ij[:, 0], ij[:, 1]] - 1
+    others = _others_around(ij[:, 0], ij[:, 1], mode="constant")
     threshold = max(min_neighbours, relative_density * float(np.median(others)))
     return pts[others >= threshold]
 
@@ -103,11 +99,19 @@ def remove_veil_points(
     ang = np.mod(np.arctan2(pts[:, 1], pts[:, 0]), 2.0 * np.pi)
     b = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
     k = (np.hypot(pts[:, 0], pts[:, 1]) / radial_cell_m).astype(np.int64) + 1
-    counts = np.zeros((bins, int(k.max()) + 2), dtype=np.int64)
-    np.add.at(counts, (b, k), 1)
-    block = ndimage.convolve(counts, np.ones((3, 3), dtype=np.int64), mode="wrap")
-    others = block[b, k] - 1
+    # Round the circle the angle bins wrap; the empty ring beyond the last keeps the radius
+    # from wrapping.
+    others = _others_around(b, k, mode="wrap", rows=bins)
     return pts[others >= relative_density * float(np.median(others))]
+
+
+def _others_around(i: np.ndarray, j: np.ndarray, *, mode: str, rows: int | None = None):
+    """For each point in grid cell ``(i, j)`` (``j`` from 1, a free cell beyond the largest),
+    how many other points its cell and the 8 around it hold."""
+    shape = (int(i.max()) + 2 if rows is None else rows, int(j.max()) + 2)
+    flat = np.bincount(i * shape[1] + j, minlength=shape[0] * shape[1])
+    block = ndimage.convolve(flat.reshape(shape), np.ones((3, 3), dtype=np.int64), mode=mode)
+    return block[i, j] - 1
 
 
 def polygon_area(polygon: np.ndarray) -> float:
