@@ -387,6 +387,43 @@ def test_slide_detector_tells_a_slide_from_an_odometer_slip():
     assert "odometer_slip" in run(0.005, 0.9)  # ICP carried the weight: the odometer slipped
 
 
+def test_a_slip_icp_followed_through_the_gate_is_the_odometers_even_where_icp_weighs_little():
+    """The odometer stands for 18 frames while the crawler moves on 15 mm a frame. ICP follows
+    it through the innovation gate on every other frame (``w = 1``, the whole 15 mm) and weighs
+    little elsewhere (``w = 0.05``): the window's mean weight is far below ½, but the
+    disagreement is what ICP's overrides put there, so it is the odometer's slip. Overrides
+    whose own error (2 cm) is larger than the crawler's step could not have followed the slip
+    a frame at a time: they are no evidence, and the window is a slide. So is the same
+    disagreement crept in by ordinary frames (no override)."""
+
+    def run(gated_slip: bool, override_sigma_m: float = 0.005):
+        d = SlideDetector(window_m=0.5, scale_error_ratio=0.03, noise_m=0.001)
+        odometer = along = 0.0
+        faults = []
+        for k in range(90):
+            slipping = 20 <= k < 38
+            gated = gated_slip and slipping and k % 2 == 0
+            weight = 1.0 if gated else 0.05
+            if gated_slip:  # the crawler moves on while the odometer stands
+                moved = 0.015 if gated else (0.05 * 0.015 if slipping else 0.0)
+                odometer += 0.0 if slipping else 0.015
+            else:  # the odometer is right; ICP creeps 8 mm a frame, never through the gate
+                moved = 0.008 if slipping else 0.0
+                odometer += 0.015
+            along += moved + (0.0 if slipping and gated_slip else 0.015)
+            sigma = override_sigma_m if gated else float("inf")
+            fault, _ = d.add(odometer, along, weight, 1e-8, moved, sigma)
+            faults.append(fault)
+        return faults
+
+    slip = run(gated_slip=True)
+    assert "odometer_slip" in slip and "slide" not in slip
+    unresolved = run(gated_slip=True, override_sigma_m=0.02)
+    assert "slide" in unresolved and "odometer_slip" not in unresolved
+    creep = run(gated_slip=False)
+    assert "slide" in creep and "odometer_slip" not in creep
+
+
 def test_chained_chunks_add_their_uncertainties():
     def chunk(first, u):
         q = tuple(
@@ -460,6 +497,27 @@ def test_chaining_allows_for_the_slips_seen_in_every_chunk():
     want = [0.25 * max(1, _net_slips_within(1.0 * x / 2)) for x in held_by]
     assert u[:11] == pytest.approx([0.0] * 11) and u[11:] == pytest.approx(want)
     assert u[11] == pytest.approx(0.25) and u[-1] == pytest.approx(0.5)
+
+
+def test_a_frame_whose_icp_error_is_below_a_third_of_a_step_could_have_caught_a_slip():
+    def chunk(first, held, slips, sigma=float("inf")):
+        q = tuple(
+            FrameQuality(first + k, 1.0, 0.0, held, 0.3 if held else 1.0, axial_sigma_m=sigma)
+            for k in range(11)
+        )
+        T = np.repeat(np.eye(4)[None], 11, axis=0)
+        T[:, 0, 3] = 0.1 * np.arange(11)
+        return Trajectory(T, q, tuple(range(first, first + 11)), odometer_slips_m=slips)
+
+    # Held to the odometer (ICP weighed 0.3), but ICP's own error along the axis, 2 cm, is
+    # below a third of the 10 cm step: the innovation gate would have passed a slip there,
+    # frame by frame, so no slip hides in it.
+    sharp = chain_trajectories([chunk(0, False, (0.25,)), chunk(10, True, (), sigma=0.02)])
+    assert not any(q.chainage_uncertainty_m for q in sharp.quality)
+    # With 4 cm (a third of a step is 3.3 cm) or no information, it could not: allowed for.
+    for sigma in (0.04, float("inf")):
+        blunt = chain_trajectories([chunk(0, False, (0.25,)), chunk(10, True, (), sigma=sigma)])
+        assert blunt.quality[-1].chainage_uncertainty_m == pytest.approx(0.5)
 
 
 def test_registration_evidence_of_a_section():
@@ -582,3 +640,28 @@ def test_a_faces_points_count_once_per_patch_along_the_axis():
     assert information(100, FACE_PATCH_M) == pytest.approx(one_patch)
     assert information(2000, FACE_PATCH_M) == pytest.approx(one_patch)
     assert information(2000, 3 * FACE_PATCH_M) == pytest.approx(9 * one_patch)
+
+
+def test_facing_patches_that_disagree_along_the_axis_inform_less():
+    """Each patch of a face says, alone, where the frame sits along the axis. When the patches
+    scatter more than their stated errors allow (a blob taken for a face, a face placed by
+    frames that slid), ICP's information is divided by that excess (their reduced χ²)."""
+    from pipescan.core.registration.fusion import FACE_PATCH_M, axial_information
+
+    rng = np.random.default_rng(5)
+    axis = np.array([1.0, 0.0, 0.0])
+    points = np.column_stack((np.full(2000, 2.0), rng.uniform(0, 3 * FACE_PATCH_M, (2000, 2))))
+    normals = np.tile(-axis, (2000, 1))
+    noise = rng.normal(0.0, 0.003, 2000)
+    patch = np.floor(points[:, 1:] / FACE_PATCH_M).astype(int) @ [1, 3]  # 9 patches
+
+    def information(offset_m: float) -> float:
+        residuals = noise + np.where(np.isin(patch, [2, 6]), offset_m, 0.0)
+        return axial_information(normals, np.full(2000, 0.01), residuals, axis, points)
+
+    agree = information(0.0)
+    assert agree == pytest.approx(9 / 0.003**2, rel=0.15)
+    # Two of the nine patches 3 cm off, where each patch is stated to within the residuals'
+    # spread (a few mm). That spread alone (the two patches widen it) divides the information
+    # by about 4; the patches' scatter about their mean divides it by about 2 more.
+    assert agree / 30 < information(0.03) < agree / 6

@@ -153,6 +153,14 @@ def axial_information(
     more than 1 cm from 12 to 9 of 299 (six gone, three new); no ok section was off by more
     than 2 pp in either run.
 
+    Why divided by the patches' χ²: the residual spread says how well each patch is placed,
+    not whether the patches agree. Against the simulator's truth ICP's stated error along the
+    axis was 1.5× too small over the sweep, and 3.7× under 2 % spurious returns
+    (``bench_registration.py axial-error``). Where the patches' own shifts scatter beyond
+    their stated errors, the information is divided by their reduced χ²
+    (:func:`_patches_disagree`). ``docs/registration.md`` (*Where the remaining stretches
+    are*) has the sweep's figures with and without it.
+
     Parameters
     ----------
     normals_sensor : (N, 3) float
@@ -182,15 +190,43 @@ def axial_information(
     >>> 0.5 < info * 0.005**2 / 4 < 2   # 5 mm noise, four 1 dm² patches: four observations
     True
     """
-    facing = np.abs(normals_sensor @ axis_sensor)
+    signed = normals_sensor @ axis_sensor
+    facing = np.abs(signed)
     use = (facing >= FACING_COS) & (surface_variation <= _MAX_SURFACE_VARIATION)
     if use.sum() < MIN_FACING_SUPPORT:
         return 0.0
     r = residuals_m[use]
     sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), _MIN_RESIDUAL_SIGMA_M)
     # One observation per patch of the smallest face: mean (n·a)² times the patches.
-    patches = len(np.unique(np.floor(points_sensor[use] / FACE_PATCH_M).astype(np.int64), axis=0))
-    return float(np.mean(facing[use] ** 2)) * patches / sigma**2
+    _, patch = np.unique(
+        np.floor(points_sensor[use] / FACE_PATCH_M).astype(np.int64), axis=0, return_inverse=True
+    )
+    patch = patch.ravel()
+    count = np.bincount(patch)
+    information = float(np.mean(facing[use] ** 2)) * len(count) / sigma**2
+    return information / _patches_disagree(patch, count, signed[use], r, sigma)
+
+
+def _patches_disagree(
+    patch: np.ndarray, count: np.ndarray, f: np.ndarray, r: np.ndarray, sigma: float
+) -> float:
+    """How much more the facing patches disagree about the shift along the axis than their
+    stated errors allow: the reduced χ² of each patch's own shift about their weighted mean,
+    at least 1.
+
+    Each patch alone says the frame sits ``-mean(f r) / mean(f²)`` along the axis from the
+    solution (``f = n·a``), with weight ``mean(f²) / σ²``. If the patches scatter more than
+    that, the faces in the map or the points on them carry an error the residual spread does
+    not show (a spurious blob that looks like a face, a face placed by frames that slid), and
+    ICP's error along the axis is that much larger: the information is divided by the ratio.
+    """
+    if len(count) < 2:
+        return 1.0
+    f2 = np.bincount(patch, f**2) / count
+    shift = -(np.bincount(patch, f * r) / count) / f2
+    weight = f2 / sigma**2
+    mean = float(np.sum(weight * shift) / np.sum(weight))
+    return max(1.0, float(np.sum(weight * (shift - mean) ** 2)) / (len(count) - 1))
 
 
 def small_motion(T: np.ndarray) -> np.ndarray:
@@ -389,7 +425,10 @@ def unseen_slip_allowance(
     sliding on a slimy invert while it stands), by more than its stated scale error covers.
     Registration catches a slip only where features carry its slide window
     (:class:`SlideDetector`). Where the frames were held to the odometer (``held``: ICP's
-    along-axis weight below one half) a slip leaves no trace: over stretches held for at
+    along-axis weight below one half, and its own error along the axis not below a third of
+    the crawler's step, so that the innovation gate could not pass a slip frame by frame
+    either; :func:`~pipescan.core.registration.trajectory.chain_trajectories`) a slip
+    leaves no trace: over stretches held for at
     least a slide window, counting a stretch of features shorter than a window as held (a
     window over it is mostly held, and a disagreement there is taken for a slide).
 
@@ -472,6 +511,8 @@ class _WindowFrame:
     along_m: float
     weight: float
     icp_var: float
+    moved_m: float = 0.0
+    override_sigma_m: float = float("inf")
 
 
 class SlideDetector:
@@ -481,8 +522,11 @@ class SlideDetector:
     ``window_m`` of odometer travel), a disagreement beyond the odometer's error
     (``scale · travel`` plus 3σ of the reading noise and of ICP's own noise) is a fault:
     ``slide`` when ICP carried little weight in the window, ``odometer_slip`` when it carried
-    it (features in view: the odometer is the one that is wrong). After a fault the window is
-    empty: add the frame again where the fault left it.
+    it (features in view: the odometer is the one that is wrong). ICP carried the window when
+    its mean weight is at least ½, or when its overrides through the innovation gate, each
+    with an error below one step of the crawler, made at least half of its moves towards the
+    disagreement (:meth:`_overrides_carried`). After a fault the window is empty: add the
+    frame again where the fault left it.
     """
 
     def __init__(self, window_m: float, scale_error_ratio: float, noise_m: float) -> None:
@@ -497,12 +541,22 @@ class SlideDetector:
         self._frames.clear()
 
     def add(
-        self, odometer_m: float, along_m: float, weight: float, icp_var: float
+        self,
+        odometer_m: float,
+        along_m: float,
+        weight: float,
+        icp_var: float,
+        moved_m: float = 0.0,
+        override_sigma_m: float = float("inf"),
     ) -> tuple[Fault | None, float]:
         """Add a frame (odometer reading, registered position along the axis, ICP's weight
-        and its variance share); returns the fault found (or None) and the disagreement (m,
-        registered minus odometer travel over the window)."""
-        self._frames.append(_WindowFrame(odometer_m, along_m, weight, icp_var))
+        and its variance share; how far ICP's share moved it from the prior along the axis,
+        and ICP's own error where it overrode the odometer through the innovation gate);
+        returns the fault found (or None) and the disagreement (m, registered minus odometer
+        travel over the window)."""
+        self._frames.append(
+            _WindowFrame(odometer_m, along_m, weight, icp_var, moved_m, override_sigma_m)
+        )
         while (
             len(self._frames) > 2 and abs(odometer_m - self._frames[1].odometer_m) >= self.window_m
         ):
@@ -520,6 +574,31 @@ class SlideDetector:
         if abs(disagreement) <= allowed:
             return None, disagreement
         carried = float(np.mean([f.weight for f in frames])) >= _ICP_CARRIED_WEIGHT
+        if not carried:
+            carried = self._overrides_carried(frames, disagreement)
         self.window_frames = len(self._frames)
         self._frames.clear()  # the caller adds the frame again, where it leaves it
         return ("odometer_slip" if carried else "slide"), disagreement
+
+    def _overrides_carried(self, frames: list[_WindowFrame], disagreement: float) -> bool:
+        """Whether ICP's resolved overrides made at least half of its moves towards the
+        disagreement.
+
+        A slip builds up one frame's step at a time, and ICP follows it through the
+        innovation gate (``w = 1``) even where it weighs little elsewhere. Such an override is
+        evidence of the slip only where ICP's own error is below one step of the crawler
+        (the odometer's median step in the window, over the frames where it moved beyond its
+        reading noise): then ICP can tell a crawler that moved from one that stood. An
+        override with a larger error is a jump ICP could not have followed, a frame at a
+        time, and says nothing about a slip.
+        """
+        readings = np.array([f.odometer_m for f in self._frames])
+        steps = np.abs(np.diff(readings))
+        moving = steps[steps > _SLIDE_SIGMAS * np.sqrt(2.0) * self.noise_m]
+        if not len(moving):
+            return False
+        drive_step = float(np.median(moving))
+        towards = np.array([f.moved_m for f in frames]) * np.sign(disagreement)
+        resolved = np.array([f.override_sigma_m < drive_step for f in frames])
+        total = float(towards.clip(min=0).sum())
+        return total > 0 and float(towards[resolved].clip(min=0).sum()) >= 0.5 * total

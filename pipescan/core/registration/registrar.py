@@ -94,6 +94,11 @@ class FrameRegistrar:
         self.slid: list[tuple[int, int]] = []
         """Runs of frames (first, last, counted from 0) that slid along the axis."""
         self._slips = SlipLog(params.slide_window_m)
+        self._last_sigma = float("inf")
+        """ICP's own error along the axis for this frame (infinite without information)."""
+        self._last_move = (0.0, float("inf"))
+        """This frame's move from the prior along the axis by ICP's share, and ICP's own error
+        where it overrode the odometer (else infinite): what the slide window needs."""
         self.odometer_frames = 0
         self.count = 0
 
@@ -181,6 +186,8 @@ class FrameRegistrar:
             step_bound = self._axial.predict(
                 step, map_extent_m=self._map_extent_m(pred[:3, 3]), odometer=has_odometer
             )
+            self._last_move = (0.0, float("inf"))
+            self._last_sigma = float("inf")
             T, quality = self._register(pts, pred, index, step_bound)
             if has_odometer:
                 assert odometer_m is not None
@@ -243,6 +250,7 @@ class FrameRegistrar:
             degenerate=weight < 0.5,
             along_axis_weight=weight,
             chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
+            axial_sigma_m=self._last_sigma,
         )
 
     def _icp(self, pts: np.ndarray, pred: np.ndarray) -> np.ndarray:
@@ -330,7 +338,10 @@ class FrameRegistrar:
             return T, 1.0
         information, weak, scale, axis_sensor = self._evidence(matches, T, pred)
         x = small_motion(np.linalg.inv(pred) @ T)
-        weight, _ = self._axial.update(information, step_bound, float(x[3:] @ axis_sensor))
+        correction = float(x[3:] @ axis_sensor)
+        weight, overrode = self._axial.update(information, step_bound, correction)
+        self._last_sigma = 1.0 / float(np.sqrt(information)) if information > 0 else float("inf")
+        self._last_move = (weight * correction, self._last_sigma if overrode else float("inf"))
         # Express the ICP correction relative to the prior, about the sensor, in balanced
         # coordinates; drop it along the weak roll directions and keep ICP's share ``weight``
         # of it along the axis.
@@ -351,7 +362,10 @@ class FrameRegistrar:
         w = quality.along_axis_weight
         along = float(T[:3, 3] @ self._axis_world)
         fault: Fault | None
-        fault, disagreement = self._slides.add(odometer_m, along, w, self._axial.last_icp_var)
+        moved, override_sigma = self._last_move
+        fault, disagreement = self._slides.add(
+            odometer_m, along, w, self._axial.last_icp_var, moved, override_sigma
+        )
         self._slips.add(
             odometer_m, along, disagreement if fault == "odometer_slip" else None, fault == "slide"
         )

@@ -106,9 +106,12 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     slips = tuple(s for c in chunks for s in c.odometer_slips_m)
     window = max(c.slip_window_m for c in chunks)
     steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0, prepend=T[:1, :3, 3]), axis=1)
-    allowance = unseen_slip_allowance(
-        steps, np.array([q.degenerate for q in quality], dtype=bool), slips, window
-    )
+    # Where ICP's own error along the axis is below a third of the crawler's step, the
+    # innovation gate passes a slip frame by frame, whatever ICP weighed elsewhere: a slip
+    # there could have been caught.
+    sigma = np.array([q.axial_sigma_m for q in quality])
+    held = np.array([q.degenerate for q in quality], dtype=bool) & ~(3.0 * sigma < steps)
+    allowance = unseen_slip_allowance(steps, held, slips, window)
     quality = [
         dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
         if a > 0
