@@ -302,7 +302,7 @@ def _print_summary(summary) -> None:
         prior = reg.get("along_axis_prior", "odometer").replace("_", " ")
         line = (
             f"  along the axis: {reg['degenerate_frames']} of {reg['frames']} frames rested on "
-            f"the {prior} (too little geometry along the pipe)"
+            f"the {prior} (the geometry along the pipe was weaker evidence)"
         )
         if "slides" in reg:
             line += f", {plural(reg['slides'], 'frame')} slid"
