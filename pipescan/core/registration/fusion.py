@@ -415,6 +415,19 @@ class SlipLog:
         return (*self._closed, *(() if self._open is None else (self._open[1],)))
 
 
+def slip_could_hide(
+    degenerate: np.ndarray, axial_sigma_m: np.ndarray, steps_m: np.ndarray
+) -> np.ndarray:
+    """Frames where an odometer slip leaves no trace, (F,) bool: held to the odometer
+    (``degenerate``, ICP's weight below one half) and with ICP's own error along the axis not
+    below ``1/_INNOVATION_SIGMAS`` of the frame's step. Where it is below, the innovation gate
+    (:meth:`AxialFilter.update`) passes a slip frame by frame, whatever ICP weighed elsewhere:
+    a slip there could have been caught."""
+    steps = np.asarray(steps_m, dtype=float)
+    sigma = np.asarray(axial_sigma_m, dtype=float)
+    return np.asarray(degenerate, dtype=bool) & ~(_INNOVATION_SIGMAS * sigma < steps)
+
+
 def unseen_slip_allowance(
     steps_m: np.ndarray, held: np.ndarray, slips_m: Sequence[float], window_m: float
 ) -> np.ndarray:

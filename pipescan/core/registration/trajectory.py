@@ -11,7 +11,7 @@ import numpy as np
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
 from pipescan.core.registration.engines import transform
-from pipescan.core.registration.fusion import unseen_slip_allowance
+from pipescan.core.registration.fusion import slip_could_hide, unseen_slip_allowance
 from pipescan.core.registration.params import AlongAxisPrior
 
 
@@ -106,11 +106,11 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     slips = tuple(s for c in chunks for s in c.odometer_slips_m)
     window = max(c.slip_window_m for c in chunks)
     steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0, prepend=T[:1, :3, 3]), axis=1)
-    # Where ICP's own error along the axis is below a third of the crawler's step, the
-    # innovation gate passes a slip frame by frame, whatever ICP weighed elsewhere: a slip
-    # there could have been caught.
-    sigma = np.array([q.axial_sigma_m for q in quality])
-    held = np.array([q.degenerate for q in quality], dtype=bool) & ~(3.0 * sigma < steps)
+    held = slip_could_hide(
+        np.array([q.degenerate for q in quality]),
+        np.array([q.axial_sigma_m for q in quality]),
+        steps,
+    )
     allowance = unseen_slip_allowance(steps, held, slips, window)
     quality = [
         dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
