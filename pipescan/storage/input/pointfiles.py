@@ -41,6 +41,9 @@ MAX_COORDINATE = 1e11
 reaches 6.4 × 10^9 mm): larger values are not a position, and would overflow the checks
 below."""
 
+_MEDIAN_SAMPLE_POINTS = 4096
+"""About this many points (a stride through the frame) decide a frame's median range."""
+
 MM_HINT = "the values look like millimetres; pipescan expects metres: divide by 1000"
 
 PointKind = Literal["frame", "cloud"]
@@ -273,7 +276,9 @@ def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:
             hint="check the file's units and scale",
         )
     if kind == "frame":
-        median_range = float(np.median(np.linalg.norm(points, axis=1)))
+        # A units check: the median of a strided sample decides it as well as all points do.
+        sample = points[:: max(1, n // _MEDIAN_SAMPLE_POINTS)]
+        median_range = float(np.sqrt(np.median(np.einsum("ij,ij->i", sample, sample))))
         if median_range > FRAME_MM_MEDIAN_RANGE_M:
             raise where.error(
                 f"the median distance of the points from the sensor is {median_range:.4g}, "

@@ -141,15 +141,6 @@ def text_from(path: Path, offset: int) -> io.TextIOWrapper:
     return io.TextIOWrapper(fh, encoding="utf-8")
 
 
-def fill_columns(out: np.ndarray, start: int, x, y, z) -> int:
-    """Copy three columns into ``out[start:]`` (shape (N, 3), float64); return the new end."""
-    n = len(x)
-    out[start : start + n, 0] = x
-    out[start : start + n, 1] = y
-    out[start : start + n, 2] = z
-    return start + n
-
-
 def write_with_open3d(path: Path, pts: np.ndarray, empty_header: str) -> None:
     """Write a PLY or PCD (binary) through Open3D; an empty cloud as ``empty_header`` alone
     (Open3D refuses to write one, and an empty file is still useful for tests)."""

@@ -15,7 +15,6 @@ import numpy as np
 from pipescan.storage.input.readers._common import (
     Where,
     file_size,
-    fill_columns,
     read_head,
     require_bytes,
 )
@@ -107,6 +106,16 @@ def _declared(reader, path: Path, where: Where) -> int:
     return declared
 
 
+def _scale_into(out: np.ndarray, chunk, scales: np.ndarray, offsets: np.ndarray) -> None:
+    """Write a chunk's coordinates in metres into ``out`` (len(chunk), 3): each raw integer
+    times the header's scale plus its offset, as laspy's ``chunk.x`` computes them (the same
+    two operations, so the same values to the bit), without its temporaries."""
+    for j, raw in enumerate((chunk.X, chunk.Y, chunk.Z)):
+        column = out[:, j]
+        np.multiply(raw, scales[j], out=column)
+        column += offsets[j]
+
+
 def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | None]:
     import laspy
 
@@ -118,6 +127,8 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
         with laspy.open(path, laz_backend=_laz_backend(), decompression_selection=xyz) as reader:
             declared = _declared(reader, path, where)
             compressed = reader.header.are_points_compressed
+            scales = np.asarray(reader.header.scales, dtype=np.float64)
+            offsets = np.asarray(reader.header.offsets, dtype=np.float64)
             # LAS was sized above, so its count can be trusted; a LAZ is collected chunk by
             # chunk and so never allocates more than it decoded.
             out = np.empty((declared, 3)) if keep and not compressed else None
@@ -126,15 +137,16 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
             for chunk in reader.chunk_iterator(CHUNK_POINTS):
                 if len(chunk) == 0:
                     break
-                # chunk.x/y/z are the scaled coordinates in metres; X/Y/Z the raw integers.
-                if out is not None:
-                    n = fill_columns(out, n, chunk.x, chunk.y, chunk.z)
-                else:
-                    if keep:
-                        parts.append(np.column_stack([chunk.x, chunk.y, chunk.z]))
+                if n + len(chunk) > declared:
                     n += len(chunk)
-                if n > declared:
                     break
+                if out is not None:
+                    _scale_into(out[n : n + len(chunk)], chunk, scales, offsets)
+                elif keep:
+                    part = np.empty((len(chunk), 3))
+                    _scale_into(part, chunk, scales, offsets)
+                    parts.append(part)
+                n += len(chunk)
     except _errors() as exc:
         raise where.corrupt(f"cannot read LAS/LAZ: {exc}") from exc
     if n != declared:
@@ -142,8 +154,8 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
     if not keep:
         return n, None
     if out is None:
-        out = np.concatenate(parts) if parts else np.empty((0, 3))
-    return n, out.astype(np.float64, copy=False)
+        out = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
+    return n, out
 
 
 def check(path: Path, where: Where) -> int:
