@@ -694,6 +694,8 @@ def registration_params(variant: str) -> RegistrationParams:
             changes[key] = None
         elif isinstance(default, str):
             changes[key] = value
+        elif default is None:
+            changes[key] = int(value) if value.isdigit() else float(value)
         else:
             changes[key] = type(default if default is not None else 0.0)(value)
     return dataclasses.replace(defaults, **changes)

@@ -322,6 +322,34 @@ def test_bad_parameters_are_clear_errors():
         register_frames(iter([(0, np.zeros((100, 2)), 0.0)]))
 
 
+def test_icp_runs_on_at_most_icp_max_points_and_the_evidence_on_every_point(
+    paper_scan, paper_frames, monkeypatch
+):
+    """ICP sees a stride of the frame's points; the correspondences read after it (the
+    fitness, the information along the axis) still count every point, and the frames stay
+    where the issue's targets want them."""
+    from pipescan.core.registration import registrar
+
+    sizes = []
+    source = registrar.small_gicp_source
+
+    def counted(m, points):
+        sizes.append(len(points))
+        return source(m, points)
+
+    monkeypatch.setattr(registrar, "small_gicp_source", counted)
+    frames = paper_frames[:60]
+    traj = register_frames(iter(frames), RegistrationParams(icp_max_points=500))
+    assert sizes and max(sizes) == 500
+    # A fitness over the 500 points alone could not exceed 500 / ~2,000 downsampled points.
+    assert min(q.fitness for q in traj.quality[1:]) > 0.9
+    e = trajectory_errors(traj.T_world_frame, paper_scan.T_world_sensor[:60])
+    assert e.across_rms_m < 0.002
+    assert e.tilt_rms_deg < 0.05
+    with pytest.raises(ValueError, match="icp_max_points"):
+        RegistrationParams(icp_max_points=20)
+
+
 def test_trajectory_errors_split_along_and_across():
     true = np.repeat(np.eye(4)[None], 3, axis=0)
     true[:, 0, 3] = [0.0, 1.0, 2.0]

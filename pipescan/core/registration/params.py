@@ -14,6 +14,9 @@ RegistrationEngine = Literal["small_gicp", "open3d", "open3d_tensor"]
 REGISTRATION_ENGINES: tuple[str, ...] = ("small_gicp", "open3d", "open3d_tensor")
 """Libraries that run the ICP step of ``point_to_plane`` and ``gicp``."""
 
+_MIN_ICP_POINTS = 100
+"""Fewer points than this are too few for ICP to place a frame in six degrees of freedom."""
+
 AlongAxisPrior = Literal["odometer", "constant_velocity", "mixed"]
 
 
@@ -66,6 +69,10 @@ class RegistrationParams:
     source_voxel_m : float, optional
         Voxel size of each frame, coarser than the map's: fewer points, faster ICP. ``None``
         uses ``voxel_m``.
+    icp_max_points : int, optional
+        At most this many of the frame's (downsampled) points enter ICP, a stride through
+        them; the evidence read after ICP (the correspondences that weigh it against the
+        odometer and give the fitness) still uses every point. ``None`` uses all.
     converged_rotation_rad, converged_translation_m : float
         small_gicp stops iterating once a step turns the frame by less than this and moves it
         by less than that. 0.5 mrad (1 mm at 2 m) and 0.5 mm: a fraction of the across-axis
@@ -99,6 +106,7 @@ class RegistrationParams:
     odometer_noise_m: float = 0.001
     slide_window_m: float = 0.5
     source_voxel_m: float | None = 0.045
+    icp_max_points: int | None = None
     converged_rotation_rad: float = 5e-4
     converged_translation_m: float = 5e-4
     num_threads: int = 1
@@ -130,6 +138,11 @@ class RegistrationParams:
             raise ValueError(
                 "RegistrationParams.source_voxel_m must be > 0 or None, "
                 f"got {self.source_voxel_m!r}."
+            )
+        if self.icp_max_points is not None and self.icp_max_points < _MIN_ICP_POINTS:
+            raise ValueError(
+                f"RegistrationParams.icp_max_points must be >= {_MIN_ICP_POINTS} or None, "
+                f"got {self.icp_max_points!r}."
             )
         for name in ("max_iterations", "map_keyframes", "num_threads"):
             if getattr(self, name) < 1:

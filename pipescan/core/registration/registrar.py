@@ -264,9 +264,12 @@ class FrameRegistrar:
         millimetre and two milliradians a step: 14 iterations where 4 converge.
         """
         p, m = self.params, self._map
+        source = pts
+        if p.icp_max_points is not None and len(pts) > p.icp_max_points:
+            source = pts[np.linspace(0, len(pts) - 1, p.icp_max_points).astype(np.int64)]
         if p.engine != "small_gicp" or p.method == "point_to_point":
-            return self._align(m, pts, pred)
-        cloud = small_gicp_source(m, pts)
+            return self._align(m, source, pred)
+        cloud = small_gicp_source(m, source)
         first = min(_ITERATIONS_BEFORE_EVIDENCE, p.max_iterations)
         T, converged = small_gicp_steps(m, cloud, pred, first)
         left = p.max_iterations - first
