@@ -187,17 +187,17 @@ def fit_circle(points_2d: np.ndarray) -> tuple[np.ndarray, float]:
     return centre, radius
 
 
-def _circle_through(p: np.ndarray) -> tuple[np.ndarray, float] | None:
-    """Circle through three points (3, 2), or None when they are (nearly) collinear."""
-    (ax, ay), (bx, by), (cx, cy) = p
+def _circles_through(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Circles through triples of points (T, 3, 2): centres (T, 2), radii (T,), and whether
+    each triple defines one (False where the points are nearly collinear)."""
+    ax, ay, bx, by, cx, cy = (p[:, i, j] for i in range(3) for j in range(2))
     d = 2.0 * (ax * (by - cy) + bx * (cy - ay) + cx * (ay - by))
-    if abs(d) < 1e-12:
-        return None
+    ok = np.abs(d) >= 1e-12
+    d = np.where(ok, d, 1.0)
     a2, b2, c2 = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
     ux = (a2 * (by - cy) + b2 * (cy - ay) + c2 * (ay - by)) / d
     uy = (a2 * (cx - bx) + b2 * (ax - cx) + c2 * (bx - ax)) / d
-    centre = np.array([ux, uy])
-    return centre, float(np.hypot(ax - ux, ay - uy))
+    return np.column_stack((ux, uy)), np.hypot(ax - ux, ay - uy), ok
 
 
 def fit_circle_robust(
@@ -239,15 +239,19 @@ def fit_circle_robust(
     rng = np.random.default_rng(seed)
     sample = pts if len(pts) <= 4000 else pts[rng.choice(len(pts), 4000, replace=False)]
     span = float(np.ptp(sample, axis=0).max())
-    best, best_score = None, -1
-    for _ in range(trials):
-        fit = _circle_through(sample[rng.choice(len(sample), 3, replace=False)])
-        if fit is None or fit[1] > span:
-            continue
-        score = int((np.abs(np.hypot(*(sample - fit[0]).T) - fit[1]) < inlier_m).sum())
-        if score > best_score:
-            best, best_score = fit, score
-    centre, radius = best if best is not None else fit_circle(pts)
+    # Every trial's triple is drawn first (the same draws, in the same order, as one at a
+    # time), then all circles are scored against the sample at once.
+    triples = np.stack([sample[rng.choice(len(sample), 3, replace=False)] for _ in range(trials)])
+    centres, radii, valid = _circles_through(triples)
+    valid &= radii <= span
+    if valid.any():
+        centres, radii = centres[valid], radii[valid]
+        dist = np.hypot(sample[:, 0] - centres[:, :1], sample[:, 1] - centres[:, 1:])
+        scores = (np.abs(dist - radii[:, None]) < inlier_m).sum(axis=1)
+        best = int(np.argmax(scores))  # the first of the best, as the loop kept it
+        centre, radius = centres[best], float(radii[best])
+    else:
+        centre, radius = fit_circle(pts)
     inliers = np.ones(len(pts), dtype=bool)
     for _ in range(iterations):
         resid = np.hypot(*(pts - centre).T) - radius
