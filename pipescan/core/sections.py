@@ -148,14 +148,18 @@ def iter_section_points(
         Points in the section before any thinning.
     """
     if section_rows is not None:
-        chain_mm = window.start_mm + section_rows[:, 0].astype(np.float64)
-        plane = section_rows[:, 1:]
+        # Millimetres from the window's start, as float32: every test and the section's index
+        # need nothing wider, and only the points kept are widened (below).
+        along = section_rows[:, 0]
+        width_mm = np.float32(window.end_mm - window.start_mm)
+        inside = np.flatnonzero((along >= 0) & (along < width_mm))
+        index = (along[inside].astype(np.float64) / window.step_mm).astype(np.int64)
     else:
         chain_m, plane = axis.section_coordinates(points_m, relative=relative)
         chain_mm = chain_m * 1000.0
-    inside = np.flatnonzero((chain_mm >= window.start_mm) & (chain_mm < window.end_mm))
+        inside = np.flatnonzero((chain_mm >= window.start_mm) & (chain_mm < window.end_mm))
+        index = ((chain_mm[inside] - window.start_mm) // window.step_mm).astype(np.int64)
     n_sections = len(window.section_starts_mm())
-    index = ((chain_mm[inside] - window.start_mm) // window.step_mm).astype(np.int64)
     counts = np.bincount(index, minlength=n_sections)
     if max_points_per_section is not None and counts.max(initial=0) > max_points_per_section:
         keep_share = np.minimum(1.0, max_points_per_section / np.maximum(counts, 1))
@@ -163,11 +167,20 @@ def iter_section_points(
         inside, index = inside[keep], index[keep]
     # A window holds far fewer than 32,768 sections: as int16, NumPy sorts by radix.
     order = np.argsort(index.astype(np.int16) if n_sections < 2**15 else index, kind="stable")
-    rows, index = inside[order], index[order]
+    index = index[order]
+    # The kept rows are gathered in their stored order first (one pass through memory), then
+    # sorted by section.
+    rows = inside[order] if section_rows is None else inside
     local = np.empty((len(rows), 3))
-    local[:, :2] = plane[rows]
+    if section_rows is None:
+        local[:, :2] = plane[rows]
+        along_kept = chain_mm[rows] - window.start_mm
+    else:
+        kept = section_rows[rows][order]
+        local[:, :2] = kept[:, 1:]
+        along_kept = (window.start_mm + kept[:, 0].astype(np.float64)) - window.start_mm
     # Distance along the axis from each section's start (for the sub-slice test).
-    local[:, 2] = (chain_mm[rows] - window.start_mm - index * window.step_mm) / 1000.0
+    local[:, 2] = (along_kept - index * window.step_mm) / 1000.0
     bounds = np.searchsorted(index, np.arange(n_sections + 1))
     for i, start_mm in enumerate(window.section_starts_mm()):
         yield start_mm, local[bounds[i] : bounds[i + 1]], int(counts[i])
