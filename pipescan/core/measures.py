@@ -15,7 +15,12 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from pipescan.core.contour import DEFAULT_CONTOUR_METHOD, check_contour_method, contour_method
-from pipescan.core.contour.base import remove_stray_points, remove_veil_points
+from pipescan.core.contour.base import (
+    angle_bins,
+    not_veil,
+    polar_coordinates,
+    remove_stray_points,
+)
 from pipescan.core.contour.grid import GridParams
 from pipescan.core.contour.polar import PolarProfile, polar_profile
 from pipescan.core.errors import GeometryError
@@ -198,18 +203,24 @@ def _deposit_height_ratio(
     return max(0.0, (r_wall - r_bottom) / nominal_diameter_m)
 
 
-def wall_spread_m(points_2d: np.ndarray, profile: PolarProfile, wall: np.ndarray) -> float | None:
+def wall_spread_m(
+    points_2d: np.ndarray,
+    profile: PolarProfile,
+    wall: np.ndarray,
+    *,
+    polar: tuple[np.ndarray, np.ndarray] | None = None,
+) -> float | None:
     """Robust spread (1.4826 × MAD, metres) of the points of the wall's bins around their
     bin's radius: the sensor's noise where the frames agree, more where they do not. None
-    without wall bins."""
+    without wall bins. ``polar``: the points' angles and radii, when the caller has them
+    (``contour.base.polar_coordinates``)."""
     bins = len(profile.radii_m)
-    rel = np.asarray(points_2d, dtype=np.float64)[:, :2]
-    ang = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * np.pi)
-    b = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    ang, rad = polar_coordinates(np.asarray(points_2d)[:, :2]) if polar is None else polar
+    b = angle_bins(ang, bins)
     on_wall = wall[b]
     if on_wall.sum() < 10:
         return None
-    residual = np.hypot(rel[on_wall, 0], rel[on_wall, 1]) - profile.radii_m[b[on_wall]]
+    residual = rad[on_wall] - profile.radii_m[b[on_wall]]
     return float(1.4826 * np.median(np.abs(residual - np.median(residual))))
 
 
@@ -305,9 +316,15 @@ def measure_section(
         min_bin_share = 0.25 if slices == 1 else 0.0
     else:
         bins, slices, min_slices, min_bin_share = choose_bins(len(pts)), 4, 3, 0.0
+    # Every filter below and the profile read the points' angles and radii: once per section.
+    point_angle, point_radius = polar_coordinates(pts)
+    if not sparse and len(pts):
         # Rays that graze an edge leave a veil of mixed returns behind it; over many frames it
         # fills the shadow, and would count as seen wall and as blockage.
-        pts = remove_veil_points(pts, bins=bins, relative_density=params.veil_relative_density)
+        kept = not_veil(
+            point_angle, point_radius, bins, relative_density=params.veil_relative_density
+        )
+        pts, point_angle, point_radius = pts[kept], point_angle[kept], point_radius[kept]
     profile: PolarProfile = polar_profile(
         pts,
         bins=bins,
@@ -315,6 +332,7 @@ def measure_section(
         min_slices=min_slices,
         section_length_m=length_m,
         min_bin_share=min_bin_share,
+        polar=(point_angle, point_radius),
     )
     if len(pts) < params.min_points:
         return SectionMeasures(
@@ -323,9 +341,7 @@ def measure_section(
     if not profile.seen.any():
         return SectionMeasures(status=SectionStatus.LOW_COVERAGE, coverage_ratio=0.0, **base)
 
-    point_angle = np.mod(np.arctan2(pts[:, 1], pts[:, 0]), 2.0 * np.pi)
-    point_bin = np.minimum((point_angle * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
-    point_radius = np.hypot(pts[:, 0], pts[:, 1])
+    point_bin = angle_bins(point_angle, bins)
     sigma_bins = residual_sigma_m(point_radius, point_bin, profile.radii_m)
     sigma_m = float(np.median(sigma_bins))
     if sparse and _LAYER_GAP_SIGMAS * sigma_m > profile.layer_gap_m:
@@ -339,6 +355,7 @@ def measure_section(
             section_length_m=length_m,
             min_bin_share=min_bin_share,
             layer_gap_m=_LAYER_GAP_SIGMAS * sigma_m,
+            polar=(point_angle, point_radius),
         )
         sigma_bins = residual_sigma_m(point_radius, point_bin, profile.radii_m)
         sigma_m = float(np.median(sigma_bins))
@@ -441,6 +458,7 @@ def measure_section(
             pts,
             profile,
             _wall_bins(profile.radii_m, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio),
+            polar=(point_angle, point_radius),
         )
     if status == SectionStatus.OK and spread is not None and spread > params.max_wall_spread_m:
         status = SectionStatus.SMEARED_WALL

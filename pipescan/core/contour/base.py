@@ -71,6 +71,26 @@ def remove_stray_points(
     return pts[others >= threshold]
 
 
+def polar_coordinates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Angle (rad, in [0, 2π), counter-clockwise from column 0) and distance from the origin
+    of each point of a projected section, (N,) each: the section's filters and its profile
+    share them (computed once per section, they are the same numbers in every one).
+
+    Examples
+    --------
+    >>> ang, rad = polar_coordinates(np.array([[0.0, 2.0], [-1.0, 0.0]]))
+    >>> np.round(np.degrees(ang)), rad
+    (array([ 90., 180.]), array([2., 1.]))
+    """
+    xy = np.asarray(points, dtype=np.float64)
+    return np.mod(np.arctan2(xy[:, 1], xy[:, 0]), 2.0 * np.pi), np.hypot(xy[:, 0], xy[:, 1])
+
+
+def angle_bins(angle_rad: np.ndarray, bins: int) -> np.ndarray:
+    """Index (N,) int of the equal angle bin each angle in [0, 2π) falls in."""
+    return np.minimum((angle_rad * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+
+
 def remove_veil_points(
     points: np.ndarray,
     *,
@@ -96,13 +116,23 @@ def remove_veil_points(
     pts = np.asarray(points, dtype=np.float64)
     if len(pts) == 0:
         return pts
-    ang = np.mod(np.arctan2(pts[:, 1], pts[:, 0]), 2.0 * np.pi)
-    b = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
-    k = (np.hypot(pts[:, 0], pts[:, 1]) / radial_cell_m).astype(np.int64) + 1
+    return pts[not_veil(*polar_coordinates(pts), bins, radial_cell_m, relative_density)]
+
+
+def not_veil(
+    angle_rad: np.ndarray,
+    radius_m: np.ndarray,
+    bins: int,
+    radial_cell_m: float = 0.005,
+    relative_density: float = 0.02,
+) -> np.ndarray:
+    """The mask (N,) bool of the points :func:`remove_veil_points` keeps, from their polar
+    coordinates (:func:`polar_coordinates`, at least one point)."""
+    k = (radius_m / radial_cell_m).astype(np.int64) + 1
     # Round the circle the angle bins wrap; the empty ring beyond the last keeps the radius
     # from wrapping.
-    others = _others_around(b, k, mode="wrap", rows=bins)
-    return pts[others >= relative_density * float(np.median(others))]
+    others = _others_around(angle_bins(angle_rad, bins), k, mode="wrap", rows=bins)
+    return others >= relative_density * float(np.median(others))
 
 
 def _others_around(i: np.ndarray, j: np.ndarray, *, mode: str, rows: int | None = None):

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from pipescan.core.contour.base import ContourResult
+from pipescan.core.contour.base import ContourResult, angle_bins, polar_coordinates
 from pipescan.core.errors import GeometryError
 
 if TYPE_CHECKING:
@@ -221,6 +221,7 @@ def polar_profile(
     min_layer_points: int = 3,
     min_cell_share: float = 0.25,
     min_bin_share: float = 0.0,
+    polar: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> PolarProfile:
     """Robust radius per angle bin, judged along the section's length.
 
@@ -266,17 +267,22 @@ def polar_profile(
         A bin holding fewer than this share of the median count of the section's bins with
         points is unseen (for sparse sections cut into few sub-slices, where the sub-slice
         vote cannot tell a few leaked points from a seen wall). 0: no such test.
+    polar : ((N,), (N,)) float, optional
+        The points' angles and radii about the origin (``base.polar_coordinates``), when the
+        caller has them already; only with the default ``centre``.
 
     Returns
     -------
     PolarProfile
     """
     pts = np.asarray(points, dtype=np.float64)
-    c = np.zeros(2) if centre is None else np.asarray(centre, dtype=np.float64)
-    rel = pts[:, :2] - c
-    ang = np.mod(np.arctan2(rel[:, 1], rel[:, 0]), 2.0 * np.pi)
-    rad = np.hypot(rel[:, 0], rel[:, 1])
-    b_idx = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    if polar is None:
+        c = np.zeros(2) if centre is None else np.asarray(centre, dtype=np.float64)
+        polar = polar_coordinates(pts[:, :2] - c)
+    elif centre is not None:
+        raise ValueError("polar_profile: pass polar coordinates only about the origin")
+    ang, rad = polar
+    b_idx = angle_bins(ang, bins)
     if pts.shape[1] >= 3 and len(pts):
         length = section_length_m or max(float(np.ptp(pts[:, 2])), 1e-9)
         s_idx = np.clip((pts[:, 2] * slices / length).astype(np.int64), 0, slices - 1)
