@@ -362,7 +362,8 @@ def _write_block(
     keep = (which >= 0) & (which < len(windows))
     written = 0
     into = []
-    for w_index in np.unique(which[keep]):
+    # The windows the block reaches, ascending (a count per window: no sort of the block).
+    for w_index in np.flatnonzero(np.bincount(which[keep], minlength=len(windows))):
         sel = np.flatnonzero(which == w_index)
         window = windows[int(w_index)]
         rows = np.empty((len(sel), 3), dtype=np.float32)
