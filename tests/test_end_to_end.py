@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from prefect.testing.utilities import prefect_test_harness
 from pypdf import PdfReader
+from threadpoolctl import threadpool_info, threadpool_limits
 from typer.testing import CliRunner
 
 from pipescan.cli import app
@@ -45,6 +46,13 @@ def archive(tmp_path_factory):
 _decoded: Counter[str] = Counter()
 """How many times the inspection decoded each frame file."""
 
+_blas_threads: dict[str, list[int]] = {}
+"""The BLAS libraries' thread counts in this process, before and after the inspection."""
+
+
+def _blas() -> list[int]:
+    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
 
 @pytest.fixture(scope="module")
 def inspected(prefect, archive, tmp_path_factory):
@@ -61,13 +69,24 @@ def inspected(prefect, archive, tmp_path_factory):
         pytest.MonkeyPatch.context() as mp,
     ):
         mp.setattr(archive_module, "read_points", counted)
+        # As a process that lets BLAS use two threads (a library default on two cores).
+        threadpool_limits(limits=2, user_api="blas")
+        _blas_threads["before"] = _blas()
         summary = inspect_archive(
             archive=str(archive),
             report_path=str(work / "report.pdf"),
             params=InspectionParams(chunk_frames=50),
             work_dir=str(work / "scratch"),
         )
+    _blas_threads["after"] = _blas()
     return summary, db_url, work
+
+
+def test_the_run_lets_blas_use_one_thread(inspected):
+    """pipescan keeps the cores busy itself: BLAS threads would only spin on them
+    (``PIPESCAN_BLAS_THREADS``, default 1; flows.runners.limit_blas_threads)."""
+    assert _blas_threads["before"] and set(_blas_threads["before"]) == {2}
+    assert set(_blas_threads["after"]) == {1}
 
 
 def test_each_frame_is_decoded_once(inspected, archive, tmp_path):

@@ -13,6 +13,7 @@ import time
 import pytest
 
 from pipescan.core.errors import PointFileError
+from pipescan.flows.runners import limit_blas_threads
 from pipescan.tasks import enginepool
 
 
@@ -121,3 +122,26 @@ def test_staging_starts_the_workers_for_frames_and_not_for_a_cloud(tmp_path, mon
         assert started == expected  # started for the frames; the cloud starts nothing more
     stage_archive.fn(str(tmp_path / "frames"), create_run_dir(tmp_path / "work"))
     assert started == [2]  # and only when asked
+
+
+def _blas_threads() -> list[int]:
+    from threadpoolctl import threadpool_info
+
+    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+
+
+def test_workers_started_after_the_blas_limit_keep_to_it(monkeypatch):
+    """A run limits BLAS in its own process and in the engine workers it starts after."""
+    from threadpoolctl import threadpool_limits
+
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")  # a user's environment; restored after
+    enginepool.shutdown()
+    try:
+        with threadpool_limits(limits=2, user_api="blas"):
+            assert set(enginepool.run(1, _blas_threads)) == {2}  # the limit is not inherited
+            enginepool.shutdown()
+            limit_blas_threads(1)
+            assert set(_blas_threads()) == {1}
+            assert set(enginepool.run(1, _blas_threads)) == {1}
+    finally:
+        enginepool.shutdown()
