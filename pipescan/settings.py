@@ -62,12 +62,12 @@ class Settings(BaseSettings):
         description="on threads, register chunks in lean worker processes, one per worker "
         "(docs/throughput.md); false: in the flow's own process",
     )
-    blas_threads: int = Field(
+    library_threads: int = Field(
         1,
         ge=1,
-        description="threads NumPy's and SciPy's BLAS may use in each process of a run; "
-        "pipescan runs its own work in parallel, and more BLAS threads only spin on the same "
-        "cores (docs/throughput.md)",
+        description="threads the native libraries' own pools (BLAS, OpenMP) may use in each "
+        "process of a run; pipescan runs its own work in parallel, and more only spin on the "
+        "same cores (docs/throughput.md)",
     )
     threshold_table: str = "vsa-2023"
     pipe_class: Literal["auto", "rigid", "flexible"] = Field(

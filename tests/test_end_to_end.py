@@ -46,12 +46,13 @@ def archive(tmp_path_factory):
 _decoded: Counter[str] = Counter()
 """How many times the inspection decoded each frame file."""
 
-_blas_threads: dict[str, list[int]] = {}
-"""The BLAS libraries' thread counts in this process, before and after the inspection."""
+_library_threads: dict[str, set[int]] = {}
+"""The native libraries' thread counts (BLAS, OpenMP) in this process, before and after the
+inspection."""
 
 
-def _blas() -> list[int]:
-    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+def _threads() -> set[int]:
+    return {pool["num_threads"] for pool in threadpool_info()}
 
 
 @pytest.fixture(scope="module")
@@ -69,24 +70,24 @@ def inspected(prefect, archive, tmp_path_factory):
         pytest.MonkeyPatch.context() as mp,
     ):
         mp.setattr(archive_module, "read_points", counted)
-        # As a process that lets BLAS use two threads (a library default on two cores).
-        threadpool_limits(limits=2, user_api="blas")
-        _blas_threads["before"] = _blas()
+        # As a process whose libraries use two threads (their default on two cores).
+        threadpool_limits(limits=2)
+        _library_threads["before"] = _threads()
         summary = inspect_archive(
             archive=str(archive),
             report_path=str(work / "report.pdf"),
             params=InspectionParams(chunk_frames=50),
             work_dir=str(work / "scratch"),
         )
-    _blas_threads["after"] = _blas()
+    _library_threads["after"] = _threads()
     return summary, db_url, work
 
 
-def test_the_run_lets_blas_use_one_thread(inspected):
-    """pipescan keeps the cores busy itself: BLAS threads would only spin on them
-    (``PIPESCAN_BLAS_THREADS``, default 1; flows.runners.limit_blas_threads)."""
-    assert _blas_threads["before"] and set(_blas_threads["before"]) == {2}
-    assert set(_blas_threads["after"]) == {1}
+def test_the_run_lets_the_libraries_use_one_thread(inspected):
+    """pipescan keeps the cores busy itself: the libraries' own threads would only spin on
+    them (``PIPESCAN_LIBRARY_THREADS``, default 1; flows.runners.limit_library_threads)."""
+    assert _library_threads["before"] == {2}
+    assert _library_threads["after"] == {1}
 
 
 def test_each_frame_is_decoded_once(inspected, archive, tmp_path):

@@ -13,7 +13,7 @@ import time
 import pytest
 
 from pipescan.core.errors import PointFileError
-from pipescan.flows.runners import limit_blas_threads
+from pipescan.flows.runners import limit_library_threads
 from pipescan.tasks import enginepool
 
 
@@ -124,24 +124,32 @@ def test_staging_starts_the_workers_for_frames_and_not_for_a_cloud(tmp_path, mon
     assert started == [2]  # and only when asked
 
 
-def _blas_threads() -> list[int]:
+def _library_threads() -> dict[str, set[int]]:
+    import open3d  # noqa: F401  (OpenMP is loaded with the engines)
+    import small_gicp  # noqa: F401
     from threadpoolctl import threadpool_info
 
-    return [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
+    threads: dict[str, set[int]] = {}
+    for pool in threadpool_info():
+        threads.setdefault(pool["user_api"], set()).add(pool["num_threads"])
+    return threads
 
 
-def test_workers_started_after_the_blas_limit_keep_to_it(monkeypatch):
-    """A run limits BLAS in its own process and in the engine workers it starts after."""
+def test_workers_started_after_the_library_limit_keep_to_it(monkeypatch):
+    """A run limits BLAS and OpenMP in its own process and in the engine workers it starts
+    after."""
     from threadpoolctl import threadpool_limits
 
-    monkeypatch.setenv("OPENBLAS_NUM_THREADS", "2")  # a user's environment; restored after
+    for name in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS"):
+        monkeypatch.setenv(name, "2")  # a user's environment; restored after
     enginepool.shutdown()
     try:
-        with threadpool_limits(limits=2, user_api="blas"):
-            assert set(enginepool.run(1, _blas_threads)) == {2}  # the limit is not inherited
+        with threadpool_limits(limits=2):
+            before = enginepool.run(1, _library_threads)
+            assert before == {"blas": {2}, "openmp": {2}}  # the limit is not inherited
             enginepool.shutdown()
-            limit_blas_threads(1)
-            assert set(_blas_threads()) == {1}
-            assert set(enginepool.run(1, _blas_threads)) == {1}
+            limit_library_threads(1)
+            assert _library_threads() == {"blas": {1}, "openmp": {1}}
+            assert enginepool.run(1, _library_threads) == {"blas": {1}, "openmp": {1}}
     finally:
         enginepool.shutdown()

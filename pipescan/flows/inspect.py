@@ -31,7 +31,7 @@ from pipescan.core.summary import peak_blockage
 from pipescan.core.water import explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
-from pipescan.flows.runners import engine_processes, engine_threads, limit_blas_threads
+from pipescan.flows.runners import engine_processes, engine_threads, limit_library_threads
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
@@ -137,7 +137,7 @@ def inspect_archive(
     """
     started = time.perf_counter()
     settings = get_settings()
-    limit_blas_threads(settings.blas_threads)
+    limit_library_threads(settings.library_threads)
     database_url = run_database_url(settings)
     params = params or InspectionParams()
     run_dir = start_run_dir(Path(work_dir or settings.work_dir))

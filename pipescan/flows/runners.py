@@ -90,19 +90,22 @@ def engine_threads() -> int:
     return max(1, _thread_workers())
 
 
-def limit_blas_threads(threads: int) -> None:
-    """Let NumPy's and SciPy's BLAS use at most ``threads`` threads, in this process and in
-    the processes it starts from now on (the engine pool's, a process pool's).
+def limit_library_threads(threads: int) -> None:
+    """Let the native libraries' own thread pools (NumPy's and SciPy's BLAS, OpenMP in Open3D
+    and small_gicp) use at most ``threads`` threads, in this process and in the processes it
+    starts from now on (the engine pool's, a process pool's). A thread count a call gives
+    explicitly (small_gicp's ``num_threads``, :func:`engine_threads`) still applies.
 
-    pipescan keeps the cores busy itself (task workers, the engine pool). OpenBLAS would
-    otherwise split every large matrix product over all cores and keep its threads spinning
-    after it, on cores that other work needs: placing a 262,144-point block on a straight
-    axis took 23 ms of CPU with its two threads and 7.4 ms with one (11.9 and 7.5 ms of wall
-    time), and the 30 m LAZ scan's placing and measuring took a third less CPU
-    (docs/throughput.md). The products are the same to the bit.
+    pipescan keeps the cores busy itself (task workers, the engine pool). The libraries would
+    otherwise split large products and loops over every core and keep their threads spinning
+    after them, on cores that other work needs. Placing a 262,144-point block on a straight
+    axis took 23 ms of CPU with OpenBLAS's two threads and 7.4 ms with one (11.9 and 7.5 ms of
+    wall time); registering a frame in memory 24.6-25.6 ms with OpenMP's two and 21.7-22.9 ms
+    with one. The results are the same to the bit (docs/throughput.md, *Library threads*).
     """
     from threadpoolctl import threadpool_limits
 
-    # Read by OpenBLAS when a new process loads it; the limit below is this process's.
-    os.environ["OPENBLAS_NUM_THREADS"] = str(threads)
-    threadpool_limits(limits=threads, user_api="blas")
+    # Read by OpenBLAS and OpenMP when a new process loads them; the limit below is this
+    # process's.
+    os.environ["OPENBLAS_NUM_THREADS"] = os.environ["OMP_NUM_THREADS"] = str(threads)
+    threadpool_limits(limits=threads)
