@@ -99,9 +99,9 @@ def limit_library_threads(threads: int) -> None:
     pipescan keeps the cores busy itself (task workers, the engine pool). The libraries would
     otherwise split large products and loops over every core and keep their threads spinning
     after them, on cores that other work needs. Placing a 262,144-point block on a straight
-    axis took 23 ms of CPU with OpenBLAS's two threads and 7.4 ms with one (11.9 and 7.5 ms of
-    wall time); registering a frame in memory 24.6-25.6 ms with OpenMP's two and 21.7-22.9 ms
-    with one. The results are the same to the bit (docs/throughput.md, *Library threads*).
+    axis took 23.5 ms of CPU with OpenBLAS's two threads and 7.4 ms with one (11.9 and 7.5 ms
+    of wall time); registering a frame in memory 22.5-25.8 ms with OpenMP's two and 21.6-24.3
+    ms with one. The results are the same to the bit (docs/throughput.md, *Library threads*).
     """
     from threadpoolctl import threadpool_limits
 
