@@ -151,9 +151,12 @@ def iter_section_points(
         # Millimetres from the window's start, as float32: every test and the section's index
         # need nothing wider, and only the points kept are widened (below).
         along = section_rows[:, 0]
-        width_mm = np.float32(window.end_mm - window.start_mm)
-        inside = np.flatnonzero((along >= 0) & (along < width_mm))
-        index = (along[inside].astype(np.float64) / window.step_mm).astype(np.int64)
+        in_window = (along >= 0) & (along < np.float32(window.end_mm - window.start_mm))
+        # The run's bucket rows all lie in their window: then no row list is made until the
+        # thinning has picked its rows.
+        inside = None if in_window.all() else np.flatnonzero(in_window)
+        along_in = along if inside is None else along[inside]
+        index = np.divide(along_in, window.step_mm, dtype=np.float64).astype(np.int64)
     else:
         chain_m, plane = axis.section_coordinates(points_m, relative=relative)
         chain_mm = chain_m * 1000.0
@@ -164,7 +167,9 @@ def iter_section_points(
     if max_points_per_section is not None and counts.max(initial=0) > max_points_per_section:
         keep_share = np.minimum(1.0, max_points_per_section / np.maximum(counts, 1))
         keep = np.random.default_rng(window.start_mm).random(len(index)) < keep_share[index]
-        inside, index = inside[keep], index[keep]
+        inside, index = (np.flatnonzero(keep) if inside is None else inside[keep]), index[keep]
+    elif inside is None:
+        inside = np.arange(len(index))
     # A window holds far fewer than 32,768 sections: as int16, NumPy sorts by radix.
     order = np.argsort(index.astype(np.int16) if n_sections < 2**15 else index, kind="stable")
     index = index[order]

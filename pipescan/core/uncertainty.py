@@ -120,7 +120,8 @@ def residual_sigma_m(
     low = starts + np.maximum(counts - 1, 0) // 2
     high = starts + counts // 2
     seen = counts > 0
-    medians = np.full(bins, float(np.median(res)))
+    # ``res`` is sorted: the section's median is read at its middle.
+    medians = np.full(bins, 0.5 * (float(res[(len(res) - 1) // 2]) + float(res[len(res) // 2])))
     medians[seen] = (values[low[seen]] + values[high[seen]]) / 2.0
     return scale * medians
 
