@@ -42,6 +42,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
+from pipescan.core.contour.base import angle_bins, polar_coordinates
 from pipescan.core.model import SectionMeasures
 from pipescan.core.summary import touches
 from pipescan.core.uncertainty import unseen_runs
@@ -324,9 +325,8 @@ def radial_profile(contour_m: np.ndarray, bins: int = 360, *, step_m: float = 0.
     offset = np.arange(len(owner)) - np.repeat(np.cumsum(pieces) - pieces, pieces)
     frac = offset / pieces[owner]
     pts = start[owner] + frac[:, None] * (end - start)[owner]
-    angle = np.mod(np.arctan2(pts[:, 1], pts[:, 0]), _TWO_PI)
-    radius = np.hypot(pts[:, 0], pts[:, 1])
-    index = np.minimum((angle * bins / _TWO_PI).astype(np.int64), bins - 1)
+    angle, radius = polar_coordinates(pts)
+    index = angle_bins(angle, bins)
     out = np.full(bins, np.inf)
     np.minimum.at(out, index, radius)
     seen = np.isfinite(out)

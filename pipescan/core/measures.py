@@ -132,7 +132,9 @@ def choose_sparse_bins(point_count: int) -> int:
     return _SPARSE_BIN_CHOICES[-1]
 
 
-def _choose_slices(points: np.ndarray, bins: int, length_m: float) -> tuple[int, int]:
+def _choose_slices(
+    points: np.ndarray, angle_rad: np.ndarray, bins: int, length_m: float
+) -> tuple[int, int]:
     """Sub-slices along the section, and how many must see a bin, for a sparse section.
 
     A dense scan sees every bin along the whole section, so three of four sub-slices are
@@ -144,8 +146,7 @@ def _choose_slices(points: np.ndarray, bins: int, length_m: float) -> tuple[int,
     """
     if points.shape[1] < 3 or len(points) == 0:
         return 1, 1
-    ang = np.mod(np.arctan2(points[:, 1], points[:, 0]), 2.0 * np.pi)
-    b_idx = np.minimum((ang * bins / (2.0 * np.pi)).astype(np.int64), bins - 1)
+    b_idx = angle_bins(angle_rad, bins)
     for slices, need in _SLICE_CHOICES:
         s_idx = np.clip((points[:, 2] * slices / length_m).astype(np.int64), 0, slices - 1)
         occupied = np.zeros((bins, slices), dtype=bool)
@@ -310,14 +311,14 @@ def measure_section(
         min_neighbours=params.stray_min_neighbours,
         relative_density=params.stray_relative_density,
     )
+    # Every step below reads the points' angles and radii: they are computed once per section.
+    point_angle, point_radius = polar_coordinates(pts)
     if sparse:
         bins = choose_sparse_bins(len(pts))
-        slices, min_slices = _choose_slices(pts, bins, length_m)
+        slices, min_slices = _choose_slices(pts, point_angle, bins, length_m)
         min_bin_share = 0.25 if slices == 1 else 0.0
     else:
         bins, slices, min_slices, min_bin_share = choose_bins(len(pts)), 4, 3, 0.0
-    # Every filter below and the profile read the points' angles and radii: once per section.
-    point_angle, point_radius = polar_coordinates(pts)
     if not sparse and len(pts):
         # Rays that graze an edge leave a veil of mixed returns behind it; over many frames it
         # fills the shadow, and would count as seen wall and as blockage.

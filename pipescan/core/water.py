@@ -15,6 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipescan.core.contour.base import polar_coordinates
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.uncertainty import unseen_runs
 
@@ -121,9 +122,8 @@ def detect_water(
         return None
     left, right = (run[0] - 1) % bins, (run[-1] + 1) % bins
     xy = np.asarray(points, dtype=np.float64)[:, :2]
-    ang = np.mod(np.arctan2(xy[:, 1], xy[:, 0]), 2.0 * math.pi)
+    ang, rad = polar_coordinates(xy)
     b_idx = np.minimum((ang / dtheta).astype(np.int64), bins - 1)
-    rad = np.hypot(xy[:, 0], xy[:, 1])
     at_wall = np.abs(rad - wall_radius_m) <= max(3.0 * sigma_m, 0.01)
     edges = []
     for b, away in ((left, -1), (right, 1)):
@@ -143,9 +143,8 @@ def detect_water(
     # Its returns are sparse, so they are looked for among all the section's points (stray
     # removal drops most of them), near the level where the wall stops.
     raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
-    raw_ang = np.mod(np.arctan2(raw[:, 1], raw[:, 0]), 2.0 * math.pi)
+    raw_ang, raw_rad = polar_coordinates(raw)
     raw_bin = np.minimum((raw_ang / dtheta).astype(np.int64), bins - 1)
-    raw_rad = np.hypot(raw[:, 0], raw[:, 1])
     edge_level = 0.5 * (edges[0] + edges[1])
     on_chord = (
         np.isin(raw_bin, run)

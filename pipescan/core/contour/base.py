@@ -161,7 +161,6 @@ def polygon_area(polygon: np.ndarray) -> float:
 
 def radii_of_polygon(polygon: np.ndarray, angles_rad: np.ndarray) -> np.ndarray:
     """Radius of a star-shaped polygon around the origin at given angles (interpolated)."""
-    ang = np.mod(np.arctan2(polygon[:, 1], polygon[:, 0]), 2.0 * np.pi)
-    rad = np.hypot(polygon[:, 0], polygon[:, 1])
+    ang, rad = polar_coordinates(polygon)
     order = np.argsort(ang)
     return np.interp(angles_rad, ang[order], rad[order], period=2.0 * np.pi)
