@@ -206,16 +206,25 @@ class FrameStore:
                 pts = np.fromfile(fh, dtype=np.float32, count=3 * rows).reshape(rows, 3)
                 yield int(i), pts
 
-    # A registered cloud is kept whole, as float64 rows (it may be georeferenced: float32
+    # A registered cloud is kept as float64 rows (it may be georeferenced: float32
     # would lose millimetres there), and placed in slices of rows.
     def _cloud_path(self) -> Path:
         return self.root / "cloud.f64"
 
-    def save_cloud(self, points_m: np.ndarray) -> None:
-        """Keep a registered cloud, (N, 3) metres, for :meth:`read_cloud_rows`."""
+    def save_cloud(self, points_m: np.ndarray | Iterable[np.ndarray]) -> None:
+        """Keep a registered cloud, (N, 3) metres (or its chunks, in order), for
+        :meth:`read_cloud_rows`. The file gets its name once every chunk is written: an error
+        from the chunks' source leaves no cloud behind."""
         self.root.mkdir(parents=True, exist_ok=True)
         tmp = self.root / ".cloud.f64.tmp"
-        np.ascontiguousarray(points_m, dtype=np.float64).tofile(tmp)
+        chunks = [points_m] if isinstance(points_m, np.ndarray) else points_m
+        try:
+            with tmp.open("wb") as fh:
+                for chunk in chunks:
+                    np.ascontiguousarray(chunk, dtype=np.float64).reshape(-1, 3).tofile(fh)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
         tmp.replace(self._cloud_path())
 
     def cloud_rows(self) -> int:

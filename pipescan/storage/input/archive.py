@@ -56,9 +56,12 @@ from pipescan.storage.input.limits import (
 )
 from pipescan.storage.input.metadata import INSPECTION_FILE, read_inspection_toml
 from pipescan.storage.input.pointfiles import (
+    CLOUD_CHUNK_POINTS,
     POINT_SUFFIXES,
+    PointChunk,
     check_points,
     is_point_file,
+    iter_point_chunks,
     point_suffix,
     read_point_time,
     read_points,
@@ -316,6 +319,41 @@ class ScanArchive:
             return None
         return time_s
 
+    def iter_cloud(
+        self, *, with_time: bool = False, chunk_points: int = CLOUD_CHUNK_POINTS
+    ) -> Iterator[PointChunk]:
+        """The registered cloud a chunk at a time (see
+        :func:`~pipescan.storage.input.pointfiles.iter_point_chunks`): LAS and LAZ stream, so
+        a cloud of any size is read with one chunk in memory. The same points, in the same
+        order, as :meth:`read_cloud`, with each point's time when ``with_time`` and the file
+        holds one. The cloud's checks raise at the chunk that fails them; the millimetre
+        check after the last chunk.
+
+        Raises
+        ------
+        PointFileError
+            As :meth:`read_cloud` and :meth:`read_cloud_time`.
+        ArchiveError
+            The archive holds frames, not a cloud, or is closed.
+        """
+        self._check_open()
+        if self.cloud_member is None:
+            raise ArchiveError(
+                "the archive holds frames, not a registered cloud",
+                archive=self.name,
+                file=f"{FRAMES_DIR}/",
+                hint="use read_frame() or iter_frames()",
+            )
+        yield from iter_point_chunks(
+            self.root / self.cloud_member,
+            archive=self.name,
+            member=self.cloud_member,
+            kind="cloud",
+            limits=self.limits,
+            chunk_points=chunk_points,
+            with_time=with_time,
+        )
+
     def close(self) -> None:
         """Remove the temporary extraction, if any. Safe to call more than once."""
         self._closed = True
@@ -441,7 +479,7 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     if arc.has_frames:
         total = sum(len(points) for _, points in arc.iter_frames())
     else:
-        total = len(arc.read_cloud())
+        total = sum(len(chunk.points) for chunk in arc.iter_cloud())
     return ArchiveSummary(frame_count=arc.frame_count, point_count=total)
 
 

@@ -14,6 +14,8 @@ allocates anything, so a lying header costs nothing (docs/security.md).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
@@ -52,8 +54,11 @@ _AXES = ("x", "y", "z")
 __all__ = [
     "LAS_SCALE_M",
     "POINT_SUFFIXES",
+    "PointChunk",
+    "StridedSample",
     "check_point_file",
     "is_point_file",
+    "iter_point_chunks",
     "point_suffix",
     "read_point_time",
     "read_points",
@@ -124,6 +129,153 @@ def read_points(
     points = reader.read(path, where)
     _check_points(points, kind, where)
     return points
+
+
+CLOUD_CHUNK_POINTS = 1_000_000
+"""Points of a registered cloud read at a time (24 MB as float64)."""
+
+_CHECK_SAMPLE_POINTS = 200_000
+"""At most this many points (a stride through the cloud) decide the millimetre check of a
+cloud read in chunks, as :func:`_second_principal_extent` strides a whole one."""
+
+
+@dataclass(frozen=True)
+class PointChunk:
+    """Consecutive points of a file: ``points`` (K, 3) float64 metres, ``time_s`` (K,) seconds
+    or None, and ``first``, the row of its first point in the file."""
+
+    points: np.ndarray
+    time_s: np.ndarray | None
+    first: int
+
+
+class StridedSample:
+    """Every ``stride``-th row of a stream of chunks (rows 0, s, 2s, ...), with ``stride``
+    doubled whenever more than ``limit`` rows are held: a uniform sample of at most ``limit``
+    rows of a stream of unknown length, in one pass.
+
+    Examples
+    --------
+    >>> sample = StridedSample(4)
+    >>> for first in range(0, 10, 3):
+    ...     sample.add(first, np.arange(first, min(first + 3, 10)))
+    >>> sample.stride, sample.columns()[0].tolist()
+    (4, [0, 4, 8])
+    """
+
+    def __init__(self, limit: int) -> None:
+        if limit < 1:
+            raise ValueError(f"limit must be >= 1, got {limit}")
+        self.limit = limit
+        self.stride = 1
+        self._next = 0
+        self._parts: list[tuple[np.ndarray | None, ...]] = []
+        self._rows = 0
+
+    def add(self, first: int, *columns: np.ndarray | None) -> None:
+        """Offer rows ``first..first + len - 1`` (consecutive with the rows offered before);
+        a column may be None (kept as None)."""
+        n = next(len(c) for c in columns if c is not None)
+        start = self._next - first
+        if start >= n:
+            return
+        take = slice(start, n, self.stride)
+        part = tuple(None if c is None else np.array(c[take]) for c in columns)
+        count = len(range(start, n, self.stride))
+        self._parts.append(part)
+        self._rows += count
+        self._next += count * self.stride
+        while self._rows > self.limit:
+            merged = self.columns()
+            self._parts = [tuple(None if c is None else c[::2] for c in merged)]
+            self._rows = (self._rows + 1) // 2
+            self.stride *= 2
+            self._next = -(-self._next // self.stride) * self.stride
+
+    def columns(self) -> tuple[np.ndarray | None, ...]:
+        """The sampled rows of each column, in order (a column offered as None stays None)."""
+        if not self._parts:
+            return ()
+        return tuple(
+            None if parts[0] is None else np.concatenate(parts)
+            for parts in zip(*self._parts, strict=True)
+        )
+
+
+def iter_point_chunks(
+    path: Path,
+    *,
+    archive: str | None = None,
+    member: str | None = None,
+    kind: PointKind = "cloud",
+    limits: InputLimits = DEFAULT_LIMITS,
+    chunk_points: int = CLOUD_CHUNK_POINTS,
+    with_time: bool = False,
+) -> Iterator[PointChunk]:
+    """Read a point file a chunk at a time, with the checks of :func:`read_points`.
+
+    LAS and LAZ stream: one chunk of at most ``chunk_points`` is in memory at a time, so a
+    registered cloud of any size can be read. Other formats are read whole and handed out in
+    chunks. Each chunk is checked as it comes (finite, within :data:`MAX_COORDINATE`; with
+    ``with_time``, a finite time); the millimetre check runs on a strided sample once the
+    last chunk is read, and raises after it, so a caller must treat what it did with the
+    chunks as unfinished until the iteration ends.
+
+    Parameters
+    ----------
+    path, archive, member, kind, limits
+        As :func:`read_points`.
+    chunk_points : int
+        Largest chunk, in points.
+    with_time : bool
+        Also read each point's capture time (as :func:`read_point_time`); ``time_s`` is None
+        when the file holds none.
+
+    Raises
+    ------
+    PointFileError
+        As :func:`read_points` and :func:`read_point_time`; the error names the field.
+    """
+    path = Path(path)
+    where, reader = _reader(path, archive, member, limits)
+    check = StridedSample(_CHECK_SAMPLE_POINTS)
+    first = 0
+    for points, time_s in _raw_chunks(path, where, reader, chunk_points, with_time):
+        _check_finite(points, where, first)
+        if time_s is not None and not np.isfinite(time_s).all():
+            bad = int((~np.isfinite(time_s)).sum())
+            last = first + len(time_s) - 1
+            raise where.error(
+                f"{bad} of the points in rows {first:,}-{last:,} have a NaN or infinite time",
+                field="time",
+                hint="export the cloud again, or without its time field",
+            )
+        check.add(first, points)
+        yield PointChunk(points, time_s, first)
+        first += len(points)
+    if first == 0:
+        raise where.error(
+            f"the file holds no points (empty {kind})",
+            hint="re-export the file, or remove it and its [[frames]] entry from the archive",
+        )
+    (sample,) = check.columns()
+    assert sample is not None
+    _check_units(sample, kind, where)
+
+
+def _raw_chunks(path: Path, where: Where, reader, chunk_points: int, with_time: bool):
+    if reader.iter_chunks is not None:
+        yield from reader.iter_chunks(path, where, chunk_points=chunk_points, with_time=with_time)
+        return
+    points = reader.read(path, where)
+    time_s = reader.read_time(path, where) if with_time and reader.read_time else None
+    if time_s is not None and len(time_s) != len(points):
+        raise where.corrupt(
+            f"the file holds {len(time_s):,} times for {len(points):,} points", field="time"
+        )
+    step = max(1, chunk_points)
+    for a in range(0, len(points), step):
+        yield points[a : a + step], None if time_s is None else time_s[a : a + step]
 
 
 def check_point_file(
@@ -260,12 +412,24 @@ def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:
             f"the file holds no points (empty {kind})",
             hint="re-export the file, or remove it and its [[frames]] entry from the archive",
         )
+    _check_finite(points, where)
+    _check_units(points, kind, where)
+
+
+def _check_finite(points: np.ndarray, where: Where, first: int | None = None) -> None:
+    """No NaN or infinite coordinate, none beyond :data:`MAX_COORDINATE`; ``first``, the row
+    of a chunk's first point, is named in the error."""
+    if len(points) == 0:
+        return
+    n = len(points)
     bad = ~np.isfinite(points)
     if bad.any():
         rows = int(bad.any(axis=1).sum())
         per_axis = ", ".join(f"{a}: {int(bad[:, j].sum())}" for j, a in enumerate(_AXES))
+        rows_of = f"rows {first:,}-{first + n - 1:,}" if first is not None else ""
+        of = f"of the points in {rows_of}" if rows_of else f"of {n} points"
         raise where.error(
-            f"{rows} of {n} points have NaN or infinite coordinates ({per_axis})",
+            f"{rows} {of} have NaN or infinite coordinates ({per_axis})",
             field=",".join(a for j, a in enumerate(_AXES) if bad[:, j].any()),
             hint="drop the non-finite points (keep rows where every coordinate is finite)",
         )
@@ -275,6 +439,12 @@ def _check_points(points: np.ndarray, kind: PointKind, where: Where) -> None:
             f"a coordinate is {largest:.3g}, beyond any position ({MAX_COORDINATE:g})",
             hint="check the file's units and scale",
         )
+
+
+def _check_units(points: np.ndarray, kind: PointKind, where: Where) -> None:
+    """Refuse millimetres: a frame by its median range, a cloud by its second principal
+    extent (both on a strided sample)."""
+    n = len(points)
     if kind == "frame":
         # A units check: the median of a strided sample decides it as well as all points do.
         sample = points[:: max(1, n // _MEDIAN_SAMPLE_POINTS)]

@@ -3,8 +3,10 @@
 Each format module provides ``check(path, where)`` (parse the header and check every
 declared count against the bytes present, allocating nothing the file does not back; returns
 the point count), ``read(path, where)`` (the points, ``(N, 3)`` float64 in metres) and,
-optionally, ``write(path, points, time_s=None)`` and ``read_time(path, where)`` (each point's
-capture time, for where a registered cloud starts: docs/archive.md).
+optionally, ``write(path, points, time_s=None)``, ``read_time(path, where)`` (each point's
+capture time, for where a registered cloud starts: docs/archive.md) and
+``iter_chunks(path, where, chunk_points=..., with_time=...)`` (the points, and their time, a
+chunk at a time: a registered cloud of any size is then read with one chunk in memory).
 :func:`pipescan.storage.input.pointfiles.read_points`
 picks the reader by suffix and adds the checks common to every format (no points, NaN,
 millimetres); an unknown suffix is refused, never read as text.
@@ -15,7 +17,7 @@ Adding a format (E57, a ROS bag...) is one new module here and one line in
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -41,6 +43,9 @@ class PointFormat:
     read_time: Callable[[Path, Where], np.ndarray | None] | None = None
     """Each point's capture time (N,) in seconds, or None when the file holds none; None for
     a format that never has one."""
+    iter_chunks: Callable[..., Iterator[tuple[np.ndarray, np.ndarray | None]]] | None = None
+    """The points (and, with ``with_time=True``, their time) in chunks of at most
+    ``chunk_points``, without the whole file in memory; None for a format read whole."""
 
     @classmethod
     def from_module(cls, name: str, module: ModuleType) -> PointFormat:
@@ -53,6 +58,7 @@ class PointFormat:
             module.read,
             getattr(module, "write", None),
             getattr(module, "read_time", None),
+            getattr(module, "iter_chunks", None),
         )
 
 

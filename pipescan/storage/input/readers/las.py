@@ -8,6 +8,7 @@ after the point-data offset; LAZ cannot be sized from its header, so it is read 
 from __future__ import annotations
 
 import struct
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -156,6 +157,45 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
     if out is None:
         out = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
     return n, out
+
+
+def iter_chunks(
+    path: Path, where: Where, *, chunk_points: int = CHUNK_POINTS, with_time: bool = False
+) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """The points in chunks of at most ``chunk_points``: ``(K, 3)`` float64 metres each, the
+    same values as :func:`read`, with each point's GPS time (K,) when ``with_time`` and the
+    point format has it (else None). A registered cloud of any size streams through this
+    with one chunk in memory; a file that ends early fails at the chunk where it ends."""
+    import laspy
+
+    _check_layout(path, where)
+    selection = laspy.DecompressionSelection.xy_returns_channel() | laspy.DecompressionSelection.Z
+    try:
+        with laspy.open(path, laz_backend=_laz_backend()) as probe:
+            timed = with_time and "gps_time" in probe.header.point_format.dimension_names
+        if timed:
+            selection |= laspy.DecompressionSelection.GPS_TIME
+        backend = _laz_backend()
+        with laspy.open(path, laz_backend=backend, decompression_selection=selection) as reader:
+            declared = _declared(reader, path, where)
+            scales = np.asarray(reader.header.scales, dtype=np.float64)
+            offsets = np.asarray(reader.header.offsets, dtype=np.float64)
+            n = 0
+            for chunk in reader.chunk_iterator(max(1, min(chunk_points, CHUNK_POINTS))):
+                if len(chunk) == 0:
+                    break
+                if n + len(chunk) > declared:
+                    n += len(chunk)
+                    break
+                points = np.empty((len(chunk), 3))
+                _scale_into(points, chunk, scales, offsets)
+                time_s = np.asarray(chunk.gps_time, dtype=np.float64) if timed else None
+                n += len(chunk)
+                yield points, time_s
+    except _errors() as exc:
+        raise where.corrupt(f"cannot read LAS/LAZ: {exc}") from exc
+    if n != declared:
+        raise where.corrupt(f"the LAS header declares {declared:,} points but the file holds {n:,}")
 
 
 def check(path: Path, where: Where) -> int:
