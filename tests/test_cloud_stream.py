@@ -24,6 +24,7 @@ from pipescan.storage.input.pointfiles import (
     read_points,
     write_points,
 )
+from pipescan.storage.input.readers import READERS
 from pipescan.storage.scratch import FrameStore, create_run_dir
 from pipescan.tasks import inspection
 from pipescan.tasks.inspection import bucket_points, fit_pipe_axis
@@ -39,22 +40,58 @@ def _cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return points + np.array([512_000.0, 6_170_000.0, 40.0]), x / 0.15
 
 
-@pytest.mark.parametrize("suffix", [".laz", ".las", ".ply"])
+@pytest.mark.parametrize("suffix", [".laz", ".las", ".e57", ".npy", ".ply"])
 @pytest.mark.parametrize("chunk_points", [1, 333, 5000])
 def test_the_chunks_are_the_file_in_order(tmp_path: Path, suffix: str, chunk_points: int):
-    """LAS and LAZ stream; PLY is read whole and handed out in chunks: the same points and
-    times as reading the file whole, in the same order."""
+    """LAS, LAZ, E57 and ``.npy`` stream; PLY is read whole and handed out in chunks: the same
+    points and times as reading the file whole, in the same order."""
     points, time_s = _cloud(2000)
+    timed = READERS[suffix].read_time is not None
     path = tmp_path / f"cloud{suffix}"
-    write_points(path, points, time_s=time_s)
+    write_points(path, points, time_s=time_s if timed else None)
     chunks = list(iter_point_chunks(path, chunk_points=chunk_points, with_time=True))
     assert all(len(c.points) <= chunk_points for c in chunks)
     assert [c.first for c in chunks] == list(np.cumsum([0] + [len(c.points) for c in chunks]))[:-1]
     whole = read_points(path, kind="cloud")
     assert np.array_equal(np.concatenate([c.points for c in chunks]), whole)
-    assert np.array_equal(np.concatenate([c.time_s for c in chunks]), read_point_time(path))
+    if timed:
+        assert np.array_equal(np.concatenate([c.time_s for c in chunks]), read_point_time(path))
+    else:
+        assert all(c.time_s is None for c in chunks)
     plain = list(iter_point_chunks(path, chunk_points=chunk_points))
     assert all(c.time_s is None for c in plain)
+
+
+def test_a_fortran_ordered_npy_streams_as_it_reads(tmp_path: Path):
+    points, _ = _cloud(1000)
+    path = tmp_path / "cloud.npy"
+    np.save(path, np.asfortranarray(points.astype(np.float32)))
+    chunks = [c.points for c in iter_point_chunks(path, chunk_points=300)]
+    assert [len(c) for c in chunks] == [300, 300, 300, 100]
+    assert np.array_equal(np.concatenate(chunks), read_points(path, kind="cloud"))
+
+
+def test_an_e57_of_several_posed_scans_streams_as_it_reads(tmp_path: Path):
+    """Each scan is placed by its own pose, chunk by chunk; times add each scan's start."""
+    from scipy.spatial.transform import Rotation
+
+    from pipescan.storage.input.readers import e57
+
+    points, time_s = _cloud(2500)
+    rotation = Rotation.from_euler("z", 35, degrees=True)
+    translation = np.array([10.0, -3.0, 1.5])
+    x, y, z, w = rotation.as_quat()
+    local = rotation.inv().apply(points[1000:] - translation)
+    path = tmp_path / "cloud.e57"
+    pose = (np.array([w, x, y, z]), translation)
+    e57.write_scans(path, [(points[:1000], time_s[:1000], None), (local, time_s[1000:], pose)])
+    chunks = list(iter_point_chunks(path, chunk_points=400, with_time=True))
+    assert [len(c.points) for c in chunks] == [400, 400, 200, 400, 400, 400, 300]
+    assert np.array_equal(
+        np.concatenate([c.points for c in chunks]), read_points(path, kind="cloud")
+    )
+    assert np.array_equal(np.concatenate([c.time_s for c in chunks]), read_point_time(path))
+    np.testing.assert_allclose(np.concatenate([c.points for c in chunks]), points, atol=1e-6)
 
 
 @settings(max_examples=60, deadline=None)

@@ -96,20 +96,30 @@ def check(path: Path, where: Where) -> int:
 
 
 def _read_scan(e57, header, index: int, where: Where, names: tuple[str, ...]) -> dict:
+    """One scan's valid points' fields, whole."""
+    parts = list(_iter_scan(e57, header, index, where, names, CHUNK_POINTS))
+    wanted = [n for n in names if n in _fields(header)]
+    return {n: np.concatenate([p[n] for p in parts]) if parts else np.empty(0) for n in wanted}
+
+
+def _iter_scan(
+    e57, header, index: int, where: Where, names: tuple[str, ...], chunk_points: int
+) -> Iterator[dict[str, np.ndarray]]:
+    """One scan's valid points' fields, a chunk of at most ``chunk_points`` read at a time
+    (fewer are yielded where points are invalid); the scan's count is checked at its end."""
     from pye57 import libe57
 
     count = int(header.point_count)
     fields = _fields(header)
     wanted = [n for n in names if n in fields]
     if count == 0:
-        return {n: np.empty(0) for n in wanted}
+        return
     if "cartesianInvalidState" in fields:
         wanted.append("cartesianInvalidState")
-    chunk = max(1, min(CHUNK_POINTS, count))
+    chunk = max(1, min(chunk_points, CHUNK_POINTS, count))
     arrays = {
         n: np.empty(chunk, np.int8 if n == "cartesianInvalidState" else np.float64) for n in wanted
     }
-    out: dict[str, list[np.ndarray]] = {n: [] for n in wanted}
     read = 0
     try:
         buffers = libe57.VectorSourceDestBuffer()
@@ -121,9 +131,12 @@ def _read_scan(e57, header, index: int, where: Where, names: tuple[str, ...]) ->
                 got = reader.read()
                 if got == 0:
                     break
-                for n in wanted:
-                    out[n].append(arrays[n][:got].copy())
                 read += got
+                part = {n: arrays[n][:got].copy() for n in wanted}
+                if "cartesianInvalidState" in part:
+                    valid = part.pop("cartesianInvalidState") == 0
+                    part = {n: v[valid] for n, v in part.items()}
+                yield part
         finally:
             reader.close()
     except _errors() as exc:
@@ -137,11 +150,6 @@ def _read_scan(e57, header, index: int, where: Where, names: tuple[str, ...]) ->
             f"E57 {_scan_name(header, index)} declares {count:,} points but holds {read:,}",
             field=f"scan {index}",
         )
-    joined = {n: np.concatenate(v) if v else np.empty(0) for n, v in out.items()}
-    valid = np.ones(count, dtype=bool)
-    if "cartesianInvalidState" in joined:
-        valid = joined.pop("cartesianInvalidState") == 0
-    return {n: v[valid] for n, v in joined.items()}
 
 
 def _pose(header) -> tuple[np.ndarray, np.ndarray]:
@@ -181,6 +189,27 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
                 start = float(header["acquisitionStart"]["dateTimeValue"].value())
             parts.append(scan["timeStamp"] + start)
     return np.concatenate(parts)
+
+
+def iter_chunks(
+    path: Path, where: Where, *, chunk_points: int = CHUNK_POINTS, with_time: bool = False
+) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """The valid points of every scan, in the file's common frame, a chunk of at most
+    ``chunk_points`` read at a time: the points of :func:`read`, in its order, and with
+    ``with_time`` their time as :func:`read_time` gives it (None unless every scan has a
+    ``timeStamp``)."""
+    with _opened(path, where) as e57:
+        headers = _headers(e57, where)
+        timed = with_time and bool(headers) and all("timeStamp" in _fields(h) for h in headers)
+        names = _XYZ + (("timeStamp",) if timed else ())
+        for i, header in enumerate(headers):
+            rotation, translation = _pose(header)
+            start = 0.0
+            if timed and header.node.isDefined("acquisitionStart/dateTimeValue"):
+                start = float(header["acquisitionStart"]["dateTimeValue"].value())
+            for part in _iter_scan(e57, header, i, where, names, chunk_points):
+                pts = np.column_stack([part[n] for n in _XYZ]) @ rotation.T + translation
+                yield pts, part["timeStamp"] + start if timed else None
 
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:

@@ -7,6 +7,7 @@ The header's shape is checked against the bytes after it before the array is rea
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -61,6 +62,34 @@ def read(path: Path, where: Where) -> np.ndarray:
         raise where.corrupt(f"the header declares {count // 3:,} points; fewer are present")
     arr = flat.reshape(shape, order="F" if fortran else "C")
     return arr.astype(np.float64, copy=False)
+
+
+def iter_chunks(
+    path: Path, where: Where, *, chunk_points: int = 1_000_000, with_time: bool = False
+) -> Iterator[tuple[np.ndarray, None]]:
+    """The points of :func:`read`, ``chunk_points`` rows at a time (a ``.npy`` holds no time).
+    A C-ordered array is read a chunk at a time; a Fortran-ordered one (columns stored one
+    after the other) is mapped and its rows copied out a chunk at a time."""
+    shape, fortran, dtype, offset = _header(path, where)
+    rows = math.prod(shape) // 3
+    step = max(1, chunk_points)
+    try:
+        if fortran:
+            mapped = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(rows, 3),
+                               order="F")  # fmt: skip
+            for a in range(0, rows, step):
+                yield np.array(mapped[a : a + step], dtype=np.float64), None
+            return
+        with path.open("rb") as fh:
+            fh.seek(offset)
+            for a in range(0, rows, step):
+                n = min(step, rows - a)
+                flat = np.fromfile(fh, dtype=dtype, count=3 * n)
+                if flat.size != 3 * n:
+                    raise where.corrupt(f"the header declares {rows:,} points; fewer are present")
+                yield flat.reshape(n, 3).astype(np.float64, copy=False), None
+    except _FORMAT_ERRORS as exc:
+        raise where.corrupt(f"cannot read .npy: {exc}") from exc
 
 
 def write(path: Path, pts: np.ndarray) -> None:
