@@ -4,6 +4,7 @@ memory does not grow with it."""
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 
 import numpy as np
@@ -159,7 +160,7 @@ def _fit(archive: Path, tmp_path: Path, name: str):
 
 
 def test_a_cloud_is_read_once_in_chunks_and_its_axis_fitted_on_a_stride(
-    cloud_archive: Path, tmp_path: Path, monkeypatch
+    cloud_archive: Path, tmp_path: Path, monkeypatch, caplog
 ):
     """The axis task never reads the cloud whole; it keeps the cloud for the sections, row for
     row. A stride through it, a quarter to an eighth of the cloud, places every point within
@@ -175,7 +176,12 @@ def test_a_cloud_is_read_once_in_chunks_and_its_axis_fitted_on_a_stride(
     monkeypatch.setattr(archive_module, "read_point_time", refuse)
     monkeypatch.setattr(pointfiles, "CLOUD_CHUNK_POINTS", 50_000)
     monkeypatch.setattr(inspection, "CLOUD_SAMPLE_POINTS", n // 4)
-    staged, store, fit = _fit(cloud_archive, tmp_path, "strided")
+    monkeypatch.setattr(inspection, "CLOUD_PROGRESS_POINTS", 200_000)
+    with caplog.at_level(logging.INFO, logger="pipescan"):
+        staged, store, fit = _fit(cloud_archive, tmp_path, "strided")
+    progress = [r.getMessage() for r in caplog.records if r.name == "pipescan"]
+    assert progress[:2] == ["read 200,000 points of the cloud", "read 400,000 points of the cloud"]
+    assert progress[-1] == f"read the cloud: {n:,} points; its axis comes from 1 point in 8"
     assert store.cloud_rows() == n
     assert np.array_equal(store.read_cloud_rows(0, n), whole_store.read_cloud_rows(0, n))
     assert fit.start_source == whole.start_source == "point_time"

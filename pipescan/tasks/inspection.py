@@ -114,6 +114,10 @@ cloud's ends, at its 0.05 % and 99.95 % chainage percentiles, move by well under
 from a sample this size (docs/throughput.md, *A registered cloud in one pass*)."""
 
 
+CLOUD_PROGRESS_POINTS = 20_000_000
+"""A progress line each time this many more of a cloud's points are read."""
+
+
 def _cloud_sample(arc, frame_store: FrameStore | None) -> tuple[np.ndarray, np.ndarray | None]:
     """Read the registered cloud once, in chunks: keep it in ``frame_store`` for the sections
     (when given) and return a strided sample of its points and their times (None when the
@@ -121,9 +125,15 @@ def _cloud_sample(arc, frame_store: FrameStore | None) -> tuple[np.ndarray, np.n
     sample = StridedSample(CLOUD_SAMPLE_POINTS)
 
     def chunks() -> Iterator[np.ndarray]:
+        read = 0
         for chunk in arc.iter_cloud(with_time=True):
             sample.add(chunk.first, chunk.points, chunk.time_s)
             yield chunk.points
+            read += len(chunk.points)
+            if read // CLOUD_PROGRESS_POINTS > (read - len(chunk.points)) // CLOUD_PROGRESS_POINTS:
+                log.info("read %s points of the cloud", f"{read:,}")
+        log.info("read the cloud: %s points; its axis comes from 1 point in %d", f"{read:,}",
+                 sample.stride)  # fmt: skip
 
     if frame_store is not None:  # decoded once: the sections read it from here
         frame_store.save_cloud(chunks())

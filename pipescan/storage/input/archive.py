@@ -56,7 +56,6 @@ from pipescan.storage.input.limits import (
 )
 from pipescan.storage.input.metadata import INSPECTION_FILE, read_inspection_toml
 from pipescan.storage.input.pointfiles import (
-    CLOUD_CHUNK_POINTS,
     POINT_SUFFIXES,
     PointChunk,
     check_points,
@@ -320,14 +319,14 @@ class ScanArchive:
         return time_s
 
     def iter_cloud(
-        self, *, with_time: bool = False, chunk_points: int = CLOUD_CHUNK_POINTS
+        self, *, with_time: bool = False, chunk_points: int | None = None
     ) -> Iterator[PointChunk]:
         """The registered cloud a chunk at a time (see
-        :func:`~pipescan.storage.input.pointfiles.iter_point_chunks`): LAS, LAZ, E57 and
-        ``.npy`` stream, so a cloud of any size is read with one chunk in memory. The same points, in the same
-        order, as :meth:`read_cloud`, with each point's time when ``with_time`` and the file
-        holds one. The cloud's checks raise at the chunk that fails them; the millimetre
-        check after the last chunk.
+        :func:`~pipescan.storage.input.pointfiles.iter_point_chunks`): LAS, LAZ, E57 and ``.npy``
+        stream, so a cloud of any size is read with one chunk in memory. The same points, in the
+        same order, as :meth:`read_cloud`, with each point's time when ``with_time`` and the file
+        holds one. The cloud's checks raise at the chunk that fails them; the millimetre check after
+        the last chunk.
 
         Raises
         ------

@@ -209,24 +209,24 @@ def iter_point_chunks(
     member: str | None = None,
     kind: PointKind = "cloud",
     limits: InputLimits = DEFAULT_LIMITS,
-    chunk_points: int = CLOUD_CHUNK_POINTS,
+    chunk_points: int | None = None,
     with_time: bool = False,
 ) -> Iterator[PointChunk]:
     """Read a point file a chunk at a time, with the checks of :func:`read_points`.
 
-    LAS, LAZ, E57 and ``.npy`` stream: one chunk of at most ``chunk_points`` is in memory at
-    a time, so a registered cloud of any size can be read. PLY, PCD and ASCII files are read
-    whole and handed out in chunks. Each chunk is checked as it comes (finite, within :data:`MAX_COORDINATE`; with
-    ``with_time``, a finite time); the millimetre check runs on a strided sample once the
-    last chunk is read, and raises after it, so a caller must treat what it did with the
-    chunks as unfinished until the iteration ends.
+    LAS, LAZ, E57 and ``.npy`` stream: one chunk of at most ``chunk_points`` is in memory at a time,
+    so a registered cloud of any size can be read. PLY, PCD and ASCII files are read whole and
+    handed out in chunks. Each chunk is checked as it comes (finite, within :data:`MAX_COORDINATE`;
+    with ``with_time``, a finite time); the millimetre check runs on a strided sample once the last
+    chunk is read, and raises after it, so a caller must treat what it did with the chunks as
+    unfinished until the iteration ends.
 
     Parameters
     ----------
     path, archive, member, kind, limits
         As :func:`read_points`.
-    chunk_points : int
-        Largest chunk, in points.
+    chunk_points : int, optional
+        Largest chunk, in points (default :data:`CLOUD_CHUNK_POINTS`).
     with_time : bool
         Also read each point's capture time (as :func:`read_point_time`); ``time_s`` is None
         when the file holds none.
@@ -238,6 +238,7 @@ def iter_point_chunks(
     """
     path = Path(path)
     where, reader = _reader(path, archive, member, limits)
+    chunk_points = CLOUD_CHUNK_POINTS if chunk_points is None else chunk_points
     check = StridedSample(_CHECK_SAMPLE_POINTS)
     first = 0
     for points, time_s in _raw_chunks(path, where, reader, chunk_points, with_time):
