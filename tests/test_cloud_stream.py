@@ -196,3 +196,19 @@ def test_a_cloud_is_read_once_in_chunks_and_its_axis_fitted_on_a_stride(
     assert fit.chainage_max_m == pytest.approx(whole.chainage_max_m, abs=5e-3)
     placed = bucket_points.fn(staged, None, 0, n, fit.axis, [], tmp_path / "b", 5.0, None)
     assert placed.points == 0  # no windows: read through in chunks, nothing placed
+
+
+def test_the_simulator_writes_a_laz_cloud_without_holding_it(tmp_path: Path):
+    """``pipescan simulate --layout cloud`` spools the frames and writes the LAZ a chunk at a
+    time: the same points and times, decoded, as writing the whole cloud at once."""
+    from pipescan.simulator.archive import world_cloud
+
+    scan = simulate_scan(get_scenario("paper", travel_m=0.4, points_per_s=100_000), seed=3)
+    archive = write_simulated_archive(scan, tmp_path / "arc", layout="cloud")
+    points, time_s = world_cloud(scan)
+    write_points(tmp_path / "whole.laz", points, time_s=time_s)
+    streamed = archive / "cloud.laz"
+    assert np.array_equal(read_points(streamed, kind="cloud"),
+                          read_points(tmp_path / "whole.laz", kind="cloud"))  # fmt: skip
+    assert np.array_equal(read_point_time(streamed), read_point_time(tmp_path / "whole.laz"))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["arc", "whole.laz"]  # no spool left

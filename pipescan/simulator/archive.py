@@ -27,7 +27,7 @@ import os
 import shutil
 import tempfile
 import tomllib
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -224,8 +224,7 @@ def write_simulated_archive(
         elif layout == "bag":
             write_simulated_bag(scan, tmp / bag_name, progress=progress)
         else:
-            points, time_s = world_cloud(scan, progress=progress)
-            write_points(tmp / cloud_name, points, time_s=time_s)
+            _write_world_cloud(scan, tmp / cloud_name, progress=progress)
         (tmp / "inspection.toml").write_text(
             dumps_toml(_inspection_doc(scan, layout)), encoding="utf-8"
         )
@@ -292,17 +291,64 @@ def world_cloud(
     time_s : (N,) float64, seconds: the frame's time plus the ray's share of the frame period
     """
     parts, times = [], []
+    for points, time_s in _world_frames(scan, progress):
+        parts.append(points)
+        times.append(time_s)
+    if not parts:
+        return np.empty((0, 3)), np.empty(0)
+    return np.concatenate(parts), np.concatenate(times)
+
+
+def _world_frames(
+    scan: SimulatedScan, progress: Callable[[int, int], None] | None
+) -> Iterator[tuple[np.ndarray, np.ndarray]]:
+    """Each frame of :func:`world_cloud`, in order: its points (world frame) and times."""
     period_s = 1.0 / scan.scenario.frame_rate_hz
     for frame in scan.frames():
         p = frame.points_sensor.astype(np.float64)
         T = frame.T_world_sensor
-        parts.append(p @ T[:3, :3].T + T[:3, 3])
-        times.append(frame.time_s + period_s * np.arange(len(p)) / max(len(p), 1))
+        yield (
+            p @ T[:3, :3].T + T[:3, 3],
+            frame.time_s + period_s * np.arange(len(p)) / max(len(p), 1),
+        )
         if progress is not None:
             progress(frame.index + 1, len(scan))
-    if not parts:
-        return np.empty((0, 3)), np.empty(0)
-    return np.concatenate(parts), np.concatenate(times)
+
+
+_SPOOL_ROWS = 1_000_000
+"""Rows of x, y, z, time read back at a time from a simulated cloud's spool file."""
+
+
+def _write_world_cloud(
+    scan: SimulatedScan, path: Path, *, progress: Callable[[int, int], None] | None
+) -> None:
+    """Write :func:`world_cloud` to ``path``. A LAS or LAZ cloud is written without holding
+    it: the frames go to a spool file (float64 x, y, z, time) while their minimum is found,
+    then into the file a million points at a time, with the offset at that minimum, as
+    :func:`~pipescan.storage.input.pointfiles.write_points` puts it (the same points, decoded,
+    to the bit). Other formats are written whole."""
+    if path.suffix.lower() not in (".las", ".laz"):
+        points, time_s = world_cloud(scan, progress=progress)
+        write_points(path, points, time_s=time_s)
+        return
+    from pipescan.storage.input.readers import las
+
+    low = np.full(3, np.inf)
+    with tempfile.TemporaryFile(dir=path.parent) as spool:
+        for points, time_s in _world_frames(scan, progress):
+            if len(points):
+                low = np.minimum(low, points.min(axis=0))
+                np.column_stack((points, time_s)).tofile(spool)
+        spool.seek(0)
+
+        def chunks() -> Iterator[tuple[np.ndarray, np.ndarray]]:
+            while (rows := np.fromfile(spool, dtype=np.float64, count=4 * _SPOOL_ROWS)).size:
+                rows = rows.reshape(-1, 4)
+                yield rows[:, :3], rows[:, 3]
+
+        las.write_chunks(
+            path, chunks(), offsets=low if np.isfinite(low).all() else np.zeros(3), timed=True
+        )
 
 
 def _swap_into_place(tmp: Path, out_dir: Path) -> None:

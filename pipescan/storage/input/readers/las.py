@@ -8,7 +8,7 @@ after the point-data offset; LAZ cannot be sized from its header, so it is read 
 from __future__ import annotations
 
 import struct
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -226,6 +226,48 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
     except _errors() as exc:
         raise where.corrupt(f"cannot read LAS/LAZ GPS time: {exc}", field="gps_time") from exc
     return np.concatenate(parts) if parts else np.empty(0)
+
+
+def write_chunks(
+    path: Path,
+    chunks: Iterable[tuple[np.ndarray, np.ndarray | None]],
+    *,
+    offsets: np.ndarray,
+    timed: bool,
+) -> int:
+    """Write ``(points (K, 3), time_s (K,) or None)`` chunks as one LAS 1.4 file, point format
+    6, scale :data:`LAS_SCALE_M`, the given ``offsets`` (``.laz`` compressed with lazrs); with
+    ``timed``, each chunk's time is its GPS time. The points decode as :func:`write` writes
+    them with the same offsets (the same rounding to the grid); one chunk is in memory at a
+    time. Returns the number of points written.
+
+    Raises
+    ------
+    ValueError
+        A coordinate that is not finite, or beyond what the 0.1 mm grid holds from ``offsets``.
+    """
+    import laspy
+
+    header = laspy.LasHeader(point_format=6, version="1.4")
+    header.scales = np.full(3, LAS_SCALE_M)
+    header.offsets = np.asarray(offsets, dtype=np.float64)
+    limit = (2**31 - 1) * LAS_SCALE_M
+    written = 0
+    compress = Path(path).suffix.lower() == ".laz"
+    with laspy.open(path, mode="w", header=header, do_compress=compress,
+                    laz_backend=laspy.LazBackend.Lazrs) as writer:  # fmt: skip
+        for pts, time_s in chunks:
+            if not np.isfinite(pts).all():
+                raise ValueError("LAS/LAZ cannot store NaN or infinite coordinates")
+            if len(pts) and (np.abs(pts - header.offsets).max(axis=0) >= limit).any():
+                raise ValueError("the points span more than the 0.1 mm LAS integer grid can hold")
+            record = laspy.ScaleAwarePointRecord.zeros(len(pts), header=header)
+            record.x, record.y, record.z = pts[:, 0], pts[:, 1], pts[:, 2]
+            if timed:
+                record.gps_time = np.asarray(time_s, dtype=np.float64)
+            writer.write_points(record)
+            written += len(pts)
+    return written
 
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
