@@ -72,6 +72,30 @@ def test_a_fortran_ordered_npy_streams_as_it_reads(tmp_path: Path):
     assert np.array_equal(np.concatenate(chunks), read_points(path, kind="cloud"))
 
 
+@pytest.mark.parametrize("fmt", ["ascii", "binary_big_endian"])
+def test_ascii_and_big_endian_ply_chunks_are_the_file(tmp_path: Path, fmt: str):
+    points, time_s = _cloud(700)
+    rows = np.column_stack((points, time_s)).astype(">f8")
+    header = (
+        f"ply\nformat {fmt} 1.0\nelement vertex {len(rows)}\nproperty double x\n"
+        "property double y\nproperty double z\nproperty double timestamp\nend_header\n"
+    )
+    path = tmp_path / "cloud.ply"
+    with path.open("wb") as fh:
+        fh.write(header.encode("ascii"))
+        if fmt == "ascii":
+            np.savetxt(fh, rows.astype(np.float64), fmt="%.17g")
+        else:
+            fh.write(rows.tobytes())
+    chunks = list(iter_point_chunks(path, chunk_points=300, with_time=True))
+    assert [len(c.points) for c in chunks] == [300, 300, 100]
+    assert np.array_equal(
+        np.concatenate([c.points for c in chunks]), read_points(path, kind="cloud")
+    )
+    assert np.array_equal(np.concatenate([c.time_s for c in chunks]), read_point_time(path))
+    np.testing.assert_array_equal(np.concatenate([c.time_s for c in chunks]), time_s)
+
+
 def test_an_e57_of_several_posed_scans_streams_as_it_reads(tmp_path: Path):
     """Each scan is placed by its own pose, chunk by chunk; times add each scan's start."""
     from scipy.spatial.transform import Rotation

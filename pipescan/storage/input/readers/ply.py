@@ -9,6 +9,7 @@ the vertices are read in chunks into an array of the checked size.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -241,6 +242,45 @@ def _read_properties(path: Path, where: Where, wanted: tuple[str, ...]) -> np.nd
                 out[n : n + len(rows), j] = rows[f"p{c}"]
             n += len(rows)
     return out
+
+
+def iter_chunks(
+    path: Path, where: Where, *, chunk_points: int = CHUNK_ROWS, with_time: bool = False
+) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
+    """The vertices' x, y, z of :func:`read` (and, with ``with_time``, the time of
+    :func:`read_time`), at most ``chunk_points`` at a time: a binary PLY is read a chunk at a
+    time; an ASCII one is read whole, then handed out in chunks."""
+    header, offset = _check(path, where)
+    vertex = header.vertex
+    names = [name for name, _ in vertex.props]
+    found = next((n for n in TIME_NAMES if n in names), None) if with_time else None
+    wanted = AXES + ((found,) if found else ())
+    step = max(1, chunk_points)
+    if vertex.count == 0:
+        return
+    if header.fmt == "ascii":
+        rows = _read_properties(path, where, wanted)
+        for a in range(0, len(rows), step):
+            part = rows[a : a + step]
+            yield np.ascontiguousarray(part[:, :3]), part[:, 3].copy() if found else None
+        return
+    dtype = _row_dtype(vertex, _FORMATS[header.fmt])
+    cols = [f"p{names.index(a)}" for a in wanted]
+    n = 0
+    with path.open("rb") as fh:
+        fh.seek(offset)
+        while n < vertex.count:
+            rows = np.fromfile(fh, dtype=dtype, count=min(step, CHUNK_ROWS, vertex.count - n))
+            if len(rows) == 0:
+                raise where.corrupt("the PLY vertices end early")
+            out = np.empty((len(rows), len(wanted)))
+            for j, c in enumerate(cols):
+                out[:, j] = rows[c]
+            if found:
+                yield np.ascontiguousarray(out[:, :3]), out[:, 3].copy()
+            else:
+                yield out, None
+            n += len(rows)
 
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
