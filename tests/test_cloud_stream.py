@@ -41,7 +41,7 @@ def _cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return points + np.array([512_000.0, 6_170_000.0, 40.0]), x / 0.15
 
 
-@pytest.mark.parametrize("suffix", [".laz", ".las", ".e57", ".npy", ".ply"])
+@pytest.mark.parametrize("suffix", [".laz", ".las", ".e57", ".npy", ".ply", ".xyz"])
 @pytest.mark.parametrize("chunk_points", [1, 333, 5000])
 def test_the_chunks_are_the_file_in_order(tmp_path: Path, suffix: str, chunk_points: int):
     """LAS, LAZ, E57 and ``.npy`` stream; PLY is read whole and handed out in chunks: the same
@@ -94,6 +94,27 @@ def test_ascii_and_big_endian_ply_chunks_are_the_file(tmp_path: Path, fmt: str):
     )
     assert np.array_equal(np.concatenate([c.time_s for c in chunks]), read_point_time(path))
     np.testing.assert_array_equal(np.concatenate([c.time_s for c in chunks]), time_s)
+
+
+def test_ascii_chunks_skip_headers_and_comments_and_name_a_bad_line(tmp_path: Path):
+    points, _ = _cloud(500)
+    lines = ["X,Y,Z,intensity", "# exported"]
+    for k, (x, y, z) in enumerate(points):
+        lines.append(f"{x:.17g},{y:.17g},{z:.17g},7")
+        if k % 97 == 0:
+            lines += ["// a comment", ""]
+    path = tmp_path / "cloud.txt"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    chunks = [c.points for c in iter_point_chunks(path, chunk_points=64)]
+    assert max(len(c) for c in chunks) <= 64
+    assert np.array_equal(np.concatenate(chunks), read_points(path, kind="cloud"))
+    assert np.array_equal(np.concatenate(chunks), points)
+    lines[400] = "1.0,oops,2.0,7"
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    bad_line = lines.index("1.0,oops,2.0,7") + 1
+    with pytest.raises(PointFileError, match=rf"cannot read line {bad_line} as x y z") as info:
+        list(iter_point_chunks(path, member="cloud.txt", chunk_points=64))
+    assert info.value.file == "cloud.txt"
 
 
 def test_an_e57_of_several_posed_scans_streams_as_it_reads(tmp_path: Path):

@@ -322,11 +322,11 @@ class ScanArchive:
         self, *, with_time: bool = False, chunk_points: int | None = None
     ) -> Iterator[PointChunk]:
         """The registered cloud a chunk at a time (see
-        :func:`~pipescan.storage.input.pointfiles.iter_point_chunks`): LAS, LAZ, E57, binary PLY and
-        ``.npy`` stream, so a cloud of any size is read with one chunk in memory. The same points,
-        in the same order, as :meth:`read_cloud`, with each point's time when ``with_time`` and the
-        file holds one. The cloud's checks raise at the chunk that fails them; the millimetre check
-        after the last chunk.
+        :func:`~pipescan.storage.input.pointfiles.iter_point_chunks`): LAS, LAZ, E57, binary PLY,
+        ASCII and ``.npy`` stream, so a cloud of any size is read with one chunk in memory. The same
+        points, in the same order, as :meth:`read_cloud`, with each point's time when ``with_time``
+        and the file holds one. The cloud's checks raise at the chunk that fails them; the
+        millimetre check after the last chunk.
 
         Raises
         ------

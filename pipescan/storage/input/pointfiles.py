@@ -214,12 +214,12 @@ def iter_point_chunks(
 ) -> Iterator[PointChunk]:
     """Read a point file a chunk at a time, with the checks of :func:`read_points`.
 
-    LAS, LAZ, E57, binary PLY and ``.npy`` stream: one chunk of at most ``chunk_points`` is in
-    memory at a time, so a registered cloud of any size can be read. ASCII PLY, PCD and ASCII files
-    are read whole and handed out in chunks. Each chunk is checked as it comes (finite, within
-    :data:`MAX_COORDINATE`; with ``with_time``, a finite time); the millimetre check runs on a
-    strided sample once the last chunk is read, and raises after it, so a caller must treat what it
-    did with the chunks as unfinished until the iteration ends.
+    LAS, LAZ, E57, binary PLY, ASCII x y z and ``.npy`` stream: one chunk of at most
+    ``chunk_points`` is in memory at a time, so a registered cloud of any size can be read. ASCII
+    PLY and PCD files are read whole and handed out in chunks. Each chunk is checked as it comes
+    (finite, within :data:`MAX_COORDINATE`; with ``with_time``, a finite time); the millimetre check
+    runs on a strided sample once the last chunk is read, and raises after it, so a caller must
+    treat what it did with the chunks as unfinished until the iteration ends.
 
     Parameters
     ----------

@@ -7,6 +7,9 @@ ignored. The whole file is first scanned in fixed blocks: a line longer than
 
 from __future__ import annotations
 
+import itertools
+import re
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -17,6 +20,7 @@ SUFFIXES = (".xyz", ".txt")
 HEADER_LINES = 50
 """The first data row must come within this many lines."""
 _ROW_HINT = "each data row must start with x y z in metres, separated by spaces or commas"
+_NUMPY_ROW = re.compile(r",? at row \d+(, column \d+| with \d+ columns)?\.?")
 _ERRORS = (ValueError, RuntimeError, OSError, EOFError, IndexError, TypeError, UnicodeError)
 
 
@@ -73,6 +77,55 @@ def read(path: Path, where: Where) -> np.ndarray:
         raise where.error(
             f"cannot read x y z rows (after {first} header lines): {exc}", hint=_ROW_HINT
         ) from exc
+
+
+def iter_chunks(
+    path: Path, where: Where, *, chunk_points: int = 1_000_000, with_time: bool = False
+) -> Iterator[tuple[np.ndarray, None]]:
+    """The rows of :func:`read`, parsed ``chunk_points`` lines at a time (fewer rows where
+    lines are comments or blank); an ASCII file holds no time."""
+    first, delimiter, _ = _layout(path, where)
+    if first is None:
+        return
+    step = max(1, chunk_points)
+    line = first
+    with text_from(path, 0) as fh:
+        lines = itertools.islice(fh, first, None)
+        while True:
+            try:
+                block = list(itertools.islice(lines, step))
+            except (UnicodeError, OSError) as exc:
+                raise where.corrupt(f"cannot read ASCII points after line {line:,}: {exc}") from exc
+            if not block:
+                break
+            try:
+                rows = np.loadtxt(block, delimiter=delimiter, usecols=(0, 1, 2),
+                                  comments=("#", "//"), dtype=np.float64, ndmin=2)  # fmt: skip
+            except _ERRORS as exc:
+                bad = line + 1 + _first_bad_row(block, delimiter)
+                reason = _NUMPY_ROW.sub("", str(exc))  # numpy counts rows within the block
+                raise where.error(
+                    f"cannot read line {bad:,} as x y z: {reason}", hint=_ROW_HINT
+                ) from exc
+            line += len(block)
+            if len(rows):
+                yield rows, None
+
+
+def _first_bad_row(block: list[str], delimiter: str | None) -> int:
+    """The index in ``block`` of the first line that is not a comment, blank or x y z row."""
+    for k, text in enumerate(block):
+        text = text.strip()
+        if not text or text.startswith(("#", "//")):
+            continue
+        try:
+            fields = text.split(delimiter)
+            [float(f) for f in fields[:3]]
+            if len(fields) < 3:
+                return k
+        except ValueError:
+            return k
+    return 0
 
 
 def write(path: Path, pts: np.ndarray) -> None:
