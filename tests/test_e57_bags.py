@@ -221,6 +221,8 @@ def test_bag_and_e57_archives_end_to_end_and_nothing_stored_from_a_bad_one(tmp_p
     cloud_summary = json.loads(cloud.stdout)
     assert cloud_summary["start_source"] == "point_time"
     assert cloud_summary["sections_ok"] >= 15
+    assert "a registered cloud (cloud.e57)" in cloud.stderr  # not "0 frames"
+    assert f"read the cloud: {cloud_summary['point_count']:,} points" in cloud.stderr
     bad = inspect(tmp_path / "bad")
     assert bad.returncode == 2
     assert "scan" in bad.stderr and "corrupt or truncated" in bad.stderr

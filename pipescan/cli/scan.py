@@ -271,9 +271,10 @@ def _print_summary(summary) -> None:
     typer.echo(
         f"inspection {summary.inspection_id}: asset {summary.asset_id}, {summary.inspected_at}"
     )
+    # A frames archive has at least one frame; none is a registered cloud.
+    content = plural(summary.frame_count, "frame") if summary.frame_count else "registered cloud"
     typer.echo(
-        f"  {plural(summary.frame_count, 'frame')}, {summary.point_count:,} points, "
-        f"{summary.scanned_length_m:.1f} m scanned"
+        f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
     )
     typer.echo(
         f"  {plural(summary.section_count, 'section')}, {summary.sections_ok} measured (status ok)"

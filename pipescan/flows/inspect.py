@@ -146,7 +146,12 @@ def inspect_archive(
         # With frames, the engine pool's workers start as the archive opens.
         staged = stage_archive(archive, run_dir, get_settings().input_limits(), pooled)
         meta = staged.meta
-        log.info(f"archive {staged.name}: asset {meta.asset_id}, {staged.frame_count} frames")
+        content = (
+            f"{staged.frame_count} frames"
+            if staged.cloud_member is None
+            else f"a registered cloud ({staged.cloud_member})"
+        )
+        log.info(f"archive {staged.name}: asset {meta.asset_id}, {content}")
         # The crawler's own odometer uncertainty, where inspection.toml states it, is what
         # registration uses and what is stored with the inspection.
         params = replace(
