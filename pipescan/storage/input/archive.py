@@ -280,16 +280,8 @@ class ScanArchive:
         ArchiveError
             The archive holds frames, not a cloud, or is closed.
         """
-        self._check_open()
-        if self.cloud_member is None:
-            raise ArchiveError(
-                "the archive holds frames, not a registered cloud",
-                archive=self.name,
-                file=f"{FRAMES_DIR}/",
-                hint="use read_frame() or iter_frames()",
-            )
         return read_points(
-            self.root / self.cloud_member,
+            self._cloud_path(),
             archive=self.name,
             member=self.cloud_member,
             kind="cloud",
@@ -335,6 +327,18 @@ class ScanArchive:
         ArchiveError
             The archive holds frames, not a cloud, or is closed.
         """
+        yield from iter_point_chunks(
+            self._cloud_path(),
+            archive=self.name,
+            member=self.cloud_member,
+            kind="cloud",
+            limits=self.limits,
+            chunk_points=chunk_points,
+            with_time=with_time,
+        )
+
+    def _cloud_path(self) -> Path:
+        """The registered cloud's file (checked open, and a cloud archive)."""
         self._check_open()
         if self.cloud_member is None:
             raise ArchiveError(
@@ -343,15 +347,7 @@ class ScanArchive:
                 file=f"{FRAMES_DIR}/",
                 hint="use read_frame() or iter_frames()",
             )
-        yield from iter_point_chunks(
-            self.root / self.cloud_member,
-            archive=self.name,
-            member=self.cloud_member,
-            kind="cloud",
-            limits=self.limits,
-            chunk_points=chunk_points,
-            with_time=with_time,
-        )
+        return self.root / self.cloud_member
 
     def close(self) -> None:
         """Remove the temporary extraction, if any. Safe to call more than once."""
