@@ -117,41 +117,58 @@ def _scale_into(out: np.ndarray, chunk, scales: np.ndarray, offsets: np.ndarray)
         column += offsets[j]
 
 
-def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | None]:
+def _chunks(path: Path, where: Where, *, chunk_points: int = CHUNK_POINTS, time: bool = False):
+    """The file's decoded chunks, at most ``chunk_points`` points each, as ``(header, chunk)``:
+    the layout and the declared count are checked before the first, the count against what
+    the file held after the last (a LAZ cannot be sized from its header, so one that ends
+    early fails at the chunk where it ends)."""
     import laspy
 
     _check_layout(path, where)
     # In a LAS 1.4 point format 6-10 LAZ, each field is compressed on its own: decode only
-    # x, y, z (older formats decode whole records, whatever is asked).
-    xyz = laspy.DecompressionSelection.xy_returns_channel() | laspy.DecompressionSelection.Z
+    # x, y, z, and GPS time when asked (older formats decode whole records, whatever is asked).
+    selection = laspy.DecompressionSelection.xy_returns_channel() | laspy.DecompressionSelection.Z
+    if time:
+        selection |= laspy.DecompressionSelection.GPS_TIME
+    n = declared = 0
     try:
-        with laspy.open(path, laz_backend=_laz_backend(), decompression_selection=xyz) as reader:
+        backend = _laz_backend()
+        with laspy.open(path, laz_backend=backend, decompression_selection=selection) as reader:
             declared = _declared(reader, path, where)
-            compressed = reader.header.are_points_compressed
-            scales = np.asarray(reader.header.scales, dtype=np.float64)
-            offsets = np.asarray(reader.header.offsets, dtype=np.float64)
-            # LAS was sized above, so its count can be trusted; a LAZ is collected chunk by
-            # chunk and so never allocates more than it decoded.
-            out = np.empty((declared, 3)) if keep and not compressed else None
-            parts: list[np.ndarray] = []
-            n = 0
-            for chunk in reader.chunk_iterator(CHUNK_POINTS):
+            for chunk in reader.chunk_iterator(max(1, min(chunk_points, CHUNK_POINTS))):
                 if len(chunk) == 0:
                     break
-                if n + len(chunk) > declared:
-                    n += len(chunk)
-                    break
-                if out is not None:
-                    _scale_into(out[n : n + len(chunk)], chunk, scales, offsets)
-                elif keep:
-                    part = np.empty((len(chunk), 3))
-                    _scale_into(part, chunk, scales, offsets)
-                    parts.append(part)
                 n += len(chunk)
+                if n > declared:
+                    break
+                yield reader.header, chunk
     except _errors() as exc:
         raise where.corrupt(f"cannot read LAS/LAZ: {exc}") from exc
     if n != declared:
         raise where.corrupt(f"the LAS header declares {declared:,} points but the file holds {n:,}")
+
+
+def _scales_offsets(header) -> tuple[np.ndarray, np.ndarray]:
+    return np.asarray(header.scales, dtype=np.float64), np.asarray(header.offsets, np.float64)
+
+
+def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | None]:
+    out: np.ndarray | None = None
+    parts: list[np.ndarray] = []
+    n = 0
+    for header, chunk in _chunks(path, where):
+        scales, offsets = _scales_offsets(header)
+        if keep and out is None and not parts and not header.are_points_compressed:
+            # A LAS was sized by _declared, so its count can be trusted; a LAZ is collected
+            # chunk by chunk and so never allocates more than it decoded.
+            out = np.empty((int(header.point_count), 3))
+        if out is not None:
+            _scale_into(out[n : n + len(chunk)], chunk, scales, offsets)
+        elif keep:
+            part = np.empty((len(chunk), 3))
+            _scale_into(part, chunk, scales, offsets)
+            parts.append(part)
+        n += len(chunk)
     if not keep:
         return n, None
     if out is None:
@@ -166,36 +183,12 @@ def iter_chunks(
     same values as :func:`read`, with each point's GPS time (K,) when ``with_time`` and the
     point format has it (else None). A registered cloud of any size streams through this
     with one chunk in memory; a file that ends early fails at the chunk where it ends."""
-    import laspy
-
-    _check_layout(path, where)
-    selection = laspy.DecompressionSelection.xy_returns_channel() | laspy.DecompressionSelection.Z
-    try:
-        with laspy.open(path, laz_backend=_laz_backend()) as probe:
-            timed = with_time and "gps_time" in probe.header.point_format.dimension_names
-        if timed:
-            selection |= laspy.DecompressionSelection.GPS_TIME
-        backend = _laz_backend()
-        with laspy.open(path, laz_backend=backend, decompression_selection=selection) as reader:
-            declared = _declared(reader, path, where)
-            scales = np.asarray(reader.header.scales, dtype=np.float64)
-            offsets = np.asarray(reader.header.offsets, dtype=np.float64)
-            n = 0
-            for chunk in reader.chunk_iterator(max(1, min(chunk_points, CHUNK_POINTS))):
-                if len(chunk) == 0:
-                    break
-                if n + len(chunk) > declared:
-                    n += len(chunk)
-                    break
-                points = np.empty((len(chunk), 3))
-                _scale_into(points, chunk, scales, offsets)
-                time_s = np.asarray(chunk.gps_time, dtype=np.float64) if timed else None
-                n += len(chunk)
-                yield points, time_s
-    except _errors() as exc:
-        raise where.corrupt(f"cannot read LAS/LAZ: {exc}") from exc
-    if n != declared:
-        raise where.corrupt(f"the LAS header declares {declared:,} points but the file holds {n:,}")
+    for header, chunk in _chunks(path, where, chunk_points=chunk_points, time=with_time):
+        scales, offsets = _scales_offsets(header)
+        points = np.empty((len(chunk), 3))
+        _scale_into(points, chunk, scales, offsets)
+        timed = with_time and "gps_time" in header.point_format.dimension_names
+        yield points, np.asarray(chunk.gps_time, dtype=np.float64) if timed else None
 
 
 def check(path: Path, where: Where) -> int:
