@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import itertools
 import re
+import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -59,24 +60,8 @@ def check(path: Path, where: Where) -> int:
 
 def read(path: Path, where: Where) -> np.ndarray:
     """The points, ``(N, 3)`` float64, metres."""
-    first, delimiter, _ = _layout(path, where)
-    if first is None:
-        return np.empty((0, 3))
-    try:
-        with text_from(path, 0) as fh:
-            return np.loadtxt(
-                fh,
-                delimiter=delimiter,
-                skiprows=first,
-                usecols=(0, 1, 2),
-                comments=("#", "//"),
-                dtype=np.float64,
-                ndmin=2,
-            )
-    except _ERRORS as exc:
-        raise where.error(
-            f"cannot read x y z rows (after {first} header lines): {exc}", hint=_ROW_HINT
-        ) from exc
+    parts = [rows for rows, _ in iter_chunks(path, where)]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
 
 
 def iter_chunks(
@@ -99,13 +84,15 @@ def iter_chunks(
             if not block:
                 break
             try:
-                rows = np.loadtxt(block, delimiter=delimiter, usecols=(0, 1, 2),
-                                  comments=("#", "//"), dtype=np.float64, ndmin=2)  # fmt: skip
+                with warnings.catch_warnings():  # a block of comments alone holds no data
+                    warnings.simplefilter("ignore", UserWarning)
+                    rows = np.loadtxt(block, delimiter=delimiter, usecols=(0, 1, 2),
+                                      comments=("#", "//"), dtype=np.float64, ndmin=2)  # fmt: skip
             except _ERRORS as exc:
                 bad = line + 1 + _first_bad_row(block, delimiter)
                 reason = _NUMPY_ROW.sub("", str(exc))  # numpy counts rows within the block
                 raise where.error(
-                    f"cannot read line {bad:,} as x y z: {reason}", hint=_ROW_HINT
+                    f"cannot read x y z rows at line {bad:,}: {reason}", hint=_ROW_HINT
                 ) from exc
             line += len(block)
             if len(rows):
