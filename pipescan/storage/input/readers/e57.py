@@ -95,13 +95,6 @@ def check(path: Path, where: Where) -> int:
         return sum(int(h.point_count) for h in _headers(e57, where))
 
 
-def _read_scan(e57, header, index: int, where: Where, names: tuple[str, ...]) -> dict:
-    """One scan's valid points' fields, whole."""
-    parts = list(_iter_scan(e57, header, index, where, names, CHUNK_POINTS))
-    wanted = [n for n in names if n in _fields(header)]
-    return {n: np.concatenate([p[n] for p in parts]) if parts else np.empty(0) for n in wanted}
-
-
 def _iter_scan(
     e57, header, index: int, where: Where, names: tuple[str, ...], chunk_points: int
 ) -> Iterator[dict[str, np.ndarray]]:
@@ -162,33 +155,50 @@ def _pose(header) -> tuple[np.ndarray, np.ndarray]:
     return Rotation.from_quat([x, y, z, w]).as_matrix(), translation
 
 
+def _timed(headers: list) -> bool:
+    """Whether the file gives each point a time: every scan has a ``timeStamp`` field."""
+    return bool(headers) and all("timeStamp" in _fields(h) for h in headers)
+
+
+def _placed(
+    e57, headers: list, where: Where, *, xyz: bool, time: bool, chunk_points: int
+) -> Iterator[tuple[np.ndarray | None, np.ndarray | None]]:
+    """Every scan's valid points a chunk at a time: with ``xyz`` their x, y, z placed in the
+    file's common frame by the scan's pose, with ``time`` their time (the scan's
+    ``acquisitionStart`` plus the point's ``timeStamp``); None for what is not asked."""
+    names = (_XYZ if xyz else ()) + (("timeStamp",) if time else ())
+    for i, header in enumerate(headers):
+        rotation, translation = _pose(header)
+        start = 0.0
+        if time and header.node.isDefined("acquisitionStart/dateTimeValue"):
+            start = float(header["acquisitionStart"]["dateTimeValue"].value())
+        for part in _iter_scan(e57, header, i, where, names, chunk_points):
+            pts = None
+            if xyz:
+                pts = np.column_stack([part[n] for n in _XYZ]) @ rotation.T + translation
+            yield pts, part["timeStamp"] + start if time else None
+
+
 def read(path: Path, where: Where) -> np.ndarray:
     """Every scan's valid points in the file's common frame, ``(N, 3)`` float64, metres."""
-    parts = []
     with _opened(path, where) as e57:
-        for i, header in enumerate(_headers(e57, where)):
-            scan = _read_scan(e57, header, i, where, _XYZ)
-            pts = np.column_stack([scan[n] for n in _XYZ])
-            rotation, translation = _pose(header)
-            parts.append(pts @ rotation.T + translation)
+        chunks = _placed(
+            e57, _headers(e57, where), where, xyz=True, time=False, chunk_points=CHUNK_POINTS
+        )
+        parts = [pts for pts, _ in chunks if pts is not None]
     return np.concatenate(parts) if parts else np.empty((0, 3))
 
 
 def read_time(path: Path, where: Where) -> np.ndarray | None:
     """Each valid point's time: its scan's ``acquisitionStart`` plus its ``timeStamp``,
     seconds; None unless every scan has a ``timeStamp`` field."""
-    parts = []
     with _opened(path, where) as e57:
         headers = _headers(e57, where)
-        if not headers or not all("timeStamp" in _fields(h) for h in headers):
+        if not _timed(headers):
             return None
-        for i, header in enumerate(headers):
-            scan = _read_scan(e57, header, i, where, ("timeStamp",))
-            start = 0.0
-            if header.node.isDefined("acquisitionStart/dateTimeValue"):
-                start = float(header["acquisitionStart"]["dateTimeValue"].value())
-            parts.append(scan["timeStamp"] + start)
-    return np.concatenate(parts)
+        chunks = _placed(e57, headers, where, xyz=False, time=True, chunk_points=CHUNK_POINTS)
+        parts = [t for _, t in chunks if t is not None]
+    return np.concatenate(parts) if parts else np.empty(0)
 
 
 def iter_chunks(
@@ -200,16 +210,12 @@ def iter_chunks(
     ``timeStamp``)."""
     with _opened(path, where) as e57:
         headers = _headers(e57, where)
-        timed = with_time and bool(headers) and all("timeStamp" in _fields(h) for h in headers)
-        names = _XYZ + (("timeStamp",) if timed else ())
-        for i, header in enumerate(headers):
-            rotation, translation = _pose(header)
-            start = 0.0
-            if timed and header.node.isDefined("acquisitionStart/dateTimeValue"):
-                start = float(header["acquisitionStart"]["dateTimeValue"].value())
-            for part in _iter_scan(e57, header, i, where, names, chunk_points):
-                pts = np.column_stack([part[n] for n in _XYZ]) @ rotation.T + translation
-                yield pts, part["timeStamp"] + start if timed else None
+        timed = with_time and _timed(headers)
+        for pts, time_s in _placed(
+            e57, headers, where, xyz=True, time=timed, chunk_points=chunk_points
+        ):
+            assert pts is not None
+            yield pts, time_s
 
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
