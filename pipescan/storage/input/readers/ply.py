@@ -207,12 +207,25 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
 
 def _read_properties(path: Path, where: Where, wanted: tuple[str, ...]) -> np.ndarray:
     """Named vertex properties, ``(N, len(wanted))`` float64."""
+    parts = list(_properties(path, where, wanted, CHUNK_ROWS))
+    if not parts:
+        return np.empty((0, len(wanted)))
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
+def _properties(
+    path: Path, where: Where, wanted: tuple[str, ...], chunk_points: int
+) -> Iterator[np.ndarray]:
+    """Named vertex properties, ``(K, len(wanted))`` float64, at most ``chunk_points`` rows at
+    a time: a binary PLY is read a chunk at a time; an ASCII one is read whole, then handed
+    out in chunks."""
     header, offset = _check(path, where)
     vertex = header.vertex
     names = [name for name, _ in vertex.props]
     cols = [names.index(a) for a in wanted]
+    step = max(1, min(chunk_points, CHUNK_ROWS))
     if vertex.count == 0:
-        return np.empty((0, len(wanted)))
+        return
     if header.fmt == "ascii":
         before = 0
         for element in header.elements:
@@ -228,59 +241,37 @@ def _read_properties(path: Path, where: Where, wanted: tuple[str, ...]) -> np.nd
             raise where.corrupt(
                 f"the header declares {vertex.count:,} points but the file holds {len(pts):,}"
             )
-        return pts.reshape(-1, len(wanted)).astype(np.float64, copy=False)
+        pts = pts.reshape(-1, len(wanted)).astype(np.float64, copy=False)
+        for a in range(0, len(pts), step):
+            yield pts[a : a + step]
+        return
     dtype = _row_dtype(vertex, _FORMATS[header.fmt])
-    out = np.empty((vertex.count, len(wanted)))
     n = 0
     with path.open("rb") as fh:
         fh.seek(offset)
         while n < vertex.count:
-            rows = np.fromfile(fh, dtype=dtype, count=min(CHUNK_ROWS, vertex.count - n))
+            rows = np.fromfile(fh, dtype=dtype, count=min(step, vertex.count - n))
             if len(rows) == 0:
                 raise where.corrupt("the PLY vertices end early")
+            out = np.empty((len(rows), len(wanted)))
             for j, c in enumerate(cols):
-                out[n : n + len(rows), j] = rows[f"p{c}"]
+                out[:, j] = rows[f"p{c}"]
+            yield out
             n += len(rows)
-    return out
 
 
 def iter_chunks(
     path: Path, where: Where, *, chunk_points: int = CHUNK_ROWS, with_time: bool = False
 ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
     """The vertices' x, y, z of :func:`read` (and, with ``with_time``, the time of
-    :func:`read_time`), at most ``chunk_points`` at a time: a binary PLY is read a chunk at a
-    time; an ASCII one is read whole, then handed out in chunks."""
-    header, offset = _check(path, where)
-    vertex = header.vertex
-    names = [name for name, _ in vertex.props]
+    :func:`read_time`), at most ``chunk_points`` at a time (see :func:`_properties`)."""
+    names = [name for name, _ in _parse_header(path, where).vertex.props]
     found = next((n for n in TIME_NAMES if n in names), None) if with_time else None
-    wanted = AXES + ((found,) if found else ())
-    step = max(1, chunk_points)
-    if vertex.count == 0:
-        return
-    if header.fmt == "ascii":
-        rows = _read_properties(path, where, wanted)
-        for a in range(0, len(rows), step):
-            part = rows[a : a + step]
-            yield np.ascontiguousarray(part[:, :3]), part[:, 3].copy() if found else None
-        return
-    dtype = _row_dtype(vertex, _FORMATS[header.fmt])
-    cols = [f"p{names.index(a)}" for a in wanted]
-    n = 0
-    with path.open("rb") as fh:
-        fh.seek(offset)
-        while n < vertex.count:
-            rows = np.fromfile(fh, dtype=dtype, count=min(step, CHUNK_ROWS, vertex.count - n))
-            if len(rows) == 0:
-                raise where.corrupt("the PLY vertices end early")
-            out = np.empty((len(rows), len(wanted)))
-            for j, c in enumerate(cols):
-                out[:, j] = rows[c]
-            if found:
-                yield np.ascontiguousarray(out[:, :3]), out[:, 3].copy()
-            else:
-                yield out, None
-            n += len(rows)
+    for rows in _properties(path, where, AXES + ((found,) if found else ()), chunk_points):
+        if found:
+            yield np.ascontiguousarray(rows[:, :3]), rows[:, 3].copy()
+        else:
+            yield rows, None
 
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
