@@ -50,18 +50,12 @@ def check(path: Path, where: Where) -> int:
 
 def read(path: Path, where: Where) -> np.ndarray:
     """The points, ``(N, 3)`` float64, metres."""
-    shape, fortran, dtype, offset = _header(path, where)
-    count = math.prod(shape)
-    if count == 0:
-        return np.empty((0, 3))
-    try:
-        flat = np.fromfile(path, dtype=dtype, count=count, offset=offset)
-    except _FORMAT_ERRORS as exc:
-        raise where.corrupt(f"cannot read .npy: {exc}") from exc
-    if flat.size != count:
-        raise where.corrupt(f"the header declares {count // 3:,} points; fewer are present")
-    arr = flat.reshape(shape, order="F" if fortran else "C")
-    return arr.astype(np.float64, copy=False)
+    parts = [pts for pts, _ in iter_chunks(path, where, chunk_points=_WHOLE)]
+    return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
+
+
+_WHOLE = 2**62
+"""A chunk larger than any file: read in one piece."""
 
 
 def iter_chunks(
