@@ -117,11 +117,18 @@ def _scale_into(out: np.ndarray, chunk, scales: np.ndarray, offsets: np.ndarray)
         column += offsets[j]
 
 
-def _chunks(path: Path, where: Where, *, chunk_points: int = CHUNK_POINTS, time: bool = False):
+def _chunks(
+    path: Path,
+    where: Where,
+    *,
+    chunk_points: int = CHUNK_POINTS,
+    time: bool = False,
+    field: str = "points",
+):
     """The file's decoded chunks, at most ``chunk_points`` points each, as ``(header, chunk)``:
     the layout and the declared count are checked before the first, the count against what
     the file held after the last (a LAZ cannot be sized from its header, so one that ends
-    early fails at the chunk where it ends)."""
+    early fails at the chunk where it ends). A decoding error names ``field``."""
     import laspy
 
     _check_layout(path, where)
@@ -143,7 +150,8 @@ def _chunks(path: Path, where: Where, *, chunk_points: int = CHUNK_POINTS, time:
                     break
                 yield reader.header, chunk
     except _errors() as exc:
-        raise where.corrupt(f"cannot read LAS/LAZ: {exc}") from exc
+        what = "GPS time" if field == "gps_time" else field
+        raise where.corrupt(f"cannot read LAS/LAZ {what}: {exc}", field=field) from exc
     if n != declared:
         raise where.corrupt(f"the LAS header declares {declared:,} points but the file holds {n:,}")
 
@@ -205,19 +213,12 @@ def read(path: Path, where: Where) -> np.ndarray:
 
 def read_time(path: Path, where: Where) -> np.ndarray | None:
     """Each point's GPS time, ``(N,)`` float64 seconds, or None when the point format has
-    none. (Called after :func:`read`, which checked the file.)"""
-    import laspy
-
-    try:
-        with laspy.open(path, laz_backend=_laz_backend()) as reader:
-            if "gps_time" not in reader.header.point_format.dimension_names:
-                return None
-            parts = [
-                np.asarray(chunk.gps_time, dtype=np.float64)
-                for chunk in reader.chunk_iterator(CHUNK_POINTS)
-            ]
-    except _errors() as exc:
-        raise where.corrupt(f"cannot read LAS/LAZ GPS time: {exc}", field="gps_time") from exc
+    none."""
+    parts = []
+    for header, chunk in _chunks(path, where, time=True, field="gps_time"):
+        if "gps_time" not in header.point_format.dimension_names:
+            return None
+        parts.append(np.asarray(chunk.gps_time, dtype=np.float64))
     return np.concatenate(parts) if parts else np.empty(0)
 
 
@@ -265,19 +266,9 @@ def write_chunks(
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
     """LAS 1.4, point format 6, scale :data:`LAS_SCALE_M`, offset at the points' minimum;
-    ``.laz`` compressed with lazrs. ``time_s`` (N,), when given, is stored as GPS time."""
-    import laspy
-
+    ``.laz`` compressed with lazrs. ``time_s`` (N,), when given, is stored as GPS time (see
+    :func:`write_chunks`)."""
     if not np.isfinite(pts).all():
         raise ValueError("LAS/LAZ cannot store NaN or infinite coordinates")
     offsets = pts.min(axis=0) if len(pts) else np.zeros(3)
-    if len(pts) and ((pts.max(axis=0) - offsets) / LAS_SCALE_M >= 2**31 - 1).any():
-        raise ValueError("the points span more than the 0.1 mm LAS integer grid can hold")
-    header = laspy.LasHeader(point_format=6, version="1.4")
-    header.scales = np.full(3, LAS_SCALE_M)
-    header.offsets = offsets
-    las = laspy.LasData(header)
-    las.x, las.y, las.z = pts[:, 0], pts[:, 1], pts[:, 2]
-    if time_s is not None:
-        las.gps_time = np.asarray(time_s, dtype=np.float64)
-    las.write(path, laz_backend=laspy.LazBackend.Lazrs)
+    write_chunks(path, [(pts, time_s)], offsets=offsets, timed=time_s is not None)
