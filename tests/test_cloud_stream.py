@@ -42,11 +42,11 @@ def _cloud(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     return points + np.array([512_000.0, 6_170_000.0, 40.0]), x / 0.15
 
 
-@pytest.mark.parametrize("suffix", [".laz", ".las", ".e57", ".npy", ".ply", ".xyz"])
+@pytest.mark.parametrize("suffix", [".laz", ".las", ".e57", ".npy", ".ply", ".xyz", ".pcd"])
 @pytest.mark.parametrize("chunk_points", [1, 333, 5000])
 def test_the_chunks_are_the_file_in_order(tmp_path: Path, suffix: str, chunk_points: int):
-    """LAS, LAZ, E57 and ``.npy`` stream; PLY is read whole and handed out in chunks: the same
-    points and times as reading the file whole, in the same order."""
+    """LAS, LAZ, E57, binary PLY, ASCII and ``.npy`` stream; PCD is read whole and handed out
+    in chunks: the same points and times as reading the file whole, in the same order."""
     points, time_s = _cloud(2000)
     timed = READERS[suffix].read_time is not None
     path = tmp_path / f"cloud{suffix}"
