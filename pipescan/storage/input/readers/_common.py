@@ -51,6 +51,14 @@ class Where:
             raise self.over("points_max_count", f"the header declares {declared:,} points")
 
 
+def joined(parts: list[np.ndarray], empty_shape: tuple[int, ...]) -> np.ndarray:
+    """Chunks read one after the other as one array: the chunk itself when there is one (no
+    copy), an empty array of ``empty_shape`` when there is none."""
+    if not parts:
+        return np.empty(empty_shape)
+    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+
+
 def file_size(path: Path, where: Where) -> int:
     try:
         return path.stat().st_size

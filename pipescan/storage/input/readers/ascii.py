@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipescan.storage.input.readers._common import Where, count_lines, text_from
+from pipescan.storage.input.readers._common import Where, count_lines, joined, text_from
 
 SUFFIXES = (".xyz", ".txt")
 HEADER_LINES = 50
@@ -61,7 +61,7 @@ def check(path: Path, where: Where) -> int:
 def read(path: Path, where: Where) -> np.ndarray:
     """The points, ``(N, 3)`` float64, metres."""
     parts = [rows for rows, _ in iter_chunks(path, where)]
-    return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
+    return joined(parts, (0, 3))
 
 
 def iter_chunks(

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipescan.storage.input.readers._common import Where
+from pipescan.storage.input.readers._common import Where, joined
 
 SUFFIXES = (".e57",)
 CHUNK_POINTS = 1_000_000
@@ -186,7 +186,7 @@ def read(path: Path, where: Where) -> np.ndarray:
             e57, _headers(e57, where), where, xyz=True, time=False, chunk_points=CHUNK_POINTS
         )
         parts = [pts for pts, _ in chunks if pts is not None]
-    return np.concatenate(parts) if parts else np.empty((0, 3))
+    return joined(parts, (0, 3))
 
 
 def read_time(path: Path, where: Where) -> np.ndarray | None:
@@ -198,7 +198,7 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
             return None
         chunks = _placed(e57, headers, where, xyz=False, time=True, chunk_points=CHUNK_POINTS)
         parts = [t for _, t in chunks if t is not None]
-    return np.concatenate(parts) if parts else np.empty(0)
+    return joined(parts, (0,))
 
 
 def iter_chunks(

@@ -16,6 +16,7 @@ import numpy as np
 from pipescan.storage.input.readers._common import (
     Where,
     file_size,
+    joined,
     read_head,
     require_bytes,
 )
@@ -179,9 +180,7 @@ def _read(path: Path, where: Where, *, keep: bool) -> tuple[int, np.ndarray | No
         n += len(chunk)
     if not keep:
         return n, None
-    if out is None:
-        out = parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
-    return n, out
+    return n, out if out is not None else joined(parts, (0, 3))
 
 
 def iter_chunks(
@@ -219,7 +218,7 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
         if "gps_time" not in header.point_format.dimension_names:
             return None
         parts.append(np.asarray(chunk.gps_time, dtype=np.float64))
-    return np.concatenate(parts) if parts else np.empty(0)
+    return joined(parts, (0,))
 
 
 def write_chunks(

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from pipescan.core.npyheader import read_npy_header
-from pipescan.storage.input.readers._common import Where, file_size, require_bytes
+from pipescan.storage.input.readers._common import Where, file_size, joined, require_bytes
 
 SUFFIXES = (".npy",)
 _FORMAT_ERRORS = (ValueError, OSError, EOFError, TypeError, SyntaxError, KeyError)
@@ -51,7 +51,7 @@ def check(path: Path, where: Where) -> int:
 def read(path: Path, where: Where) -> np.ndarray:
     """The points, ``(N, 3)`` float64, metres."""
     parts = [pts for pts, _ in iter_chunks(path, where, chunk_points=_WHOLE)]
-    return parts[0] if len(parts) == 1 else np.concatenate(parts) if parts else np.empty((0, 3))
+    return joined(parts, (0, 3))
 
 
 _WHOLE = 2**62

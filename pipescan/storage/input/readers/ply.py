@@ -4,7 +4,8 @@ Open3D does not raise on a bad PLY: given a header that declares more vertices t
 holds, it returns a cloud of the declared size filled with whatever was in memory. So PLY is
 read here: the header is parsed, every element's declared count is checked against the bytes
 present (a list element counts at least its length fields) before anything is allocated, and
-the vertices are read in chunks into an array of the checked size.
+the vertices are read in chunks of at most :data:`CHUNK_ROWS` (``iter_chunks`` hands them out
+one at a time).
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from pipescan.storage.input.readers._common import (
     Where,
     count_lines,
     file_size,
+    joined,
     read_head,
     require_bytes,
     text_from,
@@ -197,20 +199,22 @@ def read(path: Path, where: Where) -> np.ndarray:
 def read_time(path: Path, where: Where) -> np.ndarray | None:
     """Each vertex's capture time, ``(N,)`` float64 seconds, from its first property named in
     :data:`TIME_NAMES`; None when it has none."""
-    header = _parse_header(path, where)
-    names = [name for name, _ in header.vertex.props]
-    found = next((n for n in TIME_NAMES if n in names), None)
+    found = _time_name(path, where)
     if found is None:
         return None
     return _read_properties(path, where, (found,))[:, 0]
 
 
+def _time_name(path: Path, where: Where) -> str | None:
+    """The vertex property read as each point's time: the first of :data:`TIME_NAMES` the
+    file has, or None."""
+    names = [name for name, _ in _parse_header(path, where).vertex.props]
+    return next((n for n in TIME_NAMES if n in names), None)
+
+
 def _read_properties(path: Path, where: Where, wanted: tuple[str, ...]) -> np.ndarray:
     """Named vertex properties, ``(N, len(wanted))`` float64."""
-    parts = list(_properties(path, where, wanted, CHUNK_ROWS))
-    if not parts:
-        return np.empty((0, len(wanted)))
-    return parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return joined(list(_properties(path, where, wanted, CHUNK_ROWS)), (0, len(wanted)))
 
 
 def _properties(
@@ -265,8 +269,7 @@ def iter_chunks(
 ) -> Iterator[tuple[np.ndarray, np.ndarray | None]]:
     """The vertices' x, y, z of :func:`read` (and, with ``with_time``, the time of
     :func:`read_time`), at most ``chunk_points`` at a time (see :func:`_properties`)."""
-    names = [name for name, _ in _parse_header(path, where).vertex.props]
-    found = next((n for n in TIME_NAMES if n in names), None) if with_time else None
+    found = _time_name(path, where) if with_time else None
     for rows in _properties(path, where, AXES + ((found,) if found else ()), chunk_points):
         if found:
             yield np.ascontiguousarray(rows[:, :3]), rows[:, 3].copy()
