@@ -2,6 +2,7 @@
 
     python benchmarks/bench_coding.py sweep          # every coding scene at 0.3-0.9 m, true poses
     python benchmarks/bench_coding.py sweep --harsh  # the same with every effect at its harsh end
+    python benchmarks/bench_coding.py sweep --layouts 12  # random defect layouts, true poses
     python benchmarks/bench_coding.py estimated      # some through the whole flow (estimated poses)
     python benchmarks/bench_coding.py real           # the real S3DSS scan's defects
 
@@ -35,7 +36,7 @@ from pipescan.settings import use_settings
 from pipescan.simulator.coding_scenes import CODING_DIAMETERS_M, SCENES, coding_draws
 from pipescan.simulator.features import FeatureOutcome, score_defects, true_features
 from pipescan.simulator.scan import simulate_scan
-from pipescan.simulator.sweep import HARSH
+from pipescan.simulator.sweep import HARSH, layout_draws
 
 OUTCOMES = ("found", "split", "mis-coded", "merged", "missed", "not measured")
 
@@ -120,6 +121,9 @@ def sweep(args: argparse.Namespace) -> None:
     names = args.scenes or list(SCENES)
     draws = coding_draws(names, args.diameters, effects=effects)
     label = "every effect at its harsh end" if args.harsh else "every effect at its default"
+    if args.layouts:
+        draws = layout_draws(args.layouts, args.layout_seed)
+        label = "random defect layouts, effects drawn from issue 12's ranges"
     print(f"## Coding sweep: {len(draws)} scans, true poses, {label}")
     print("| scan | true features | defects | outcomes | time (s) |")
     print("|---|---|---|---|---|")
@@ -245,6 +249,13 @@ def main() -> None:
         default=list(CODING_DIAMETERS_M),
         help="pipe sizes (m)",
     )
+    parser.add_argument(
+        "--layouts",
+        type=int,
+        default=0,
+        help="sweep: this many random defect layouts (layout_draws) instead of the scenes",
+    )
+    parser.add_argument("--layout-seed", type=int, default=2026, help="seed of --layouts")
     args = parser.parse_args()
     {"sweep": sweep, "estimated": estimated, "real": real}[args.what](args)
 

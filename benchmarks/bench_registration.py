@@ -6,6 +6,8 @@
     python benchmarks/bench_registration.py parallel    # register_chunk in 1 vs 2 threads/procs
     python benchmarks/bench_registration.py memory      # peak RSS, 100 vs 400 frames
     python benchmarks/bench_registration.py converge    # ICP stopping thresholds, short draws
+    python benchmarks/bench_registration.py sweep       # issue 12's sweep through the flow
+    python benchmarks/bench_registration.py sweep --layouts 12   # random defect layouts
     python benchmarks/bench_registration.py variants --variant '' source_voxel_m=0.06
                                                         # any registration parameters, same
     python benchmarks/bench_registration.py icp-work --archive DIR   # ICP's iterations a frame
@@ -591,9 +593,12 @@ def bench_sweep(args) -> None:
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     from prefect.testing.utilities import prefect_test_harness
 
-    from pipescan.simulator.sweep import DISHONEST_PP, FLAT_PP, sweep_draws
+    from pipescan.simulator.sweep import DISHONEST_PP, FLAT_PP, layout_draws, sweep_draws
 
-    draws = sweep_draws(random_draws=args.random_draws, long_run=not args.no_long)
+    if args.layouts:
+        draws = layout_draws(args.layouts, args.layout_seed)
+    else:
+        draws = sweep_draws(random_draws=args.random_draws, long_run=not args.no_long)
     if args.only:
         draws = [d for d in draws if any(o in d.name for o in args.only)]
     print(
@@ -1052,6 +1057,13 @@ def main() -> None:
     )
     parser.add_argument("--random-draws", type=int, default=8, help="sweep: random draws")
     parser.add_argument("--no-long", action="store_true", help="sweep: leave the 30 m run out")
+    parser.add_argument(
+        "--layouts",
+        type=int,
+        default=0,
+        help="sweep: run this many random defect layouts (layout_draws) instead of the sweep",
+    )
+    parser.add_argument("--layout-seed", type=int, default=2026, help="sweep: seed of --layouts")
     parser.add_argument(
         "--only",
         nargs="+",

@@ -22,6 +22,7 @@ from pipescan.simulator.sweep import (
     along_axis_travel,
     chainage_bound_misses,
     defect_scene,
+    layout_draws,
     measure_scan,
     random_effects,
     score_sections,
@@ -175,3 +176,20 @@ def test_slip_draws_slip_often_and_do_not_change_with_their_count():
     assert [d.name for d in draws] == [d.name for d in slip_draws(6)[:4]]
     assert all(0.15 <= d.scenario.effects.slip_per_m <= 0.5 for d in draws)
     assert len({d.seed for d in draws}) == 4
+
+
+def test_layout_draws_are_varied_and_do_not_change_with_their_count():
+    draws = layout_draws(12)
+    assert [d.name for d in draws[:5]] == [d.name for d in layout_draws(5)]
+    scenes = [d.scenario for d in draws]
+    # Every kind of defect, in more than the sweep's three pipe sizes, never the fixed layout.
+    assert all(any(getattr(s, kind) for s in scenes) for kind in (
+        "deformations", "deposits", "obstacles", "bands"))  # fmt: skip
+    assert len({s.nominal_diameter_m for s in scenes}) >= 4
+    fixed = defect_scene(0.6, 8.0)
+    assert not any(s.obstacles and s.obstacles[0] == fixed.obstacles[0] for s in scenes)
+    # Each defect lies where the crawler passes, and the sensor clears every deposit.
+    for s in scenes:
+        parts = (*s.deformations, *s.deposits, *s.obstacles, *s.bands)
+        assert 2 <= len(parts) <= 4
+        assert all(0.8 <= p.start_m <= s.travel_m - 0.3 for p in parts)

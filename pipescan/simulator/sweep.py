@@ -30,6 +30,7 @@ from pipescan.simulator.scan import (
     Effects,
     EllipticalDeformation,
     Scenario,
+    WallBand,
 )
 
 if TYPE_CHECKING:
@@ -219,6 +220,116 @@ def sweep_draws(*, random_draws: int = 8, seed: int = 12, long_run: bool = True)
     if long_run:
         scene = defect_scene(0.5, 30.0, effects=random_effects(rng), name="long30")
         draws.append(Draw("combined: random, 0.5 m, 30 m run", "combined", scene, 200))
+    return draws
+
+
+LAYOUT_DIAMETERS_M = (0.3, 0.4, 0.5, 0.6, 0.8)
+"""Pipe diameters of :func:`layout_draws` (the sweep's own are 0.3, 0.5 and 0.6 m)."""
+
+_LAYOUT_KINDS = ("deformation", "deposit", "crown box", "side box", "invert body", "band")
+
+
+def _layout_part(kind: str, rng: np.random.Generator, x: float, d: float) -> object:
+    """One defect of ``kind`` starting ``x`` m along a pipe of diameter ``d``, its size drawn
+    from what sewers show (ratios of the diameter where the defect scales with the pipe)."""
+    r = d / 2
+    u = rng.uniform
+    if kind == "deformation":
+        length = u(0.4, 1.2)
+        ramp = u(0.1, min(0.3, length / 2))
+        return EllipticalDeformation(x, x + length, ramp, u(0.0, 0.15), u(-0.08, 0.08))
+    if kind == "deposit":
+        length = u(0.4, 1.5)
+        ramp = u(0.05, min(0.5, length / 2))
+        return DepositFill(x, x + length, ramp, u(0.05, 0.25))
+    length = u(0.1, 0.4)
+    if kind == "crown box":  # hanging from the crown, reaching beyond the wall
+        half, centre = u(0.08, 0.3) * d, u(-0.1, 0.1) * d
+        return BoxObstacle(
+            x, x + length, centre - half, centre + half, r - u(0.1, 0.28) * d, r + 0.1
+        )
+    if kind == "side box":  # jutting from one side wall
+        side, reach = float(rng.choice((-1.0, 1.0))), u(0.08, 0.22) * d
+        half, centre = u(0.05, 0.18) * d, u(-0.1, 0.15) * d
+        ys = sorted((side * (r + 0.1), side * (r - reach)))
+        return BoxObstacle(x, x + length, ys[0], ys[1], centre - half, centre + half)
+    if kind == "invert body":  # standing on the invert
+        half = u(0.04, 0.12) * d
+        return BoxObstacle(x, x + length, -half, half, -r - 0.1, -r + u(0.1, 0.22) * d)
+    first = float(u(0.0, 12.0))
+    return WallBand(
+        x, x + u(0.3, 1.5), first, float(np.mod(first + u(1.0, 6.0), 12.0)), u(0.01, 0.04) * d
+    )
+
+
+def layout_scene(
+    rng: np.random.Generator,
+    diameter_m: float,
+    travel_m: float,
+    *,
+    effects: Effects | None = None,
+    name: str = "layout",
+) -> Scenario:
+    """A pipe with 2-4 defects of random kinds, sizes and places (none of the sweep's fixed
+    layout): deformations, deposits, boxes from the crown, a side or the invert, and bands on
+    the wall, placed between 0.8 m and the end of the travel, overlapping where they happen to.
+    A draw the scene rejects (a deposit or box across the sensor's path, two deformations or
+    a band and a box in one place) is drawn again from the same stream."""
+    k = diameter_m / 0.5
+    for _ in range(100):
+        parts = [
+            _layout_part(
+                str(rng.choice(_LAYOUT_KINDS)),
+                rng,
+                float(rng.uniform(0.8, travel_m - 0.3)),
+                diameter_m,
+            )
+            for _ in range(int(rng.integers(2, 5)))
+        ]
+        deposits = tuple(p for p in parts if isinstance(p, DepositFill))
+        top = max(
+            (-diameter_m / 2 + f.peak_height_ratio * diameter_m for f in deposits), default=-1.0
+        )
+        try:
+            return Scenario(
+                name=name,
+                nominal_diameter_m=diameter_m,
+                travel_m=travel_m,
+                end_wall_beyond_travel_m=8.0,
+                mount_offset_y_m=0.01 * k,
+                mount_offset_z_m=max(-0.05 * k, top + 0.065),
+                deformations=tuple(p for p in parts if isinstance(p, EllipticalDeformation)),
+                deposits=deposits,
+                obstacles=tuple(p for p in parts if isinstance(p, BoxObstacle)),
+                bands=tuple(p for p in parts if isinstance(p, WallBand)),
+                effects=effects if effects is not None else Effects(),
+                asset_id=f"SIM-{name.upper()}",
+                truth_ray_stride=1,
+            )
+        except ValueError:
+            continue
+    raise RuntimeError("no valid layout in 100 draws")  # pragma: no cover
+
+
+def layout_draws(count: int = 10, seed: int = 2026) -> list[Draw]:
+    """Draws on layouts the code was never tuned on: each a :func:`layout_scene` in a pipe of
+    one of :data:`LAYOUT_DIAMETERS_M`, 5-9 m of travel, with effects drawn from issue 12's
+    ranges (:func:`random_effects`). Each draw has its own random stream (``seed + j``), so a
+    draw does not change with ``count``; its scan seed is ``seed + j`` too."""
+    draws = []
+    for j in range(count):
+        rng = np.random.default_rng(seed + j)
+        d = float(rng.choice(LAYOUT_DIAMETERS_M))
+        travel = float(rng.uniform(5.0, 9.0))
+        scene = layout_scene(rng, d, travel, effects=random_effects(rng), name=f"layout{j}")
+        kinds = ", ".join(
+            f"{len(getattr(scene, f))} {f}"
+            for f in ("deformations", "deposits", "obstacles", "bands")
+            if getattr(scene, f)
+        )
+        draws.append(
+            Draw(f"layout {seed}+{j}, {d} m, {travel:.1f} m ({kinds})", "layout", scene, seed + j)
+        )
     return draws
 
 
