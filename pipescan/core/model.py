@@ -90,8 +90,9 @@ class SectionStatus(StrEnum):
     against the odometer, and left them out), or one had neither odometer nor geometry along
     the axis (its place was extrapolated)."""
     SMEARED_WALL = "smeared_wall"
-    """The wall's points spread around the contour by more than the sensor's noise allows:
-    the frames that saw the section disagree."""
+    """The frames that saw the section disagree: the wall's points spread around the contour
+    by more than the sensor's noise allows, or a surface was seen in front of the wall where
+    other frames saw the wall itself."""
     INVERT_UNDER_WATER = "invert_under_water"
 
 

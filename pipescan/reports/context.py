@@ -80,8 +80,9 @@ STATUS_EXPLANATIONS: dict[str, str] = {
         "the pipe"
     ),
     SectionStatus.SMEARED_WALL: (
-        "the wall's points spread around the contour by more than the sensor's noise: the "
-        "frames that saw the section disagree"
+        "the frames that saw the section disagree: the wall's points spread around the "
+        "contour by more than the sensor's noise, or an object was seen where other frames "
+        "saw the bare wall (registration may have slid along the pipe unseen)"
     ),
 }
 MEASURE_LABELS: dict[str, str] = {

@@ -52,6 +52,9 @@ class PolarProfile:
     slice_radii_m: np.ndarray | None = field(default=None, repr=False, compare=False)
     """(B, S) each sub-slice's radius per bin (NaN where it did not see the bin), for the
     uncertainty from the section changing along its length."""
+    both_layers: np.ndarray | None = field(default=None, repr=False, compare=False)
+    """(B,) bool: bins where the near surface and the far layer behind it were both seen in
+    the same sub-slices, in as many as a bin needs to be seen (``wall_behind_deg``)."""
 
     @property
     def seen(self) -> np.ndarray:
@@ -106,6 +109,69 @@ class PolarProfile:
         r = self.filled_radii()
         return np.column_stack((r * np.cos(self.angles_rad), r * np.sin(self.angles_rad)))
 
+    def _two_layer_runs(self) -> list[tuple[np.ndarray, bool, bool]]:
+        """Runs of consecutive bins that hold two layers (a far layer ``layer_gap_m`` beyond
+        the near one), each with whether the wall continues from the open bin before its
+        first bin and after its last (the open bin reaches the far layer's radius within
+        ``layer_gap_m``). Bins in circular order; none when no bin, or every bin, holds two."""
+        if self.far_radii_m is None:
+            return []
+        near, far, seen, layer_gap_m = self.radii_m, self.far_radii_m, self.seen, self.layer_gap_m
+        bins = len(near)
+        two = seen & np.isfinite(far)
+        two[two] = far[two] - near[two] >= layer_gap_m
+        if not two.any() or two.all():
+            return []
+
+        def wall_beside(neighbour: int, edge: int) -> bool:
+            return bool(
+                seen[neighbour]
+                and not two[neighbour]
+                and abs(near[neighbour] - far[edge]) <= layer_gap_m
+            )
+
+        runs = []
+        start = int(np.argmin(two))  # a bin outside every run
+        idx = np.roll(np.arange(bins), -start)
+        flags = two[idx]
+        i = 0
+        while i < bins:
+            if not flags[i]:
+                i += 1
+                continue
+            j = i
+            while j + 1 < bins and flags[j + 1]:
+                j += 1
+            run = idx[i : j + 1]
+            before, after = idx[i - 1], idx[(j + 1) % bins]
+            runs.append((run, wall_beside(before, run[0]), wall_beside(after, run[-1])))
+            i = j + 1
+        return runs
+
+    def wall_behind_deg(self) -> float:
+        """The widest run of bins where a surface was seen in front of the wall across its
+        whole width, and the wall behind it in the same sub-slices, in degrees (0 when none):
+        the bins of such a run where both layers were seen in the same sub-slices
+        (``both_layers``; a face across the axis that a section straddles holds its two
+        layers in different sub-slices, the wall before it and the face after).
+
+        The wall behind an object attached to it (a box hanging from the crown, a root, a
+        deposit) lies inside the object: no ray reaches it. Beside the object's edge it can
+        be seen (a pocket, ``pocket_polygons``), but then the run of two-layer bins starts at
+        that edge and ends where the object meets the wall. A run with the wall continuing on
+        both sides is an object floating in front of a wall seen whole behind it: frames that
+        disagree about where the object is (one registered too far along the pipe places it
+        where the others saw the wall), not a surface in the pipe.
+        """
+        if self.both_layers is None:
+            return 0.0
+        widths = [
+            int(self.both_layers[run].sum())
+            for run, first, last in self._two_layer_runs()
+            if first and last
+        ]
+        return 360.0 * max(widths, default=0) / len(self.radii_m)
+
     def pocket_polygons(self) -> list[np.ndarray]:
         """Free space seen behind the edge of an overhanging obstacle, one polygon per pocket.
 
@@ -125,52 +191,25 @@ class PolarProfile:
         -------
         list of (M, 2) float
         """
-        if self.far_radii_m is None:
-            return []
-        near, far, seen, layer_gap_m = self.radii_m, self.far_radii_m, self.seen, self.layer_gap_m
-        bins = len(near)
-        two = seen & np.isfinite(far)
-        two[two] = far[two] - near[two] >= layer_gap_m
-        if not two.any() or two.all():
-            return []
-        half_bin = np.pi / bins
-
-        def wall_beside(neighbour: int, edge: int) -> bool:
-            return bool(
-                seen[neighbour]
-                and not two[neighbour]
-                and abs(near[neighbour] - far[edge]) <= layer_gap_m
-            )
-
+        near, far = self.radii_m, self.far_radii_m
+        half_bin = np.pi / len(near)
         pockets = []
-        start = int(np.argmin(two))  # a bin outside every run
-        idx = np.roll(np.arange(bins), -start)
-        flags = two[idx]
-        i = 0
-        while i < bins:
-            if not flags[i]:
-                i += 1
+        for run, edge_first, edge_last in self._two_layer_runs():
+            if edge_first == edge_last:
                 continue
-            j = i
-            while j + 1 < bins and flags[j + 1]:
-                j += 1
-            run = idx[i : j + 1]
-            before, after = idx[i - 1], idx[(j + 1) % bins]
-            edge_first, edge_last = wall_beside(before, run[0]), wall_beside(after, run[-1])
-            if edge_first != edge_last:
-                wall = before if edge_first else after
-                if edge_last:
-                    run = run[::-1]
-                theta_edge = self.angles_rad[run[0]] + (-half_bin if edge_first else half_bin)
-                # The edge bin can straddle the obstacle's edge (its sub-slices disagree, and
-                # its near radius is halfway out): the edge is the nearer of the first two.
-                # From there the pocket starts at the open bin's wall point, a vertex of the
-                # nearest-surface polygon, so that their union has no notch.
-                r_edge = float(near[run[:2]].min())
-                theta = np.concatenate(([theta_edge, self.angles_rad[wall]], self.angles_rad[run]))
-                radius = np.concatenate(([r_edge, near[wall]], far[run]))
-                pockets.append(np.column_stack((radius * np.cos(theta), radius * np.sin(theta))))
-            i = j + 1
+            bins = len(near)
+            wall = (run[0] - 1) % bins if edge_first else (run[-1] + 1) % bins
+            if edge_last:
+                run = run[::-1]
+            theta_edge = self.angles_rad[run[0]] + (-half_bin if edge_first else half_bin)
+            # The edge bin can straddle the obstacle's edge (its sub-slices disagree, and
+            # its near radius is halfway out): the edge is the nearer of the first two.
+            # From there the pocket starts at the open bin's wall point, a vertex of the
+            # nearest-surface polygon, so that their union has no notch.
+            r_edge = float(near[run[:2]].min())
+            theta = np.concatenate(([theta_edge, self.angles_rad[wall]], self.angles_rad[run]))
+            radius = np.concatenate(([r_edge, near[wall]], far[run]))
+            pockets.append(np.column_stack((radius * np.cos(theta), radius * np.sin(theta))))
         return pockets
 
     @cached_property
@@ -320,6 +359,7 @@ def polar_profile(
             seen &= per_bin >= min_bin_share * float(np.median(per_bin[per_bin > 0]))
     radii = np.full(bins, np.nan)
     far_radii = np.full(bins, np.nan)
+    both = np.zeros(bins, dtype=bool)
     if seen.any():
         radii[seen] = np.nanmedian(near_per_bin[seen], axis=1)
         # The far layer: the points of each cell beyond the bin's near surface by more than
@@ -336,6 +376,10 @@ def polar_profile(
         far_seen = seen & (np.isfinite(far_per_bin).sum(axis=1) >= min_slices)
         if far_seen.any():
             far_radii[far_seen] = np.nanmedian(far_per_bin[far_seen], axis=1)
+        # Sub-slices that hold the bin's near surface and, in the same cell, a far layer.
+        with np.errstate(invalid="ignore"):
+            near_here = np.abs(near_per_bin - radii[:, None]) < layer_gap_m
+        both = (near_here & np.isfinite(far_per_bin)).sum(axis=1) >= min_slices
     angles = (np.arange(bins) + 0.5) * 2.0 * np.pi / bins
     return PolarProfile(
         angles_rad=angles,
@@ -344,6 +388,7 @@ def polar_profile(
         far_radii_m=far_radii,
         layer_gap_m=layer_gap_m,
         slice_radii_m=near_per_bin,
+        both_layers=both,
     )
 
 
