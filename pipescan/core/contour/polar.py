@@ -184,20 +184,21 @@ class PolarProfile:
         that was seen, and back to the edge in a straight line: the wall further on, which no
         ray reached, counts as blocked. A run that does not start at a visible edge (a hole,
         or an island such as a root seen from below, whose far side is unseen) is left out:
-        it stays blocked. The far layer must lie ``layer_gap_m`` beyond the near one, and the
-        open bin beside the run must reach the far layer's radius within ``layer_gap_m``.
+        it stays blocked (and a section with the wall seen behind an island across its whole
+        width is not ``ok``: ``wall_behind_deg``). The far layer must lie ``layer_gap_m``
+        beyond the near one, and the open bin beside the run must reach the far layer's radius
+        within ``layer_gap_m``.
 
         Returns
         -------
         list of (M, 2) float
         """
-        near, far = self.radii_m, self.far_radii_m
-        half_bin = np.pi / len(near)
+        near, far, bins = self.radii_m, self.far_radii_m, len(self.radii_m)
+        half_bin = np.pi / bins
         pockets = []
         for run, edge_first, edge_last in self._two_layer_runs():
             if edge_first == edge_last:
                 continue
-            bins = len(near)
             wall = (run[0] - 1) % bins if edge_first else (run[-1] + 1) % bins
             if edge_last:
                 run = run[::-1]
