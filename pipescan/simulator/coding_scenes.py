@@ -21,6 +21,7 @@ from pipescan.simulator.scan import (
     EllipticalDeformation,
     Scenario,
     WallBand,
+    sensor_mount_z_m,
 )
 from pipescan.simulator.sweep import Draw
 
@@ -177,13 +178,8 @@ def coding_scene(
     end_m = max(p.end_m for p in parts)  # type: ignore[attr-defined]
     effects = effects if effects is not None else Effects()
     # The sensor rides above any deposit's top, with room for its mount jitter (4σ).
-    clearance_m = 0.02 + 4.0 * effects.mount_jitter_m + 0.005
-    tops = [
-        -diameter_m / 2.0 + f.peak_height_ratio * diameter_m
-        for f in fields["deposits"]
-        if isinstance(f, DepositFill)
-    ]
-    mount_z_m = max([-0.05 * k] + [top + clearance_m for top in tops])
+    ratios = [f.peak_height_ratio for f in fields["deposits"] if isinstance(f, DepositFill)]
+    mount_z_m = sensor_mount_z_m(diameter_m, ratios, effects.mount_jitter_m)
     slug = "".join(c if c.isalnum() else "-" for c in name).strip("-")
     values: dict[str, object] = {
         "name": f"coding: {name}",

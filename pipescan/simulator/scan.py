@@ -44,7 +44,7 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import TypeVar
@@ -100,6 +100,17 @@ _MIXED_PIXEL_MIN_GAP_M = 0.02
 _ILLINOIS_STEPS = 7
 _MARCH_STEP_M = 0.02
 _SENSOR_CLEARANCE_M = 0.02
+
+
+def sensor_mount_z_m(
+    diameter_m: float, deposit_peak_ratios: Sequence[float], mount_jitter_m: float
+) -> float:
+    """A sensor height (pipe frame, m) that clears every deposit: 5 cm below the axis of a
+    0.5 m pipe, scaled with the pipe, or above the highest deposit's top by the clearance
+    :class:`Scenario` checks (2 cm and 4σ of the mount jitter) and 5 mm more."""
+    clearance_m = _SENSOR_CLEARANCE_M + 4.0 * mount_jitter_m + 0.005
+    tops = [-diameter_m / 2.0 + ratio * diameter_m for ratio in deposit_peak_ratios]
+    return max([-0.05 * (diameter_m / 0.5)] + [top + clearance_m for top in tops])
 
 
 @dataclass(frozen=True)

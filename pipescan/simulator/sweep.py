@@ -36,12 +36,16 @@ from pipescan.simulator.scan import (
     EllipticalDeformation,
     Scenario,
     WallBand,
+    sensor_mount_z_m,
 )
 
 if TYPE_CHECKING:
     from pipescan.core.registration import RegistrationParams
 
 _DEPOSIT_PEAK_RATIO = 0.2851
+_MOUNT_JITTER_ROOM_M = 0.01
+"""The sweep's scenes leave the sensor room for the largest mount jitter of issue 12's range,
+so that any draw of effects fits them."""
 
 HARSH = Effects(
     range_noise_sigma_m=0.006,
@@ -82,8 +86,8 @@ EFFECT_GROUPS: dict[str, tuple[str, ...]] = {
 
 @dataclass(frozen=True)
 class Draw:
-    """One scan of the sweep: ``name``, ``kind`` (``effect`` or ``combined``), the scenario and
-    the seed that make it."""
+    """One scan of the sweep: ``name``, ``kind`` (``effect``, ``combined`` or ``layout``), the
+    scenario and the seed that make it."""
 
     name: str
     kind: str
@@ -106,9 +110,6 @@ def defect_scene(
     ``end_wall_beyond_travel_m`` beyond the last position: by default out of the registration's
     range, as in a long sewer, so that it never steadies the along-axis position."""
     k = diameter_m / 0.5  # the paper's defects are drawn for a 0.5 m pipe
-    # The sensor rides above the deposit's top with room for 1 cm of mount jitter (4σ).
-    deposit_top_m = -diameter_m / 2 + _DEPOSIT_PEAK_RATIO * diameter_m
-    mount_z_m = max(-0.05 * k, deposit_top_m + 0.065)
     deformations, deposits, obstacles = [], [], []
     for start in np.arange(0.0, max(travel_m - 3.0, 0.0) + 1e-9, repeat_m):
         x = float(start)
@@ -121,7 +122,7 @@ def defect_scene(
         travel_m=travel_m,
         end_wall_beyond_travel_m=end_wall_beyond_travel_m,
         mount_offset_y_m=0.01 * k,
-        mount_offset_z_m=mount_z_m,
+        mount_offset_z_m=sensor_mount_z_m(diameter_m, (_DEPOSIT_PEAK_RATIO,), _MOUNT_JITTER_ROOM_M),
         deformations=tuple(deformations),
         deposits=tuple(deposits),
         obstacles=tuple(obstacles),
@@ -147,7 +148,7 @@ def smooth_scene(
         travel_m=travel_m,
         end_wall_beyond_travel_m=end_wall_beyond_travel_m,
         mount_offset_y_m=0.01 * k,
-        mount_offset_z_m=-0.05 * k,
+        mount_offset_z_m=sensor_mount_z_m(diameter_m, (), _MOUNT_JITTER_ROOM_M),
         effects=effects if effects is not None else Effects(),
         asset_id=f"SIM-{name.upper()}",
         truth_ray_stride=1,
@@ -295,9 +296,6 @@ def layout_scene(
             for _ in range(int(rng.integers(2, 5)))
         ]
         deposits = tuple(p for p in parts if isinstance(p, DepositFill))
-        top = max(
-            (-diameter_m / 2 + f.peak_height_ratio * diameter_m for f in deposits), default=-1.0
-        )
         try:
             return Scenario(
                 name=name,
@@ -305,7 +303,9 @@ def layout_scene(
                 travel_m=travel_m,
                 end_wall_beyond_travel_m=8.0,
                 mount_offset_y_m=0.01 * k,
-                mount_offset_z_m=max(-0.05 * k, top + 0.065),
+                mount_offset_z_m=sensor_mount_z_m(
+                    diameter_m, [f.peak_height_ratio for f in deposits], _MOUNT_JITTER_ROOM_M
+                ),
                 deformations=tuple(p for p in parts if isinstance(p, EllipticalDeformation)),
                 deposits=deposits,
                 obstacles=tuple(p for p in parts if isinstance(p, BoxObstacle)),
