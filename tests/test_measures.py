@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -24,7 +25,7 @@ from pipescan.core.contour.base import (
 from pipescan.core.contour.grid import GridParams, angle_gap_std, grid_cell_size
 from pipescan.core.contour.polar import polar_profile
 from pipescan.core.errors import OptionError
-from pipescan.core.measures import MeasureParams, measure_section
+from pipescan.core.measures import MeasureParams, measure_section, withhold_smeared_object_edges
 from pipescan.core.model import SectionStatus
 from tests.synthetic import ring_section, segment_area_ratio
 
@@ -469,6 +470,47 @@ def test_an_object_seen_where_other_frames_saw_bare_wall_is_not_ok(arc_deg):
     box = np.abs(np.degrees(np.arctan2(pts[:, 1], pts[:, 0])) - 90.0) <= arc_deg / 2
     behind = box & (np.hypot(pts[:, 0], pts[:, 1]) > R - 0.02)
     assert measure(pts[~behind]).status == SectionStatus.OK
+
+
+def _at(points, start_m):
+    return measure_section(
+        points, chainage_start_m=start_m, chainage_end_m=start_m + 0.1, nominal_diameter_m=D
+    )
+
+
+def _rotated(points, angle_rad):
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    out = points.copy()
+    out[:, :2] = points[:, :2] @ np.array([[c, -s], [s, c]]).T
+    return out
+
+
+def test_the_edge_of_an_object_seen_where_other_frames_saw_bare_wall_is_not_ok():
+    """The section that straddles a ghost's front edge holds the ghost in only two of its
+    four sub-slices: alone it cannot show the two layers, and it reads a blockage where the
+    pipe is clear. Next to the ghost's body (withheld by the wall behind it) it is withheld
+    too; a neighbour with nothing at that clock, or one that does not touch, is not."""
+    rng = np.random.default_rng(40)
+    body = _at(ghost_section(rng, arc_deg=30.0), 6.5)
+    assert body.status == SectionStatus.SMEARED_WALL
+    assert body.wall_behind_deg > MeasureParams().max_wall_behind_deg
+    ghost = ghost_section(rng, arc_deg=30.0)
+    underside = np.hypot(ghost[:, 0], ghost[:, 1]) < R - 0.03
+    edge_points = ghost[~underside | (ghost[:, 2] < 0.05)]  # the ghost in the first half
+    edge = _at(edge_points, 6.4)
+    assert edge.status == SectionStatus.OK and edge.blockage_ratio > 0.01  # the trap
+    side = _at(_rotated(edge_points, np.pi / 2), 6.6)  # the same edge a quarter turn round
+    clear = _at(ring_section(40_000, noise_m=0.003, rng=rng), 6.6)
+    apart = _at(edge_points, 6.8)  # the same edge, not touching the body
+    out = withhold_smeared_object_edges([edge, body, side])
+    assert [s.status for s in out] == [SectionStatus.SMEARED_WALL, body.status, SectionStatus.OK]
+    assert out[0].blockage_ratio == edge.blockage_ratio  # kept for diagnosis
+    out = withhold_smeared_object_edges([apart, clear, body])  # any order
+    assert [s.status for s in out] == [SectionStatus.OK, SectionStatus.OK, body.status]
+    # A wall smeared around the contour (frames that disagree across the pipe) says nothing
+    # about an object's place along it.
+    spread = dataclasses.replace(body, wall_behind_deg=0.0)
+    assert withhold_smeared_object_edges([edge, spread])[0].status == SectionStatus.OK
 
 
 @pytest.mark.parametrize("wall_seen_to_deg", [45.0, 51.5, ATTACH_DEG - 0.5])

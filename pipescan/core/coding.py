@@ -1002,7 +1002,7 @@ class FeatureRun:
         return _arc_ends(longest, bins)
 
 
-def _arcs_meet(f: WallFeature, g: WallFeature, slack_rad: float) -> bool:
+def arcs_meet(f: WallFeature, g: WallFeature, slack_rad: float) -> bool:
     """Whether two features' arcs overlap (within ``slack_rad``); features without an arc
     (deformations) meet each other."""
     if f.arc_from_rad is None or g.arc_from_rad is None:
@@ -1060,7 +1060,7 @@ def feature_runs(
         last = run["sections"][-1]
         if run["code"] != f.code or last >= i:
             return False
-        return bridges(last, i) and _arcs_meet(run["features"][-1], f, slack)
+        return bridges(last, i) and arcs_meet(run["features"][-1], f, slack)
 
     def bridges(last: int, i: int) -> bool:
         """Section ``i`` follows ``last`` directly, or across at most ``bridge_m`` of
@@ -1123,7 +1123,7 @@ def _absorb_unclassified(
                 ends.append((r["features"][-1], u["features"][0]))
             if last < r["sections"][0] and bridges(last, r["sections"][0]):
                 ends.append((r["features"][0], u["features"][-1]))
-            meeting = [a for a, b in ends if _arcs_meet(a, b, slack) or a.arc_from_rad is None]
+            meeting = [a for a, b in ends if arcs_meet(a, b, slack) or a.arc_from_rad is None]
             if meeting and len(r["sections"]) > best_overlap:
                 best, best_overlap = r, len(r["sections"])
         if best is None:

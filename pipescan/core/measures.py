@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.ndimage import median_filter
 
+from pipescan.core.coding import CodingParams, WallFeature, arcs_meet, code_section
 from pipescan.core.contour import DEFAULT_CONTOUR_METHOD, check_contour_method, contour_method
 from pipescan.core.contour.base import (
     angle_bins,
@@ -25,6 +27,7 @@ from pipescan.core.contour.grid import GridParams
 from pipescan.core.contour.polar import PolarProfile, polar_profile
 from pipescan.core.errors import GeometryError
 from pipescan.core.model import SectionMeasures, SectionStatus
+from pipescan.core.summary import touches
 from pipescan.core.uncertainty import (
     area_uncertainty,
     diameter_uncertainty_m,
@@ -475,10 +478,11 @@ def measure_section(
         status = SectionStatus.SMEARED_WALL
     # Frames that disagree along the pipe about where an object is show it in front of a wall
     # that other frames saw bare, across the object's whole width.
+    wall_behind = None if sparse else profile.wall_behind_deg()
     if (
         status == SectionStatus.OK
-        and not sparse
-        and profile.wall_behind_deg() > params.max_wall_behind_deg
+        and wall_behind is not None
+        and wall_behind > params.max_wall_behind_deg
     ):
         status = SectionStatus.SMEARED_WALL
     per_bin = float(np.median(profile.counts[profile.seen]))
@@ -497,6 +501,7 @@ def measure_section(
     return SectionMeasures(
         status=status,
         wall_spread_m=spread,
+        wall_behind_deg=wall_behind,
         coverage_ratio=coverage,
         open_area_m2=open_area,
         blockage_ratio=1.0 - open_area / nominal_area,
@@ -515,6 +520,71 @@ def measure_section(
         contour_m=polygon,
         **base,
     )
+
+
+def withhold_smeared_object_edges(
+    sections: Sequence[SectionMeasures],
+    params: MeasureParams = MeasureParams(),
+    coding: CodingParams = CodingParams(),
+    *,
+    slack_deg: float = 5.0,
+) -> list[SectionMeasures]:
+    """Withhold an ok section that holds the edge of an object whose next section is
+    ``smeared_wall`` because the object was seen where other frames saw bare wall.
+
+    Such an object (``SectionMeasures.wall_behind_deg`` over ``params.max_wall_behind_deg``)
+    is where frames that disagree along the pipe placed it: a box seen before an unseen slide
+    and again after it is drawn twice, and the copy where the pipe is clear is a ghost. The
+    section that straddles the ghost's front or rear edge holds the ghost in only some of its
+    sub-slices, so it cannot show the two layers itself, and it reads a blockage where there
+    is none. The doubt is the object's, not the section's: a section that touches the
+    smeared one (no chainage between them) and whose displaced wall meets the object's (the
+    coder's displaced arcs, :func:`pipescan.core.coding.code_section`, overlapping within
+    ``slack_deg``) is ``smeared_wall`` too. Only the sections next to one smeared by the
+    object rule are withheld, not their neighbours in turn: an object seen bare-walled
+    along its body is smeared in each of those sections by the rule itself.
+
+    Deformations (which move the whole ring, no arc) never carry it. Sections are returned
+    in the order given; only statuses change.
+    """
+    order = sorted(range(len(sections)), key=lambda i: sections[i].chainage_start_m)
+    arcs: dict[int, list[WallFeature]] = {}
+
+    def object_arcs(i: int) -> list[WallFeature]:
+        if i not in arcs:
+            s = sections[i]
+            arcs[i] = []
+            if s.contour_m is not None and s.nominal_area_m2 > 0:
+                diameter_m = 2.0 * math.sqrt(s.nominal_area_m2 / math.pi)
+                found = code_section(s.contour_m, diameter_m, coding).features
+                arcs[i] = [f for f in found if f.arc_from_rad is not None]
+        return arcs[i]
+
+    withheld: set[int] = set()
+    for k, i in enumerate(order):
+        s = sections[i]
+        if not (
+            s.status == SectionStatus.SMEARED_WALL
+            and s.wall_behind_deg is not None
+            and s.wall_behind_deg > params.max_wall_behind_deg
+        ):
+            continue
+        for j in (order[k - 1] if k > 0 else None, order[k + 1] if k + 1 < len(order) else None):
+            if j is None or not sections[j].is_ok:
+                continue
+            n = sections[j]
+            if not (
+                touches(n.chainage_end_m, s.chainage_start_m)
+                or touches(s.chainage_end_m, n.chainage_start_m)
+            ):
+                continue
+            slack = math.radians(slack_deg)
+            if any(arcs_meet(f, g, slack) for f in object_arcs(i) for g in object_arcs(j)):
+                withheld.add(j)
+    return [
+        dataclasses.replace(s, status=SectionStatus.SMEARED_WALL) if i in withheld else s
+        for i, s in enumerate(sections)
+    ]
 
 
 def _finite(value: float) -> float | None:

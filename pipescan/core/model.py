@@ -92,7 +92,8 @@ class SectionStatus(StrEnum):
     SMEARED_WALL = "smeared_wall"
     """The frames that saw the section disagree: the wall's points spread around the contour
     by more than the sensor's noise allows, or a surface was seen in front of the wall where
-    other frames saw the wall itself."""
+    other frames saw the wall itself, or the section holds the edge of such a surface seen
+    in the next section (``withhold_smeared_object_edges``)."""
     INVERT_UNDER_WATER = "invert_under_water"
 
 
@@ -109,6 +110,8 @@ class SectionMeasures:
     from its chainage (the odometer-held travel before it; None when not known).
     ``wall_spread_m`` is the robust spread of the wall's points around the contour (a
     diagnostic of registration; not stored).
+    ``wall_behind_deg`` is the widest arc over which an object was seen in front of a wall
+    that other frames saw bare (``PolarProfile.wall_behind_deg``; a diagnostic, not stored).
     """
 
     chainage_start_m: float
@@ -134,6 +137,7 @@ class SectionMeasures:
     contour_m: np.ndarray | None = field(default=None, compare=False, repr=False)
     chainage_uncertainty_m: float | None = None
     wall_spread_m: float | None = field(default=None, compare=False)
+    wall_behind_deg: float | None = field(default=None, compare=False)
 
     @property
     def is_ok(self) -> bool:

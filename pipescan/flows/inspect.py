@@ -17,7 +17,7 @@ from prefect.utilities.annotations import quote
 
 import pipescan
 from pipescan.core.grading import choose_grading, is_flagged
-from pipescan.core.measures import MeasureParams
+from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.registration import (
     RegistrationParams,
     chain_trajectories,
@@ -311,8 +311,12 @@ def inspect_archive(
                     reached[w].append(k)
                     submit_window(w, bucket_futures)
         # Water read where a deposit's or obstacle's shadow explains the unseen invert is
-        # taken back (it takes sections on both sides of a window's edge).
-        sections = explain_invert_shadows([s for f in window_futures for s in f.result()])
+        # taken back, and an object's edge is withheld where the object was seen where other
+        # frames saw bare wall (both take sections on both sides of a window's edge).
+        sections = withhold_smeared_object_edges(
+            explain_invert_shadows([s for f in window_futures for s in f.result()]),
+            params.measure,
+        )
         grading = grade(
             sections,
             params.threshold_table,

@@ -682,6 +682,7 @@ def measure_scan(
     trajectory, sections
     """
     from pipescan.core.axis import fit_axis
+    from pipescan.core.measures import withhold_smeared_object_edges
     from pipescan.core.registration import (
         RegistrationParams,
         chain_trajectories,
@@ -721,4 +722,4 @@ def measure_scan(
             nominal_diameter_m=scan.scenario.nominal_diameter_m,
             evidence=evidence,
         )
-    return trajectory, explain_invert_shadows(sections)
+    return trajectory, withhold_smeared_object_edges(explain_invert_shadows(sections))
