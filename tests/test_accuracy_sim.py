@@ -135,9 +135,10 @@ def test_an_object_ghosted_by_an_unseen_slide_is_not_an_ok_figure():
     count stood, with nothing registration could see in view: a box hanging from the crown
     ahead is placed about 0.3 m short by the frames after the slide, and where it is by those
     before. The sections through that ghost, where one set of frames saw the box and the
-    other the bare crown, read several per cent where the pipe is clear; they must not be ok.
-    (The one that straddles the ghost's front edge, with the box in only two of its four
-    sub-slices, reads about 2 % and stays ok: docs/measures.md.)"""
+    other the bare crown, read several per cent where the pipe is clear; they must not be ok,
+    nor must the sections across the ghost's edges, which hold the box in only some of their
+    sub-slices (docs/measures.md). No ok section is left more than 2 points off the truth
+    everywhere within its chainage ±."""
     draw = layout_draws(3)[2]
     scan = simulate_scan(draw.scenario, draw.seed)
     trajectory, sections = measure_scan(scan)
@@ -147,12 +148,13 @@ def test_an_object_ghosted_by_an_unseen_slide_is_not_an_ok_figure():
         s
         for s in sections
         if s.blockage_ratio is not None
-        and s.blockage_ratio > 0.03
+        and s.blockage_ratio > 0.015
         and truth.section(np.array([s.chainage_start_m]))[0] < 0.005
     ]
-    assert ghost, "the slide left no ghost: the scene no longer tests this"
+    assert len(ghost) >= 2, "the slide left no ghost: the scene no longer tests this"
     assert not any(s.is_ok for s in ghost), ghost
     assert all(s.status == SectionStatus.SMEARED_WALL for s in ghost), ghost
+    assert score_sections(sections, truth).dishonest == 0
 
 
 def test_true_shifts_say_where_a_drifted_section_really_was():
