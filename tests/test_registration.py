@@ -20,6 +20,7 @@ from pipescan.core.registration import (
     SlipLog,
     Trajectory,
     chain_trajectories,
+    drop_early_returns,
     iter_registered_points,
     kabsch,
     plan_chunks,
@@ -161,13 +162,43 @@ def test_spurious_returns_do_not_move_frames_along_the_pipe(misty_scan, monkeypa
     assert np.linalg.norm(positions[-1] - positions[0]) < 0.7 * travel
 
 
+def test_early_returns_are_dropped_and_every_surface_kept():
+    """Mist in front of a pipe wall goes; the wall, and a box hanging from the crown in front
+    of it (edges included), stay. Rays spread evenly over directions, as a sensor's do."""
+    rng = np.random.default_rng(11)
+    rays = rng.normal(size=(150_000, 3))
+    rays /= np.linalg.norm(rays, axis=1)[:, None]
+    rays = rays[rays[:, 0] > 0.5]  # a 120° cone along the pipe
+    t_wall = 0.3 / np.hypot(rays[:, 1], rays[:, 2])  # a 0.6 m pipe along x
+    # The box: x 1.5-1.8 m, y ±0.1 m, from 0.15 m up to the crown (slab test).
+    lo, hi = np.array([1.5, -0.1, 0.15]), np.array([1.8, 0.1, 0.3])
+    t1, t2 = lo / rays, hi / rays
+    enter = np.minimum(t1, t2).max(axis=1)
+    on_box = (enter <= np.maximum(t1, t2).min(axis=1)) & (enter < t_wall)
+    t = np.where(on_box, enter, t_wall)
+    keep_range = t < 6.0
+    rays, t, on_box = rays[keep_range], t[keep_range], on_box[keep_range]
+    fraction = np.ones(len(t))
+    mist = rng.random(len(t)) < 0.02  # issue 12's mist: 2 % of returns at 20-100 % of the range
+    fraction[mist] = rng.uniform(0.2, 1.0, mist.sum())
+    frame = rays * (t * fraction)[:, None]
+    kept = drop_early_returns(frame, 0.8)
+    is_kept = np.isin(frame[:, 0], kept[:, 0])  # each x is distinct
+    assert is_kept[~mist & ~on_box].mean() > 0.995  # the wall
+    assert on_box.sum() > 100 and is_kept[~mist & on_box].mean() > 0.99  # the box, its edges
+    assert is_kept[mist & (fraction < 0.75)].mean() < 0.05
+    assert len(drop_early_returns(frame, 0.0)) == len(frame)
+
+
 def test_a_slide_is_caught_and_put_back_on_the_odometer(misty_scan, monkeypatch):
     # Fake geometry with a little information (ICP's error 2 cm along the axis) in a smooth,
-    # misty pipe: each frame slides back a little, and the slide window catches it.
+    # misty pipe, its early returns kept in: they crowd round the sensor and each frame
+    # slides back a little, and the slide window catches it.
     from pipescan.core.registration import registrar
 
     monkeypatch.setattr(registrar, "axial_information", lambda *args: 1.0 / 0.02**2)
-    traj = register_frames(_imu_frames(misty_scan))
+    params = RegistrationParams(early_return_ratio=0.0)
+    traj = register_frames(_imu_frames(misty_scan), params)
     e = _errors(misty_scan, traj)
     slid = [q.index for q in traj.quality if q.fault == "slide"]
     assert len(slid) > 20
@@ -176,7 +207,7 @@ def test_a_slide_is_caught_and_put_back_on_the_odometer(misty_scan, monkeypatch)
     # Frames that slid are left out of the sections; the other frames see them whole.
     placed = list(iter_registered_points(((q.index, np.zeros((1, 3))) for q in traj.quality), traj))
     assert len(placed) == len(traj.quality) - len(slid)
-    assert registration_summary(traj, RegistrationParams())["slides"] == len(slid)
+    assert registration_summary(traj, params)["slides"] == len(slid)
 
 
 def test_features_override_an_odometer_that_slipped():

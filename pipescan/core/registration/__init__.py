@@ -62,6 +62,7 @@ from pipescan.core.registration.params import (
     RegistrationParams,
 )
 from pipescan.core.registration.preprocess import (
+    drop_early_returns,
     estimate_normals,
     preprocess_frame,
     remove_isolated,
@@ -95,6 +96,7 @@ __all__ = [
     "chain_trajectories",
     "degenerate_directions",
     "degenerate_spans",
+    "drop_early_returns",
     "estimate_normals",
     "gravity_corrected",
     "icp_point_to_point",

@@ -69,6 +69,15 @@ class RegistrationParams:
     source_voxel_m : float, optional
         Voxel size of each frame, coarser than the map's: fewer points, faster ICP. ``None``
         uses ``voxel_m``.
+    early_return_ratio : float
+        A frame's (downsampled) return is dropped when fewer than two of the returns around
+        it in direction (its ``EARLY_RETURN_NEIGHBOURS`` nearest rays) lie within
+        ``1 / early_return_ratio`` of its range or nearer: it sits in front of every surface
+        its neighbours hit, in free space they saw through. That is a spurious early return
+        (mist, spray, a drip; issue 12 has them land at 20-100 % of the true range, so 0.8
+        drops three quarters of them). Kept in, they crowd near the sensor and travel with
+        it, and pull ICP back along a pipe (``docs/registration.md``, *Early returns*). 0
+        turns the filter off.
     icp_max_points : int, optional
         At most this many of the frame's (downsampled) points enter ICP, a stride through
         them; the evidence read after ICP (the correspondences that weigh it against the
@@ -106,6 +115,7 @@ class RegistrationParams:
     odometer_noise_m: float = 0.001
     slide_window_m: float = 0.5
     source_voxel_m: float | None = 0.045
+    early_return_ratio: float = 0.8
     icp_max_points: int | None = None
     converged_rotation_rad: float = 5e-4
     converged_translation_m: float = 5e-4
@@ -143,6 +153,11 @@ class RegistrationParams:
             raise ValueError(
                 f"RegistrationParams.icp_max_points must be >= {_MIN_ICP_POINTS} or None, "
                 f"got {self.icp_max_points!r}."
+            )
+        if not 0.0 <= self.early_return_ratio < 1.0:
+            raise ValueError(
+                "RegistrationParams.early_return_ratio must be in [0, 1), "
+                f"got {self.early_return_ratio!r}."
             )
         for name in ("max_iterations", "map_keyframes", "num_threads"):
             if getattr(self, name) < 1:

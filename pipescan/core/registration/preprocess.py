@@ -2,9 +2,10 @@
 
 Two filters, because what is not surface differs in a frame and in the map:
 
-- A frame (sensor frame) is range-cropped and voxelised. Its stray points find nothing in a
-  clean map to pull on (ICP's correspondence gate, and a robust kernel where the engine has
-  one).
+- A frame (sensor frame) is range-cropped and voxelised, and its early returns are dropped: a
+  return in front of what every ray around it hit lies in free space those rays saw through
+  (``drop_early_returns``). Its other stray points find nothing in a clean map to pull on
+  (ICP's correspondence gate, and a robust kernel where the engine has one).
 - A keyframe of the local map keeps only voxels that at least two of its frames hit (a
   single-frame keyframe, the first, drops its isolated points with Open3D's statistical
   outlier removal instead). A
@@ -31,6 +32,10 @@ NORMAL_NEIGHBOURS = 12
 _OUTLIER_NEIGHBOURS = 8
 _OUTLIER_STD_RATIO = 3.0
 _MIN_FRAMES_PER_VOXEL = 2
+
+EARLY_RETURN_NEIGHBOURS = 8
+"""Rays around a return (nearest in direction) that ``drop_early_returns`` compares it with."""
+_EARLY_RETURN_SUPPORT = 2
 
 
 def crop_range(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
@@ -66,12 +71,51 @@ def remove_isolated(points_m: np.ndarray) -> np.ndarray:
     return np.asarray(points_m, np.float64)[np.asarray(kept, dtype=np.int64)]
 
 
-def preprocess_frame(points_m: np.ndarray, params: RegistrationParams) -> np.ndarray:
-    """Range-crop and voxel-downsample (at ``source_voxel_m``, or ``voxel_m`` when it is
-    None); returns (K, 3) float64 (sensor frame).
+def drop_early_returns(
+    points_sensor_m: np.ndarray, ratio: float, *, neighbours: int = EARLY_RETURN_NEIGHBOURS
+) -> np.ndarray:
+    """Drop returns that lie in front of what the rays around them hit, (K, 3) float64.
 
-    What is not surface in the frame is left to the correspondence gate and to the map's
-    filter (``seen_twice``): a frame's stray points find nothing in a clean map to pull on.
+    A return is kept when at least two of its ``neighbours`` nearest rays (by direction from
+    the sensor, at the origin) hit something no further than its range divided by
+    ``ratio``. A surface, even seen grazing, has rays on its near side; a spurious early
+    return (mist, spray) floats in free space that the rays around it went through. (A
+    mixed pixel at a depth edge has the nearer surface's rays beside it, and is kept.)
+    ``ratio`` 0 keeps every point. The test is one-sided: nothing is dropped for being
+    further than its neighbours (the wall behind an object's edge is kept).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> angle = rng.uniform(0, 2 * np.pi, 2000)
+    >>> wall = np.column_stack((rng.uniform(0.5, 3, 2000), 0.3 * np.cos(angle),
+    ...                         0.3 * np.sin(angle)))
+    >>> mist = 0.4 * wall[:20]  # returns at 40 % of the range of a ray the wall answered
+    >>> kept = drop_early_returns(np.vstack((wall, mist)), 0.8)
+    >>> len(kept) >= 1990, bool(np.all(np.isin(mist[:, 0], kept[:, 0], invert=True)))
+    (True, True)
+    """
+    import small_gicp
+
+    pts = np.asarray(points_sensor_m, dtype=np.float64)
+    if ratio <= 0.0 or len(pts) <= neighbours:
+        return pts
+    r = np.linalg.norm(pts, axis=1)
+    directions = pts / np.maximum(r, 1e-12)[:, None]
+    tree = small_gicp.KdTree(small_gicp.PointCloud(directions), num_threads=1)
+    idx, _ = tree.batch_knn_search(directions, neighbours + 1, 1)
+    around = r[np.asarray(idx, dtype=np.int64)[:, 1:]]  # the first is the ray itself
+    support = np.count_nonzero(ratio * around <= r[:, None], axis=1)
+    return pts[support >= _EARLY_RETURN_SUPPORT]
+
+
+def preprocess_frame(points_m: np.ndarray, params: RegistrationParams) -> np.ndarray:
+    """Range-crop, voxel-downsample (at ``source_voxel_m``, or ``voxel_m`` when it is
+    None) and drop early returns (``drop_early_returns`` with ``early_return_ratio``);
+    returns (K, 3) float64 (sensor frame).
+
+    The frame's other stray points are left to the correspondence gate and to the map's
+    filter (``seen_twice``): they find nothing in a clean map to pull on.
 
     Examples
     --------
@@ -86,7 +130,8 @@ def preprocess_frame(points_m: np.ndarray, params: RegistrationParams) -> np.nda
     pts = crop_range(points_m, params.max_range_m)
     if len(pts) == 0:
         return pts
-    return voxel_downsample(pts, params.source_voxel_m or params.voxel_m)
+    pts = voxel_downsample(pts, params.source_voxel_m or params.voxel_m)
+    return drop_early_returns(pts, params.early_return_ratio)
 
 
 def seen_twice(frames_world: list[np.ndarray], voxel_m: float) -> np.ndarray:
