@@ -446,8 +446,16 @@ def bench_parallel(args) -> None:
                 pool.map(lambda c: _register_chunk_in_worker(root, *c, params, 2), chunks)
             )
             wall = time.perf_counter() - wall
-        # CPU: this process's and the workers' while registering (not their start-up).
-        rows["2 engine processes (the flow)"] = (wall, _cpu_s() - cpu)
+            # CPU: this process's and the workers' while registering (not their start-up).
+            rows["2 engine processes (the flow)"] = (wall, _cpu_s() - cpu)
+            # The same without the early-return filter: what the filter costs.
+            unfiltered = dataclasses.replace(params, early_return_ratio=0.0)
+            cpu, wall = _cpu_s(), time.perf_counter()
+            list(pool.map(lambda c: _register_chunk_in_worker(root, *c, unfiltered, 2), chunks))
+            rows["2 engine processes, early returns kept"] = (
+                time.perf_counter() - wall,
+                _cpu_s() - cpu,
+            )
         print(f"\n{n} frames of the paper scan from an archive, chunks {chunks}\n")
         print("| workers | wall time (s) | speed-up | frames/s | real-time factor | cores used |")
         print("|---|---:|---:|---:|---:|---:|")
@@ -706,21 +714,23 @@ def registration_params(variant: str) -> RegistrationParams:
     return dataclasses.replace(defaults, **changes)
 
 
-def _variant_draw(job: tuple[str, str]) -> tuple[str, dict]:
+def _variant_draw(job: tuple[str, str, int, int]) -> tuple[str, dict]:
     """One draw registered and measured in memory (the flow's stages without Prefect) with
     the registration parameters of a variant; its row and its figures."""
     from pipescan.core.registration import trajectory_errors
     from pipescan.simulator.sweep import (
         TrueBlockage,
         along_axis_travel,
+        layout_draws,
         measure_scan,
         score_sections,
         stretches_worse_than_odometer,
         sweep_draws,
     )
 
-    name, variant = job
-    draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
+    name, variant, layouts, layout_seed = job
+    draws = layout_draws(layouts, layout_seed) if layouts else sweep_draws(long_run=False)
+    draw = next(d for d in draws if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
     params = registration_params(variant)
     started = time.process_time()
@@ -756,9 +766,11 @@ def bench_variants(args, variants: list[str] | None = None) -> None:
     """The sweep's short draws registered with several sets of registration parameters, in
     memory, two draws at a time: accuracy against the truth, and the CPU the whole of each
     draw's in-memory chain took (registration is most of it)."""
-    from pipescan.simulator.sweep import sweep_draws
+    from pipescan.simulator.sweep import layout_draws, sweep_draws
 
-    names = _names(sweep_draws(long_run=False), args.only)
+    layouts, seed = getattr(args, "layouts", 0), getattr(args, "layout_seed", 2026)
+    draws = layout_draws(layouts, seed) if layouts else sweep_draws(long_run=False)
+    names = _names(draws, args.only)
     variants = args.variant if variants is None else variants
     for variant in variants:
         registration_params(variant)  # a typo stops the run here, not an hour in
@@ -777,7 +789,8 @@ def bench_variants(args, variants: list[str] | None = None) -> None:
     with ProcessPoolExecutor(2) as pool:
         for variant in variants:
             figures = []
-            for row, f in pool.map(_variant_draw, [(n, variant) for n in names]):
+            jobs = [(n, variant, layouts, seed) for n in names]
+            for row, f in pool.map(_variant_draw, jobs):
                 print(row, flush=True)
                 figures.append(f)
             totals.append((variant, figures))
@@ -954,9 +967,11 @@ def bench_axial_error(args) -> None:
     the sweep's short draws, registered as the flow does, each frame's ICP solution along the
     axis is compared with the truth: if ``1/√I`` is honest, the median of ``|error| / (1/√I)``
     is 0.67 and 0.3 % of frames lie beyond 3."""
-    from pipescan.simulator.sweep import sweep_draws
+    from pipescan.simulator.sweep import layout_draws, sweep_draws
 
-    names = _names(sweep_draws(long_run=False), args.only)
+    layouts, seed = getattr(args, "layouts", 0), getattr(args, "layout_seed", 2026)
+    draws = layout_draws(layouts, seed) if layouts else sweep_draws(long_run=False)
+    names = _names(draws, args.only)
     print(
         f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
         "Frames with information along the axis, no fault; error: ICP's solution along the "
@@ -1061,9 +1076,12 @@ def main() -> None:
         "--layouts",
         type=int,
         default=0,
-        help="sweep: run this many random defect layouts (layout_draws) instead of the sweep",
+        help="sweep, variants: run this many random defect layouts (layout_draws) instead "
+        "of the sweep's draws",
     )
-    parser.add_argument("--layout-seed", type=int, default=2026, help="sweep: seed of --layouts")
+    parser.add_argument(
+        "--layout-seed", type=int, default=2026, help="sweep, variants: seed of --layouts"
+    )
     parser.add_argument(
         "--only",
         nargs="+",
