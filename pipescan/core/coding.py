@@ -58,8 +58,10 @@ __all__ = [
     "FeatureRun",
     "SectionCoding",
     "WallFeature",
+    "arcs_meet",
     "clock_angle_rad",
     "clock_hours",
+    "code_contour",
     "code_section",
     "code_sections",
     "feature_runs",
@@ -957,14 +959,18 @@ def code_sections(
 ) -> list[SectionCoding | None]:
     """:func:`code_section` for every measured section that has a contour; None for the rest
     (a section that is not ``ok`` is never coded, and one without a contour cannot be)."""
-    out: list[SectionCoding | None] = []
-    for s in sections:
-        if not s.is_ok or s.contour_m is None or not s.nominal_area_m2 > 0:
-            out.append(None)
-            continue
-        diameter_m = 2.0 * math.sqrt(s.nominal_area_m2 / math.pi)
-        out.append(code_section(s.contour_m, diameter_m, params))
-    return out
+    return [code_contour(s, params) if s.is_ok else None for s in sections]
+
+
+def code_contour(
+    section: SectionMeasures, params: CodingParams = CodingParams()
+) -> SectionCoding | None:
+    """:func:`code_section` of a section's contour at its nominal diameter, whatever its
+    status; None when it has no contour or no nominal size."""
+    if section.contour_m is None or not section.nominal_area_m2 > 0:
+        return None
+    diameter_m = 2.0 * math.sqrt(section.nominal_area_m2 / math.pi)
+    return code_section(section.contour_m, diameter_m, params)
 
 
 # --- along the chainage -----------------------------------------------------------------------

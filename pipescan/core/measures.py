@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 from scipy.ndimage import median_filter
 
-from pipescan.core.coding import CodingParams, WallFeature, arcs_meet, code_section
+from pipescan.core.coding import CodingParams, WallFeature, arcs_meet, code_contour
 from pipescan.core.contour import DEFAULT_CONTOUR_METHOD, check_contour_method, contour_method
 from pipescan.core.contour.base import (
     angle_bins,
@@ -552,14 +552,12 @@ def withhold_smeared_object_edges(
 
     def object_arcs(i: int) -> list[WallFeature]:
         if i not in arcs:
-            s = sections[i]
-            arcs[i] = []
-            if s.contour_m is not None and s.nominal_area_m2 > 0:
-                diameter_m = 2.0 * math.sqrt(s.nominal_area_m2 / math.pi)
-                found = code_section(s.contour_m, diameter_m, coding).features
-                arcs[i] = [f for f in found if f.arc_from_rad is not None]
+            coded = code_contour(sections[i], coding)
+            found = coded.features if coded is not None else []
+            arcs[i] = [f for f in found if f.arc_from_rad is not None]
         return arcs[i]
 
+    slack = math.radians(slack_deg)
     withheld: set[int] = set()
     for k, i in enumerate(order):
         s = sections[i]
@@ -578,7 +576,6 @@ def withhold_smeared_object_edges(
                 or touches(s.chainage_end_m, n.chainage_start_m)
             ):
                 continue
-            slack = math.radians(slack_deg)
             if any(arcs_meet(f, g, slack) for f in object_arcs(i) for g in object_arcs(j)):
                 withheld.add(j)
     return [
