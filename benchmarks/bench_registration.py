@@ -13,6 +13,7 @@
     python benchmarks/bench_registration.py icp-work --archive DIR   # ICP's iterations a frame
     python benchmarks/bench_registration.py slips       # does the chainage ± cover unseen slips
     python benchmarks/bench_registration.py axial-error # is ICP's stated axial error honest
+    python benchmarks/bench_registration.py odometer-scale  # learn the odometer's scale?
     python benchmarks/bench_registration.py all
 
 Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
@@ -887,6 +888,99 @@ def bench_slips(args) -> None:
     )
 
 
+# --------------------------------------------------------------------------- odometer scale
+
+
+SCALE_WINDOW_M = 0.5
+"""Odometer travel over which ``odometer-scale`` takes one ratio of registered to odometer
+travel (the slide window's length)."""
+
+
+def _learned_scale_travel(est, odo, held, *, mode: str, clamp: float | None) -> np.ndarray:
+    """Positions along the axis (m) with each held frame's odometer step multiplied by the
+    scale learned so far from the frames ICP anchored: ``naive``, their registered travel
+    over their odometer travel; ``median``, the median of that ratio over each
+    ``SCALE_WINDOW_M`` of anchored odometer travel. Nothing is learned before 1 m of anchored
+    travel; ``clamp`` bounds the scale to 1 ± the odometer's stated scale error."""
+    d_est, d_odo = np.diff(est), np.diff(odo)
+    anchored = ~held[1:]
+    correction = np.zeros(len(est))
+    ratios: list[float] = []
+    num = den = win_est = win_odo = 0.0
+    for i in range(len(d_est)):
+        if mode == "naive":
+            scale = num / den if den >= 1.0 else 1.0
+        else:
+            scale = float(np.median(ratios)) if den >= 1.0 and ratios else 1.0
+        if clamp is not None:
+            scale = min(max(scale, 1.0 - clamp), 1.0 + clamp)
+        if anchored[i]:
+            num, den = num + d_est[i], den + d_odo[i]
+            win_est, win_odo = win_est + d_est[i], win_odo + d_odo[i]
+            if win_odo >= SCALE_WINDOW_M:
+                ratios.append(win_est / win_odo)
+                win_est = win_odo = 0.0
+        else:
+            correction[i + 1] = (scale - 1.0) * d_odo[i]
+    return est + np.cumsum(correction)
+
+
+def _scale_draw(name: str) -> str:
+    """One short sweep draw registered in memory as the flow chunks it; its row of
+    ``bench_odometer_scale``."""
+    from pipescan.simulator.sweep import along_axis_travel, sweep_draws
+
+    draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
+    scan = simulate_scan(draw.scenario, draw.seed)
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    params = RegistrationParams()
+    trajectory = chain_trajectories(
+        [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
+    )
+    idx, est, true = along_axis_travel(trajectory, scan)
+    odo = scan.odometer_m[idx] - scan.odometer_m[idx[0]]
+    held = np.array([q.degenerate for q in trajectory.quality])
+    cells = []
+    for travel in (
+        est,
+        _learned_scale_travel(est, odo, held, mode="naive", clamp=None),
+        _learned_scale_travel(
+            est, odo, held, mode="median", clamp=params.odometer_scale_error_ratio
+        ),
+    ):
+        cells.append(
+            f"{100 * (travel[-1] / true[-1] - 1):+.2f} % / {np.abs(travel - true).max():.3f}"
+        )
+    return (
+        f"| {name} | {100 * (odo[-1] / true[-1] - 1):+.2f} % | {100 * held.mean():.0f} % | "
+        + " | ".join(cells)
+        + " |"
+    )
+
+
+def bench_odometer_scale(args) -> None:
+    """Would learning the odometer's scale where ICP anchors the frames help where it does
+    not? The sweep's short draws registered in memory, two at a time; the frames held to the
+    odometer then moved by the scale learned so far (causal, after the fact: registration
+    itself is unchanged). An experiment, not what pipescan does."""
+    from pipescan.simulator.sweep import sweep_draws
+
+    names = _names(sweep_draws(long_run=False), args.only)
+    print(
+        f"{len(names)} draws; held: frames resting on the odometer. Each cell: travel error at "
+        "the end / the largest error along the axis of any frame (m). naive: registered over "
+        "odometer travel of the anchored frames so far; median: the median of that ratio per "
+        f"{SCALE_WINDOW_M} m of anchored travel, clamped to the odometer's stated ±3 %.\n"
+    )
+    print(
+        "| draw | odometer err | held | as registered | naive scale | median, clamped |\n"
+        "|---|---:|---:|---:|---:|---:|"
+    )
+    with ProcessPoolExecutor(2) as pool:
+        for row in pool.map(_scale_draw, names):
+            print(row, flush=True)
+
+
 # --------------------------------------------------------------------------- axial error
 
 
@@ -1065,6 +1159,7 @@ def main() -> None:
             "variants",
             "icp-work",
             "slips",
+            "odometer-scale",
             "axial-error",
             "all",
             "memory-child",
@@ -1124,12 +1219,22 @@ def main() -> None:
         "variants": bench_variants,
         "icp-work": bench_icp_work,
         "slips": bench_slips,
+        "odometer-scale": bench_odometer_scale,
         "axial-error": bench_axial_error,
     }
     for name, step in steps.items():
         if args.what == name or (
             args.what == "all"
-            and name not in ("sweep", "converge", "variants", "icp-work", "slips", "axial-error")
+            and name
+            not in (
+                "sweep",
+                "converge",
+                "variants",
+                "icp-work",
+                "slips",
+                "odometer-scale",
+                "axial-error",
+            )
         ):
             print(f"\n## {name}\n", flush=True)
             step(args)
