@@ -14,6 +14,7 @@
     python benchmarks/bench_registration.py slips       # does the chainage ± cover unseen slips
     python benchmarks/bench_registration.py axial-error # is ICP's stated axial error honest
     python benchmarks/bench_registration.py odometer-scale  # learn the odometer's scale?
+    python benchmarks/bench_registration.py pose-parts  # which pose error biases sections
     python benchmarks/bench_registration.py all
 
 Options scale the runs down (``--travel-m``, ``--frames``). The scans are the simulator's:
@@ -981,6 +982,147 @@ def bench_odometer_scale(args) -> None:
             print(row, flush=True)
 
 
+# --------------------------------------------------------------------------- pose parts
+
+
+def _clean_section_bias(scan, trajectory, poses: dict) -> str:
+    """The sections of a scan whose frames are placed with ``poses`` (frame index → 4×4, in
+    the trajectory's frame), measured as the flow does (``fit_axis``, ``measure_window``);
+    the mean signed error of the ok sections where the truth is a clean pipe (0 %, flat
+    within 0.15 m), and how many of them miss by more than their ± plus 0.1 pp."""
+    from pipescan.core.axis import fit_axis
+    from pipescan.core.sections import measure_window, plan_windows
+    from pipescan.simulator.sweep import FLAT_PP, STATED_TOLERANCE, TrueBlockage
+
+    truth = TrueBlockage(scan)
+    parts = []
+    for frame in scan.frames():
+        if frame.index not in poses:
+            continue
+        pts = frame.points_sensor.astype(np.float64)
+        pts = pts[np.einsum("ij,ij->i", pts, pts) <= MAX_SECTION_RANGE_M**2]
+        T = poses[frame.index]
+        parts.append(pts @ T[:3, :3].T + T[:3, 3])
+    points = np.concatenate(parts)
+    positions = trajectory.positions_m()
+    axis = fit_axis(points, start_m=positions[0], travel_m=positions[-1] - positions[0])
+    chain = axis.chainage(points)
+    errors, missed = [], 0
+    for w in plan_windows(max(0.0, float(chain.min())), float(chain.max()), step_m=0.1):
+        inside = (chain >= w.start_m) & (chain < w.end_m)
+        for sec in measure_window(
+            points[inside], axis, w, nominal_diameter_m=scan.scenario.nominal_diameter_m
+        ):
+            start = round(sec.chainage_start_m, 3)
+            if not sec.is_ok or sec.blockage_ratio is None:
+                continue
+            flat = truth.variation(start, 0.15) * 100 <= FLAT_PP
+            if float(truth.section(np.array([start]))[0]) != 0.0 or not flat:
+                continue
+            errors.append(sec.blockage_ratio)
+            stated = sec.blockage_uncertainty_ratio or 0.0
+            missed += abs(sec.blockage_ratio) > stated + STATED_TOLERANCE
+    return f"{100 * np.mean(errors):+.3f} pp | {missed} of {len(errors)}"
+
+
+MAX_SECTION_RANGE_M = 5.0
+"""The inspection's section range (``InspectionParams.max_section_range_m``)."""
+
+
+def _placed(frame_indices, true: dict, rotation: dict, offsets=None) -> dict:
+    """Poses with ``rotation``'s rotations and the true translations plus ``offsets`` (F, 3)."""
+    poses = {}
+    for k, i in enumerate(frame_indices):
+        T = true[i].copy()
+        T[:3, :3] = rotation[i][:3, :3]
+        if offsets is not None:
+            T[:3, 3] += offsets[k]
+        poses[i] = T
+    return poses
+
+
+def bench_pose_parts(args) -> None:
+    """Which part of the registered poses makes clean sections read more open than the
+    truth? Each short sweep draw (``--only``) registered in memory as the flow chunks it;
+    its frames then placed with a mix of the true and the registered poses, and with
+    synthetic errors across the axis, and its clean sections measured."""
+    from pipescan.simulator.sweep import sweep_draws
+
+    names = _names(sweep_draws(long_run=False), args.only or ["random 0"])
+    for name in names:
+        draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
+        scan = simulate_scan(draw.scenario, draw.seed)
+        frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+        trajectory = chain_trajectories(
+            [
+                register_frames(iter(frames[a : b + 1]), RegistrationParams())
+                for a, b in plan_chunks(len(frames), 60)
+            ]
+        )
+        first = np.linalg.inv(scan.T_pipe_sensor(trajectory.frame_indices[0]))
+        true = {i: first @ scan.T_pipe_sensor(i) for i in trajectory.frame_indices}
+        est = dict(zip(trajectory.frame_indices, trajectory.T_world_frame, strict=True))
+        axis = first[:3, :3] @ np.array([1.0, 0.0, 0.0])  # the simulator's pipe runs along x
+        across_1 = np.cross(axis, [0.0, 0.0, 1.0])
+        across_1 /= np.linalg.norm(across_1)
+        across_2 = np.cross(axis, across_1)
+        error = np.array([est[i][:3, 3] - true[i][:3, 3] for i in trajectory.frame_indices])
+        along = np.outer(error @ axis, axis)
+        across = error - along
+        window = 31
+        smooth = np.column_stack(
+            [
+                np.convolve(across @ b, np.ones(window) / window, mode="same")
+                for b in (across_1, across_2)
+            ]
+        )
+        smooth = smooth[:, :1] * across_1 + smooth[:, 1:] * across_2
+        travelled = np.array([true[i][:3, 3] @ axis for i in trajectory.frame_indices])
+
+        rms = np.sqrt((across**2).sum(axis=1).mean())
+        rows = [
+            ("true poses", _placed(trajectory.frame_indices, true, true)),
+            ("registered poses", est),
+            ("registered rotation, true translation", _placed(trajectory.frame_indices, true, est)),
+            (
+                "true rotation, registered translation",
+                _placed(trajectory.frame_indices, true, true, error),
+            ),
+            (
+                "only the along-axis part of the translation error",
+                _placed(trajectory.frame_indices, true, true, along),
+            ),
+            (
+                f"only the across-axis part ({1e3 * rms:.1f} mm RMS)",
+                _placed(trajectory.frame_indices, true, true, across),
+            ),
+            (
+                f"its smooth part ({window}-frame running mean)",
+                _placed(trajectory.frame_indices, true, true, smooth),
+            ),
+            (
+                "its frame-to-frame part",
+                _placed(trajectory.frame_indices, true, true, across - smooth),
+            ),
+        ]
+        amplitude = [np.sqrt(2.0 * np.mean((across @ b) ** 2)) for b in (across_1, across_2)]
+        for period in (1.0, 3.0, 10.0):
+            phase = 2.0 * np.pi * travelled / period
+            drift = amplitude[0] * np.outer(np.sin(phase), across_1) + amplitude[1] * np.outer(
+                np.sin(phase + 1.0), across_2
+            )
+            label = f"a sine across the axis, period {period:g} m, the same RMS"
+            rows.append((label, _placed(trajectory.frame_indices, true, true, drift)))
+        print(
+            f"### {name}\n\nclean ok sections: mean signed error, and those off by more than "
+            "their ± plus 0.1 pp\n\n| frames placed with | mean | beyond their ± |\n"
+            "|---|---:|---:|",
+            flush=True,
+        )
+        for label, poses in rows:
+            print(f"| {label} | {_clean_section_bias(scan, trajectory, poses)} |", flush=True)
+
+
 # --------------------------------------------------------------------------- axial error
 
 
@@ -1160,6 +1302,7 @@ def main() -> None:
             "icp-work",
             "slips",
             "odometer-scale",
+            "pose-parts",
             "axial-error",
             "all",
             "memory-child",
@@ -1220,6 +1363,7 @@ def main() -> None:
         "icp-work": bench_icp_work,
         "slips": bench_slips,
         "odometer-scale": bench_odometer_scale,
+        "pose-parts": bench_pose_parts,
         "axial-error": bench_axial_error,
     }
     for name, step in steps.items():
@@ -1233,6 +1377,7 @@ def main() -> None:
                 "icp-work",
                 "slips",
                 "odometer-scale",
+                "pose-parts",
                 "axial-error",
             )
         ):
