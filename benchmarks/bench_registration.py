@@ -1105,6 +1105,15 @@ def bench_pose_parts(args) -> None:
                 _placed(trajectory.frame_indices, true, true, across - smooth),
             ),
         ]
+        per_axis = np.sqrt(np.mean(np.sum(across**2, axis=1)) / 2.0)
+        jitter = np.random.default_rng(7).normal(0.0, per_axis, (len(across), 2))
+        jitter = np.outer(jitter[:, 0], across_1) + np.outer(jitter[:, 1], across_2)
+        rows.append(
+            (
+                f"independent shifts across the axis, {1e3 * per_axis:.2f} mm per axis",
+                _placed(trajectory.frame_indices, true, true, jitter),
+            )
+        )
         amplitude = [np.sqrt(2.0 * np.mean((across @ b) ** 2)) for b in (across_1, across_2)]
         for period in (1.0, 3.0, 10.0):
             phase = 2.0 * np.pi * travelled / period
