@@ -828,6 +828,14 @@ def bench_converge(args) -> None:
 # --------------------------------------------------------------------------- slips
 
 
+def _registered_in_memory(scan, params: RegistrationParams):
+    """A simulated scan registered in memory as the flow chunks it (60 frames), chained."""
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    return chain_trajectories(
+        [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
+    )
+
+
 def _slip_draw(name: str) -> str:
     """One draw registered in memory as the flow chunks it; its row of ``bench_slips``."""
     from pipescan.simulator.sweep import (
@@ -839,11 +847,8 @@ def _slip_draw(name: str) -> str:
 
     draw = next(d for d in [*slip_draws(), *sweep_draws(long_run=False)] if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
-    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
     params = RegistrationParams()
-    trajectory = chain_trajectories(
-        [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
-    )
+    trajectory = _registered_in_memory(scan, params)
     idx, est, true = along_axis_travel(trajectory, scan)
     error = est - true
     beyond, most = chainage_bound_misses(trajectory, scan)
@@ -933,11 +938,8 @@ def _scale_draw(name: str) -> str:
 
     draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
-    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
     params = RegistrationParams()
-    trajectory = chain_trajectories(
-        [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
-    )
+    trajectory = _registered_in_memory(scan, params)
     idx, est, true = along_axis_travel(trajectory, scan)
     odo = scan.odometer_m[idx] - scan.odometer_m[idx[0]]
     held = np.array([q.degenerate for q in trajectory.quality])
@@ -1052,13 +1054,7 @@ def bench_pose_parts(args) -> None:
     for name in names:
         draw = next(d for d in sweep_draws(long_run=False) if d.name == name)
         scan = simulate_scan(draw.scenario, draw.seed)
-        frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
-        trajectory = chain_trajectories(
-            [
-                register_frames(iter(frames[a : b + 1]), RegistrationParams())
-                for a, b in plan_chunks(len(frames), 60)
-            ]
-        )
+        trajectory = _registered_in_memory(scan, RegistrationParams())
         first = np.linalg.inv(scan.T_pipe_sensor(trajectory.frame_indices[0]))
         true = {i: first @ scan.T_pipe_sensor(i) for i in trajectory.frame_indices}
         est = dict(zip(trajectory.frame_indices, trajectory.T_world_frame, strict=True))
