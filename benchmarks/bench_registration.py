@@ -994,15 +994,17 @@ def _clean_section_bias(scan, trajectory, poses: dict) -> str:
     within 0.15 m), and how many of them miss by more than their ± plus 0.1 pp."""
     from pipescan.core.axis import fit_axis
     from pipescan.core.sections import measure_window, plan_windows
+    from pipescan.flows.inspect import InspectionParams
     from pipescan.simulator.sweep import FLAT_PP, STATED_TOLERANCE, TrueBlockage
 
     truth = TrueBlockage(scan)
+    max_range_m = InspectionParams().max_section_range_m
     parts = []
     for frame in scan.frames():
         if frame.index not in poses:
             continue
         pts = frame.points_sensor.astype(np.float64)
-        pts = pts[np.einsum("ij,ij->i", pts, pts) <= MAX_SECTION_RANGE_M**2]
+        pts = pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
         T = poses[frame.index]
         parts.append(pts @ T[:3, :3].T + T[:3, 3])
     points = np.concatenate(parts)
@@ -1025,10 +1027,6 @@ def _clean_section_bias(scan, trajectory, poses: dict) -> str:
             stated = sec.blockage_uncertainty_ratio or 0.0
             missed += abs(sec.blockage_ratio) > stated + STATED_TOLERANCE
     return f"{100 * np.mean(errors):+.3f} pp | {missed} of {len(errors)}"
-
-
-MAX_SECTION_RANGE_M = 5.0
-"""The inspection's section range (``InspectionParams.max_section_range_m``)."""
 
 
 def _placed(frame_indices, true: dict, rotation: dict, offsets=None) -> dict:
@@ -1289,30 +1287,42 @@ def bench_memory(args) -> None:
     )
 
 
+STEPS = {
+    "engines": bench_engines,
+    "imu": bench_imu,
+    "sections": bench_sections,
+    "parallel": bench_parallel,
+    "memory": bench_memory,
+    "sweep": bench_sweep,
+    "converge": bench_converge,
+    "variants": bench_variants,
+    "icp-work": bench_icp_work,
+    "slips": bench_slips,
+    "odometer-scale": bench_odometer_scale,
+    "pose-parts": bench_pose_parts,
+    "axial-error": bench_axial_error,
+}
+"""Each benchmark by the name it is run with."""
+
+ON_DEMAND = (
+    "sweep",
+    "converge",
+    "variants",
+    "icp-work",
+    "slips",
+    "odometer-scale",
+    "pose-parts",
+    "axial-error",
+)
+"""The benchmarks ``all`` leaves out: they simulate and register many draws (tens of minutes)
+or need an archive of their own."""
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawTextHelpFormatter
     )
-    parser.add_argument(
-        "what",
-        choices=[
-            "engines",
-            "imu",
-            "sections",
-            "parallel",
-            "memory",
-            "sweep",
-            "converge",
-            "variants",
-            "icp-work",
-            "slips",
-            "odometer-scale",
-            "pose-parts",
-            "axial-error",
-            "all",
-            "memory-child",
-        ],
-    )
+    parser.add_argument("what", choices=[*STEPS, "all", "memory-child"])
     parser.add_argument("--random-draws", type=int, default=8, help="sweep: random draws")
     parser.add_argument("--no-long", action="store_true", help="sweep: leave the 30 m run out")
     parser.add_argument(
@@ -1328,7 +1338,8 @@ def main() -> None:
     parser.add_argument(
         "--only",
         nargs="+",
-        help="sweep, converge, variants, slips, axial-error: draws named with one of these",
+        help="sweep, converge, variants, slips, odometer-scale, pose-parts, axial-error: "
+        "draws named with one of these",
     )
     parser.add_argument(
         "--converged",
@@ -1356,36 +1367,8 @@ def main() -> None:
     if args.what == "memory-child":
         _memory_child(args.frames[0])
         return
-    steps = {
-        "engines": bench_engines,
-        "imu": bench_imu,
-        "sections": bench_sections,
-        "parallel": bench_parallel,
-        "memory": bench_memory,
-        "sweep": bench_sweep,
-        "converge": bench_converge,
-        "variants": bench_variants,
-        "icp-work": bench_icp_work,
-        "slips": bench_slips,
-        "odometer-scale": bench_odometer_scale,
-        "pose-parts": bench_pose_parts,
-        "axial-error": bench_axial_error,
-    }
-    for name, step in steps.items():
-        if args.what == name or (
-            args.what == "all"
-            and name
-            not in (
-                "sweep",
-                "converge",
-                "variants",
-                "icp-work",
-                "slips",
-                "odometer-scale",
-                "pose-parts",
-                "axial-error",
-            )
-        ):
+    for name, step in STEPS.items():
+        if args.what == name or (args.what == "all" and name not in ON_DEMAND):
             print(f"\n## {name}\n", flush=True)
             step(args)
 
