@@ -9,7 +9,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from pipescan.core.axis import fit_axis, fit_circle_robust, nearest_node
+from pipescan.core.axis import NodeLocator, fit_axis, fit_circle_robust, nearest_node
 from pipescan.core.errors import GeometryError
 from pipescan.core.sections import measure_window, plan_windows
 from tests.synthetic import (
@@ -155,3 +155,100 @@ def test_each_point_is_placed_at_its_nearest_node_of_a_bent_centreline():
     assert np.array_equal(nearest_node(nodes, points), brute)
     assert np.array_equal(nearest_node(nodes, points.astype(np.float32)), brute)
     assert nearest_node(nodes, np.empty((0, 3))).shape == (0,)
+
+
+def _ring_points(nodes, rng, n, radius_m):
+    """Points on a ring of ``radius_m`` around random nodes, spread along the node step."""
+    at = rng.integers(0, len(nodes), n)
+    angle = rng.uniform(0, 2 * np.pi, n)
+    ring = np.column_stack((rng.uniform(-0.03, 0.03, n), np.cos(angle), np.sin(angle)))
+    return nodes[at] + ring * [1.0, radius_m, radius_m] + rng.normal(0, 0.005, (n, 3))
+
+
+@pytest.mark.parametrize(
+    "case",
+    [
+        "drifting",
+        "bend 12 m",
+        "tight sine",
+        "kink",
+        "step far off",
+        "beyond the ends",
+        "u-bend",
+        "three nodes",
+    ],
+)
+def test_node_locator_finds_the_k_d_trees_node(case):
+    """The search along the chord gives every point the k-d tree's node, on centrelines it
+    can prove (a registered straight pipe drifting by a centimetre) and on ones it cannot
+    (a bend, a U-turn, points far beyond the ends), for float32 and float64 points."""
+    rng = np.random.default_rng(7)
+    if case == "drifting":
+        s = np.arange(-1.5, 31.3, 0.05)
+        nodes = np.column_stack((s, 0.01 * np.sin(s / 7), 0.015 * np.cos(s / 9)))
+        points = _ring_points(nodes, rng, 40_000, 0.3)
+    elif case == "bend 12 m":
+        th = np.arange(0.0, 1.2, 0.05 / 12)
+        nodes = np.column_stack((12 * np.sin(th), 12 * (1 - np.cos(th)), 0.03 * np.sin(5 * th)))
+        points = _ring_points(nodes, rng, 40_000, 0.3)
+    elif case == "tight sine":
+        s = np.linspace(-0.5, 12.0, 250)
+        nodes = np.column_stack((s, 0.3 * np.sin(s / 2), 0.1 * np.cos(s / 3)))
+        points = nodes[rng.integers(0, len(s), 20_000)] + rng.normal(0.0, 0.3, (20_000, 3))
+    elif case == "beyond the ends":
+        s = np.arange(0.0, 5.0, 0.05)
+        nodes = np.column_stack((s, 0.002 * s, np.zeros_like(s)))
+        points = rng.uniform(-3.0, 8.0, (20_000, 3))
+    elif case == "kink":
+        # A node 5 cm off the line and two steps on can be nearer than the local minimum.
+        s = np.arange(0.0, 5.0, 0.05)
+        nodes = np.column_stack((s, np.where((s > 1.97) & (s < 2.23), 0.25, 0.0), 0 * s))
+        points = rng.uniform([0.0, -0.5, -0.5], [5.0, 0.6, 0.5], (20_000, 3))
+    elif case == "step far off":
+        # Nodes beyond the reach along the chord, yet nearer than the local minimum.
+        s = np.arange(0.0, 10.0, 0.05)
+        nodes = np.column_stack((s, np.where((s > 7.18) & (s < 8.5), 2.5, 0.0), 0 * s))
+        near = _ring_points(nodes[:120], rng, 16_000, 0.3)
+        points = np.vstack((near, rng.uniform([4.0, 2.0, -0.5], [6.5, 3.0, 0.5], (4_000, 3))))
+    elif case == "u-bend":
+        th = np.linspace(0, np.pi, 200)
+        nodes = np.column_stack((np.sin(th), 1 - np.cos(th), np.zeros_like(th)))
+        points = rng.normal(0, 0.5, (20_000, 3)) + np.array([0.5, 1.0, 0.0])
+    else:
+        nodes = np.array([[0.0, 0, 0], [0.05, 0, 0], [0.1, 0.001, 0]])
+        points = rng.normal(0, 0.2, (2_000, 3))
+    locator = NodeLocator(nodes)
+    for pts in (points, points.astype(np.float32)):
+        assert np.array_equal(locator.nearest(pts), nearest_node(nodes, pts))
+    if case == "drifting":
+        # The fast path carries it: nearly every point is proven without the k-d tree.
+        _, proven = locator._along_chord(points)
+        assert proven.mean() > 0.95
+    assert locator.nearest(np.empty((0, 3))).shape == (0,)
+
+
+def test_a_curved_axis_places_points_as_its_nodes_say():
+    """``section_coordinates`` along a fitted curved centreline uses the locator's nodes:
+    the same chainage as placing by the k-d tree's nearest node."""
+    rng = np.random.default_rng(12)
+    cloud, _ = curved_pipe_cloud(rng=rng)
+    axis = fit_axis(cloud, start_m=np.zeros(3), travel_m=np.array([1.0, 0.0, 0.0]))
+    assert axis.is_curved
+    chainage, plane = axis.section_coordinates(cloud)
+    nodes = axis.nodes_m - axis.origin_m
+    i = nearest_node(nodes, cloud - axis.origin_m)
+    d = cloud - axis.origin_m - nodes[i]
+    assert np.allclose(chainage, axis.chainage_offset_m + axis.chainage_sign * (
+        axis.arc_m[i] + np.einsum("ij,ij->i", d, axis.tangents[i])))  # fmt: skip
+    assert np.allclose(plane[:, 1], np.einsum("ij,ij->i", d, axis.ups[i]))
+
+
+def test_the_axis_is_the_same_on_two_threads():
+    """Fitting the slices' circles on two threads changes nothing: each fit has its seed."""
+    rng = np.random.default_rng(12)
+    cloud, _ = curved_pipe_cloud(rng=rng)
+    kwargs = {"start_m": np.zeros(3), "travel_m": np.array([1.0, 0.0, 0.0])}
+    one, two = fit_axis(cloud, **kwargs), fit_axis(cloud, workers=2, **kwargs)
+    assert two.is_curved
+    assert np.array_equal(one.nodes_m, two.nodes_m) and np.array_equal(one.ups, two.ups)
+    assert np.array_equal(one.origin_m, two.origin_m) and one.radius_m == two.radius_m

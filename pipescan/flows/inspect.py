@@ -228,6 +228,7 @@ def inspect_archive(
             max_range_m=params.max_section_range_m,
             frame_store=frame_store,
             chunks=chunks,
+            workers=engine_threads(),  # nothing else runs while the axis is fitted
         )
         windows = plan_windows(
             max(fit.chainage_min_m, meta.chainage_offset_m)

@@ -157,13 +157,15 @@ def fit_pipe_axis(
     sample_frames: int = 40,
     frame_store: FrameStore | None = None,
     chunks: Sequence[tuple[int, int]] = (),
+    workers: int = 1,
 ) -> AxisFit:
     """Fit the pipe axis on a sample of the registered points, and the chainage they span.
 
     A registered cloud's start is chosen by ``pipescan.core.start.cloud_start``; up is the
     cloud's +z. For frames, up is against the IMU's gravity at the first frame, where given,
     else the first frame's +z. With ``frame_store`` (written by :func:`register_chunk` for
-    ``chunks``, cropped to ``max_range_m``), the sample frames are read from it.
+    ``chunks``, cropped to ``max_range_m``), the sample frames are read from it. ``workers``
+    threads fit the axis's slices (``pipescan.core.axis.fit_axis``).
     """
     meta = staged.meta
     diameter = meta.nominal_diameter_m
@@ -205,6 +207,7 @@ def fit_pipe_axis(
         chainage_offset_m=meta.chainage_offset_m,
         direction=meta.direction,
         nominal_diameter_m=diameter if np.isfinite(diameter) else None,
+        workers=workers,
     )
     chain = axis.chainage(points)
     lo, hi = np.percentile(chain, [0.05, 99.95])
