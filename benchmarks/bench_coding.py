@@ -119,12 +119,15 @@ def coding_table(results: list[tuple[str, list[FeatureOutcome], list]]) -> None:
 def sweep(args: argparse.Namespace) -> None:
     effects = HARSH if args.harsh else None
     names = args.scenes or list(SCENES)
-    draws = coding_draws(names, args.diameters, effects=effects)
+    skipped: list[str] = []
+    draws = coding_draws(names, args.diameters, effects=effects, skipped=skipped)
     label = "every effect at its harsh end" if args.harsh else "every effect at its default"
     if args.layouts:
-        draws = layout_draws(args.layouts, args.layout_seed)
+        draws, skipped = layout_draws(args.layouts, args.layout_seed), []
         label = "random defect layouts, effects drawn from issue 12's ranges"
     print(f"## Coding sweep: {len(draws)} scans, true poses, {label}")
+    for reason in skipped:
+        print(f"- not simulated: {reason}")
     print("| scan | true features | defects | outcomes | time (s) |")
     print("|---|---|---|---|---|")
     results = []

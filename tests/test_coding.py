@@ -176,10 +176,27 @@ def test_a_band_along_the_wall_is_attached_deposits():
     assert f.height_m == pytest.approx(0.02, abs=0.003)
 
 
-def test_a_flat_slab_at_the_crown_is_not_a_band():
-    # Even enough in thickness, but its face is straight: it does not follow the wall.
+def test_a_flat_slab_at_the_crown_is_an_obstacle_not_a_band():
+    # Even enough in thickness, but its face is straight: it does not follow the wall. Nearly
+    # eight times longer along the wall than it stands off it, it is still a body (a chord
+    # across 60-90° of the wall is that long against its depth).
     f = only(disc().difference(shapely.box(-0.12, 0.2, 0.12, 0.3)))
-    assert f.code == UNCLASSIFIED and "straight" in f.rule
+    assert f.code == BBE, f.rule
+    # Its sides at x = ±0.12 m meet the contour 31° either side of the crown.
+    assert f.clock_from_h == pytest.approx(10.97, abs=0.1) and f.clock_to_h == pytest.approx(
+        1.03, abs=0.1
+    )
+
+
+def test_an_uneven_band_is_not_taken_for_a_body():
+    # A face that follows the wall, 10 to 40 mm thick over three hours: too uneven for a band,
+    # too long against its thickness for a body.
+    t = clock_angle_rad(1.5) + np.linspace(0.0, clock_angle_rad(4.5) - clock_angle_rad(1.5), 200)
+    thickness = np.linspace(0.01, 0.04, 200)
+    outer = np.column_stack((1.2 * R * np.cos(t), 1.2 * R * np.sin(t)))
+    inner = np.column_stack(((R - thickness) * np.cos(t), (R - thickness) * np.sin(t)))
+    f = only(disc().difference(shapely.Polygon(np.vstack((outer, inner[::-1])))))
+    assert f.code == UNCLASSIFIED and "longer than high" in f.rule
 
 
 def test_a_rough_deposit_is_a_deposit_and_a_stone_on_the_invert_an_obstacle():
@@ -526,3 +543,24 @@ def test_a_ragged_contour_is_not_coded():
         np.column_stack((radii * np.cos(angles), radii * np.sin(angles))), D
     ).features
     assert f.code == UNCLASSIFIED and "ragged" in f.rule and f.arc_from_rad is None
+
+
+def test_coding_draws_name_the_scenes_an_effect_makes_impossible():
+    """At the harsh mount jitter the sensor's clearance takes it through a stone on the invert
+    of a 0.3 m pipe: the draw is left out and named, and the others keep their seeds."""
+    from pipescan.simulator.coding_scenes import coding_draws
+    from pipescan.simulator.sweep import HARSH
+
+    names = ["body on the invert", "obstacle from the crown"]
+    with pytest.raises(ValueError, match="would pass through obstacle"):
+        coding_draws(names, [0.3, 0.5], effects=HARSH)
+    skipped: list[str] = []
+    draws = coding_draws(names, [0.3, 0.5], effects=HARSH, skipped=skipped)
+    assert [d.name for d in draws] == [
+        "body on the invert, 0.5 m",
+        "obstacle from the crown, 0.3 m",
+        "obstacle from the crown, 0.5 m",
+    ]
+    assert [d.seed for d in draws] == [14, 15, 16]
+    assert len(skipped) == 1 and skipped[0].startswith("body on the invert, 0.3 m: ")
+    assert [d.seed for d in coding_draws(names, [0.3, 0.5])] == [13, 14, 15, 16]

@@ -167,7 +167,8 @@ class CodingParams:
     band_min_length_ratio : float
         A band is at least this many times longer (along the wall) than it is thick.
     body_max_aspect : float
-        A body is at most this many times longer (along the wall) than it stands off it.
+        A body whose face follows the wall is at most this many times longer (along the
+        wall) than it stands off it; a flat face stands off the wall as a body at any length.
     body_min_steepness_deg : float
         At the invert, where settled material heaps, a body rises from its surroundings at both
         ends at least this steeply (from the horizontal); a heap's flank lies at its angle of
@@ -672,7 +673,13 @@ def _classify_arc(
             f"{100 * spread:.0f} %) over {1000 * length_m:.0f} mm, its face following the wall"
         )
     at_invert = _covers_invert(idx, bins) or on_fill
-    compact = aspect <= p.body_max_aspect and arc_rad <= math.radians(p.max_body_arc_deg)
+    # A flat face that does not follow the wall is a body however long it is: a chord across
+    # 60° of the wall stands off it by only an eighth of its length, so a board or a box
+    # hanging from the crown would fail any length limit. The limit keeps apart only arcs
+    # whose face follows the wall (an uneven band is not an obstacle).
+    compact = (aspect <= p.body_max_aspect or not concentric) and arc_rad <= math.radians(
+        p.max_body_arc_deg
+    )
     steepness = _flank_steepness_deg(radii, angles, idx, 2.0 * threshold_m) if at_invert else 90.0
     steep = steepness >= p.body_min_steepness_deg
     if compact and steep and n < bins:

@@ -201,12 +201,29 @@ def coding_draws(
     *,
     effects: Effects | None = None,
     seed: int = 13,
+    skipped: list[str] | None = None,
 ) -> list[Draw]:
     """Every scene (or ``names``) at every diameter, in a fixed order; each draw's scan seed
-    is ``seed`` plus its index."""
+    is ``seed`` plus its index in that order.
+
+    Raises
+    ------
+    ValueError
+        When a scene cannot be simulated with ``effects`` (the sensor's clearance, which grows
+        with the mount jitter, would take it through a feature), unless ``skipped`` is given:
+        such scenes are then left out and named there with the reason.
+    """
     draws = []
+    index = 0
     for name in names or list(SCENES):
         for d in diameters_m:
-            scene = coding_scene(name, d, effects=effects)
-            draws.append(Draw(f"{name}, {d} m", "coding", scene, seed + len(draws)))
+            try:
+                scene = coding_scene(name, d, effects=effects)
+            except ValueError as error:
+                if skipped is None:
+                    raise
+                skipped.append(f"{name}, {d} m: {error}")
+            else:
+                draws.append(Draw(f"{name}, {d} m", "coding", scene, seed + index))
+            index += 1
     return draws
