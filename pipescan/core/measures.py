@@ -33,6 +33,7 @@ from pipescan.core.uncertainty import (
     diameter_uncertainty_m,
     height_uncertainty_m,
     residual_sigma_m,
+    smear_bias_m2,
 )
 from pipescan.core.water import detect_water
 
@@ -447,6 +448,7 @@ def measure_section(
         radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
     )
 
+    wall = _wall_bins(radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio)
     area_u = area_uncertainty(
         radii,
         profile.seen,
@@ -455,6 +457,11 @@ def measure_section(
         wall_radius_m,
         slice_radii_m=profile.slice_radii_m,
     )
+    if not sparse:
+        # Frames that disagree read more open; a sparse section sees each bin once, so its
+        # scatter is the range noise, which the noise part carries.
+        smear = smear_bias_m2(open_area, sigma_bins[wall], wall_radius_m)
+        area_u = dataclasses.replace(area_u, smear_m2=smear)
     blockage_u = _finite(area_u.total_m2 / nominal_area)
     if (
         status == SectionStatus.OK
@@ -486,7 +493,6 @@ def measure_section(
     ):
         status = SectionStatus.SMEARED_WALL
     per_bin = float(np.median(profile.counts[profile.seen]))
-    wall = _wall_bins(radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio)
     pairs = int((wall[: bins // 2] & wall[bins // 2 :]).sum())
     diameter_u = diameter_uncertainty_m(sigma_m, per_bin, pairs)
     deposit_u = None
