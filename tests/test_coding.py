@@ -176,6 +176,16 @@ def test_a_band_along_the_wall_is_attached_deposits():
     assert f.height_m == pytest.approx(0.02, abs=0.003)
 
 
+@pytest.mark.parametrize(("from_h", "to_h"), [(2.0, 6.4), (2.0, 6.6), (5.6, 10.0)])
+@pytest.mark.parametrize("thickness_m", [0.012, 0.016, 0.02])
+def test_a_band_that_reaches_the_invert_is_attached_deposits_not_a_deposit(
+    from_h, to_h, thickness_m
+):
+    # A tilted line touches the band's face near the invert and the rest of the band stands
+    # on its "fill": but the face there follows the wall, and a settled top is straight.
+    assert codes(band(disc(), from_h, to_h, thickness_m)) == [BBB]
+
+
 def test_a_flat_slab_at_the_crown_is_an_obstacle_not_a_band():
     # Even enough in thickness, but its face is straight: it does not follow the wall. Nearly
     # eight times longer along the wall than it stands off it, it is still a body (a chord

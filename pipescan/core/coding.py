@@ -488,6 +488,7 @@ class _Chord:
     fill: np.ndarray  # bins the fill displaces beyond the threshold
     support: float  # share of those bins whose contour lies on the line
     contradiction: float  # share of those bins whose contour is more open than the fill
+    on: np.ndarray  # bins of the fill whose contour lies on the line
 
 
 def _fill_profiles(
@@ -575,7 +576,7 @@ def _find_chord(
     support = float(on1.sum()) / visible if visible > 0 else 0.0
     if float(on1.sum()) < p.min_chord_seen_ratio * n:
         support = 0.0
-    return _Chord(m_best, b_best, fill_r1, fill1, support, float(open1.sum()) / n)
+    return _Chord(m_best, b_best, fill_r1, fill1, support, float(open1.sum()) / n, on1)
 
 
 def _covers_invert(idx: np.ndarray, bins: int) -> bool:
@@ -786,6 +787,8 @@ def code_section(
             chord.support >= p.min_chord_support_ratio
             and chord.contradiction <= p.max_chord_contradiction_ratio
             and _covers_invert(np.flatnonzero(chord.fill), bins)
+            # A settled top is straight; a band's face reaching the invert follows the wall.
+            and not _follows_the_wall(radii, angles, _ordered(np.flatnonzero(chord.on), bins))
         )
         if not ok:
             continue
