@@ -848,7 +848,8 @@ def _grow(arc: np.ndarray, above: np.ndarray, taken: np.ndarray) -> np.ndarray:
     bins = len(above)
     if len(arc) >= bins:
         return arc
-    before, after = [], []
+    before: list[int] = []
+    after: list[int] = []
     k = (arc[0] - 1) % bins
     while above[k] and not taken[k] and len(arc) + len(before) < bins:
         before.append(k)

@@ -194,6 +194,8 @@ class PolarProfile:
         list of (M, 2) float
         """
         near, far, bins = self.radii_m, self.far_radii_m, len(self.radii_m)
+        if far is None:
+            return []  # one layer: no run has a far side (``_two_layer_runs``)
         half_bin = np.pi / bins
         pockets = []
         for run, edge_first, edge_last in self._two_layer_runs():
