@@ -659,3 +659,22 @@ def test_a_wall_smeared_by_small_pose_errors_reads_open_within_its_stated_uncert
         stated.append(s.blockage_uncertainty_ratio)
     assert np.mean(blockage) < -0.0005  # more open than the pipe is
     assert np.all(np.abs(blockage) <= np.array(stated))
+
+
+def test_a_section_known_well_enough_but_for_the_smear_is_smeared_wall_not_too_few_points():
+    # Sixty frames a few millimetres apart in a 0.3 m pipe, measured with a tight ± limit:
+    # only the smear part takes the ± past it, so the status names the smear.
+    rng = np.random.default_rng(4)
+    copies = [
+        ring_section(150, radius_m=0.15, noise_m=0.002, rng=rng) + rng.normal(0.0, 0.006, 2)
+        for _ in range(60)
+    ]
+    pts = np.vstack(copies)
+    kw = {"chainage_start_m": 0.0, "chainage_end_m": 0.1, "nominal_diameter_m": 0.3}
+    s = measure_section(pts, **kw)
+    assert s.is_ok  # ±0.5 pp, the wall spread 5.7 mm: within both limits
+    strict = measure_section(pts, params=MeasureParams(max_uncertainty_ratio=0.003), **kw)
+    assert strict.status == SectionStatus.SMEARED_WALL
+    # Where the points alone miss the limit, the reason stays theirs.
+    stricter = measure_section(pts, params=MeasureParams(max_uncertainty_ratio=0.001), **kw)
+    assert stricter.status == SectionStatus.TOO_FEW_POINTS

@@ -90,7 +90,9 @@ class MeasureParams:
         ``low_coverage`` when its unseen arcs make most of the uncertainty, else
         ``too_few_points`` (too few points for the wall's scatter or its edges). 2.5 pp: the
         95 % interval is then no wider than the narrowest condition class of the shipped
-        table (BBE 0-5 %), so a measured figure is never more than one class off.
+        table (BBE 0-5 %), so a measured figure is never more than one class off. A
+        section within it but for the smear of frames that disagree
+        (``uncertainty.smear_bias_m2``) is ``smeared_wall``.
     max_wall_spread_m : float
         A section whose wall points spread around its contour by more than this (robust 1σ,
         pooled over the wall's angle bins) is ``smeared_wall``: the frames that saw it
@@ -468,8 +470,11 @@ def measure_section(
         and blockage_u is not None
         and blockage_u > params.max_uncertainty_ratio
     ):
-        unseen_first = area_u.unseen_m2 >= area_u.noise_m2 + area_u.resolution_m2
-        status = SectionStatus.LOW_COVERAGE if unseen_first else SectionStatus.TOO_FEW_POINTS
+        if (area_u.total_m2 - area_u.smear_m2) / nominal_area > params.max_uncertainty_ratio:
+            unseen_first = area_u.unseen_m2 >= area_u.noise_m2 + area_u.resolution_m2
+            status = SectionStatus.LOW_COVERAGE if unseen_first else SectionStatus.TOO_FEW_POINTS
+        else:
+            status = SectionStatus.SMEARED_WALL  # known well enough, but for the smear
     # Frames that disagree smear the wall. Only a dense section can show it: a sparse one
     # (a ring profiler's) sees each bin once, so its spread is the range noise, which the
     # uncertainty above already carries.
