@@ -120,11 +120,12 @@ def sweep(args: argparse.Namespace) -> None:
     effects = HARSH if args.harsh else None
     names = args.scenes or list(SCENES)
     skipped: list[str] = []
-    draws = coding_draws(names, args.diameters, effects=effects, skipped=skipped)
-    label = "every effect at its harsh end" if args.harsh else "every effect at its default"
     if args.layouts:
-        draws, skipped = layout_draws(args.layouts, args.layout_seed), []
+        draws = layout_draws(args.layouts, args.layout_seed)
         label = "random defect layouts, effects drawn from issue 12's ranges"
+    else:
+        draws = coding_draws(names, args.diameters, effects=effects, skipped=skipped)
+        label = "every effect at its harsh end" if args.harsh else "every effect at its default"
     print(f"## Coding sweep: {len(draws)} scans, true poses, {label}")
     for reason in skipped:
         print(f"- not simulated: {reason}")

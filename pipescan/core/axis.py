@@ -81,9 +81,9 @@ class PipeAxis:
     def _node_rows(self) -> tuple[list[np.ndarray], list[list[np.ndarray]]]:
         """The curved centreline's nodes relative to ``origin_m`` as their x, y and z, and
         each node's (along, across, up) unit vectors as their x, y and z, (K,) each."""
-        assert self.nodes_m is not None and self.tangents is not None and self.ups is not None
+        assert self.tangents is not None and self.ups is not None
         basis = np.stack((self.tangents, np.cross(self.ups, self.tangents), self.ups), axis=1)
-        nodes = self.nodes_m - self.origin_m
+        nodes = self._node_locator.nodes_m  # the nodes relative to origin_m
         return (
             [np.ascontiguousarray(nodes[:, c]) for c in range(3)],
             [[np.ascontiguousarray(basis[:, row, c]) for c in range(3)] for row in range(3)],
@@ -252,19 +252,17 @@ class NodeLocator:
         # projection is nearest to the cell's centre (nodes 1 to K - 2, so both neighbours
         # exist; a point nearest to an end node is left unproven).
         self._first = float(self._along[0])
-        self._cell_m = float(steps.min()) / 4.0
-        cells = int(np.ceil((self._along[-1] - self._first) / self._cell_m)) + 1
-        centres = self._first + (np.arange(min(cells, _LOCATOR_MAX_CELLS)) + 0.5) * self._cell_m
-        if cells > _LOCATOR_MAX_CELLS:
-            self._cell_m = (self._along[-1] - self._first) / (_LOCATOR_MAX_CELLS - 1)
-            centres = self._first + (np.arange(_LOCATOR_MAX_CELLS) + 0.5) * self._cell_m
+        extent = float(self._along[-1]) - self._first
+        self._cell_m = max(float(steps.min()) / 4.0, extent / (_LOCATOR_MAX_CELLS - 1))
+        cells = min(int(np.ceil(extent / self._cell_m)) + 1, _LOCATOR_MAX_CELLS)
+        centres = self._first + (np.arange(cells) + 0.5) * self._cell_m
         above = np.clip(np.searchsorted(self._along, centres), 1, k - 1)
         nearer_below = centres - self._along[above - 1] < self._along[above] - centres
         self._guess = np.clip(above - nearer_below, 1, k - 2).astype(np.int64)
-        self._gap_after = np.full(k, np.inf)
-        self._gap_after[:-2] = self._along[2:] - self._along[:-2]
-        self._gap_before = np.full(k, np.inf)
-        self._gap_before[2:] = self._along[2:] - self._along[:-2]
+        # The chord distance from each node to the node two after it (and two before it).
+        two_steps = self._along[2:] - self._along[:-2]
+        self._gap_after = np.concatenate((two_steps, [np.inf, np.inf]))
+        self._gap_before = np.concatenate(([np.inf, np.inf], two_steps))
         # λ_j = max |ℓ_k − ℓ_j| / Δ_jk over 2 ≤ |k − j|, Δ_jk ≤ reach_m.
         slope = np.zeros(k)
         for m in range(2, k):
