@@ -188,6 +188,14 @@ def test_early_returns_are_dropped_and_every_surface_kept():
     assert on_box.sum() > 100 and is_kept[~mist & on_box].mean() > 0.99  # the box, its edges
     assert is_kept[mist & (fraction < 0.75)].mean() < 0.05
     assert len(drop_early_returns(frame, 0.0)) == len(frame)
+    # The rule as stated, by brute force: at least two of the eight nearest rays no further
+    # than the range / 0.8. The filter decides most points from the nearest two alone.
+    from scipy.spatial import cKDTree
+
+    r = np.linalg.norm(frame, axis=1)
+    _, idx = cKDTree(frame / r[:, None]).query(frame / r[:, None], 9)
+    rule = np.count_nonzero(0.8 * r[idx[:, 1:]] <= r[:, None], axis=1) >= 2
+    assert 0 < (~rule).sum() < len(frame) and np.array_equal(is_kept, rule)
 
 
 def test_a_slide_is_caught_and_put_back_on_the_odometer(misty_scan, monkeypatch):
