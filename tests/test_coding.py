@@ -3,6 +3,7 @@ physical feature as one defect along the chainage (docs/coding.md)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -365,6 +366,31 @@ def test_a_short_unclassified_end_joins_its_feature_a_long_one_does_not():
     assert [r.code for r in feature_runs(spans[:8], long)] == [UNCLASSIFIED, BBC]
     elsewhere = [_coding(_f(UNCLASSIFIED, 11, 1)), _coding(_f(BBC, 4, 8))]
     assert [r.code for r in feature_runs(spans[:2], elsewhere)] == [UNCLASSIFIED, BBC]
+
+
+def test_a_thin_end_within_an_obstacles_arc_is_the_obstacles_end():
+    # Layout 5000+1: an obstacle 3 cm into a section reads there as a thin band at its clock
+    # positions (each bin's radius is the median of four sub-slices, one of which saw it).
+    spans = [section(i, disc()) for i in range(5)]
+    body, thin = _f(BBE, 2.5, 4.0), dataclasses.replace(_f(BBB, 2.6, 4.0), lost_area_m2=0.002)
+    codings = [_coding(), _coding(thin), _coding(body), _coding(body), _coding()]
+    runs = feature_runs(spans, codings)
+    assert [(r.code, r.sections, r.absorbed) for r in runs] == [(BBE, (1, 2, 3), (1,))]
+    after = [_coding(), _coding(body), _coding(body), _coding(thin), _coding()]
+    assert [(r.code, r.sections) for r in feature_runs(spans, after)] == [(BBE, (1, 2, 3))]
+    # A band of its own beside the obstacle keeps its code: its arc reaches beyond the
+    # obstacle's, or it takes more area than the obstacle does next to it, or it runs on.
+    wider = dataclasses.replace(_f(BBB, 1.5, 4.0), lost_area_m2=0.002)
+    thicker = dataclasses.replace(thin, lost_area_m2=0.02)
+    for band in (wider, thicker):
+        beside = [_coding(), _coding(band), _coding(body), _coding(body), _coding()]
+        assert [r.code for r in feature_runs(spans, beside)] == [BBB, BBE]
+    longer = [_coding(thin), _coding(thin), _coding(body), _coding(body), _coding()]
+    assert [r.code for r in feature_runs(spans, longer)] == [BBB, BBE]
+    # Not across a deposit (graded on its height) either.
+    deposit = dataclasses.replace(_f(BBC, 2.5, 4.0), measure="deposit_height_ratio")
+    under = [_coding(), _coding(thin), _coding(deposit), _coding(deposit), _coding()]
+    assert [r.code for r in feature_runs(spans, under)] == [BBB, BBC]
 
 
 def test_code_sections_skips_unmeasured_and_contourless_sections():

@@ -1055,6 +1055,9 @@ def feature_runs(
       a shadow does not cut one feature in two.
     - An unclassified run of at most ``absorb_m`` that touches a coded run at an overlapping
       arc joins it: a deposit's ramp, or an obstacle's shadowed rear, belongs to its feature.
+    - A one-section run graded on the blockage that touches such a run of another code, lies
+      within the arc of the run's section beside it and takes less area there joins it: the
+      section holds only the run's end, read diluted (:func:`_absorb_diluted_ends`).
 
     Parameters
     ----------
@@ -1109,6 +1112,7 @@ def feature_runs(
                 taken.add(len(runs) - 1)
 
     _absorb_unclassified(runs, sections, absorb_m, bridges, slack)
+    _absorb_diluted_ends(runs, bridges, slack)
     out = [
         FeatureRun(r["code"], tuple(r["sections"]), tuple(r["features"]), tuple(r["absorbed"]))
         for r in runs
@@ -1152,4 +1156,59 @@ def _absorb_unclassified(
         best["sections"] = [k for k, _ in merged]
         best["features"] = [f for _, f in merged]
         best["absorbed"] = sorted(best["absorbed"] + u["sections"])
+        u["sections"], u["features"] = [], []
+
+
+def _arc_within(f: WallFeature, g: WallFeature, slack_rad: float) -> bool:
+    """Whether ``f``'s arc lies within ``g``'s, widened by ``slack_rad`` at both ends."""
+    if f.arc_from_rad is None or g.arc_from_rad is None:
+        return False
+    start = (f.arc_from_rad - g.arc_from_rad + slack_rad) % _TWO_PI
+    return start + f.arc_rad <= g.arc_rad + 2 * slack_rad
+
+
+def _absorb_diluted_ends(runs: list[dict[str, Any]], bridges: Any, slack: float) -> None:
+    """Join a one-section run to the run whose end it holds, read diluted.
+
+    A section's radius in each bin is the median of its sub-slices along the axis
+    (``contour.polar.polar_profile``). Where a feature ends a few centimetres into a section,
+    only one or two sub-slices see it, and the section reads a layer between the wall and the
+    feature's face: thinner than the feature, and of a shape (a thin layer following the wall)
+    that says nothing of its family. So a one-section run whose feature is graded on the
+    blockage, lies within the arc of the feature in the touching section of another run
+    graded on the blockage (``slack`` at both ends), and takes less area than that feature,
+    is that run's end. A feature of its own beside another keeps its run: its arc differs
+    (a band beside an obstacle), or it takes more area than the section next to it.
+    """
+    for u in runs:
+        if len(u["sections"]) != 1 or u["code"] == UNCLASSIFIED:
+            continue
+        (i,), (f,) = u["sections"], u["features"]
+        if f.measure != "blockage_ratio":
+            continue
+        best = None
+        for r in runs:
+            if r is u or r["code"] in (u["code"], UNCLASSIFIED) or not r["sections"]:
+                continue
+            if r["features"][0].measure != "blockage_ratio":
+                continue
+            if r["sections"][-1] < i and bridges(r["sections"][-1], i):
+                beside = r["features"][-1]
+            elif i < r["sections"][0] and bridges(i, r["sections"][0]):
+                beside = r["features"][0]
+            else:
+                continue
+            if not (_arc_within(f, beside, slack) and f.lost_area_m2 < beside.lost_area_m2):
+                continue
+            if best is None or len(r["sections"]) > len(best["sections"]):
+                best = r
+        if best is None:
+            continue
+        merged = sorted(
+            zip([*best["sections"], i], [*best["features"], f], strict=True),
+            key=lambda pair: pair[0],
+        )
+        best["sections"] = [k for k, _ in merged]
+        best["features"] = [g for _, g in merged]
+        best["absorbed"] = sorted([*best["absorbed"], i])
         u["sections"], u["features"] = [], []
