@@ -368,6 +368,23 @@ def test_a_short_unclassified_end_joins_its_feature_a_long_one_does_not():
     assert [r.code for r in feature_runs(spans[:2], elsewhere)] == [UNCLASSIFIED, BBC]
 
 
+def test_a_deposit_that_begins_with_its_ramp_is_graded_on_its_height():
+    # The upstream ramp, unclassified, joins the deposit and comes first in its run. It is
+    # graded on its blockage; the defect's figure stays the deposit's height, its peak where
+    # the deposit is highest, not the ramp's blockage in other units.
+    deposit = dataclasses.replace(_f(BBC, 4, 8), measure="deposit_height_ratio")
+    figures = [(0.02, 0.30), (0.15, 0.12), (0.12, 0.10)]
+    sections = [
+        section(i, fill(disc(), -R + h * D), deposit_height_ratio=h, blockage_ratio=b)
+        for i, (h, b) in enumerate(figures)
+    ]
+    codings = [_coding(_f(UNCLASSIFIED, 5, 7)), _coding(deposit), _coding(deposit)]
+    (defect,) = merge_defects(sections, load_table(), codings=codings)
+    assert (defect.code, defect.measure) == (BBC, "deposit_height_ratio")
+    assert defect.peak_value == pytest.approx(0.15) and defect.peak_chainage_m == 0.1
+    assert defect.chainage_start_m == 0.0
+
+
 def test_a_thin_end_within_an_obstacles_arc_is_the_obstacles_end():
     # Layout 5000+1: an obstacle 3 cm into a section reads there as a thin band at its clock
     # positions (each bin's radius is the median of four sub-slices, one of which saw it).
@@ -387,10 +404,10 @@ def test_a_thin_end_within_an_obstacles_arc_is_the_obstacles_end():
         assert [r.code for r in feature_runs(spans, beside)] == [BBB, BBE]
     longer = [_coding(thin), _coding(thin), _coding(body), _coding(body), _coding()]
     assert [r.code for r in feature_runs(spans, longer)] == [BBB, BBE]
-    # Not across a deposit (graded on its height) either.
+    # A deposit's end reads the same (band beside a deposit, 0.9 m, through the flow).
     deposit = dataclasses.replace(_f(BBC, 2.5, 4.0), measure="deposit_height_ratio")
     under = [_coding(), _coding(thin), _coding(deposit), _coding(deposit), _coding()]
-    assert [r.code for r in feature_runs(spans, under)] == [BBB, BBC]
+    assert [(r.code, r.sections) for r in feature_runs(spans, under)] == [(BBC, (1, 2, 3))]
 
 
 def test_code_sections_skips_unmeasured_and_contourless_sections():

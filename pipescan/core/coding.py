@@ -1055,7 +1055,7 @@ def feature_runs(
       a shadow does not cut one feature in two.
     - An unclassified run of at most ``absorb_m`` that touches a coded run at an overlapping
       arc joins it: a deposit's ramp, or an obstacle's shadowed rear, belongs to its feature.
-    - A one-section run graded on the blockage that touches such a run of another code, lies
+    - A one-section run graded on the blockage that touches a run of another code, lies
       within the arc of the run's section beside it and takes less area there joins it: the
       section holds only the run's end, read diluted (:func:`_absorb_diluted_ends`).
 
@@ -1175,10 +1175,12 @@ def _absorb_diluted_ends(runs: list[dict[str, Any]], bridges: Any, slack: float)
     only one or two sub-slices see it, and the section reads a layer between the wall and the
     feature's face: thinner than the feature, and of a shape (a thin layer following the wall)
     that says nothing of its family. So a one-section run whose feature is graded on the
-    blockage, lies within the arc of the feature in the touching section of another run
-    graded on the blockage (``slack`` at both ends), and takes less area than that feature,
-    is that run's end. A feature of its own beside another keeps its run: its arc differs
-    (a band beside an obstacle), or it takes more area than the section next to it.
+    blockage (the thin layer reads as attached deposits or a body), lies within the arc of
+    the feature in the touching section of another run (``slack`` at both ends), and takes
+    less area than that feature, is that run's end: an obstacle's, or a deposit's (whose
+    figure, its height, the joined section does not compete for: ``grading.merge_defects``).
+    A feature of its own beside another keeps its run: its arc differs (a band beside an
+    obstacle), or it takes more area than the section next to it.
     """
     for u in runs:
         if len(u["sections"]) != 1 or u["code"] == UNCLASSIFIED:
@@ -1189,8 +1191,6 @@ def _absorb_diluted_ends(runs: list[dict[str, Any]], bridges: Any, slack: float)
         best = None
         for r in runs:
             if r is u or r["code"] in (u["code"], UNCLASSIFIED) or not r["sections"]:
-                continue
-            if r["features"][0].measure != "blockage_ratio":
                 continue
             if r["sections"][-1] < i and bridges(r["sections"][-1], i):
                 beside = r["features"][-1]

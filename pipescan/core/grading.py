@@ -711,19 +711,22 @@ def merge_defects(
         ]
         grades = [g for g in graded if g is not None]
         worst_grade = min(grades) if grades else None
-        measure = run.features[0].measure
+        # The run's figure is its code's measure: a section that joined it with another code
+        # (a deposit's unclassified ramp, graded on its blockage) is graded, but its figure,
+        # in other units, does not compete for the peak.
+        measure = next(f.measure for f in run.features if f.code == run.code)
+        own = [
+            (k, f) for k, f in zip(run.sections, run.features, strict=True) if f.measure == measure
+        ]
         candidates = [
             (value, k, f)
-            for k, f in zip(run.sections, run.features, strict=True)
+            for k, f in own
             if (value := feature_value(f, ordered[k], coded[k])) is not None
         ]
         if not candidates:
             # The figure is missing in every section of the run (the bins it is read from were
             # not seen): the feature is still listed, ungraded, with the coder's own estimate.
-            candidates = [
-                (_coder_estimate(f, ordered[k]), k, f)
-                for k, f in zip(run.sections, run.features, strict=True)
-            ]
+            candidates = [(_coder_estimate(f, ordered[k]), k, f) for k, f in own]
         # max() keeps the first of equal values, so ties go to the upstream section.
         peak_value, peak_index, peak_feature = max(candidates, key=lambda c: c[0])
         first, last = run.sections[0], run.sections[-1]
