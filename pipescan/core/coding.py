@@ -1147,16 +1147,20 @@ def _absorb_unclassified(
             meeting = [a for a, b in ends if arcs_meet(a, b, slack) or a.arc_from_rad is None]
             if meeting and len(r["sections"]) > best_overlap:
                 best, best_overlap = r, len(r["sections"])
-        if best is None:
-            continue
-        merged = sorted(
-            zip(best["sections"] + u["sections"], best["features"] + u["features"], strict=True),
-            key=lambda pair: pair[0],
-        )
-        best["sections"] = [k for k, _ in merged]
-        best["features"] = [f for _, f in merged]
-        best["absorbed"] = sorted(best["absorbed"] + u["sections"])
-        u["sections"], u["features"] = [], []
+        if best is not None:
+            _join(best, u)
+
+
+def _join(run: dict[str, Any], part: dict[str, Any]) -> None:
+    """Move ``part``'s sections and features into ``run``, in section order, as absorbed."""
+    merged = sorted(
+        zip(run["sections"] + part["sections"], run["features"] + part["features"], strict=True),
+        key=lambda pair: pair[0],
+    )
+    run["sections"] = [k for k, _ in merged]
+    run["features"] = [f for _, f in merged]
+    run["absorbed"] = sorted(run["absorbed"] + part["sections"])
+    part["sections"], part["features"] = [], []
 
 
 def _arc_within(f: WallFeature, g: WallFeature, slack_rad: float) -> bool:
@@ -1202,13 +1206,5 @@ def _absorb_diluted_ends(runs: list[dict[str, Any]], bridges: Any, slack: float)
                 continue
             if best is None or len(r["sections"]) > len(best["sections"]):
                 best = r
-        if best is None:
-            continue
-        merged = sorted(
-            zip([*best["sections"], i], [*best["features"], f], strict=True),
-            key=lambda pair: pair[0],
-        )
-        best["sections"] = [k for k, _ in merged]
-        best["features"] = [g for _, g in merged]
-        best["absorbed"] = sorted([*best["absorbed"], i])
-        u["sections"], u["features"] = [], []
+        if best is not None:
+            _join(best, u)
