@@ -5,8 +5,9 @@ docs/coding.md states every rule. In short, from a section's inner contour:
 1. **The wall.** The contour's radius at every degree around the axis is fitted, robustly and
    from outside in, by ``r(θ) = c0 + c1 cos θ + s1 sin θ + c2 cos 2θ + s2 sin 2θ``: a circle
    (``c0``), a small offset of the centre (``c1``, ``s1``) and an ellipse (``c2``, ``s2``,
-   a smooth deformation). Deposits and obstacles only ever move the contour inwards, so bins
-   further in than the noise allows are left out of the fit, and the fit is repeated.
+   a smooth deformation), or about the axis as an exact ellipse. Deposits and obstacles only
+   ever move the contour inwards, so bins further in than the noise allows are left out of
+   the fit, and the fit is repeated.
 2. **Displaced arcs.** Runs of bins that lie inside the wall by more than
    ``max(k σ, floor · r)`` (σ: the wall's own scatter) are the displaced wall.
 3. **Each arc gets a family**, by its geometry alone:
@@ -344,12 +345,17 @@ def radial_profile(contour_m: np.ndarray, bins: int = 360, *, step_m: float = 0.
 
 @dataclass(frozen=True)
 class _Wall:
-    coef: np.ndarray  # c0, c1, s1, c2, s2
+    coef: np.ndarray  # c0, c1, s1, c2, s2 (an exact ellipse: its mean semi-axis in c0, and
+    # half the difference of its semi-axes in c2, s2, along its long axis)
     noise_m: float
     inliers: np.ndarray  # bool per bin
     harmonics: int  # 0: circle about the axis, 1: with a centre offset, 2: with an ellipse
+    inverse_square: np.ndarray | None = None
+    """An exact ellipse about the axis, ``1/r² = A + B cos 2θ + C sin 2θ``: (A, B, C)."""
 
     def radius(self, angles: np.ndarray) -> np.ndarray:
+        if self.inverse_square is not None:
+            return 1.0 / np.sqrt(_design(angles, 2)[:, [0, 3, 4]] @ self.inverse_square)
         return _design(angles, 2) @ self.coef
 
 
@@ -388,7 +394,8 @@ def _fit_wall(radii: np.ndarray, angles: np.ndarray, floor_m: float, p: CodingPa
     about its axis (the axis is fitted to the wall), where a band on one side would need the
     centre to move. The second start is tried only when the contour is point-symmetric about
     the axis (``symmetric_share`` of its bins within the floor of the opposite one), as an
-    ellipse about it is.
+    ellipse about it is. Where the winner's centre moved off the axis, a third fit, centred,
+    may replace it (below). A centred ellipse is fitted exactly (``_ellipse_about_axis``).
     """
     reference = float(np.percentile(radii, 75))
     envelope = _robust_wall(
@@ -397,14 +404,36 @@ def _fit_wall(radii: np.ndarray, angles: np.ndarray, floor_m: float, p: CodingPa
     # An ellipse about the axis is point-symmetric: r(θ) = r(θ + π). A contour that is not (a
     # band or an obstacle on one side) is no candidate for the second start.
     opposite = np.roll(radii, len(radii) // 2)
-    if np.mean(np.abs(radii - opposite) <= floor_m) < p.symmetric_share:
-        return envelope
-    ellipse = _robust_wall(radii, angles, floor_m, p, np.ones(len(radii), dtype=bool), centred=True)
+    wall = envelope
+    if np.mean(np.abs(radii - opposite) <= floor_m) >= p.symmetric_share:
+        ellipse = _robust_wall(
+            radii, angles, floor_m, p, np.ones(len(radii), dtype=bool), centred=True
+        )
 
-    def on_wall(w: _Wall) -> int:
-        return int((np.abs(radii - w.radius(angles)) <= 0.5 * floor_m).sum())
+        def on_wall(w: _Wall) -> int:
+            return int((np.abs(radii - w.radius(angles)) <= 0.5 * floor_m).sum())
 
-    return max((envelope, ellipse), key=on_wall)
+        wall = max((envelope, ellipse), key=on_wall)
+    if wall.harmonics < 1 or not np.any(wall.coef[1:3]):
+        return wall
+    # The envelope's centre moved off the axis. A band of even thickness over one side of the
+    # wall is concentric with it, yet the first harmonic can take up about two thirds of its
+    # thickness as an offset, leaving it under the threshold: the wall then scatters well
+    # beyond its noise. Refit about the axis, without the bins lower than their opposite by
+    # more than the floor (an ellipse about the axis is point-symmetric; whatever stands on one
+    # side is not); that wall is kept when it scatters significantly less.
+    centred = _robust_wall(radii, angles, floor_m, p, radii >= opposite - floor_m, centred=True)
+    if centred.harmonics < 2 or not _scatters_less(centred, wall):
+        return wall
+    return centred
+
+
+def _scatters_less(a: _Wall, b: _Wall) -> bool:
+    """Whether wall ``a`` scatters less than wall ``b`` by more than twice the standard error
+    of the difference of their scatters (each a MAD-based σ from its inlier bins: relative
+    variance 1.36 / n for Gaussian noise)."""
+    n_a, n_b = max(int(a.inliers.sum()), 1), max(int(b.inliers.sum()), 1)
+    return b.noise_m > a.noise_m * (1.0 + 2.0 * math.sqrt(1.36 / n_a + 1.36 / n_b))
 
 
 def _robust_wall(
@@ -420,23 +449,31 @@ def _robust_wall(
     noise = floor_m
     harmonics = 0
     for _ in range(10):
-        gap = _largest_gap_rad(inliers)
-        # Each harmonic needs the wall seen all round enough to be told from a feature.
-        harmonics = 2 if gap <= math.radians(100) else 1 if gap <= math.radians(150) else 0
+        if centred:
+            folded = inliers | np.roll(inliers, len(inliers) // 2)
+            harmonics = 2 if _largest_gap_rad(folded) <= math.radians(50) else 0
+        else:
+            gap = _largest_gap_rad(inliers)
+            # Each harmonic needs the wall seen all round enough to be told from a feature.
+            harmonics = 2 if gap <= math.radians(100) else 1 if gap <= math.radians(150) else 0
         if inliers.sum() < 8:
             break
-        design = _design(angles[inliers], harmonics)
-        if centred and harmonics == 2:
-            design = design[:, [0, 3, 4]]
-        elif centred:
-            design = design[:, :1]
-        sol, *_ = np.linalg.lstsq(design, radii[inliers], rcond=None)
-        coef = np.zeros(5)
-        if centred:
-            coef[[0, 3, 4][: len(sol)]] = sol
+        inverse = (
+            _ellipse_about_axis(radii[inliers], angles[inliers])
+            if (centred and harmonics == 2)
+            else None
+        )
+        if inverse is not None:
+            coef = _ellipse_coef(inverse)
+            residual = radii - _Wall(coef, noise, inliers, harmonics, inverse).radius(angles)
         else:
+            design = _design(angles[inliers], harmonics)
+            if centred:
+                design = design[:, :1]
+            sol, *_ = np.linalg.lstsq(design, radii[inliers], rcond=None)
+            coef = np.zeros(5)
             coef[: len(sol)] = sol
-        residual = radii - _design(angles, 2) @ coef
+            residual = radii - _design(angles, 2) @ coef
         mad = float(np.median(np.abs(residual[inliers] - np.median(residual[inliers]))))
         noise = max(1.4826 * mad, 1e-4)
         band = max(p.noise_factor * noise, floor_m)
@@ -444,7 +481,29 @@ def _robust_wall(
         if np.array_equal(new, inliers):
             break
         inliers = new
-    return _Wall(coef=coef, noise_m=noise, inliers=inliers, harmonics=harmonics)
+    return _Wall(coef, noise, inliers, harmonics, inverse)
+
+
+def _ellipse_about_axis(radii: np.ndarray, angles: np.ndarray) -> np.ndarray | None:
+    """The ellipse centred on the axis through the bins ``(angles, radii)``, by least squares
+    on ``1/r² = A + B cos 2θ + C sin 2θ`` (linear in A, B, C; an ellipse about its centre is
+    exactly that), each bin weighted by ``r³/2`` so that its residual counts in metres along
+    the radius. (A, B, C), or None when the fit is no ellipse."""
+    weight = 0.5 * radii**3
+    design = _design(angles, 2)[:, [0, 3, 4]] * weight[:, None]
+    sol, *_ = np.linalg.lstsq(design, weight / radii**2, rcond=None)
+    return sol if sol[0] > math.hypot(sol[1], sol[2]) else None
+
+
+def _ellipse_coef(inverse: np.ndarray) -> np.ndarray:
+    """The wall's ``coef`` for an ellipse given as ``inverse_square``: its mean semi-axis, and
+    half the difference of its semi-axes along its long axis (where ``1/r²`` is least)."""
+    a_inv, b_inv, c_inv = (float(v) for v in inverse)
+    swing = math.hypot(b_inv, c_inv)
+    long_r, short_r = 1.0 / math.sqrt(a_inv - swing), 1.0 / math.sqrt(a_inv + swing)
+    half = 0.5 * (long_r - short_r)
+    cos2, sin2 = (-b_inv / swing, -c_inv / swing) if swing > 0 else (1.0, 0.0)
+    return np.array([0.5 * (long_r + short_r), 0.0, 0.0, half * cos2, half * sin2])
 
 
 # --- displaced arcs ---------------------------------------------------------------------------
