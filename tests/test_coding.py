@@ -27,7 +27,13 @@ from pipescan.core.coding import (
     feature_runs,
     radial_profile,
 )
-from pipescan.core.grading import grade_sections, is_flagged, load_table, merge_defects
+from pipescan.core.grading import (
+    feature_value,
+    grade_sections,
+    is_flagged,
+    load_table,
+    merge_defects,
+)
 from pipescan.core.model import SectionMeasures, SectionStatus
 
 R = 0.25  # a 0.5 m pipe
@@ -429,6 +435,27 @@ def test_a_deposit_that_begins_with_its_ramp_is_graded_on_its_height():
     assert (defect.code, defect.measure) == (BBC, "deposit_height_ratio")
     assert defect.peak_value == pytest.approx(0.15) and defect.peak_chainage_m == 0.1
     assert defect.chainage_start_m == 0.0
+
+
+def test_a_deposit_under_a_body_on_the_invert_is_not_graded_on_the_bodys_top():
+    # Layout 7000+4: a body standing on a deposit at the invert. The section's deposit height
+    # is read straight down, on the body's top (55 mm, where the deposit is 21 mm): it is no
+    # figure of the deposit. A body beside the invert leaves the deposit's figure alone.
+    deposit = dataclasses.replace(_f(BBC, 4, 8), measure="deposit_height_ratio")
+    heights = [0.07, 0.185, 0.07]
+    sections = [
+        section(i, fill(disc(), -R + 0.07 * D), deposit_height_ratio=h)
+        for i, h in enumerate(heights)
+    ]
+    on_it = _coding(deposit, _f(BBE, 5.4, 6.6))
+    codings = [_coding(deposit), on_it, _coding(deposit)]
+    (defect, body) = sorted(merge_defects(sections, load_table(), codings=codings), key=str)
+    assert (defect.code, body.code) == (BBC, BBE)
+    assert defect.peak_value == pytest.approx(0.07)
+    assert feature_value(deposit, sections[1], on_it) is None
+    beside = _coding(deposit, _f(BBE, 4.2, 5.5))
+    assert feature_value(deposit, sections[1], beside) == pytest.approx(0.185)
+    assert feature_value(deposit, sections[1], _coding(deposit, _f(BAA))) == pytest.approx(0.185)
 
 
 def test_a_thin_end_within_an_obstacles_arc_is_the_obstacles_end():

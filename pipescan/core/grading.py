@@ -37,11 +37,13 @@ from pipescan.core.coding import (
     CodingParams,
     SectionCoding,
     WallFeature,
+    arcs_meet,
     clock_hours,
     code_sections,
     feature_runs,
 )
 from pipescan.core.errors import GradingError
+from pipescan.core.measures import DEPOSIT_TOP_HALF_WIDTH_RAD
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import peak_blockage
 
@@ -349,7 +351,8 @@ def feature_value(
     areas the other features coded in the section take (each between the wall and the
     contour over its own arc), so an obstacle over a deposit is not charged with the deposit.
     Alone in its section, a feature's blockage is the section's. None when the figure is
-    missing.
+    missing, and for a deposit when another feature of the section stands over the invert
+    where its height is read: that height is the other feature's top, not the deposit's.
 
     >>> from pipescan.core.model import SectionStatus
     >>> band = WallFeature("BBB", 4.2, 5.2, 0.004, 0.015, "a band")
@@ -358,9 +361,25 @@ def feature_value(
     >>> round(feature_value(band, s, SectionCoding((fill, band), 0.25, 0.001, 0.0075)), 3)
     0.02
     """
+    if feature.measure == "deposit_height_ratio" and _over_the_invert(feature, coding):
+        return None
     if feature.measure != "blockage_ratio":
         return _measure_value(s, feature.measure)
     return _own_blockage(feature, s, coding)
+
+
+def _over_the_invert(feature: WallFeature, coding: SectionCoding | None) -> bool:
+    """Whether another feature of the section (with an arc: not a deformation) covers the
+    invert where a section's deposit height is read
+    (``measures.DEPOSIT_TOP_HALF_WIDTH_RAD`` either side of straight down)."""
+    if coding is None:
+        return False
+    half = DEPOSIT_TOP_HALF_WIDTH_RAD
+    window = WallFeature("", 1.5 * math.pi - half, 1.5 * math.pi + half, 0.0, 0.0, "the invert")
+    return any(
+        g is not feature and g.arc_from_rad is not None and arcs_meet(g, window, 0.0)
+        for g in coding.features
+    )
 
 
 def _own_blockage(

@@ -198,6 +198,10 @@ def _diameter_measures(
     return ovality, deformation
 
 
+DEPOSIT_TOP_HALF_WIDTH_RAD = math.radians(5.0)
+"""A section's deposit top is read within this angle either side of straight down."""
+
+
 def _deposit_height_ratio(
     profile_radii_m: np.ndarray,
     seen: np.ndarray,
@@ -208,10 +212,10 @@ def _deposit_height_ratio(
     """Height of settled material above the invert, as a share of the pipe height.
 
     The invert is placed at the median wall radius below the centre; the fill's top is the
-    median radius within ±5° of straight down.
+    median radius within ±5° of straight down (``DEPOSIT_TOP_HALF_WIDTH_RAD``).
     """
     wall = _wall_bins(profile_radii_m, seen, nominal_diameter_m, wall_tolerance_ratio)
-    down = np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * np.pi)))) <= np.radians(5.0)
+    down = np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * np.pi)))) <= DEPOSIT_TOP_HALF_WIDTH_RAD
     bottom = down & seen
     if not bottom.any() or wall.sum() < 3:
         return None
