@@ -671,6 +671,17 @@ def test_a_ragged_contour_is_not_coded():
     assert f.code == UNCLASSIFIED and "ragged" in f.rule and f.arc_from_rad is None
 
 
+def test_a_contour_with_no_envelope_to_start_from_is_not_coded():
+    # Three quarters of the bins at 0.1 m and the rest at 0.3 m: no bin lies near the 75th
+    # percentile, so the wall's first start has nothing to fit. It is too ragged, not a crash.
+    angles = np.radians(np.arange(0.5, 360.0, 1.0))
+    radii = np.where(np.arange(360) < 270, 0.1, 0.3)
+    (f,) = code_section(
+        np.column_stack((radii * np.cos(angles), radii * np.sin(angles))), D
+    ).features
+    assert f.code == UNCLASSIFIED and "too ragged" in f.rule
+
+
 def test_coding_draws_name_the_scenes_an_effect_makes_impossible():
     """At the harsh mount jitter the sensor's clearance takes it through a stone on the invert
     of a 0.3 m pipe: the draw is left out and named, and the others keep their seeds."""

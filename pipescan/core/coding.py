@@ -448,6 +448,7 @@ def _robust_wall(
     coef = np.array([float(np.median(radii[inliers])) if inliers.any() else 0.0, 0, 0, 0, 0])
     noise = floor_m
     harmonics = 0
+    inverse = None
     for _ in range(10):
         if centred:
             folded = inliers | np.roll(inliers, len(inliers) // 2)
@@ -491,7 +492,7 @@ def _ellipse_about_axis(radii: np.ndarray, angles: np.ndarray) -> np.ndarray | N
     the radius. (A, B, C), or None when the fit is no ellipse."""
     weight = 0.5 * radii**3
     design = _design(angles, 2)[:, [0, 3, 4]] * weight[:, None]
-    sol, *_ = np.linalg.lstsq(design, weight / radii**2, rcond=None)
+    sol, *_ = np.linalg.lstsq(design, 0.5 * radii, rcond=None)  # weight / r²
     return sol if sol[0] > math.hypot(sol[1], sol[2]) else None
 
 
