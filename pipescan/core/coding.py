@@ -355,7 +355,7 @@ class _Wall:
 
     def radius(self, angles: np.ndarray) -> np.ndarray:
         if self.inverse_square is not None:
-            return 1.0 / np.sqrt(_design(angles, 2)[:, [0, 3, 4]] @ self.inverse_square)
+            return _ellipse_radius(self.inverse_square, angles)
         return _design(angles, 2) @ self.coef
 
 
@@ -466,7 +466,7 @@ def _robust_wall(
         )
         if inverse is not None:
             coef = _ellipse_coef(inverse)
-            residual = radii - _Wall(coef, noise, inliers, harmonics, inverse).radius(angles)
+            residual = radii - _ellipse_radius(inverse, angles)
         else:
             design = _design(angles[inliers], harmonics)
             if centred:
@@ -494,6 +494,11 @@ def _ellipse_about_axis(radii: np.ndarray, angles: np.ndarray) -> np.ndarray | N
     design = _design(angles, 2)[:, [0, 3, 4]] * weight[:, None]
     sol, *_ = np.linalg.lstsq(design, 0.5 * radii, rcond=None)  # weight / r²
     return sol if sol[0] > math.hypot(sol[1], sol[2]) else None
+
+
+def _ellipse_radius(inverse: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """The radius at ``angles`` of the ellipse ``1/r² = A + B cos 2θ + C sin 2θ``."""
+    return 1.0 / np.sqrt(_design(angles, 2)[:, [0, 3, 4]] @ inverse)
 
 
 def _ellipse_coef(inverse: np.ndarray) -> np.ndarray:
