@@ -87,7 +87,8 @@ class MeasureParams:
         Parameters of the paper's grid method.
     max_uncertainty_ratio : float
         A section whose blockage is not known to within this (95 %, ±) is not ``ok``: it is
-        ``low_coverage`` when its unseen arcs make most of the uncertainty, else
+        ``low_coverage`` when its unseen arcs (and the free space hidden beside an
+        obstacle, ``PolarProfile.hidden_polygons``) make most of the uncertainty, else
         ``too_few_points`` (too few points for the wall's scatter or its edges). 2.5 pp: the
         95 % interval is then no wider than the narrowest condition class of the shipped
         table (BBE 0-5 %), so a measured figure is never more than one class off. A
@@ -430,6 +431,12 @@ def measure_section(
             status=status, coverage_ratio=coverage, water_depth_ratio=water_depth, **base
         )
     polygon, radii, open_area = contour.polygon_m, contour.radii_m, contour.area_m2
+    # Beside an overhanging obstacle's edge, free space that no ray reached counts as blocked
+    # in the contour; the obstacle's side decides how much of it is free. The figure is the
+    # middle of the two ends (the side along the line of sight: none free; at right angles to
+    # the obstacle's face: all of it), and the ± spans both (``hidden`` part below).
+    hidden_half = 0.5 * profile.hidden_area_m2()
+    open_area += hidden_half
 
     # A 5-bin running median keeps single noisy bins from setting D_min or D_max.
     radii_smooth = median_filter(radii, size=5, mode="wrap")
@@ -468,6 +475,7 @@ def measure_section(
         # scatter is the range noise, which the noise part carries.
         smear = smear_bias_m2(open_area, sigma_bins[wall], wall_radius_m)
         area_u = dataclasses.replace(area_u, smear_m2=smear)
+    area_u = dataclasses.replace(area_u, hidden_m2=hidden_half)
     blockage_u = _finite(area_u.total_m2 / nominal_area)
     if (
         status == SectionStatus.OK
@@ -475,7 +483,8 @@ def measure_section(
         and blockage_u > params.max_uncertainty_ratio
     ):
         if (area_u.total_m2 - area_u.smear_m2) / nominal_area > params.max_uncertainty_ratio:
-            unseen_first = area_u.unseen_m2 >= area_u.noise_m2 + area_u.resolution_m2
+            unseen = area_u.unseen_m2 + area_u.hidden_m2
+            unseen_first = unseen >= area_u.noise_m2 + area_u.resolution_m2
             status = SectionStatus.LOW_COVERAGE if unseen_first else SectionStatus.TOO_FEW_POINTS
         else:
             status = SectionStatus.SMEARED_WALL  # known well enough, but for the smear

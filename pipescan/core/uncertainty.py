@@ -17,6 +17,10 @@ every figure and to decide whether the figures can be trusted (docs/measures.md,
 - **smear**: frames that disagree lay shifted copies of the wall, whose polar median reads
   more open by up to ``2 median(s²) / R²`` of the area (``s``, the wall bins' scatter;
   :func:`smear_bias_m2`). Dense sections only: a sparse one sees each bin once.
+- **hidden beside an obstacle**: free space beside an overhanging obstacle's edge that no ray
+  reached; the figure counts half of it as free and the ± carries the other half
+  (``PolarProfile.hidden_polygons``: the obstacle's side at right angles to its face, or
+  along the line of sight).
 - **resolution**: where the contour steps between two neighbouring bins by more than their
   noise and by more than twice the steps beside it (an obstacle's edge), the edge may lie
   anywhere within the half bins on either side: at most ``½ |r₁² − r₂²| Δθ / 2`` of area;
@@ -60,10 +64,18 @@ class AreaUncertainty:
     resolution_m2: float
     along_m2: float = 0.0
     smear_m2: float = 0.0
+    hidden_m2: float = 0.0
 
     @property
     def total_m2(self) -> float:
-        return self.noise_m2 + self.unseen_m2 + self.resolution_m2 + self.along_m2 + self.smear_m2
+        return (
+            self.noise_m2
+            + self.unseen_m2
+            + self.resolution_m2
+            + self.along_m2
+            + self.smear_m2
+            + self.hidden_m2
+        )
 
 
 def smear_bias_m2(open_area_m2: float, wall_sigma_m: np.ndarray, radius_m: float) -> float:

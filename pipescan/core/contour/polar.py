@@ -215,6 +215,134 @@ class PolarProfile:
             pockets.append(np.column_stack((radius * np.cos(theta), radius * np.sin(theta))))
         return pockets
 
+    def hidden_polygons(self) -> list[np.ndarray]:
+        """Free space that may lie hidden beside an overhanging obstacle's edge, one polygon per
+        edge: what the contour counts as blocked only because no ray reached it.
+
+        Beside the edge of an obstacle that stands off the wall (a box hanging from the crown,
+        a body on the invert, a lateral), the contour runs from the edge to the last wall point
+        seen beyond it (the far end of its pocket, ``pocket_polygons``, or the open bin's wall
+        point when no pocket was seen) and counts everything past that line as blocked. How
+        much of it is free depends on the obstacle's side, which no ray reached. The model
+        stated here: the side leaves the edge at right angles to the obstacle's near face (a
+        box's side to its underside) and runs to the wall. Its polygon runs from the edge
+        along that side to the wall, along the wall back to the last wall point seen, and back
+        to the edge. A side that slants back under the obstacle hides more; one along the line
+        of sight hides nothing (the contour's own count).
+
+        An edge is a step inwards by more than ``layer_gap_m`` from a bin on the wall (within
+        ``layer_gap_m`` of the section's median radius) to the next seen bin; the near face is
+        the bins beyond the step that follow on without such a step, up to 10° of them (at
+        least three, the first, which straddles the edge, left out); the wall there is the
+        open bin's radius. The face's line, continued to the open bin, must stay inside the
+        wall there by more than ``layer_gap_m``: a surface that runs on into the wall (a
+        deposit's top, seen in coarse bins) steps in the same way but hides nothing.
+
+        Returns
+        -------
+        list of (M, 2) float
+        """
+        near, seen, bins = self.radii_m, self.seen, len(self.radii_m)
+        far = self.far_radii_m if self.far_radii_m is not None else np.full(bins, np.nan)
+        if seen.sum() < 3:
+            return []
+        gap = self.layer_gap_m
+        wall_radius = float(np.median(near[seen]))
+        face_bins = max(3, round(bins * 10.0 / 360.0))
+        polygons = []
+        two = seen & np.isfinite(far)
+        two[two] = far[two] - near[two] >= gap
+        wall = seen & (near >= wall_radius - gap)
+        for d in (1, -1):
+            following = np.roll(near, -d)
+            with np.errstate(invalid="ignore"):
+                candidate = wall & (~np.roll(seen, -d) | (near - following > gap))
+            for o in np.flatnonzero(candidate):
+                # The face begins at the next seen bin (an unseen arc may lie between).
+                e, skipped = (o + d) % bins, 0
+                while not seen[e] and skipped < bins // 4:
+                    e, skipped = (e + d) % bins, skipped + 1
+                if not seen[e] or near[o] - near[e] <= gap:
+                    continue
+                face, k = [e], e
+                while len(face) < face_bins + 1:
+                    nxt = (k + d) % bins
+                    if not seen[nxt] or abs(near[nxt] - near[k]) > gap:
+                        break
+                    face.append(nxt)
+                    k = nxt
+                # The first bin straddles the edge (its sub-slices disagree): the face is fitted
+                # on the bins after it.
+                face = face[1:]
+                if len(face) < 3:
+                    continue
+                # The last wall point seen past the edge: the far end of the pocket (the run
+                # of bins beyond the edge with the wall seen behind the face), else the
+                # open bin's own wall point.
+                last, theta_last, r_last = None, self.angles_rad[o], float(near[o])
+                k = e
+                while two[k] and k != o:
+                    last, k = k, (k + d) % bins
+                if last is not None:
+                    theta_last, r_last = self.angles_rad[last], float(far[last])
+                xy = near[face, None] * np.column_stack(
+                    (np.cos(self.angles_rad[face]), np.sin(self.angles_rad[face]))
+                )
+                centre = xy.mean(axis=0)
+                along = np.linalg.svd(xy - centre, full_matrices=False)[2][0]
+                side = np.array([-along[1], along[0]])
+                # The edge: where the face's line meets the ray through the first bin wholly on
+                # the face (the corner lies within the bin before it, which straddles it: the
+                # side's innermost place, so that the hidden region is not under-counted).
+                theta_edge = self.angles_rad[face[0]]
+                ray = np.array([np.cos(theta_edge), np.sin(theta_edge)])
+                if abs(ray @ side) < 1e-9:
+                    continue
+                edge = ray * float(centre @ side) / float(ray @ side)
+                if not 0.0 < float(edge @ ray) < near[o]:
+                    continue
+                # A surface that runs on into the wall (a deposit's top meeting it at a shallow
+                # angle, seen in coarse bins) is no overhang: continued to the open bin, its
+                # line must stay inside the wall there by more than the layer gap.
+                towards = np.array([np.cos(self.angles_rad[o]), np.sin(self.angles_rad[o])])
+                if abs(towards @ side) > 1e-9:
+                    reach = float(centre @ side) / float(towards @ side)
+                    if reach <= 0.0 or reach >= near[o] - gap:
+                        continue
+                side = side if side @ edge > 0 else -side
+                radius = float(near[o])
+                b = float(side @ edge)
+                disc = b * b - (float(edge @ edge) - radius * radius)
+                if disc <= 0:
+                    continue
+                meets = edge + (-b + np.sqrt(disc)) * side
+                theta_meets = float(np.arctan2(meets[1], meets[0]))
+                beyond = _wrapped(theta_meets - theta_edge) * d
+                reached = _wrapped(theta_last - theta_edge) * d
+                if beyond <= reached:
+                    continue
+                arc = theta_edge + d * np.linspace(beyond, reached, 16)
+                along_wall = radius * np.column_stack((np.cos(arc), np.sin(arc)))
+                along_wall[-1] = r_last * np.array([np.cos(theta_last), np.sin(theta_last)])
+                polygons.append(np.vstack((edge, along_wall)))
+        return polygons
+
+    def hidden_area_m2(self) -> float:
+        """Area of the free space that may lie hidden beside overhanging obstacles
+        (``hidden_polygons``), outside the contour's free region, m²."""
+        polygons = self.hidden_polygons()
+        if not polygons:
+            return 0.0
+        import shapely
+
+        hidden = shapely.union_all([shapely.make_valid(shapely.Polygon(p)) for p in polygons])
+        free = (
+            self._free_region[1]
+            if self._free_region is not None
+            else shapely.Polygon(self.star_polygon())
+        )
+        return float(shapely.difference(hidden, shapely.make_valid(free)).area)
+
     @cached_property
     def _free_region(self):
         """The nearest-surface polygon and its union with the pockets, as shapely geometries;
@@ -393,6 +521,11 @@ def polar_profile(
         slice_radii_m=near_per_bin,
         both_layers=both,
     )
+
+
+def _wrapped(angle_rad: float) -> float:
+    """An angle difference in (-π, π]."""
+    return float(np.angle(np.exp(1j * angle_rad)))
 
 
 def _run_median(sorted_values: np.ndarray, lo: np.ndarray, n: np.ndarray) -> np.ndarray:
