@@ -231,12 +231,13 @@ class PolarProfile:
         of sight hides nothing (the contour's own count).
 
         An edge is a step inwards by more than ``layer_gap_m`` from a bin on the wall (within
-        ``layer_gap_m`` of the section's median radius) to the next seen bin; the near face is
-        the bins beyond the step that follow on without such a step, up to 10° of them (at
-        least three, the first, which straddles the edge, left out); the wall there is the
-        open bin's radius. The face's line, continued to the open bin, must stay inside the
-        wall there by more than ``layer_gap_m``: a surface that runs on into the wall (a
-        deposit's top, seen in coarse bins) steps in the same way but hides nothing.
+        ``layer_gap_m`` of the section's median radius) to the next seen bin. The near face
+        is the first run of at least three bins, up to 10°, that follow on without such a
+        step, after the bin at the edge (and the next, when the run cannot start there: both
+        straddle the edge, their radii anywhere between the wall's and the face's). The wall
+        there is the open bin's radius. The face's line, continued to the open bin, must stay
+        inside the wall there by more than ``layer_gap_m``: a surface that runs on into the
+        wall (a deposit's top, seen in coarse bins) steps in the same way but hides nothing.
 
         Returns
         -------
@@ -264,17 +265,22 @@ class PolarProfile:
                     e, skipped = (e + d) % bins, skipped + 1
                 if not seen[e] or near[o] - near[e] <= gap:
                     continue
-                face, k = [e], e
-                while len(face) < face_bins + 1:
-                    nxt = (k + d) % bins
-                    if not seen[nxt] or abs(near[nxt] - near[k]) > gap:
+                # The bin at the edge straddles it (its sub-slices disagree, and its radius can
+                # lie anywhere between the wall's and the face's), and so may the next: the
+                # face is the first run of three or more bins after it that follow on without
+                # a step.
+                face = []
+                for start in ((e + d) % bins, (e + 2 * d) % bins):
+                    face, k = [start], start
+                    while seen[k] and len(face) < face_bins:
+                        nxt = (k + d) % bins
+                        if not seen[nxt] or abs(near[nxt] - near[k]) > gap:
+                            break
+                        face.append(nxt)
+                        k = nxt
+                    if seen[start] and len(face) >= 3:
                         break
-                    face.append(nxt)
-                    k = nxt
-                # The first bin straddles the edge (its sub-slices disagree): the face is fitted
-                # on the bins after it.
-                face = face[1:]
-                if len(face) < 3:
+                if len(face) < 3 or not seen[face[0]] or near[o] - near[face[0]] <= gap:
                     continue
                 # The last wall point seen past the edge: the far end of the pocket (the run
                 # of bins beyond the edge with the wall seen behind the face), else the
@@ -292,8 +298,9 @@ class PolarProfile:
                 along = np.linalg.svd(xy - centre, full_matrices=False)[2][0]
                 side = np.array([-along[1], along[0]])
                 # The edge: where the face's line meets the ray through the first bin wholly on
-                # the face (the corner lies within the bin before it, which straddles it: the
-                # side's innermost place, so that the hidden region is not under-counted).
+                # the face. The corner lies within the bins before it, which straddle it: this
+                # is the innermost place it can be, so that the hidden region is not
+                # under-counted (at most a bin's worth over).
                 theta_edge = self.angles_rad[face[0]]
                 ray = np.array([np.cos(theta_edge), np.sin(theta_edge)])
                 if abs(ray @ side) < 1e-9:
