@@ -244,95 +244,106 @@ class PolarProfile:
         list of (M, 2) float
         """
         near, seen, bins = self.radii_m, self.seen, len(self.radii_m)
-        far = self.far_radii_m if self.far_radii_m is not None else np.full(bins, np.nan)
         if seen.sum() < 3:
             return []
         gap = self.layer_gap_m
-        wall_radius = float(np.median(near[seen]))
-        face_bins = max(3, round(bins * 10.0 / 360.0))
-        polygons = []
+        far = self.far_radii_m if self.far_radii_m is not None else np.full(bins, np.nan)
         two = seen & np.isfinite(far)
         two[two] = far[two] - near[two] >= gap
-        wall = seen & (near >= wall_radius - gap)
+        wall = seen & (near >= float(np.median(near[seen])) - gap)
+        polygons = []
         for d in (1, -1):
-            following = np.roll(near, -d)
             with np.errstate(invalid="ignore"):
-                candidate = wall & (~np.roll(seen, -d) | (near - following > gap))
-            for o in np.flatnonzero(candidate):
-                # The face begins at the next seen bin (an unseen arc may lie between).
-                e, skipped = (o + d) % bins, 0
-                while not seen[e] and skipped < bins // 4:
-                    e, skipped = (e + d) % bins, skipped + 1
-                if not seen[e] or near[o] - near[e] <= gap:
-                    continue
-                # The bin at the edge straddles it (its sub-slices disagree, and its radius can
-                # lie anywhere between the wall's and the face's), and so may the next: the
-                # face is the first run of three or more bins after it that follow on without
-                # a step.
-                face = []
-                for start in ((e + d) % bins, (e + 2 * d) % bins):
-                    face, k = [start], start
-                    while seen[k] and len(face) < face_bins:
-                        nxt = (k + d) % bins
-                        if not seen[nxt] or abs(near[nxt] - near[k]) > gap:
-                            break
-                        face.append(nxt)
-                        k = nxt
-                    if seen[start] and len(face) >= 3:
-                        break
-                if len(face) < 3 or not seen[face[0]] or near[o] - near[face[0]] <= gap:
-                    continue
-                # The last wall point seen past the edge: the far end of the pocket (the run
-                # of bins beyond the edge with the wall seen behind the face), else the
-                # open bin's own wall point.
-                last, theta_last, r_last = None, self.angles_rad[o], float(near[o])
-                k = e
-                while two[k] and k != o:
-                    last, k = k, (k + d) % bins
-                if last is not None:
-                    theta_last, r_last = self.angles_rad[last], float(far[last])
-                xy = near[face, None] * np.column_stack(
-                    (np.cos(self.angles_rad[face]), np.sin(self.angles_rad[face]))
-                )
-                centre = xy.mean(axis=0)
-                along = np.linalg.svd(xy - centre, full_matrices=False)[2][0]
-                side = np.array([-along[1], along[0]])
-                # The edge: where the face's line meets the ray through the first bin wholly on
-                # the face. The corner lies within the bins before it, which straddle it: this
-                # is the innermost place it can be, so that the hidden region is not
-                # under-counted (at most a bin's worth over).
-                theta_edge = self.angles_rad[face[0]]
-                ray = np.array([np.cos(theta_edge), np.sin(theta_edge)])
-                if abs(ray @ side) < 1e-9:
-                    continue
-                edge = ray * float(centre @ side) / float(ray @ side)
-                if not 0.0 < float(edge @ ray) < near[o]:
-                    continue
-                # A surface that runs on into the wall (a deposit's top meeting it at a shallow
-                # angle, seen in coarse bins) is no overhang: continued to the open bin, its
-                # line must stay inside the wall there by more than the layer gap.
-                towards = np.array([np.cos(self.angles_rad[o]), np.sin(self.angles_rad[o])])
-                if abs(towards @ side) > 1e-9:
-                    reach = float(centre @ side) / float(towards @ side)
-                    if reach <= 0.0 or reach >= near[o] - gap:
-                        continue
-                side = side if side @ edge > 0 else -side
-                radius = float(near[o])
-                b = float(side @ edge)
-                disc = b * b - (float(edge @ edge) - radius * radius)
-                if disc <= 0:
-                    continue
-                meets = edge + (-b + np.sqrt(disc)) * side
-                theta_meets = float(np.arctan2(meets[1], meets[0]))
-                beyond = _wrapped(theta_meets - theta_edge) * d
-                reached = _wrapped(theta_last - theta_edge) * d
-                if beyond <= reached:
-                    continue
-                arc = theta_edge + d * np.linspace(beyond, reached, 16)
-                along_wall = radius * np.column_stack((np.cos(arc), np.sin(arc)))
-                along_wall[-1] = r_last * np.array([np.cos(theta_last), np.sin(theta_last)])
-                polygons.append(np.vstack((edge, along_wall)))
+                steps_in = near - np.roll(near, -d) > gap
+            for o in np.flatnonzero(wall & (~np.roll(seen, -d) | steps_in)):
+                polygon = self._hidden_beside(int(o), d, two)
+                if polygon is not None:
+                    polygons.append(polygon)
         return polygons
+
+    def _face_after(self, o: int, d: int) -> list[int]:
+        """The near face past the edge that follows the wall bin ``o`` going ``d`` (±1): the
+        bins of the first run of three or more, up to 10°, that follow on without a step,
+        after the first seen bin (and after the next, when the run cannot start there: both
+        straddle the edge); [] when there is no such face or no step in from the wall."""
+        near, seen, bins, gap = self.radii_m, self.seen, len(self.radii_m), self.layer_gap_m
+        e, skipped = (o + d) % bins, 0  # an unseen arc may lie between the wall and the face
+        while not seen[e] and skipped < bins // 4:
+            e, skipped = (e + d) % bins, skipped + 1
+        if not seen[e] or near[o] - near[e] <= gap:
+            return []
+        longest = max(3, round(bins * 10.0 / 360.0))
+        for start in ((e + d) % bins, (e + 2 * d) % bins):
+            if not seen[start]:
+                continue
+            face, k = [start], start
+            while len(face) < longest:
+                nxt = (k + d) % bins
+                if not seen[nxt] or abs(near[nxt] - near[k]) > gap:
+                    break
+                face.append(nxt)
+                k = nxt
+            if len(face) >= 3:
+                # The face must stand in from the wall where it starts.
+                return face if near[o] - near[start] > gap else []
+        return []
+
+    def _hidden_beside(self, o: int, d: int, two: np.ndarray) -> np.ndarray | None:
+        """The hidden polygon beside the edge after wall bin ``o`` going ``d`` (see
+        ``hidden_polygons``; ``two``: the bins with the wall seen behind the near face), or
+        None when nothing is hidden there."""
+        near, bins, angles = self.radii_m, len(self.radii_m), self.angles_rad
+        face = self._face_after(o, d)
+        if not face:
+            return None
+        # The last wall point seen past the edge: the far end of the pocket (the run of bins
+        # from the first seen one past the wall bin, with the wall seen behind the face), else
+        # the wall bin's own.
+        last, k = None, (o + d) % bins
+        while not self.seen[k] and k != o:
+            k = (k + d) % bins
+        while two[k] and k != o:
+            last, k = k, (k + d) % bins
+        theta_last = angles[o] if last is None else angles[last]
+        r_last = float(near[o] if last is None else self.far_radii_m[last])  # type: ignore[index]
+        xy = near[face, None] * np.column_stack((np.cos(angles[face]), np.sin(angles[face])))
+        centre = xy.mean(axis=0)
+        along = np.linalg.svd(xy - centre, full_matrices=False)[2][0]
+        side = np.array([-along[1], along[0]])
+        offset = float(centre @ side)  # the face's line: {p : p · side = offset}
+        # The edge: where the face's line meets the ray through the first bin wholly on the
+        # face. The corner lies within the bins before it, which straddle it: this is the
+        # innermost place it can be, so that the hidden region is not under-counted (at most
+        # a bin's worth over).
+        theta_edge = angles[face[0]]
+        ray = np.array([np.cos(theta_edge), np.sin(theta_edge)])
+        towards = np.array([np.cos(angles[o]), np.sin(angles[o])])
+        if abs(ray @ side) < 1e-9 or abs(towards @ side) < 1e-9:
+            return None
+        edge = ray * offset / float(ray @ side)
+        if not 0.0 < float(edge @ ray) < near[o]:
+            return None
+        # A surface that runs on into the wall (a deposit's top meeting it at a shallow angle,
+        # seen in coarse bins) is no overhang: continued to the wall bin, its line must stay
+        # inside the wall there by more than the layer gap.
+        reach = offset / float(towards @ side)
+        if reach <= 0.0 or reach >= near[o] - self.layer_gap_m:
+            return None
+        side = side if side @ edge > 0 else -side
+        radius = float(near[o])
+        b = float(side @ edge)
+        disc = b * b - (float(edge @ edge) - radius * radius)
+        if disc <= 0:
+            return None
+        meets = edge + (-b + np.sqrt(disc)) * side
+        beyond = _wrapped(float(np.arctan2(meets[1], meets[0])) - theta_edge) * d
+        reached = _wrapped(theta_last - theta_edge) * d
+        if beyond <= reached:
+            return None
+        arc = theta_edge + d * np.linspace(beyond, reached, 16)
+        along_wall = radius * np.column_stack((np.cos(arc), np.sin(arc)))
+        along_wall[-1] = r_last * np.array([np.cos(theta_last), np.sin(theta_last)])
+        return np.vstack((edge, along_wall))
 
     def hidden_area_m2(self) -> float:
         """Area of the free space that may lie hidden beside overhanging obstacles
