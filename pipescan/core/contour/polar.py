@@ -256,7 +256,7 @@ class PolarProfile:
             with np.errstate(invalid="ignore"):
                 steps_in = near - np.roll(near, -d) > gap
             for o in np.flatnonzero(wall & (~np.roll(seen, -d) | steps_in)):
-                polygon = self._hidden_beside(int(o), d, two)
+                polygon = self._hidden_beside(int(o), d, two, far)
                 if polygon is not None:
                     polygons.append(polygon)
         return polygons
@@ -288,10 +288,10 @@ class PolarProfile:
                 return face if near[o] - near[start] > gap else []
         return []
 
-    def _hidden_beside(self, o: int, d: int, two: np.ndarray) -> np.ndarray | None:
+    def _hidden_beside(self, o: int, d: int, two: np.ndarray, far: np.ndarray) -> np.ndarray | None:
         """The hidden polygon beside the edge after wall bin ``o`` going ``d`` (see
-        ``hidden_polygons``; ``two``: the bins with the wall seen behind the near face), or
-        None when nothing is hidden there."""
+        ``hidden_polygons``; ``two``: the bins with the wall seen behind the near face, at
+        radius ``far``), or None when nothing is hidden there."""
         near, bins, angles = self.radii_m, len(self.radii_m), self.angles_rad
         face = self._face_after(o, d)
         if not face:
@@ -305,7 +305,7 @@ class PolarProfile:
         while two[k] and k != o:
             last, k = k, (k + d) % bins
         theta_last = angles[o] if last is None else angles[last]
-        r_last = float(near[o] if last is None else self.far_radii_m[last])  # type: ignore[index]
+        r_last = float(near[o] if last is None else far[last])
         xy = near[face, None] * np.column_stack((np.cos(angles[face]), np.sin(angles[face])))
         centre = xy.mean(axis=0)
         along = np.linalg.svd(xy - centre, full_matrices=False)[2][0]
