@@ -506,6 +506,22 @@ def test_nothing_is_hidden_without_an_overhanging_edge():
         assert profile_hidden(pts3) == 0.0
 
 
+@pytest.mark.parametrize("bins", [48, 60])
+@pytest.mark.parametrize("top_m", [0.24, 0.26, 0.28])
+def test_a_deposit_seen_in_coarse_bins_hides_nothing(bins, top_m):
+    """A static scan's coarse bins (6-7.5°) see a deposit's top meet the wall as a step inwards
+    of more than the layer gap. Its line runs on into the wall: no overhang, nothing hidden
+    (counted as hidden, 80-250 cm² of deposit would have read as possibly free)."""
+    angles = (np.arange(bins) + 0.5) * 2.0 * np.pi / bins
+    below = np.sin(angles) < 0
+    radius = 0.4
+    radii = np.where(
+        below, np.minimum(radius, top_m / np.where(below, -np.sin(angles), 1.0)), radius
+    )
+    assert np.abs(np.diff(radii)).max() > 0.03  # the steps an edge is looked for at
+    assert PolarProfile(angles, radii, np.full(bins, 50)).hidden_area_m2() == 0.0
+
+
 def test_a_few_stray_returns_beside_the_obstacle_do_not_make_a_pocket():
     rng = np.random.default_rng(33)
     pts = overhang_section(rng, wall_seen_to_deg=EDGE_DEG - 1.0)
