@@ -109,6 +109,17 @@ class PolarProfile:
         r = self.filled_radii()
         return np.column_stack((r * np.cos(self.angles_rad), r * np.sin(self.angles_rad)))
 
+    @cached_property
+    def _two_layers(self) -> np.ndarray:
+        """(B,) bool: the seen bins with a far layer ``layer_gap_m`` or more beyond the near
+        one (none without far radii)."""
+        if self.far_radii_m is None:
+            return np.zeros(len(self.radii_m), dtype=bool)
+        near, far = self.radii_m, self.far_radii_m
+        two = self.seen & np.isfinite(far)
+        two[two] = far[two] - near[two] >= self.layer_gap_m
+        return two
+
     def _two_layer_runs(self) -> list[tuple[np.ndarray, bool, bool]]:
         """Runs of consecutive bins that hold two layers (a far layer ``layer_gap_m`` beyond
         the near one), each with whether the wall continues from the open bin before its
@@ -118,8 +129,7 @@ class PolarProfile:
             return []
         near, far, seen, layer_gap_m = self.radii_m, self.far_radii_m, self.seen, self.layer_gap_m
         bins = len(near)
-        two = seen & np.isfinite(far)
-        two[two] = far[two] - near[two] >= layer_gap_m
+        two = self._two_layers
         if not two.any() or two.all():
             return []
 
@@ -243,20 +253,17 @@ class PolarProfile:
         -------
         list of (M, 2) float
         """
-        near, seen, bins = self.radii_m, self.seen, len(self.radii_m)
+        near, seen = self.radii_m, self.seen
         if seen.sum() < 3:
             return []
         gap = self.layer_gap_m
-        far = self.far_radii_m if self.far_radii_m is not None else np.full(bins, np.nan)
-        two = seen & np.isfinite(far)
-        two[two] = far[two] - near[two] >= gap
         wall = seen & (near >= float(np.median(near[seen])) - gap)
         polygons = []
         for d in (1, -1):
             with np.errstate(invalid="ignore"):
                 steps_in = near - np.roll(near, -d) > gap
             for o in np.flatnonzero(wall & (~np.roll(seen, -d) | steps_in)):
-                polygon = self._hidden_beside(int(o), d, two, far)
+                polygon = self._hidden_beside(int(o), d)
                 if polygon is not None:
                     polygons.append(polygon)
         return polygons
@@ -288,10 +295,9 @@ class PolarProfile:
                 return face if near[o] - near[start] > gap else []
         return []
 
-    def _hidden_beside(self, o: int, d: int, two: np.ndarray, far: np.ndarray) -> np.ndarray | None:
+    def _hidden_beside(self, o: int, d: int) -> np.ndarray | None:
         """The hidden polygon beside the edge after wall bin ``o`` going ``d`` (see
-        ``hidden_polygons``; ``two``: the bins with the wall seen behind the near face, at
-        radius ``far``), or None when nothing is hidden there."""
+        ``hidden_polygons``), or None when nothing is hidden there."""
         near, bins, angles = self.radii_m, len(self.radii_m), self.angles_rad
         face = self._face_after(o, d)
         if not face:
@@ -302,10 +308,11 @@ class PolarProfile:
         last, k = None, (o + d) % bins
         while not self.seen[k] and k != o:
             k = (k + d) % bins
-        while two[k] and k != o:
+        while self._two_layers[k] and k != o:
             last, k = k, (k + d) % bins
-        theta_last = angles[o] if last is None else angles[last]
-        r_last = float(near[o] if last is None else far[last])
+        theta_last, r_last = angles[o], float(near[o])
+        if last is not None and self.far_radii_m is not None:
+            theta_last, r_last = angles[last], float(self.far_radii_m[last])
         xy = near[face, None] * np.column_stack((np.cos(angles[face]), np.sin(angles[face])))
         centre = xy.mean(axis=0)
         along = np.linalg.svd(xy - centre, full_matrices=False)[2][0]
