@@ -53,7 +53,7 @@ from pathlib import Path
 
 STAGES = (
     ("staged", re.compile(r"^archive .*: asset ")),
-    ("registered", re.compile(r"^(registered \d+ frames|axis fitted)")),
+    ("registered", re.compile(r"^(registered \d+ (of \d+ )?frames|axis fitted)")),
     ("axis", re.compile(r"^axis fitted")),
     ("first window", re.compile(r"^measured ")),
     ("stored", re.compile(r"^stored inspection ")),

@@ -306,13 +306,20 @@ def _staged(root: str):
 
 
 def _register_chunk_in_worker(
-    staged, first: int, last: int, params: RegistrationParams, engine_processes: int = 0
+    staged,
+    first: int,
+    last: int,
+    params: RegistrationParams,
+    engine_processes: int = 0,
+    stride: int = 1,
 ):
     """The flow's register-chunk task body (``register_chunk.fn``): stream, register; with
     ``engine_processes``, in the engine pool's worker processes as the flow does."""
     from pipescan.tasks.inspection import register_chunk
 
-    return register_chunk.fn(staged, first, last, params, engine_processes=engine_processes)
+    return register_chunk.fn(
+        staged, first, last, params, engine_processes=engine_processes, stride=stride
+    )
 
 
 def _warm(_: int) -> int:
@@ -461,6 +468,30 @@ def bench_parallel(args) -> None:
             wall = time.perf_counter() - wall
             # CPU: this process's and the workers' while registering (not their start-up).
             rows["2 engine processes (the flow)"] = (wall, _cpu_s() - cpu)
+            # The flow as it runs by default: every k-th frame, k chosen from the scan.
+            from pipescan.flows.inspect import InspectionParams
+            from pipescan.tasks.inspection import choose_stride
+
+            flow = InspectionParams()
+            cpu, wall = _cpu_s(), time.perf_counter()
+            stride = choose_stride.fn(
+                staged,
+                max_range_m=flow.max_section_range_m,
+                step_m=flow.step_m,
+                section_points=flow.measure.max_points,
+                keyframe_distance_m=params.keyframe_distance_m,
+            )
+            strided_chunks = plan_chunks(n, (n // stride.stride + 1) // 2 + 1, stride.stride)
+            strided = list(
+                pool.map(
+                    lambda c: _register_chunk_in_worker(staged, *c, params, 2, stride.stride),
+                    strided_chunks,
+                )
+            )
+            rows[f"2 engine processes, every {stride.stride} frames (the flow's default)"] = (
+                time.perf_counter() - wall,
+                _cpu_s() - cpu,
+            )
             # The same without the early-return filter: what the filter costs.
             unfiltered = dataclasses.replace(params, early_return_ratio=0.0)
             cpu, wall = _cpu_s(), time.perf_counter()
@@ -483,9 +514,13 @@ def bench_parallel(args) -> None:
         parts_by = (
             ("serial", serial), ("num_threads=2", one_two), ("threads", threaded),
             ("threads, num_threads=2", threaded_two), ("engine processes", processed),
+            (f"every {stride.stride} frames", strided),
         )  # fmt: skip
         for name, parts in parts_by:
-            e = trajectory_errors(chain_trajectories(parts).T_world_frame, scan.T_world_sensor)
+            chained = chain_trajectories(parts)
+            e = trajectory_errors(
+                chained.T_world_frame, scan.T_world_sensor[list(chained.frame_indices)]
+            )
             print(
                 f"chained {name}: tilt {e.tilt_rms_deg:.3f}°, "
                 f"across {e.across_rms_m * 1e3:.2f} mm, along end {e.along_final_m * 1e3:+.1f} mm"
@@ -504,6 +539,8 @@ def bench_parallel(args) -> None:
 class DrawFigures:
     name: str
     frames: int
+    """Frames registered (the flow's stride: every k-th of ``all_frames``)."""
+    all_frames: int
     odometer_error_ratio: float
     travel_error_ratio: float
     score: SectionScore
@@ -533,18 +570,27 @@ def _flow_sections(archive: Path, work: Path):
 
 
 def _registered(archive: Path, params: RegistrationParams):
-    """The flow's registration, chunk by chunk in one thread: trajectory and seconds."""
+    """The flow's registration, chunk by chunk in one thread, on the frames the flow uses
+    (its stride chosen as the flow chooses it): trajectory and seconds (choosing included)."""
     from pipescan.flows.inspect import InspectionParams
     from pipescan.storage.input.archive import open_archive
-    from pipescan.tasks.inspection import StagedArchive, register_chunk
+    from pipescan.tasks.inspection import StagedArchive, choose_stride, register_chunk
 
     with open_archive(archive) as arc:
         staged = StagedArchive(
             arc.name, Path(archive), arc.meta, arc.content_hash, arc.frame_count, None
         )
-    chunks = plan_chunks(staged.frame_count, InspectionParams().chunk_frames)
+    flow = InspectionParams()
     started = time.perf_counter()
-    parts = [register_chunk.fn(staged, a, b, params) for a, b in chunks]
+    stride = choose_stride.fn(
+        staged,
+        max_range_m=flow.max_section_range_m,
+        step_m=flow.step_m,
+        section_points=flow.measure.max_points,
+        keyframe_distance_m=params.keyframe_distance_m,
+    ).stride
+    chunks = plan_chunks(staged.frame_count, flow.chunk_frames, stride)
+    parts = [register_chunk.fn(staged, a, b, params, stride=stride) for a, b in chunks]
     return chain_trajectories(parts), time.perf_counter() - started
 
 
@@ -572,7 +618,8 @@ def evaluate_draw(draw, work: Path) -> DrawFigures:
     duration_s = len(scan) / scan.scenario.frame_rate_hz
     return DrawFigures(
         name=draw.name,
-        frames=len(scan),
+        frames=len(trajectory.frame_indices),
+        all_frames=len(scan),
         odometer_error_ratio=float(scan.odometer_m[-1] / true_travel - 1.0),
         travel_error_ratio=travel / true_travel - 1.0,
         score=score,
@@ -598,7 +645,7 @@ SWEEP_HEADER = (
 def _sweep_row(f: DrawFigures) -> str:
     sc = f.score
     return (
-        f"| {f.name} | {f.frames} | {100 * f.odometer_error_ratio:+.2f} | "
+        f"| {f.name} | {f.frames} of {f.all_frames} | {100 * f.odometer_error_ratio:+.2f} | "
         f"{100 * f.travel_error_ratio:+.2f} | {sc.ok} | {sc.ok_away} | {sc.mean_pp:.2f} | "
         f"{sc.max_pp:.2f} | {sc.dishonest} | {sc.dishonest_naive} | {sc.worst_pp:.1f} | "
         f"{sc.beyond_stated} | {sc.shadows_ok} ({sc.shadows_ok_wrong})/{sc.shadows} | "

@@ -55,6 +55,12 @@ class Settings(BaseSettings):
     step_m: float = Field(0.1, gt=0, description="section length along the chainage")
     window_m: float = Field(2.0, gt=0, description="chainage window processed per task")
     chunk_frames: int = Field(60, ge=2, description="frames registered per task")
+    frame_stride: int | None = Field(
+        None,
+        ge=1,
+        description="read and register every k-th frame (1: all); none: the largest k that "
+        "keeps each section's points and views and the local map (docs/throughput.md)",
+    )
     workers: int = Field(2, ge=1, description="parallel task workers")
     task_runner: Literal["threads", "processes"] = "threads"
     engine_processes: bool = Field(

@@ -16,7 +16,12 @@ from threadpoolctl import threadpool_info, threadpool_limits
 from typer.testing import CliRunner
 
 from pipescan.cli import app
-from pipescan.core.registration import RegistrationParams, plan_chunks
+from pipescan.core.registration import (
+    RegistrationParams,
+    plan_chunks,
+    sample_frame_indices,
+    used_frame_indices,
+)
 from pipescan.flows.inspect import InspectionParams, inspect_archive
 from pipescan.settings import use_settings
 from pipescan.simulator.archive import read_ground_truth, write_simulated_archive
@@ -91,18 +96,23 @@ def test_the_run_lets_the_libraries_use_one_thread(inspected):
 
 
 def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
-    """Registration decodes each frame once (the frame two chunks share: once per chunk);
-    the axis and the sections read what it kept, never the archive. In the flow, chunks
-    register in the engine pool's processes: the flow's own process decodes nothing. The
-    same chunks registered here count what registration decodes."""
+    """Registration decodes each frame it uses once (the frame two chunks share: once per
+    chunk), and no other; the axis and the sections read what it kept, never the archive. In
+    the flow, chunks register in the engine pool's processes: the flow's own process decodes
+    only the few frames the stride is chosen from. The same chunks registered here count what
+    registration decodes."""
     summary, _, _ = inspected
     assert summary.frame_count > 100
-    assert not _decoded, "the flow's own process decoded frames"
-    staged = stage_archive.fn(str(archive), create_run_dir(tmp_path / "work"))
+    stride = summary.registration["frame_stride"]
+    assert stride > 1  # the scan is denser in time than its sections need
     meta_files = [
         f.file for f in read_inspection_toml(archive / "inspection.toml", archive="arc").frames
     ]
-    chunks = plan_chunks(summary.frame_count, 50)
+    sampled = {meta_files[i] for i in sample_frame_indices(summary.frame_count)}
+    assert set(_decoded) == sampled, "the flow's own process decoded other frames"
+    assert set(_decoded.values()) == {1}
+    staged = stage_archive.fn(str(archive), create_run_dir(tmp_path / "work"))
+    chunks = plan_chunks(summary.frame_count, 50, stride)
     read_points = archive_module.read_points
     decoded: Counter[str] = Counter()
 
@@ -114,9 +124,11 @@ def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(archive_module, "read_points", counted)
         for a, b in chunks:
-            register_chunk.fn(staged, a, b, RegistrationParams(), store, 6.0)
+            register_chunk.fn(staged, a, b, RegistrationParams(), store, 6.0, stride=stride)
     shared = {meta_files[b] for _, b in chunks[:-1]}
-    assert len(decoded) == summary.frame_count
+    used = used_frame_indices(summary.frame_count, stride)
+    assert summary.registration["frames"] == len(used) < summary.frame_count
+    assert set(decoded) == {meta_files[i] for i in used}
     assert {f for f, n in decoded.items() if n != 1} == shared
     assert {decoded[f] for f in shared} == {2}
 

@@ -19,11 +19,13 @@ import pipescan
 from pipescan.core.grading import choose_grading, is_flagged
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.registration import (
+    FrameStride,
     RegistrationParams,
     chain_trajectories,
     plan_chunks,
     registration_evidence,
     registration_summary,
+    used_frame_indices,
 )
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows, windows_reached
@@ -37,6 +39,7 @@ from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
 from pipescan.tasks.inspection import (
     bucket_points,
+    choose_stride,
     fit_pipe_axis,
     grade,
     measure_sections,
@@ -62,6 +65,9 @@ class InspectionParams:
     window_m: float = 2.0
     chunk_frames: int = 60
     max_section_range_m: float = 5.0
+    frame_stride: int | None = None
+    """Read and register every k-th frame; None: chosen from the scan (the largest k that
+    keeps each section's points, views and the local map: ``choose_frame_stride``)."""
     threshold_table: str = "vsa-2023"
     pipe_class: str = "auto"
     blockage_threshold_ratio: float = 0.10
@@ -193,11 +199,25 @@ def inspect_archive(
                 )
 
         trajectory = None
-        chunks = plan_chunks(staged.frame_count, params.chunk_frames)
+        stride = (
+            FrameStride(params.frame_stride, "set for the run")
+            if params.frame_stride
+            else choose_stride(
+                quote(staged),
+                max_range_m=params.max_section_range_m,
+                step_m=params.step_m,
+                section_points=params.measure.max_points,
+                keyframe_distance_m=params.registration.keyframe_distance_m,
+            )
+            if staged.frame_count
+            else FrameStride(1, "a registered cloud")
+        )
+        chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
         # Each frame is decoded once: registration keeps what the sections need here.
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
-            log.info(f"registering {staged.frame_count} frames in {len(chunks)} chunks")
+            used = len(used_frame_indices(staged.frame_count, stride.stride))
+            log.info(f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks")
             # How the work is split, not the figures: kept out of the stored parameters.
             # In the engine pool's processes, one engine thread each: both cores are busy.
             registering = replace(
@@ -216,11 +236,12 @@ def inspect_archive(
                     frame_store,
                     params.max_section_range_m,
                     engine_processes=pooled,
+                    stride=stride.stride,
                 )
                 for a, b in chunks
             ]
             trajectory = chain_trajectories([f.result() for f in futures])
-            log.info(f"registered {staged.frame_count} frames")
+            log.info(f"registered {used} of {staged.frame_count} frames")
 
         fit = fit_pipe_axis(
             quote(staged),
@@ -335,6 +356,7 @@ def inspect_archive(
                 if meta.frames
                 else None,
             )
+            | {"frame_stride": stride.stride, "frame_stride_reason": stride.reason}
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )

@@ -400,8 +400,16 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     fitness = reg.get("mean_fitness")
     rmse_m = reg.get("mean_rmse_m")
     degenerate = reg.get("degenerate_frames")
+    registered = reg.get("frames", inp.frame_count)
+    stride = reg.get("frame_stride", 1)
     rows = [
-        ("frames registered", fmt_int(inp.frame_count)),
+        (
+            "frames registered",
+            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}, every {stride}: "
+            f"{reg.get('frame_stride_reason', 'set for the run')}"
+            if stride > 1
+            else fmt_int(inp.frame_count),
+        ),
         ("registration engine", _text(engine)),
         (
             "mean ICP fitness",
@@ -415,9 +423,9 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
         rows.append(
             (
                 "frames held to odometer",
-                f"{degenerate} of {inp.frame_count} (along-axis position from the odometer)"
+                f"{degenerate} of {registered} (along-axis position from the odometer)"
                 if degenerate
-                else f"none of {inp.frame_count}",
+                else f"none of {registered}",
             )
         )
     uncertainty_m = reg.get("chainage_uncertainty_m")

@@ -670,32 +670,47 @@ def measure_scan(
     chunk_frames: int = 60,
     max_section_range_m: float = 5.0,
     params: RegistrationParams | None = None,
+    frame_stride: int | None = None,
 ):
     """The inspect flow's stages on a simulated scan, in memory and without Prefect:
     registration in chunks (chained), the axis, each section's registration evidence, and
     the sections. For tests and studies of a scan small enough to hold in memory (the flow
     buckets points on disk instead). ``params``: the ``RegistrationParams`` to register with
-    (the defaults when None).
+    (the defaults when None). ``frame_stride``: every k-th frame is used (and the last), as
+    the flow does; None chooses it as the flow does (``choose_frame_stride``).
 
     Returns
     -------
     trajectory, sections
     """
     from pipescan.core.axis import fit_axis
-    from pipescan.core.measures import withhold_smeared_object_edges
+    from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
     from pipescan.core.registration import (
         RegistrationParams,
         chain_trajectories,
+        choose_frame_stride,
         iter_registered_points,
         plan_chunks,
         register_frames,
         registration_evidence,
+        sample_frame_indices,
+        used_frame_indices,
     )
     from pipescan.core.sections import measure_window, plan_windows
     from pipescan.core.water import explain_invert_shadows
 
     params = params or RegistrationParams()
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    if frame_stride is None:
+        frame_stride = choose_frame_stride(
+            [frames[i][1] for i in sample_frame_indices(len(frames))],
+            [f[2] for f in frames],
+            max_range_m=max_section_range_m,
+            step_m=0.1,
+            section_points=MeasureParams().max_points,
+            keyframe_distance_m=params.keyframe_distance_m,
+        ).stride
+    frames = [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
     trajectory = chain_trajectories(
         [
             register_frames(iter(frames[a : b + 1]), params)

@@ -21,10 +21,13 @@ from pipescan.core.grading import choose_grading, grade_sections, load_table, me
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.registration import (
+    FrameStride,
     RegistrationEvidence,
     RegistrationParams,
     Trajectory,
+    choose_frame_stride,
     iter_registered_points,
+    sample_frame_indices,
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.core.start import cloud_start
@@ -63,18 +66,16 @@ def register_chunk(
     frame_store: FrameStore | None = None,
     keep_range_m: float = np.inf,
     engine_processes: int = 0,
+    stride: int = 1,
 ) -> Trajectory:
-    """Register frames ``first..last`` (inclusive) relative to frame ``first``
-    (:func:`pipescan.tasks.staged.register_staged_frames`), in this process or, with
-    ``engine_processes`` > 0, in one of the engine pool's worker processes."""
+    """Register frames ``first..last`` (inclusive; every ``stride``-th and the last) relative
+    to frame ``first`` (:func:`pipescan.tasks.staged.register_staged_frames`), in this process
+    or, with ``engine_processes`` > 0, in one of the engine pool's worker processes."""
+    args = (staged, first, last, params, frame_store, keep_range_m, stride)
     if engine_processes:
-        trajectory = enginepool.run(
-            engine_processes,
-            register_staged_frames,
-            staged, first, last, params, frame_store, keep_range_m,
-        )  # fmt: skip
+        trajectory = enginepool.run(engine_processes, register_staged_frames, *args)
     else:
-        trajectory = register_staged_frames(staged, first, last, params, frame_store, keep_range_m)
+        trajectory = register_staged_frames(*args)
     held = sum(q.degenerate for q in trajectory.quality)
     log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
     if held and trajectory.along_axis_prior != "odometer":
@@ -84,6 +85,32 @@ def register_chunk(
             first, last, held,
         )  # fmt: skip
     return trajectory
+
+
+@task(name="choose-frame-stride", cache_policy=NO_CACHE)
+def choose_stride(
+    staged: StagedArchive,
+    *,
+    max_range_m: float,
+    step_m: float,
+    section_points: int,
+    keyframe_distance_m: float,
+) -> FrameStride:
+    """Which frames the run reads and registers (:func:`~pipescan.core.registration.
+    choose_frame_stride`), from a few frames spread over the run and the odometer."""
+    meta = staged.meta
+    with staged.reopen() as arc:
+        sample = [pts for _, pts in arc.iter_frames(sample_frame_indices(staged.frame_count))]
+    choice = choose_frame_stride(
+        sample,
+        [f.odometer_m for f in meta.frames] if meta.frames else None,
+        max_range_m=max_range_m,
+        step_m=step_m,
+        section_points=section_points,
+        keyframe_distance_m=keyframe_distance_m,
+    )
+    log.info(choice.describe(staged.frame_count))
+    return choice
 
 
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
@@ -248,7 +275,7 @@ def bucket_points(
         if trajectory is None:
             chunks = (chunk.points for chunk in arc.iter_cloud())
             return write_buckets(chunks, axis, windows, bucket_root, "cloud")
-        frames = range(first, last + 1)
+        frames = [i for i in trajectory.frame_indices if first <= i <= last]
         placed = _frame_points_world(arc, trajectory, frames, max_range_m)
         return write_buckets(placed, axis, windows, bucket_root, tag)
 

@@ -11,7 +11,12 @@ from pathlib import Path
 import numpy as np
 
 from pipescan.core.model import InspectionMeta
-from pipescan.core.registration import RegistrationParams, Trajectory, register_frames
+from pipescan.core.registration import (
+    RegistrationParams,
+    Trajectory,
+    chunk_frame_indices,
+    register_frames,
+)
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.bags import BagIndex
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
@@ -64,8 +69,11 @@ def register_staged_frames(
     params: RegistrationParams,
     frame_store: FrameStore | None = None,
     keep_range_m: float = np.inf,
+    stride: int = 1,
 ) -> Trajectory:
-    """Register frames ``first..last`` (inclusive) relative to frame ``first``.
+    """Register frames ``first..last`` (inclusive) relative to frame ``first``; with
+    ``stride`` k, only every k-th of them and the last (the others are not read:
+    :func:`~pipescan.core.registration.chunk_frame_indices`).
 
     Frames stream from the archive one at a time; only the local map stays in memory. The
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
@@ -78,7 +86,7 @@ def register_staged_frames(
         keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
 
         def frames():
-            for i, pts in arc.iter_frames(range(first, last + 1)):
+            for i, pts in arc.iter_frames(chunk_frame_indices(first, last, stride)):
                 if keep is not None:
                     keep.add(i, crop(pts, keep_range_m))
                 gravity = meta.frames[i].gravity if meta.frames else None

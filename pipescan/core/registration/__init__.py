@@ -70,11 +70,14 @@ from pipescan.core.registration.preprocess import (
     voxel_downsample,
 )
 from pipescan.core.registration.registrar import FrameRegistrar, register_frames
+from pipescan.core.registration.stride import FrameStride, choose_frame_stride, sample_frame_indices
 from pipescan.core.registration.trajectory import (
     Trajectory,
     chain_trajectories,
+    chunk_frame_indices,
     iter_registered_points,
     plan_chunks,
+    used_frame_indices,
 )
 
 __all__ = [
@@ -83,6 +86,7 @@ __all__ = [
     "AlongAxisPrior",
     "AxialFilter",
     "FrameRegistrar",
+    "FrameStride",
     "LocalMap",
     "RegistrationEngine",
     "RegistrationEvidence",
@@ -94,6 +98,8 @@ __all__ = [
     "TrajectoryErrors",
     "axial_information",
     "chain_trajectories",
+    "choose_frame_stride",
+    "chunk_frame_indices",
     "degenerate_directions",
     "degenerate_spans",
     "drop_early_returns",
@@ -109,11 +115,13 @@ __all__ = [
     "registration_evidence",
     "registration_summary",
     "remove_isolated",
+    "sample_frame_indices",
     "seen_twice",
     "slide_spans",
     "trajectory_errors",
     "transform",
     "unseen_slip_allowance",
     "unseen_slip_caveat",
+    "used_frame_indices",
     "voxel_downsample",
 ]

@@ -1,0 +1,158 @@
+"""Which frames a run reads (``choose_frame_stride``): the bounds hold on the simulator's
+ground truth, a profiler and a run without odometer use every frame, and the chunks of a
+strided run chain into one trajectory that keeps the run's whole length."""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from pipescan.core.measures import MeasureParams
+from pipescan.core.registration import (
+    RegistrationParams,
+    chunk_frame_indices,
+    plan_chunks,
+    used_frame_indices,
+)
+from pipescan.core.registration.stride import (
+    FRAMES_PER_KEYFRAME,
+    VIEWS_PER_SECTION,
+    choose_frame_stride,
+    sample_frame_indices,
+    travel_per_frame,
+    view_length,
+)
+from pipescan.simulator.scan import get_scenario, simulate_scan
+
+STEP_M = 0.1
+RANGE_M = 5.0
+
+
+def _choose(frames, odometer, **overrides):
+    kwargs = {
+        "max_range_m": RANGE_M,
+        "step_m": STEP_M,
+        "section_points": MeasureParams().max_points,
+        "keyframe_distance_m": RegistrationParams().keyframe_distance_m,
+    } | overrides
+    return choose_frame_stride(frames, odometer, **kwargs)
+
+
+def _scan_choice(scan, frames=None, **overrides):
+    frames = list(scan.frames()) if frames is None else frames
+    sample = [frames[i].points_sensor for i in sample_frame_indices(len(frames))]
+    return frames, _choose(sample, [f.odometer_m for f in frames], **overrides)
+
+
+def _points_per_section(scan, frames, used) -> np.ndarray:
+    """True points each section gets from frames ``used`` (true poses; the pipe runs along x),
+    for the sections the sensor passed with the whole of its view: behind its last position,
+    and 4 m beyond its first (it looks forward)."""
+    xs = []
+    for i in used:
+        p = frames[i].points_sensor
+        p = p[np.einsum("ij,ij->i", p, p) <= RANGE_M**2]
+        T = scan.T_world_sensor[i]
+        xs.append(p @ T[0, :3] + T[0, 3])
+    x = np.concatenate(xs)
+    positions = scan.T_world_sensor[list(used), 0, 3]
+    start = np.ceil((positions[0] + 4.0) / STEP_M) * STEP_M
+    edges = np.arange(start, positions[-1], STEP_M)
+    return np.histogram(x, edges)[0]
+
+
+@pytest.fixture(scope="module")
+def slow_scan():
+    # A slower crawler than the default: denser in time, so that a stride above 2 is allowed.
+    scenario = get_scenario("paper", travel_m=5.5, speed_m_s=0.08, points_per_s=300_000)
+    scan = simulate_scan(scenario, seed=3)
+    return scan, list(scan.frames())
+
+
+def test_the_chosen_stride_keeps_every_section_s_points(slow_scan):
+    """The points bound, against the truth: with the stride chosen, every section the whole
+    run saw still gets at least the points it keeps (``MeasureParams.max_points``); a bound
+    that allows more than that is caught by raising the points a section needs."""
+    need = MeasureParams().max_points
+    scan, frames = slow_scan
+    frames, choice = _scan_choice(scan, frames)
+    assert choice.stride >= 3, choice
+    counts = _points_per_section(scan, frames, used_frame_indices(len(frames), choice.stride))
+    assert len(counts) >= 5
+    assert counts.min() >= need, (counts.min(), choice)
+    # With a section needing more points, the points bound binds: still met against the truth.
+    frames, tight = _scan_choice(scan, frames, section_points=2 * need)
+    assert 1 < tight.stride < choice.stride and "points" in tight.reason, tight
+    counts = _points_per_section(scan, frames, used_frame_indices(len(frames), tight.stride))
+    assert counts.min() >= 2 * need, (counts.min(), tight)
+
+
+def test_the_local_map_keeps_three_frames_a_keyframe(slow_scan):
+    frames, choice = _scan_choice(*slow_scan, section_points=1000)
+    assert "local map" in choice.reason
+    odometer = np.array([f.odometer_m for f in frames])
+    spacing = np.diff(odometer[used_frame_indices(len(frames), choice.stride)])
+    keyframe = RegistrationParams().keyframe_distance_m
+    # The fastest stretch still puts three registered frames in a keyframe's travel.
+    assert np.percentile(spacing, 95) * FRAMES_PER_KEYFRAME <= keyframe * 1.02
+    # ... and one more frame skipped would not.
+    wider = np.diff(odometer[used_frame_indices(len(frames), choice.stride + 1)])
+    assert np.percentile(wider, 95) * FRAMES_PER_KEYFRAME > keyframe
+
+
+def test_a_short_view_is_bound_by_the_views():
+    """A sensor that sees 0.6 m of pipe a frame: each section keeps 25 positions."""
+    rng = np.random.default_rng(0)
+    a = rng.uniform(0, 2 * np.pi, 60_000)
+    short = np.column_stack((rng.uniform(0.3, 0.9, 60_000), 0.3 * np.cos(a), 0.3 * np.sin(a)))
+    odometer = np.arange(400) * 0.002  # a slow crawler: 2 mm a frame
+    choice = _choose([short] * 3, odometer)
+    assert "views" in choice.reason
+    assert choice.view_length_m == pytest.approx(0.54, abs=0.03)  # 5-95 % of 0.6 m
+    assert choice.stride == int(choice.view_length_m / (0.002 * VIEWS_PER_SECTION))
+
+
+def test_a_profiler_and_a_run_without_odometer_use_every_frame():
+    ring = simulate_scan(get_scenario("ring", travel_m=1.5), seed=0)
+    frames, choice = _scan_choice(ring, section_points=10)  # however few points it needs
+    assert choice.stride == 1 and choice.view_length_m == 0.0
+    paper = simulate_scan(get_scenario("paper", travel_m=2.0), seed=0)
+    frames = list(paper.frames())
+    sample = [frames[i].points_sensor for i in sample_frame_indices(len(frames))]
+    assert _choose(sample, [f.odometer_m for f in frames]).stride > 1
+    no_odometer = _choose(sample, None)
+    assert no_odometer.stride == 1 and "odometer" in no_odometer.reason
+    assert _choose(sample, [None] * len(frames)).stride == 1
+
+
+@pytest.mark.parametrize("angles", [(0, 0, 0), (10, 35, 60), (80, 0, 20)])
+def test_view_length_does_not_depend_on_how_the_sensor_is_mounted(angles):
+    rng = np.random.default_rng(2)
+    a = rng.uniform(0, 2 * np.pi, 20_000)
+    tube = np.column_stack((rng.uniform(0.5, 3.5, 20_000), 0.25 * np.cos(a), 0.25 * np.sin(a)))
+    turned = tube @ Rotation.from_euler("xyz", angles, degrees=True).as_matrix().T
+    assert view_length(turned) == pytest.approx(2.7, abs=0.05)  # 5-95 % of 3 m
+
+
+def test_travel_per_frame_takes_the_fast_end():
+    slow_then_fast = np.concatenate((np.arange(200) * 0.005, 1.0 + np.arange(1, 201) * 0.02))
+    assert travel_per_frame(slow_then_fast) == pytest.approx(0.02, rel=0.01)
+    standing = np.zeros(100)
+    assert travel_per_frame(standing) is None
+    assert travel_per_frame(np.arange(15) * 0.01) is None  # too short to tell
+
+
+@pytest.mark.parametrize(("count", "stride"), [(296, 2), (301, 3), (10, 4), (7, 1), (1, 3)])
+def test_strided_chunks_overlap_by_one_frame_and_keep_the_last(count, stride):
+    used = used_frame_indices(count, stride)
+    assert used[0] == 0 and used[-1] == count - 1
+    assert all(0 < b - a <= stride for a, b in itertools.pairwise(used))
+    chunks = plan_chunks(count, 4, stride)
+    frames = [chunk_frame_indices(a, b, stride) for a, b in chunks]
+    assert all(len(f) <= 4 for f in frames)
+    assert all(f[-1] == g[0] for f, g in itertools.pairwise(frames))
+    chained = [i for k, f in enumerate(frames) for i in (f if k == 0 else f[1:])]
+    assert chained == used
