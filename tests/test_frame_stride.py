@@ -90,17 +90,30 @@ def test_the_chosen_stride_keeps_every_section_s_points(slow_scan):
     assert counts.min() >= 2 * need, (counts.min(), tight)
 
 
+def _frames_per_keyframe(travel: np.ndarray, keyframe_m: float) -> list[int]:
+    """How the local map groups frames at these positions along the pipe: a keyframe closes
+    at the first frame ``keyframe_m`` or more from the last one (FrameRegistrar._add_to_map)."""
+    counts, pending, last = [], 0, travel[0]
+    for x in travel[1:]:
+        pending += 1
+        if x - last >= keyframe_m:
+            counts.append(pending)
+            pending, last = 0, x
+    return counts
+
+
 def test_the_local_map_keeps_three_frames_a_keyframe(slow_scan):
-    frames, choice = _scan_choice(*slow_scan, section_points=1000)
-    assert "local map" in choice.reason
-    odometer = np.array([f.odometer_m for f in frames])
-    spacing = np.diff(odometer[used_frame_indices(len(frames), choice.stride)])
+    """Against the true travel: with the stride chosen where the local map binds, every
+    keyframe still groups three registered frames; one frame more skipped and some would not."""
+    scan, frames = slow_scan
+    frames, choice = _scan_choice(scan, frames, section_points=1000)
+    assert "local map" in choice.reason and choice.stride > 3, choice
     keyframe = RegistrationParams().keyframe_distance_m
-    # The fastest stretch still puts three registered frames in a keyframe's travel.
-    assert np.percentile(spacing, 95) * FRAMES_PER_KEYFRAME <= keyframe * 1.02
-    # ... and one more frame skipped would not.
-    wider = np.diff(odometer[used_frame_indices(len(frames), choice.stride + 1)])
-    assert np.percentile(wider, 95) * FRAMES_PER_KEYFRAME > keyframe
+    travel = scan.true_travel_m
+    grouped = _frames_per_keyframe(travel[used_frame_indices(len(frames), choice.stride)], keyframe)
+    assert min(grouped) >= FRAMES_PER_KEYFRAME, grouped
+    wider = used_frame_indices(len(frames), choice.stride + 1)
+    assert min(_frames_per_keyframe(travel[wider], keyframe)) < FRAMES_PER_KEYFRAME
 
 
 def test_a_short_view_is_bound_by_the_views():

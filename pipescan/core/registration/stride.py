@@ -17,7 +17,9 @@ what each figure rests on as long as three bounds hold, each from the geometry o
   to about 1 mm over the frames that place a section's wall. A profiler, whose frame is one
   ring (``L`` ≈ 0), needs every frame: its sections are built ring by ring.
 - **the local map**: each keyframe still groups at least ``FRAMES_PER_KEYFRAME`` registered
-  frames, ``k ≤ keyframe_distance / (d · FRAMES_PER_KEYFRAME)``: a keyframe keeps only what
+  frames. A keyframe closes at the first frame ``keyframe_distance`` or more from the last
+  one, so it groups ``ceil(keyframe_distance / (k · d))`` frames: at least three while
+  ``k < keyframe_distance / (2 d)``. A keyframe keeps only what
   two of its frames saw (``seen_twice``), the filter that keeps spurious returns out of the
   map; three leave one to spare.
 
@@ -156,7 +158,7 @@ def choose_frame_stride(
     >>> choice = choose_frame_stride([tube] * 3, odometer, max_range_m=5.0, step_m=0.1,
     ...                              section_points=40_000, keyframe_distance_m=0.15)
     >>> choice.stride, round(choice.view_length_m, 1)
-    (3, 3.6)
+    (4, 3.6)
     >>> ring = np.column_stack((np.zeros(30_000), 0.3 * np.cos(a), 0.3 * np.sin(a)))
     >>> choose_frame_stride([ring] * 3, odometer, max_range_m=5.0, step_m=0.1,
     ...                     section_points=40_000, keyframe_distance_m=0.15).stride
@@ -177,10 +179,13 @@ def choose_frame_stride(
     bounds = {
         "points": per_section / section_points,
         "views": length / (d * VIEWS_PER_SECTION),
-        "local map": keyframe_distance_m / (d * FRAMES_PER_KEYFRAME),
+        "local map": keyframe_distance_m / (d * (FRAMES_PER_KEYFRAME - 1)),
     }
-    binding = min(bounds, key=lambda b: bounds[b])
-    stride = max(1, int(np.floor(bounds[binding] + 1e-9)))
+    # The largest k within each bound: k ≤ the first two, k < the local map's.
+    most = {b: int(np.floor(v + 1e-9)) for b, v in bounds.items()}
+    most["local map"] = int(np.ceil(bounds["local map"] - 1e-9)) - 1
+    binding = min(most, key=lambda b: most[b])
+    stride = max(1, most[binding])
     reason = (
         f"each section seen from about {length / d / stride:,.0f} positions with "
         f"{per_section / stride:,.0f} points; {d * 1000:.1f} mm of travel a frame; "
