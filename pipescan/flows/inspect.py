@@ -25,7 +25,6 @@ from pipescan.core.registration import (
     plan_chunks,
     registration_evidence,
     registration_summary,
-    used_frame_indices,
 )
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows, windows_reached
@@ -212,11 +211,13 @@ def inspect_archive(
             if staged.frame_count
             else FrameStride(1, "a registered cloud")
         )
-        chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
+        chunks = plan_chunks(
+            staged.frame_count, params.chunk_frames, stride.stride, stride.head, stride.tail
+        )
         # Each frame is decoded once: registration keeps what the sections need here.
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
-            used = len(used_frame_indices(staged.frame_count, stride.stride))
+            used = len(stride.used(staged.frame_count))
             log.info(f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks")
             # How the work is split, not the figures: kept out of the stored parameters.
             # In the engine pool's processes, one engine thread each: both cores are busy.
@@ -236,7 +237,7 @@ def inspect_archive(
                     frame_store,
                     params.max_section_range_m,
                     engine_processes=pooled,
-                    stride=stride.stride,
+                    stride=quote(stride),
                 )
                 for a, b in chunks
             ]
@@ -356,7 +357,11 @@ def inspect_archive(
                 if meta.frames
                 else None,
             )
-            | {"frame_stride": stride.stride, "frame_stride_reason": stride.reason}
+            | {
+                "frame_stride": stride.stride,
+                "frame_stride_reason": stride.reason,
+                "frames_all_read_at_ends": [stride.head, stride.tail],
+            }
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )
