@@ -311,7 +311,7 @@ def _register_chunk_in_worker(
     last: int,
     params: RegistrationParams,
     engine_processes: int = 0,
-    stride=None,
+    stride: int = 1,
 ):
     """The flow's register-chunk task body (``register_chunk.fn``): stream, register; with
     ``engine_processes``, in the engine pool's worker processes as the flow does."""
@@ -481,17 +481,14 @@ def bench_parallel(args) -> None:
                 section_points=flow.measure.max_points,
                 keyframe_distance_m=params.keyframe_distance_m,
             )
-            used = len(stride.used(n))
-            strided_chunks = plan_chunks(
-                n, (used + 1) // 2 + 1, stride.stride, stride.head, stride.tail
-            )
+            strided_chunks = plan_chunks(n, (n // stride.stride + 1) // 2 + 1, stride.stride)
             strided = list(
                 pool.map(
-                    lambda c: _register_chunk_in_worker(staged, *c, params, 2, stride),
+                    lambda c: _register_chunk_in_worker(staged, *c, params, 2, stride.stride),
                     strided_chunks,
                 )
             )
-            rows[f"2 engine processes, {used} frames read (the flow's default)"] = (
+            rows[f"2 engine processes, every {stride.stride} frames (the flow's default)"] = (
                 time.perf_counter() - wall,
                 _cpu_s() - cpu,
             )
@@ -517,7 +514,7 @@ def bench_parallel(args) -> None:
         parts_by = (
             ("serial", serial), ("num_threads=2", one_two), ("threads", threaded),
             ("threads, num_threads=2", threaded_two), ("engine processes", processed),
-            (f"{used} frames read", strided),
+            (f"every {stride.stride} frames", strided),
         )  # fmt: skip
         for name, parts in parts_by:
             chained = chain_trajectories(parts)
@@ -591,10 +588,8 @@ def _registered(archive: Path, params: RegistrationParams):
         step_m=flow.step_m,
         section_points=flow.measure.max_points,
         keyframe_distance_m=params.keyframe_distance_m,
-    )
-    chunks = plan_chunks(
-        staged.frame_count, flow.chunk_frames, stride.stride, stride.head, stride.tail
-    )
+    ).stride
+    chunks = plan_chunks(staged.frame_count, flow.chunk_frames, stride)
     parts = [register_chunk.fn(staged, a, b, params, stride=stride) for a, b in chunks]
     return chain_trajectories(parts), time.perf_counter() - started
 

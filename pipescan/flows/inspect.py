@@ -25,6 +25,7 @@ from pipescan.core.registration import (
     plan_chunks,
     registration_evidence,
     registration_summary,
+    used_frame_indices,
 )
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows, windows_reached
@@ -211,13 +212,11 @@ def inspect_archive(
             if staged.frame_count
             else FrameStride(1, "a registered cloud")
         )
-        chunks = plan_chunks(
-            staged.frame_count, params.chunk_frames, stride.stride, stride.head, stride.tail
-        )
+        chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
         # Each frame is decoded once: registration keeps what the sections need here.
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
-            used = len(stride.used(staged.frame_count))
+            used = len(used_frame_indices(staged.frame_count, stride.stride))
             log.info(f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks")
             # How the work is split, not the figures: kept out of the stored parameters.
             # In the engine pool's processes, one engine thread each: both cores are busy.
@@ -237,7 +236,7 @@ def inspect_archive(
                     frame_store,
                     params.max_section_range_m,
                     engine_processes=pooled,
-                    stride=quote(stride),
+                    stride=stride.stride,
                 )
                 for a, b in chunks
             ]
@@ -357,11 +356,7 @@ def inspect_archive(
                 if meta.frames
                 else None,
             )
-            | {
-                "frame_stride": stride.stride,
-                "frame_stride_reason": stride.reason,
-                "frames_all_read_at_ends": [stride.head, stride.tail],
-            }
+            | {"frame_stride": stride.stride, "frame_stride_reason": stride.reason}
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )

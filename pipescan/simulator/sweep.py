@@ -676,8 +676,8 @@ def measure_scan(
     registration in chunks (chained), the axis, each section's registration evidence, and
     the sections. For tests and studies of a scan small enough to hold in memory (the flow
     buckets points on disk instead). ``params``: the ``RegistrationParams`` to register with
-    (the defaults when None). ``frame_stride``: every k-th frame is used (and the last); None
-    chooses which as the flow does (``choose_frame_stride``).
+    (the defaults when None). ``frame_stride``: every k-th frame is used (and the last), as
+    the flow does; None chooses it as the flow does (``choose_frame_stride``).
 
     Returns
     -------
@@ -686,7 +686,6 @@ def measure_scan(
     from pipescan.core.axis import fit_axis
     from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
     from pipescan.core.registration import (
-        FrameStride,
         RegistrationParams,
         chain_trajectories,
         choose_frame_stride,
@@ -695,23 +694,23 @@ def measure_scan(
         register_frames,
         registration_evidence,
         sample_frame_indices,
+        used_frame_indices,
     )
     from pipescan.core.sections import measure_window, plan_windows
     from pipescan.core.water import explain_invert_shadows
 
     params = params or RegistrationParams()
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
-    stride = FrameStride(frame_stride or 1, "set") if frame_stride else None
-    if stride is None:
-        stride = choose_frame_stride(
+    if frame_stride is None:
+        frame_stride = choose_frame_stride(
             [frames[i][1] for i in sample_frame_indices(len(frames))],
             [f[2] for f in frames],
             max_range_m=max_section_range_m,
             step_m=0.1,
             section_points=MeasureParams().max_points,
             keyframe_distance_m=params.keyframe_distance_m,
-        )
-    frames = [frames[i] for i in stride.used(len(frames))]
+        ).stride
+    frames = [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
     trajectory = chain_trajectories(
         [
             register_frames(iter(frames[a : b + 1]), params)

@@ -66,9 +66,9 @@ def register_chunk(
     frame_store: FrameStore | None = None,
     keep_range_m: float = np.inf,
     engine_processes: int = 0,
-    stride: FrameStride | None = None,
+    stride: int = 1,
 ) -> Trajectory:
-    """Register frames ``first..last`` (inclusive; those ``stride`` uses) relative
+    """Register frames ``first..last`` (inclusive; every ``stride``-th and the last) relative
     to frame ``first`` (:func:`pipescan.tasks.staged.register_staged_frames`), in this process
     or, with ``engine_processes`` > 0, in one of the engine pool's worker processes."""
     args = (staged, first, last, params, frame_store, keep_range_m, stride)

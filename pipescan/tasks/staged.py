@@ -12,9 +12,9 @@ import numpy as np
 
 from pipescan.core.model import InspectionMeta
 from pipescan.core.registration import (
-    FrameStride,
     RegistrationParams,
     Trajectory,
+    chunk_frame_indices,
     register_frames,
 )
 from pipescan.storage.input.archive import ScanArchive
@@ -69,10 +69,11 @@ def register_staged_frames(
     params: RegistrationParams,
     frame_store: FrameStore | None = None,
     keep_range_m: float = np.inf,
-    stride: FrameStride | None = None,
+    stride: int = 1,
 ) -> Trajectory:
     """Register frames ``first..last`` (inclusive) relative to frame ``first``; with
-    ``stride``, only those it uses (:meth:`FrameStride.used`; the others are not read).
+    ``stride`` k, only every k-th of them and the last (the others are not read:
+    :func:`~pipescan.core.registration.chunk_frame_indices`).
 
     Frames stream from the archive one at a time; only the local map stays in memory. The
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
@@ -80,14 +81,12 @@ def register_staged_frames(
     as they are read, so that the sections never decode the archive again.
     """
     meta = staged.meta
-    used = range(staged.frame_count) if stride is None else stride.used(staged.frame_count)
-    indices = [i for i in used if first <= i <= last]
     with contextlib.ExitStack() as stack:
         arc = stack.enter_context(staged.reopen())
         keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
 
         def frames():
-            for i, pts in arc.iter_frames(indices):
+            for i, pts in arc.iter_frames(chunk_frame_indices(first, last, stride)):
                 if keep is not None:
                     keep.add(i, crop(pts, keep_range_m))
                 gravity = meta.frames[i].gravity if meta.frames else None

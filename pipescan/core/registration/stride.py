@@ -23,10 +23,6 @@ what each figure rests on as long as three bounds hold, each from the geometry o
   two of its frames saw (``seen_twice``), the filter that keeps spurious returns out of the
   map; three leave one to spare.
 
-Only the sections the sensor passed with its whole view get ``n · step / d`` points. Those
-within a view's length of either end of the run are seen from its first or last frames only,
-and get fewer at every frame: the frames within ``L`` of travel of either end are all read.
-
 ``d`` is the odometer's travel a frame, taken at the fast end of the run (the 95th percentile
 over ten-frame spans), so that the sparsest stretch still meets the bounds. Without an
 odometer the spacing is not known and every frame is used.
@@ -64,20 +60,12 @@ class FrameStride:
     travel_per_frame_m: float | None = None
     points_per_section: float | None = None
     view_length_m: float | None = None
-    head: int = 0
-    """The first frames, all read: they alone see the sections within a view of the start."""
-    tail: int = 0
-    """The last frames, all read: they alone see the sections beyond the last position."""
-
-    def used(self, frame_count: int) -> list[int]:
-        """The frames read, ascending (:func:`~pipescan.core.registration.used_frame_indices`)."""
-        from pipescan.core.registration.trajectory import used_frame_indices
-
-        return used_frame_indices(frame_count, self.stride, self.head, self.tail)
 
     def describe(self, frame_count: int) -> str:
         """One line for the log and the report."""
-        used = len(self.used(frame_count))
+        from pipescan.core.registration.trajectory import used_frame_indices
+
+        used = len(used_frame_indices(frame_count, self.stride))
         if self.stride == 1:
             return f"every frame of {frame_count:,} used ({self.reason})"
         which = f"every {_ordinal(self.stride)} frame used, {used:,} of {frame_count:,}"
@@ -178,9 +166,7 @@ def choose_frame_stride(
     """
     d = travel_per_frame(odometer_m)
     if d is None:
-        if odometer_m is None or any(v is None for v in odometer_m):
-            return FrameStride(1, "no odometer: the frames' spacing is not known")
-        return FrameStride(1, "too few frames, or no travel, to tell the frames' spacing")
+        return FrameStride(1, "no odometer: the frames' spacing is not known")
     in_range = [
         f[np.einsum("ij,ij->i", f, f) <= max_range_m**2]
         for f in (np.asarray(s, dtype=np.float64) for s in sample_frames)
@@ -205,11 +191,4 @@ def choose_frame_stride(
         f"{per_section / stride:,.0f} points; {d * 1000:.1f} mm of travel a frame; "
         f"bound by the {binding}"
     )
-    if stride == 1:
-        return FrameStride(1, reason, d, per_section, length)
-    # The sections within a view of either end are seen from part of the run only (the first
-    # frames, or the last): they get fewer points at every frame, and keep all they got.
-    odo = np.asarray(odometer_m, dtype=np.float64)
-    head = int(np.count_nonzero(np.abs(odo - odo[0]) < length))
-    tail = int(np.count_nonzero(np.abs(odo[-1] - odo) < length))
-    return FrameStride(stride, reason, d, per_section, length, head, tail)
+    return FrameStride(stride, reason, d, per_section, length)

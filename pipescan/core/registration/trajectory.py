@@ -55,19 +55,17 @@ class Trajectory:
         return self.T_world_frame[:, :3, 3]
 
 
-def plan_chunks(
-    frame_count: int, chunk_frames: int, stride: int = 1, head: int = 0, tail: int = 0
-) -> list[tuple[int, int]]:
+def plan_chunks(frame_count: int, chunk_frames: int, stride: int = 1) -> list[tuple[int, int]]:
     """Split frames into chunks ``[first, last]`` (inclusive) that overlap by one frame.
 
     The shared frame lets consecutive chunks, registered independently and in parallel, be
     chained into one trajectory. With ``stride`` k, a chunk holds ``chunk_frames`` of the
-    frames used (:func:`used_frame_indices`).
+    frames used (every k-th, and the last: :func:`chunk_frame_indices`).
     """
     if frame_count <= 0:
         return []
     chunk_frames = max(2, chunk_frames)
-    used = used_frame_indices(frame_count, stride, head, tail)
+    used = used_frame_indices(frame_count, stride)
     chunks, first = [], 0
     while True:
         last = min(first + chunk_frames - 1, len(used) - 1)
@@ -77,16 +75,18 @@ def plan_chunks(
         first = last
 
 
-def used_frame_indices(
-    frame_count: int, stride: int = 1, head: int = 0, tail: int = 0
-) -> list[int]:
-    """The frames a run reads with ``stride`` k: every k-th from the first, every one of the
-    first ``head`` and the last ``tail``, and the last (so that the run keeps its length)."""
-    k = max(1, stride)
-    used = [i for i in range(frame_count) if i % k == 0 or i < head or i >= frame_count - tail]
+def used_frame_indices(frame_count: int, stride: int = 1) -> list[int]:
+    """The frames a run reads with ``stride`` k: every k-th from the first, and the last (so
+    that the run keeps its whole length)."""
+    used = list(range(0, frame_count, max(1, stride)))
     if used and used[-1] != frame_count - 1:
         used.append(frame_count - 1)
     return used
+
+
+def chunk_frame_indices(first: int, last: int, stride: int = 1) -> list[int]:
+    """The frames of chunk ``[first, last]`` of :func:`plan_chunks` with ``stride``."""
+    return [i + first for i in used_frame_indices(last - first + 1, stride)]
 
 
 def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
