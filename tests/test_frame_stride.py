@@ -139,6 +139,8 @@ def test_a_profiler_and_a_run_without_odometer_use_every_frame():
     no_odometer = _choose(sample, None)
     assert no_odometer.stride == 1 and "odometer" in no_odometer.reason
     assert _choose(sample, [None] * len(frames)).stride == 1
+    few = _choose(sample[:3], [0.0, 4.0, 8.0])  # a static scanner's three stations
+    assert few.stride == 1 and "too few" in few.reason
 
 
 @pytest.mark.parametrize("angles", [(0, 0, 0), (10, 35, 60), (80, 0, 20)])

@@ -166,7 +166,9 @@ def choose_frame_stride(
     """
     d = travel_per_frame(odometer_m)
     if d is None:
-        return FrameStride(1, "no odometer: the frames' spacing is not known")
+        if odometer_m is None or any(v is None for v in odometer_m):
+            return FrameStride(1, "no odometer: the frames' spacing is not known")
+        return FrameStride(1, "too few frames, or no travel, to tell the frames' spacing")
     in_range = [
         f[np.einsum("ij,ij->i", f, f) <= max_range_m**2]
         for f in (np.asarray(s, dtype=np.float64) for s in sample_frames)
