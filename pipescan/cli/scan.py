@@ -273,6 +273,10 @@ def _print_summary(summary) -> None:
     )
     # A frames archive has at least one frame; none is a registered cloud.
     content = plural(summary.frame_count, "frame") if summary.frame_count else "registered cloud"
+    stride = (summary.registration or {}).get("frame_stride", 1)
+    if summary.frame_count and stride > 1:
+        read = summary.registration.get("frames", summary.frame_count)
+        content += f" ({read:,} read: every {stride})"
     typer.echo(
         f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
     )
