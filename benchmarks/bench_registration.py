@@ -472,15 +472,8 @@ def bench_parallel(args) -> None:
             from pipescan.flows.inspect import InspectionParams
             from pipescan.tasks.inspection import choose_stride
 
-            flow = InspectionParams()
             cpu, wall = _cpu_s(), time.perf_counter()
-            stride = choose_stride.fn(
-                staged,
-                max_range_m=flow.max_section_range_m,
-                step_m=flow.step_m,
-                section_points=flow.measure.max_points,
-                keyframe_distance_m=params.keyframe_distance_m,
-            )
+            stride = choose_stride.fn(staged, **InspectionParams().stride_bounds())
             strided_chunks = plan_chunks(n, (n // stride.stride + 1) // 2 + 1, stride.stride)
             strided = list(
                 pool.map(
@@ -583,11 +576,7 @@ def _registered(archive: Path, params: RegistrationParams):
     flow = InspectionParams()
     started = time.perf_counter()
     stride = choose_stride.fn(
-        staged,
-        max_range_m=flow.max_section_range_m,
-        step_m=flow.step_m,
-        section_points=flow.measure.max_points,
-        keyframe_distance_m=params.keyframe_distance_m,
+        staged, **dataclasses.replace(flow, registration=params).stride_bounds()
     ).stride
     chunks = plan_chunks(staged.frame_count, flow.chunk_frames, stride)
     parts = [register_chunk.fn(staged, a, b, params, stride=stride) for a, b in chunks]

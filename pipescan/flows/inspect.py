@@ -73,6 +73,16 @@ class InspectionParams:
     blockage_threshold_ratio: float = 0.10
     flag_grade: int = 2
 
+    def stride_bounds(self) -> dict:
+        """What ``choose_stride`` weighs a scan's frames against, from these parameters: the
+        sections' range, step and points kept, and the local map's keyframe distance."""
+        return {
+            "max_range_m": self.max_section_range_m,
+            "step_m": self.step_m,
+            "section_points": self.measure.max_points,
+            "keyframe_distance_m": self.registration.keyframe_distance_m,
+        }
+
     def figure_params(self) -> dict:
         """The parameters that change figures: stored with the inspection and hashed into its
         identity. Chunking and windowing change how the work is split, not the figures."""
@@ -202,13 +212,7 @@ def inspect_archive(
         stride = (
             FrameStride(params.frame_stride, "set for the run")
             if params.frame_stride
-            else choose_stride(
-                quote(staged),
-                max_range_m=params.max_section_range_m,
-                step_m=params.step_m,
-                section_points=params.measure.max_points,
-                keyframe_distance_m=params.registration.keyframe_distance_m,
-            )
+            else choose_stride(quote(staged), **params.stride_bounds())
             if staged.frame_count
             else FrameStride(1, "a registered cloud")
         )

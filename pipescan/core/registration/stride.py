@@ -35,6 +35,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipescan.core.registration.preprocess import estimate_normals, voxel_downsample
+from pipescan.core.registration.trajectory import used_frame_indices
+
 VIEWS_PER_SECTION = 25
 """Registered positions each section must still be seen from (see the module's notes)."""
 
@@ -63,8 +66,6 @@ class FrameStride:
 
     def describe(self, frame_count: int) -> str:
         """One line for the log and the report."""
-        from pipescan.core.registration.trajectory import used_frame_indices
-
         used = len(used_frame_indices(frame_count, self.stride))
         if self.stride == 1:
             return f"every frame of {frame_count:,} used ({self.reason})"
@@ -102,8 +103,6 @@ def travel_per_frame(odometer_m: Sequence[float | None] | np.ndarray | None) -> 
 def view_length(points_m: np.ndarray) -> float:
     """How far along the pipe one frame's points reach (m): their 5-95 % extent along the pipe's
     axis, the direction every wall normal is square to. 0 for a frame that is one ring."""
-    from pipescan.core.registration.preprocess import estimate_normals, voxel_downsample
-
     pts = np.asarray(points_m, dtype=np.float64)
     if len(pts) < 20:
         return 0.0
