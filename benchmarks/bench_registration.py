@@ -875,16 +875,17 @@ def bench_converge(args) -> None:
 # --------------------------------------------------------------------------- slips
 
 
-def _registered_in_memory(scan, params: RegistrationParams):
-    """A simulated scan registered in memory as the flow chunks it (60 frames), chained."""
-    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
-    return chain_trajectories(
-        [register_frames(iter(frames[a : b + 1]), params) for a, b in plan_chunks(len(frames), 60)]
-    )
+def _registered_in_memory(scan, params: RegistrationParams, frame_stride: int | None = 1):
+    """A simulated scan registered in memory as the flow chunks it (60 used frames), chained:
+    every ``frame_stride``-th frame (and the last), the flow's own choice when None."""
+    from pipescan.simulator.sweep import register_scan
+
+    return register_scan(scan, params=params, frame_stride=frame_stride)
 
 
-def _slip_draw(name: str) -> str:
-    """One draw registered in memory as the flow chunks it; its row of ``bench_slips``."""
+def _slip_draw(job: tuple[str, int | None]) -> str:
+    """One draw registered in memory as the flow registers it (every k-th frame, k the flow's
+    choice unless given); its row of ``bench_slips``."""
     from pipescan.simulator.sweep import (
         along_axis_travel,
         chainage_bound_misses,
@@ -892,18 +893,21 @@ def _slip_draw(name: str) -> str:
         sweep_draws,
     )
 
+    name, stride = job
     draw = next(d for d in [*slip_draws(), *sweep_draws(long_run=False)] if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
     params = RegistrationParams()
-    trajectory = _registered_in_memory(scan, params)
+    trajectory = _registered_in_memory(scan, params, stride)
     idx, est, true = along_axis_travel(trajectory, scan)
     error = est - true
+    k = int(np.median(np.diff(idx))) if len(idx) > 1 else 1
     beyond, most = chainage_bound_misses(trajectory, scan)
     slips = trajectory.odometer_slips_m
     held = np.mean([q.degenerate for q in trajectory.quality])
     caught = f"{len(slips)} ({100 * max(slips):.0f} cm)" if slips else "0"
     return (
-        f"| {name} | {len(idx)} | {len(scan.slip_frames)} | {caught} | {100 * held:.0f} % | "
+        f"| {name} | {len(idx)} of {scan.n_frames} (every {k}) | {len(scan.slip_frames)} | "
+        f"{caught} | {100 * held:.0f} % | "
         f"{np.abs(error).max():.2f} | {trajectory.quality[-1].chainage_uncertainty_m:.2f} | "
         f"{beyond} | {most:.3f} |"
     )
@@ -911,8 +915,9 @@ def _slip_draw(name: str) -> str:
 
 def bench_slips(args) -> None:
     """Does the chainage uncertainty cover the odometer's unseen slips? Draws whose odometer
-    slips often, and the sweep's short draws, registered in memory two at a time; each
-    frame's registered position along the axis against the truth and its stated ±."""
+    slips often, and the sweep's short draws, registered in memory two at a time as the flow
+    registers them (every k-th frame; ``--frame-stride`` sets k); each frame's registered
+    position along the axis against the truth and its stated ±."""
     from pipescan.simulator.sweep import slip_draws, sweep_draws
 
     names = _names([*slip_draws(), *sweep_draws(long_run=False)], args.only)
@@ -929,7 +934,7 @@ def bench_slips(args) -> None:
     )
     rows = []
     with ProcessPoolExecutor(2) as pool:
-        for row in pool.map(_slip_draw, names):
+        for row in pool.map(_slip_draw, [(n, args.frame_stride) for n in names]):
             print(row, flush=True)
             rows.append(row.split(" | "))
     caught = [r for r in rows if r[3] != "0"]
@@ -1409,6 +1414,12 @@ def main() -> None:
     parser.add_argument("--travel-m", type=float, default=4.5, help="length of the paper scan")
     parser.add_argument("--frames", type=int, nargs="+", default=[100, 400], help="memory runs")
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument(
+        "--frame-stride",
+        type=int,
+        default=None,
+        help="slips: register every k-th frame (default: the flow's choice for each scan)",
+    )
     parser.add_argument("--no-kiss", action="store_true", help="leave kiss-icp out")
     args = parser.parse_args()
     if args.what == "memory-child":

@@ -171,3 +171,19 @@ def test_strided_chunks_overlap_by_one_frame_and_keep_the_last(count, stride):
     assert all(f[-1] == g[0] for f, g in itertools.pairwise(frames))
     chained = [i for k, f in enumerate(frames) for i in (f if k == 0 else f[1:])]
     assert chained == used
+
+
+def test_the_in_memory_registration_reads_what_the_flow_reads():
+    """``register_scan`` (the benchmarks' and studies' registration) uses the flow's stride
+    unless told otherwise, and keeps the run's last frame."""
+    from pipescan.simulator.sweep import register_scan
+
+    scan = simulate_scan(get_scenario("paper", travel_m=1.0), seed=0)
+    frames = list(scan.frames())
+    sample = [frames[i].points_sensor for i in sample_frame_indices(len(frames))]
+    stride = _choose(sample, [f.odometer_m for f in frames]).stride
+    assert stride > 1
+    strided = register_scan(scan, chunk_frames=20)
+    assert list(strided.frame_indices) == used_frame_indices(len(frames), stride)
+    every = register_scan(scan, chunk_frames=40, frame_stride=1)
+    assert list(every.frame_indices) == list(range(len(frames)))

@@ -625,6 +625,13 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
         "2 with features in view, up to 0.44 m; allowed for where it was alone"
     )
     assert "unseen odometer slips" not in rows
+    # Registered at every k-th frame, fewer slips are caught: the ± may allow for too few.
+    strided = reg | {"frame_stride": 4, "frame_stride_reason": "views"}
+    rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=strided)))
+    assert plain(rows["unseen odometer slips"]).startswith(
+        "Every 4th frame was registered: fewer slips are caught than with every frame"
+    )
+    assert "PIPESCAN_FRAME_STRIDE=1" in plain(rows["unseen odometer slips"])
     # An odometer never caught slipping: no such row; the ± claims no slips, and where frames
     # rested on the odometer the block says what it cannot allow for.
     held = inp.registration | {

@@ -664,6 +664,56 @@ def chainage_bound_misses(trajectory, scan, tolerance_m: float = 0.005) -> tuple
     return int((beyond > tolerance_m).sum()), float(max(0.0, beyond.max()))
 
 
+def register_scan(
+    scan,
+    *,
+    chunk_frames: int = 60,
+    max_section_range_m: float = 5.0,
+    params: RegistrationParams | None = None,
+    frame_stride: int | None = None,
+):
+    """A simulated scan registered in memory as the inspect flow registers it: every k-th
+    frame (and the last; k chosen as the flow chooses it when ``frame_stride`` is None), in
+    chunks of ``chunk_frames`` used frames registered on their own and chained. Returns the
+    :class:`~pipescan.core.model.Trajectory` (``frame_indices`` into the scan's frames)."""
+    from pipescan.core.registration import RegistrationParams
+
+    params = params or RegistrationParams()
+    return _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_stride)[0]
+
+
+def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_stride):
+    """:func:`register_scan`, and the frames it used as ``(index, points, odometer, gravity)``."""
+    from pipescan.core.measures import MeasureParams
+    from pipescan.core.registration import (
+        chain_trajectories,
+        choose_frame_stride,
+        plan_chunks,
+        register_frames,
+        sample_frame_indices,
+        used_frame_indices,
+    )
+
+    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    if frame_stride is None:
+        frame_stride = choose_frame_stride(
+            [frames[i][1] for i in sample_frame_indices(len(frames))],
+            [f[2] for f in frames],
+            max_range_m=max_section_range_m,
+            step_m=0.1,
+            section_points=MeasureParams().max_points,
+            keyframe_distance_m=params.keyframe_distance_m,
+        ).stride
+    frames = [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
+    trajectory = chain_trajectories(
+        [
+            register_frames(iter(frames[a : b + 1]), params)
+            for a, b in plan_chunks(len(frames), chunk_frames)
+        ]
+    )
+    return trajectory, frames
+
+
 def measure_scan(
     scan,
     *,
@@ -684,38 +734,18 @@ def measure_scan(
     trajectory, sections
     """
     from pipescan.core.axis import fit_axis
-    from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
+    from pipescan.core.measures import withhold_smeared_object_edges
     from pipescan.core.registration import (
         RegistrationParams,
-        chain_trajectories,
-        choose_frame_stride,
         iter_registered_points,
-        plan_chunks,
-        register_frames,
         registration_evidence,
-        sample_frame_indices,
-        used_frame_indices,
     )
     from pipescan.core.sections import measure_window, plan_windows
     from pipescan.core.water import explain_invert_shadows
 
     params = params or RegistrationParams()
-    frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
-    if frame_stride is None:
-        frame_stride = choose_frame_stride(
-            [frames[i][1] for i in sample_frame_indices(len(frames))],
-            [f[2] for f in frames],
-            max_range_m=max_section_range_m,
-            step_m=0.1,
-            section_points=MeasureParams().max_points,
-            keyframe_distance_m=params.keyframe_distance_m,
-        ).stride
-    frames = [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
-    trajectory = chain_trajectories(
-        [
-            register_frames(iter(frames[a : b + 1]), params)
-            for a, b in plan_chunks(len(frames), chunk_frames)
-        ]
+    trajectory, frames = _register_in_memory(
+        scan, chunk_frames, max_section_range_m, params, frame_stride
     )
     cropped = (
         (i, p[np.einsum("ij,ij->i", p, p) <= max_section_range_m**2]) for i, p, _, _ in frames

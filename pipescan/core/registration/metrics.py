@@ -120,9 +120,27 @@ def unseen_slip_caveat(summary: dict) -> str | None:
     >>> unseen_slip_caveat({"degenerate_frames": 40, "along_axis_prior": "odometer",
     ...     "odometer_slips_caught_m": [0.2]}) is None
     True
+
+    Registered at every k-th frame, fewer slips are caught than with every frame, and the
+    allowance, built from those caught, can fall short (``docs/registration.md``, *With
+    every k-th frame read*): a run that caught one is told so.
+
+    >>> unseen_slip_caveat({"degenerate_frames": 40, "odometer_slips_caught_m": [0.2],
+    ...     "frame_stride": 3}).split(":")[0]
+    'Every 3rd frame was registered'
     """
-    if not summary.get("degenerate_frames") or summary.get("odometer_slips_caught_m"):
+    if not summary.get("degenerate_frames"):
         return None
+    if summary.get("odometer_slips_caught_m"):
+        k = int(summary.get("frame_stride") or 1)
+        if k <= 1:
+            return None
+        return (
+            f"Every {k}{_ordinal_suffix(k)} frame was registered: fewer slips are caught "
+            "than with every frame, so the ± may allow for too few where the odometer was "
+            "alone; for a crawler known to slip, register every frame "
+            "(PIPESCAN_FRAME_STRIDE=1)"
+        )
     if summary.get("along_axis_prior", "odometer") == "constant_velocity":
         return None  # no odometer at all: the summary's warning says the chainage is not measured
     spans = summary.get("unconstrained_spans") or []
@@ -141,6 +159,12 @@ def unseen_slip_caveat(summary: dict) -> str | None:
         f"{travel} rested on the odometer alone: the ± there is {stated} and allows for no "
         f"slip ({why}; one where it was alone would not be seen)"
     )
+
+
+def _ordinal_suffix(k: int) -> str:
+    if k % 100 in (11, 12, 13):
+        return "th"
+    return {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
 
 
 @dataclass(frozen=True)
