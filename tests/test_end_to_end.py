@@ -123,14 +123,26 @@ def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
     store = FrameStore(tmp_path / "frames")
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(archive_module, "read_points", counted)
-        for a, b in chunks:
-            register_chunk.fn(staged, a, b, RegistrationParams(), store, 6.0, stride=stride)
+        registered = {
+            i
+            for a, b in chunks
+            for i in register_chunk.fn(
+                staged, a, b, RegistrationParams(), store, 6.0, stride=stride
+            ).frame_indices
+        }
     shared = {meta_files[b] for _, b in chunks[:-1]}
     used = used_frame_indices(summary.frame_count, stride)
-    assert summary.registration["frames"] == len(used) < summary.frame_count
-    assert set(decoded) == {meta_files[i] for i in used}
+    # The stride's frames, and those read to look closer where ICP disagreed with the
+    # odometer: each decoded once.
+    closer = summary.registration["frames_looked_closer"]
+    assert summary.registration["frames"] == len(used) + closer < summary.frame_count
+    assert set(used) <= registered
+    assert set(decoded) == {meta_files[i] for i in registered}
     assert {f for f, n in decoded.items() if n != 1} == shared
     assert {decoded[f] for f in shared} == {2}
+    # Only the stride's frames are kept for the sections.
+    kept = {i for a, _ in chunks for i, _ in store.iter_frames(a)}
+    assert kept == set(used)
 
 
 def test_a_chunk_registers_the_same_in_an_engine_worker(archive, tmp_path):

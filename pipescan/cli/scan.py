@@ -276,7 +276,9 @@ def _print_summary(summary) -> None:
     stride = (summary.registration or {}).get("frame_stride", 1)
     if summary.frame_count and stride > 1:
         read = summary.registration.get("frames", summary.frame_count)
-        content += f" ({read:,} read: every {stride})"
+        closer = summary.registration.get("frames_looked_closer")
+        more = f", and {closer:,} where ICP disagreed with the odometer" if closer else ""
+        content += f" ({read:,} read: every {stride}{more})"
     typer.echo(
         f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
     )

@@ -245,7 +245,11 @@ def inspect_archive(
                 for a, b in chunks
             ]
             trajectory = chain_trajectories([f.result() for f in futures])
-            log.info(f"registered {used} of {staged.frame_count} frames")
+            closer = len(trajectory.frame_indices) - used
+            log.info(
+                f"registered {len(trajectory.frame_indices)} of {staged.frame_count} frames"
+                + (f" ({closer} read where ICP disagreed with the odometer)" if closer else "")
+            )
 
         fit = fit_pipe_axis(
             quote(staged),
@@ -318,6 +322,7 @@ def inspect_archive(
                     bucket_root,
                     params.max_section_range_m,
                     frame_store,
+                    stride.stride,
                 )
             )
             for w in range(len(windows)):
@@ -360,7 +365,12 @@ def inspect_archive(
                 if meta.frames
                 else None,
             )
-            | {"frame_stride": stride.stride, "frame_stride_reason": stride.reason}
+            | {
+                "frame_stride": stride.stride,
+                "frame_stride_reason": stride.reason,
+                "frames_looked_closer": len(trajectory.frame_indices)
+                - len(used_frame_indices(staged.frame_count, stride.stride)),
+            }
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )

@@ -405,8 +405,13 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     rows = [
         (
             "frames registered",
-            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}, every {stride}: "
-            f"{reg.get('frame_stride_reason', 'set for the run')}"
+            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}, every {stride}"
+            + (
+                f" and {fmt_int(closer)} more where ICP disagreed with the odometer"
+                if (closer := reg.get("frames_looked_closer"))
+                else ""
+            )
+            + f": {reg.get('frame_stride_reason', 'set for the run')}"
             if stride > 1
             else fmt_int(inp.frame_count),
         ),

@@ -673,9 +673,11 @@ def register_scan(
     frame_stride: int | None = None,
 ):
     """A simulated scan registered in memory as the inspect flow registers it: every k-th
-    frame (and the last; k chosen as the flow chooses it when ``frame_stride`` is None), in
-    chunks of ``chunk_frames`` used frames registered on their own and chained. Returns the
-    :class:`~pipescan.core.model.Trajectory` (``frame_indices`` into the scan's frames)."""
+    frame (and the last; k chosen as the flow chooses it when ``frame_stride`` is None), and
+    every frame for a while after one whose ICP disagreed with the odometer
+    (``register_strided``), in chunks of ``chunk_frames`` of the stride's frames registered on
+    their own and chained. Returns the :class:`~pipescan.core.model.Trajectory`
+    (``frame_indices`` into the scan's frames)."""
     from pipescan.core.registration import RegistrationParams
 
     params = params or RegistrationParams()
@@ -683,13 +685,14 @@ def register_scan(
 
 
 def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_stride):
-    """:func:`register_scan`, and the frames it used as ``(index, points, odometer, gravity)``."""
+    """:func:`register_scan`, and the stride's frames (those the sections are built from) as
+    ``(index, points, odometer, gravity)``."""
     from pipescan.core.measures import MeasureParams
     from pipescan.core.registration import (
         chain_trajectories,
         choose_frame_stride,
         plan_chunks,
-        register_frames,
+        register_strided,
         sample_frame_indices,
         used_frame_indices,
     )
@@ -704,14 +707,17 @@ def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_s
             section_points=MeasureParams().max_points,
             keyframe_distance_m=params.keyframe_distance_m,
         ).stride
-    frames = [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
+
+    def frames_at(indices):
+        return (frames[i] for i in indices)
+
     trajectory = chain_trajectories(
         [
-            register_frames(iter(frames[a : b + 1]), params)
-            for a, b in plan_chunks(len(frames), chunk_frames)
+            register_strided(frames_at, a, b, frame_stride, params)
+            for a, b in plan_chunks(len(frames), chunk_frames, frame_stride)
         ]
     )
-    return trajectory, frames
+    return trajectory, [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
 
 
 def measure_scan(

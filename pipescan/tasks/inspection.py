@@ -26,6 +26,7 @@ from pipescan.core.registration import (
     RegistrationParams,
     Trajectory,
     choose_frame_stride,
+    is_stride_frame,
     iter_registered_points,
     sample_frame_indices,
 )
@@ -255,11 +256,14 @@ def bucket_points(
     bucket_root: Path,
     max_range_m: float,
     frame_store: FrameStore | None = None,
+    stride: int = 1,
 ) -> Bucketed:
     """Write the registered points of frames ``first..last`` (or the cloud) into window files.
 
     With ``frame_store``, the frames are those :func:`register_chunk` stored for the chunk
     that starts at ``first`` (already cropped to ``max_range_m``): the archive is not read.
+    Either way only the ``stride``'s own frames are placed, not those registration read to
+    look closer (:func:`~pipescan.core.registration.is_stride_frame`).
     A registered cloud that :func:`fit_pipe_axis` kept there is placed by rows: ``first`` to
     ``last`` (exclusive).
     """
@@ -275,7 +279,11 @@ def bucket_points(
         if trajectory is None:
             chunks = (chunk.points for chunk in arc.iter_cloud())
             return write_buckets(chunks, axis, windows, bucket_root, "cloud")
-        frames = [i for i in trajectory.frame_indices if first <= i <= last]
+        frames = [
+            i
+            for i in trajectory.frame_indices
+            if first <= i <= last and is_stride_frame(i, first, last, stride)
+        ]
         placed = _frame_points_world(arc, trajectory, frames, max_range_m)
         return write_buckets(placed, axis, windows, bucket_root, tag)
 

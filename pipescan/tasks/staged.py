@@ -14,8 +14,8 @@ from pipescan.core.model import InspectionMeta
 from pipescan.core.registration import (
     RegistrationParams,
     Trajectory,
-    chunk_frame_indices,
-    register_frames,
+    is_stride_frame,
+    register_strided,
 )
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.bags import BagIndex
@@ -72,24 +72,27 @@ def register_staged_frames(
     stride: int = 1,
 ) -> Trajectory:
     """Register frames ``first..last`` (inclusive) relative to frame ``first``; with
-    ``stride`` k, only every k-th of them and the last (the others are not read:
-    :func:`~pipescan.core.registration.chunk_frame_indices`).
+    ``stride`` k, only every k-th of them and the last, and every frame for a while after one
+    whose ICP disagreed with the odometer (the others are not read:
+    :func:`~pipescan.core.registration.register_strided`). A ROS bag is read in order, so it
+    keeps to the stride.
 
     Frames stream from the archive one at a time; only the local map stays in memory. The
     IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
-    With ``frame_store``, each frame's points within ``keep_range_m`` are also written there
-    as they are read, so that the sections never decode the archive again.
+    With ``frame_store``, the stride's own frames' points within ``keep_range_m`` are also
+    written there as they are read, so that the sections never decode the archive again (the
+    frames read to look closer only place the others).
     """
     meta = staged.meta
     with contextlib.ExitStack() as stack:
         arc = stack.enter_context(staged.reopen())
         keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
 
-        def frames():
-            for i, pts in arc.iter_frames(chunk_frame_indices(first, last, stride)):
-                if keep is not None:
+        def frames(indices):
+            for i, pts in arc.iter_frames(indices):
+                if keep is not None and is_stride_frame(i, first, last, stride):
                     keep.add(i, crop(pts, keep_range_m))
                 gravity = meta.frames[i].gravity if meta.frames else None
                 yield i, pts, odometer_at(meta, i), gravity
 
-        return register_frames(frames(), params)
+        return register_strided(frames, first, last, stride, params, look_closer=arc.bag is None)

@@ -69,8 +69,14 @@ from pipescan.core.registration.preprocess import (
     seen_twice,
     voxel_downsample,
 )
-from pipescan.core.registration.registrar import FrameRegistrar, register_frames
-from pipescan.core.registration.stride import FrameStride, choose_frame_stride, sample_frame_indices
+from pipescan.core.registration.registrar import FrameRegistrar, register_frames, register_strided
+from pipescan.core.registration.stride import (
+    FrameStride,
+    choose_frame_stride,
+    frames_to_register,
+    is_stride_frame,
+    sample_frame_indices,
+)
 from pipescan.core.registration.trajectory import (
     Trajectory,
     chain_trajectories,
@@ -104,14 +110,17 @@ __all__ = [
     "degenerate_spans",
     "drop_early_returns",
     "estimate_normals",
+    "frames_to_register",
     "gravity_corrected",
     "icp_point_to_point",
+    "is_stride_frame",
     "iter_registered_points",
     "kabsch",
     "plan_chunks",
     "point_to_plane_hessian",
     "preprocess_frame",
     "register_frames",
+    "register_strided",
     "registration_evidence",
     "registration_summary",
     "remove_isolated",

@@ -297,6 +297,9 @@ class AxialFilter:
         self._step = 0.0
         self._odometer = True
         self.last_icp_var = 0.0
+        self.last_innovation_sigmas = 0.0
+        """The last update's disagreement of ICP with the odometer along the axis, in σ of both
+        errors together (``|correction| / √(P² + 1/I)``); 0 without information or odometer."""
         self._held_m = 0.0
         self._icp_var = 0.0
         self._widened_m = 0.0
@@ -336,6 +339,11 @@ class AxialFilter:
         jump was tried: once a real slip had run past it, ICP was never believed again.)
         """
         overrode = False
+        self.last_innovation_sigmas = (
+            abs(correction_m) / float(np.sqrt(self.P**2 + 1.0 / information))
+            if self._odometer and information > 0
+            else 0.0
+        )
         # Without an odometer the prior is only a guess: there is nothing to slip.
         gated = (
             self._odometer

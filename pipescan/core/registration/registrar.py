@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -30,7 +30,8 @@ from pipescan.core.registration.fusion import (
 )
 from pipescan.core.registration.params import AlongAxisPrior, RegistrationParams
 from pipescan.core.registration.preprocess import preprocess_frame
-from pipescan.core.registration.trajectory import Trajectory
+from pipescan.core.registration.stride import frames_to_register
+from pipescan.core.registration.trajectory import Trajectory, chunk_frame_indices
 
 _MIN_FRAME_POINTS = 50
 _MIN_CORRESPONDENCES = 30
@@ -188,6 +189,7 @@ class FrameRegistrar:
             )
             self._last_move = (0.0, float("inf"))
             self._last_sigma = float("inf")
+            self._axial.last_innovation_sigmas = 0.0
             T, quality = self._register(pts, pred, index, step_bound)
             if has_odometer:
                 assert odometer_m is not None
@@ -396,6 +398,14 @@ class FrameRegistrar:
         return _Matches(pts[ok], m.points[target], m.normals[target], m.surface_variation[target])
 
     @property
+    def disagreement_sigmas(self) -> float:
+        """How far the last frame's ICP disagreed with the odometer along the axis, in σ of
+        both errors together (0 where ICP had no information along the axis, or there was no
+        odometer): what :func:`~pipescan.core.registration.stride.frames_to_register` looks
+        closer at."""
+        return self._axial.last_innovation_sigmas
+
+    @property
     def odometer_slips_m(self) -> tuple[float, ...]:
         """Sizes of the odometer slips caught against features so far, one per slip (m)."""
         return self._slips.sizes_m
@@ -429,6 +439,8 @@ def register_frames(
         | tuple[int, np.ndarray, float | None, np.ndarray | tuple[float, float, float] | None]
     ],
     params: RegistrationParams = RegistrationParams(),
+    *,
+    registrar: FrameRegistrar | None = None,
 ) -> Trajectory:
     """Register a sequence of frames into one trajectory.
 
@@ -439,6 +451,10 @@ def register_frames(
         element is the IMU's gravity direction in the sensor frame, (3,) or None (see
         :meth:`FrameRegistrar.add`): it holds the roll about the pipe axis to the IMU.
     params : RegistrationParams
+    registrar : FrameRegistrar, optional
+        A new registrar made with ``params`` for the frames to come, when the caller chooses
+        the next frame from what the last one showed
+        (:func:`~pipescan.core.registration.stride.frames_to_register`).
 
     Returns
     -------
@@ -458,7 +474,9 @@ def register_frames(
     >>> traj.T_world_frame.shape[1:], traj.along_axis_prior
     ((4, 4), 'odometer')
     """
-    reg = FrameRegistrar(params)
+    reg = registrar if registrar is not None else FrameRegistrar(params)
+    if reg.count:
+        raise ValueError("register_frames needs a new FrameRegistrar")
     poses, quality, indices = [], [], []
     for frame_index, points, odometer, *rest in frames:
         gravity = rest[0] if rest else None
@@ -483,3 +501,29 @@ def register_frames(
         odometer_slips_m=reg.odometer_slips_m,
         slip_window_m=params.slide_window_m,
     )
+
+
+def register_strided(
+    frames_at: Callable[[Iterator[int]], Iterable[tuple]],
+    first: int,
+    last: int,
+    stride: int,
+    params: RegistrationParams = RegistrationParams(),
+    *,
+    look_closer: bool = True,
+) -> Trajectory:
+    """Register chunk ``first..last`` with ``stride`` k: every k-th frame and the last, and
+    every frame for a while after one whose ICP disagreed with the odometer
+    (:func:`~pipescan.core.registration.stride.frames_to_register`; ``look_closer`` False
+    keeps to the stride, for a source that cannot be read out of order).
+
+    ``frames_at(indices)`` reads the frames as :func:`register_frames` takes them, one index
+    at a time: the next index is chosen only once the frame before it is registered.
+    """
+    reg = FrameRegistrar(params)
+    indices = (
+        frames_to_register(first, last, stride, lambda: reg.disagreement_sigmas)
+        if look_closer
+        else iter(chunk_frame_indices(first, last, stride))
+    )
+    return register_frames(frames_at(indices), params, registrar=reg)
