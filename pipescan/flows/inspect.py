@@ -209,6 +209,7 @@ def inspect_archive(
                 )
 
         trajectory = None
+        closer = 0  # frames registration read besides the stride's (to look closer)
         stride = (
             FrameStride(params.frame_stride, "set for the run")
             if params.frame_stride
@@ -368,8 +369,7 @@ def inspect_archive(
             | {
                 "frame_stride": stride.stride,
                 "frame_stride_reason": stride.reason,
-                "frames_looked_closer": len(trajectory.frame_indices)
-                - len(used_frame_indices(staged.frame_count, stride.stride)),
+                "frames_looked_closer": closer,
             }
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}

@@ -322,6 +322,7 @@ class AxialFilter:
             noise = 0.0
         self.P = float(np.hypot(min(self.P + bound, cap), noise))
         self._cap, self._step, self._odometer = cap, abs(step_m), odometer
+        self.last_innovation_sigmas = 0.0  # until update() weighs this frame's ICP
         return bound
 
     def update(

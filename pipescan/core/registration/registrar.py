@@ -189,7 +189,6 @@ class FrameRegistrar:
             )
             self._last_move = (0.0, float("inf"))
             self._last_sigma = float("inf")
-            self._axial.last_innovation_sigmas = 0.0
             T, quality = self._register(pts, pred, index, step_bound)
             if has_odometer:
                 assert odometer_m is not None
