@@ -153,3 +153,55 @@ def test_workers_started_after_the_library_limit_keep_to_it(monkeypatch):
             assert enginepool.run(1, _library_threads) == {"blas": {1}, "openmp": {1}}
     finally:
         enginepool.shutdown()
+
+
+def test_a_pool_started_ahead_stops_again_only_if_nothing_ran_on_it():
+    enginepool.shutdown()
+    enginepool.prestart(2, ahead=True)
+    assert enginepool.pool_size() == 2
+    enginepool.release_unused()
+    assert enginepool.pool_size() == 0
+    enginepool.prestart(2, ahead=True)
+    enginepool.run(2, os.getpid)
+    enginepool.release_unused()
+    assert enginepool.pool_size() == 2  # it did work: kept for the next run
+    enginepool.prestart(2, ahead=True)  # already running: not "ahead" any more
+    enginepool.release_unused()
+    assert enginepool.pool_size() == 2
+
+
+def test_the_command_line_starts_the_workers_ahead_and_a_cloud_stops_them(tmp_path):
+    """``pipescan inspect`` starts the engine workers before Prefect's API; a registered
+    cloud, which registers nothing, stops them again, and frames keep them."""
+    from typer.testing import CliRunner
+
+    from pipescan.cli import app
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.simulator.scan import get_scenario, simulate_scan
+
+    db = f"sqlite:///{tmp_path / 'p.db'}"
+    cloud = write_simulated_archive(
+        simulate_scan(get_scenario("ring", travel_m=0.5), seed=0), tmp_path / "cloud"
+    )
+    frames = write_simulated_archive(
+        simulate_scan(get_scenario("paper", travel_m=0.3), seed=0), tmp_path / "frames"
+    )
+    enginepool.shutdown()
+    started: list[bool] = []
+    real_prestart = enginepool.prestart
+
+    def prestart(workers, *, ahead=False):
+        started.append(ahead)
+        return real_prestart(workers, ahead=ahead)
+
+    runner = CliRunner()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(enginepool, "prestart", prestart)
+        result = runner.invoke(app, ["inspect", str(cloud), "--db", db])
+        assert result.exit_code == 0, result.output
+        assert started == [True]  # ahead, by the command line; staging a cloud starts none
+        assert enginepool.pool_size() == 0
+        result = runner.invoke(app, ["inspect", str(frames), "--db", db])
+        assert result.exit_code == 0, result.output
+        assert started == [True, True, False]  # and staging the frames finds it running
+        assert enginepool.pool_size() == 2

@@ -177,6 +177,30 @@ def test_strided_chunks_overlap_by_one_frame_and_keep_the_last(count, stride):
     assert chained == used
 
 
+def test_chunks_are_as_few_as_allowed_and_as_equal_as_they_can_be():
+    """A short last chunk would leave a core idle while another chunk finishes: the chunks'
+    frame counts differ by at most one, and there are no more of them than needed."""
+    rng = np.random.default_rng(12)
+    for _ in range(300):
+        count, chunk_frames, stride = (
+            int(rng.integers(1, 3000)),
+            int(rng.integers(2, 80)),
+            int(rng.integers(1, 5)),
+        )
+        used = used_frame_indices(count, stride)
+        sizes = [
+            len(chunk_frame_indices(a, b, stride))
+            for a, b in plan_chunks(count, chunk_frames, stride)
+        ]
+        assert max(sizes) <= chunk_frames
+        assert max(sizes) - min(sizes) <= 1, (count, chunk_frames, stride, sizes)
+        steps = len(used) - 1
+        assert len(sizes) == max(1, -(-steps // (chunk_frames - 1)))  # the fewest that fit
+    assert [b for _, b in plan_chunks(2011, 60, 3)] == [
+        used_frame_indices(2011, 3)[round(i * 670 / 12)] for i in range(1, 13)
+    ]  # the 30 m benchmark scan: 12 chunks of 56-57 frames, not 11 of 60 and one of 23
+
+
 def test_the_in_memory_registration_reads_what_the_flow_reads():
     """``register_scan`` (the benchmarks' and studies' registration) uses the flow's stride
     unless told otherwise, and keeps the run's last frame."""

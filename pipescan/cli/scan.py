@@ -252,18 +252,33 @@ def _run_inspection(archive: str, db_url: str, report: Path | None, params):
     from pipescan.settings import use_settings
 
     s = _settings()
-    flow = inspect_archive.with_options(task_runner=make_task_runner(s.task_runner, s.workers))
+    runner = make_task_runner(s.task_runner, s.workers)
+    flow = inspect_archive.with_options(task_runner=runner)
     # The database is a setting of this process, never a flow parameter (Prefect keeps those);
     # it is checked before the archive is processed.
     refuse_password_in_url(archive, "archive")  # a flow parameter: Prefect keeps it
     with use_settings(database_url=db_url):
         checked_database_url()
+        _start_engines_ahead(s, runner)
         return flow(
             archive=archive,
             report_path=str(report) if report else None,
             params=params,
             work_dir=str(s.work_dir),
         )
+
+
+def _start_engines_ahead(settings, runner) -> None:
+    """Start the registration engines' worker processes now, if the flow will use them: their
+    imports (about 2 s of CPU each) then overlap the start of Prefect's API instead of the
+    first chunks (the flow stops them again for a registered cloud, which needs none)."""
+    from pipescan.flows.runners import engine_processes, limit_library_threads
+    from pipescan.tasks import enginepool
+
+    workers = engine_processes(settings.engine_processes, runner)
+    if workers:
+        limit_library_threads(settings.library_threads)  # the workers inherit the limit
+        enginepool.prestart(workers, ahead=True)
 
 
 def _print_summary(summary) -> None:

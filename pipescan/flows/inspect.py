@@ -37,6 +37,7 @@ from pipescan.flows.runners import engine_processes, engine_threads, limit_libra
 from pipescan.settings import get_settings
 from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
+from pipescan.tasks import enginepool
 from pipescan.tasks.inspection import (
     bucket_points,
     choose_stride,
@@ -161,6 +162,8 @@ def inspect_archive(
     try:
         # With frames, the engine pool's workers start as the archive opens.
         staged = stage_archive(archive, run_dir, get_settings().input_limits(), pooled)
+        if not staged.frame_count:
+            enginepool.release_unused()  # a registered cloud: nothing registers
         meta = staged.meta
         content = (
             f"{staged.frame_count} frames"

@@ -52,20 +52,21 @@ def make_task_runner(
     raise ValueError(f"unknown task runner {kind!r}: use one of {', '.join(RUNNER_KINDS)}")
 
 
-def _thread_workers() -> int:
-    """The running flow's thread-pool workers, at most the machine's cores; 0 when the flow
-    does not run on a thread pool."""
-    context = FlowRunContext.get()
-    runner = context.task_runner if context is not None else None
+def _thread_workers(runner: TaskRunner | None = None) -> int:
+    """The thread-pool workers of ``runner`` (by default the running flow's), at most the
+    machine's cores; 0 when it is not a thread pool."""
+    if runner is None:
+        context = FlowRunContext.get()
+        runner = context.task_runner if context is not None else None
     if not isinstance(runner, ThreadPoolTaskRunner):
         return 0
     workers = getattr(runner, "_max_workers", 1) or 1
     return max(1, min(int(workers), os.cpu_count() or 1))
 
 
-def engine_processes(enabled: bool = True) -> int:
-    """Worker processes that register the running flow's chunks
-    (:mod:`pipescan.tasks.enginepool`), 0 for none.
+def engine_processes(enabled: bool = True, runner: TaskRunner | None = None) -> int:
+    """Worker processes that register the chunks of a flow on ``runner`` (by default the
+    running flow's; :mod:`pipescan.tasks.enginepool`), 0 for none.
 
     On a thread pool of two or more workers (and cores), as many as it has: two chunks then
     register at the same time, which threads cannot do (:func:`engine_threads`). Under a
@@ -74,7 +75,7 @@ def engine_processes(enabled: bool = True) -> int:
     """
     if multiprocessing.current_process().daemon:
         return 0  # a pool's worker (Dask's, a process pool's) may not start processes
-    workers = _thread_workers()
+    workers = _thread_workers(runner)
     return workers if enabled and workers >= 2 else 0
 
 

@@ -8,7 +8,8 @@ result, while the rest of the flow stays on threads (and in one process's memory
 The workers import only what registering needs (NumPy, SciPy, Open3D, small_gicp and the
 archive readers; not Prefect nor the database): about 2 s and 160 MB each, paid once per
 process, since the pool is kept for every later flow run of the process (a network run
-inspects many archives). :func:`prestart` starts them while the archive is staged.
+inspects many archives). :func:`prestart` starts them while the archive is staged, or
+earlier: ``pipescan inspect`` starts them before Prefect's API, whose start-up they overlap.
 
 A worker that dies (killed, out of memory) breaks the pool; the next call starts a new one,
 and a chunk whose worker died is tried once more there. A worker whose parent is gone exits
@@ -33,6 +34,8 @@ T = TypeVar("T")
 _lock = threading.Lock()
 _pool: ProcessPoolExecutor | None = None
 _size = 0
+_unused = False
+"""Whether the pool was started ahead of knowing it is needed, and has run nothing yet."""
 
 
 def _exit_with_parent(parent: int) -> None:
@@ -121,10 +124,19 @@ def _discard(broken: ProcessPoolExecutor) -> None:
     broken.shutdown(wait=False, cancel_futures=True)
 
 
-def prestart(workers: int) -> list[Future]:
+def prestart(workers: int, *, ahead: bool = False) -> list[Future]:
     """Start the pool's ``workers`` processes now (they import the engines in the
-    background); a pool already running is left as it is."""
+    background); a pool already running is left as it is.
+
+    ``ahead``: started before it is known whether anything will run on it (the command line
+    starts it before Prefect's API, whose start-up the workers' imports then overlap);
+    :func:`release_unused` stops it again if nothing did.
+    """
+    global _unused
+    running = _pool is not None
     pool = _get(workers)
+    if ahead and not running:
+        _unused = True
     # Processes start on demand, one per job no idle worker can take.
     return [_submit(pool, _ready) for _ in range(workers)]
 
@@ -133,6 +145,8 @@ def run(workers: int, fn: Callable[..., T], *args: Any) -> T:
     """``fn(*args)`` in one of the pool's processes (``fn`` and its arguments must pickle);
     its exceptions are raised here. A pool broken by a dying worker is replaced, and the call
     tried once more."""
+    global _unused
+    _unused = False
     for attempt in (1, 2):
         pool = _get(workers)
         try:
@@ -153,10 +167,18 @@ def pool_size() -> int:
     return _size if _pool is not None else 0
 
 
+def release_unused() -> None:
+    """Stop a pool started ahead (:func:`prestart`) on which nothing has run: the archive
+    turned out to need none (a registered cloud), and its idle workers would hold their
+    memory for the rest of the run."""
+    if _unused:
+        shutdown()
+
+
 def shutdown() -> None:
     """Stop the pool's workers (the next call starts a new pool)."""
-    global _pool
+    global _pool, _unused
     with _lock:
-        pool, _pool = _pool, None
+        pool, _pool, _unused = _pool, None, False
     if pool is not None:
         pool.shutdown(wait=True, cancel_futures=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 
@@ -59,20 +60,26 @@ def plan_chunks(frame_count: int, chunk_frames: int, stride: int = 1) -> list[tu
     """Split frames into chunks ``[first, last]`` (inclusive) that overlap by one frame.
 
     The shared frame lets consecutive chunks, registered independently and in parallel, be
-    chained into one trajectory. With ``stride`` k, a chunk holds ``chunk_frames`` of the
-    frames used (every k-th, and the last: :func:`chunk_frame_indices`).
+    chained into one trajectory. With ``stride`` k, a chunk holds at most ``chunk_frames``
+    of the frames used (every k-th, and the last: :func:`chunk_frame_indices`). The chunks
+    are as few as that allows, and as equal as they can be: a short last chunk would leave a
+    core idle at the end of registration while another chunk finishes.
+
+    Examples
+    --------
+    >>> plan_chunks(10, 4)
+    [(0, 3), (3, 6), (6, 9)]
+    >>> plan_chunks(12, 5)
+    [(0, 4), (4, 7), (7, 11)]
     """
     if frame_count <= 0:
         return []
     chunk_frames = max(2, chunk_frames)
     used = used_frame_indices(frame_count, stride)
-    chunks, first = [], 0
-    while True:
-        last = min(first + chunk_frames - 1, len(used) - 1)
-        chunks.append((used[first], used[last]))
-        if last >= len(used) - 1:
-            return chunks
-        first = last
+    steps = len(used) - 1  # frame-to-frame steps; each chunk takes a run of them
+    count = max(1, -(-steps // (chunk_frames - 1)))
+    bounds = [round(i * steps / count) for i in range(count + 1)]
+    return [(used[a], used[b]) for a, b in itertools.pairwise(bounds)]
 
 
 def used_frame_indices(frame_count: int, stride: int = 1) -> list[int]:
