@@ -566,25 +566,45 @@ def test_chaining_allows_for_the_slips_seen_in_every_chunk():
     assert u[11] == pytest.approx(0.25) and u[-1] == pytest.approx(0.5)
 
 
-def test_a_frame_whose_icp_error_is_below_a_third_of_a_step_could_have_caught_a_slip():
+def test_a_frame_whose_gate_sigma_is_below_a_third_of_a_step_could_have_caught_a_slip():
     def chunk(first, held, slips, sigma=float("inf")):
         q = tuple(
-            FrameQuality(first + k, 1.0, 0.0, held, 0.3 if held else 1.0, axial_sigma_m=sigma)
+            FrameQuality(first + k, 1.0, 0.0, held, 0.3 if held else 1.0, gate_sigma_m=sigma)
             for k in range(11)
         )
         T = np.repeat(np.eye(4)[None], 11, axis=0)
         T[:, 0, 3] = 0.1 * np.arange(11)
         return Trajectory(T, q, tuple(range(first, first + 11)), odometer_slips_m=slips)
 
-    # Held to the odometer (ICP weighed 0.3), but ICP's own error along the axis, 2 cm, is
-    # below a third of the 10 cm step: the innovation gate would have passed a slip there,
-    # frame by frame, so no slip hides in it.
+    # Held to the odometer (ICP weighed 0.3), but the gate's σ (ICP's error along the axis
+    # and the prior's together), 2 cm, is below a third of the 10 cm step: the innovation
+    # gate would have passed a slip there, frame by frame, so no slip hides in it.
     sharp = chain_trajectories([chunk(0, False, (0.25,)), chunk(10, True, (), sigma=0.02)])
     assert not any(q.chainage_uncertainty_m for q in sharp.quality)
     # With 4 cm (a third of a step is 3.3 cm) or no information, it could not: allowed for.
     for sigma in (0.04, float("inf")):
         blunt = chain_trajectories([chunk(0, False, (0.25,)), chunk(10, True, (), sigma=sigma)])
         assert blunt.quality[-1].chainage_uncertainty_m == pytest.approx(0.5)
+
+
+def test_the_gate_sigma_carries_the_priors_error_as_the_gate_does():
+    """The σ a frame's slip test uses is the one the innovation gate compares with: ICP's own
+    error and the prior's together. After a 3 cm odometer step (3 % scale error, 1 mm reading
+    noise) the prior's error is 1.7 mm; ICP's is 2 mm; both together 2.6 mm."""
+    from pipescan.core.registration.fusion import slip_could_hide
+
+    f = AxialFilter(0.03, 0.001, 0.15)
+    f.predict(0.03, map_extent_m=1.2, odometer=True)
+    prior = f.P
+    assert prior == pytest.approx(np.hypot(0.03 * 0.03, np.sqrt(2) * 0.001))
+    f.update(1.0 / 0.002**2, 0.03 * 0.03)
+    assert f.last_gate_sigma_m == pytest.approx(np.hypot(prior, 0.002))
+    # A 6.5 mm step: over 3 × 2 mm (ICP alone), under 3 × 2.6 mm (both, what the gate
+    # uses). Held, the frame is one where a slip could hide.
+    assert slip_could_hide(np.array([True]), np.array([f.last_gate_sigma_m]), np.array([0.0065]))
+    assert not slip_could_hide(np.array([True]), np.array([0.002]), np.array([0.0065]))
+    f.predict(0.03, map_extent_m=1.2, odometer=True)
+    assert f.last_gate_sigma_m == float("inf")  # until ICP weighs in on this frame
 
 
 def test_registration_evidence_of_a_section():

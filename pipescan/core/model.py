@@ -193,6 +193,8 @@ class FrameQuality:
     along_axis_weight: float = 0.0
     chainage_uncertainty_m: float = 0.0
     fault: str | None = None
-    axial_sigma_m: float = float("inf")
-    """ICP's own stated error along the axis (``1/√I``; infinite where it had no information
-    there): where it is below a third of the crawler's step, a slip shows frame by frame."""
+    gate_sigma_m: float = float("inf")
+    """The σ the innovation gate weighed ICP's disagreement with the odometer against: ICP's
+    own error along the axis and the prior's together (``√(P² + 1/I)``; infinite where ICP
+    had no information there). Where it is below a third of the crawler's step, a slip shows
+    frame by frame."""

@@ -300,6 +300,9 @@ class AxialFilter:
         self.last_innovation_sigmas = 0.0
         """The last update's disagreement of ICP with the odometer along the axis, in σ of both
         errors together (``|correction| / √(P² + 1/I)``); 0 without information or odometer."""
+        self.last_gate_sigma_m = float("inf")
+        """The σ of both errors together that the last update's innovation gate measured the
+        disagreement against (``√(P² + 1/I)``, m); infinite without information."""
         self._held_m = 0.0
         self._icp_var = 0.0
         self._widened_m = 0.0
@@ -323,6 +326,7 @@ class AxialFilter:
         self.P = float(np.hypot(min(self.P + bound, cap), noise))
         self._cap, self._step, self._odometer = cap, abs(step_m), odometer
         self.last_innovation_sigmas = 0.0  # until update() weighs this frame's ICP
+        self.last_gate_sigma_m = float("inf")
         return bound
 
     def update(
@@ -340,8 +344,11 @@ class AxialFilter:
         jump was tried: once a real slip had run past it, ICP was never believed again.)
         """
         overrode = False
+        self.last_gate_sigma_m = (
+            float(np.sqrt(self.P**2 + 1.0 / information)) if information > 0 else float("inf")
+        )
         self.last_innovation_sigmas = (
-            abs(correction_m) / float(np.sqrt(self.P**2 + 1.0 / information))
+            abs(correction_m) / self.last_gate_sigma_m
             if self._odometer and information > 0
             else 0.0
         )
@@ -425,15 +432,18 @@ class SlipLog:
 
 
 def slip_could_hide(
-    degenerate: np.ndarray, axial_sigma_m: np.ndarray, steps_m: np.ndarray
+    degenerate: np.ndarray, gate_sigma_m: np.ndarray, steps_m: np.ndarray
 ) -> np.ndarray:
     """Frames where an odometer slip leaves no trace, (F,) bool: held to the odometer
-    (``degenerate``, ICP's weight below one half) and with ICP's own error along the axis not
-    below ``1/_INNOVATION_SIGMAS`` of the frame's step. Where it is below, the innovation gate
-    (:meth:`AxialFilter.update`) passes a slip frame by frame, whatever ICP weighed elsewhere:
-    a slip there could have been caught."""
+    (``degenerate``, ICP's weight below one half) and with the innovation gate's σ (ICP's own
+    error along the axis and the prior's together, ``√(P² + 1/I)``) not below
+    ``1/_INNOVATION_SIGMAS`` of the frame's step. Where it is below, the gate
+    (:meth:`AxialFilter.update`) passes a slip of one step frame by frame, whatever ICP
+    weighed elsewhere: a slip there could have been caught. The test is the gate's own. With
+    ICP's error alone, frames counted as able to catch a slip where the prior's error kept the
+    gate shut; that error grows with the odometer's steps between the frames registered."""
     steps = np.asarray(steps_m, dtype=float)
-    sigma = np.asarray(axial_sigma_m, dtype=float)
+    sigma = np.asarray(gate_sigma_m, dtype=float)
     return np.asarray(degenerate, dtype=bool) & ~(_INNOVATION_SIGMAS * sigma < steps)
 
 

@@ -251,7 +251,7 @@ class FrameRegistrar:
             degenerate=weight < 0.5,
             along_axis_weight=weight,
             chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
-            axial_sigma_m=self._last_sigma,
+            gate_sigma_m=self._axial.last_gate_sigma_m,
         )
 
     def _icp(self, pts: np.ndarray, pred: np.ndarray) -> np.ndarray:

@@ -131,7 +131,7 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0, prepend=T[:1, :3, 3]), axis=1)
     held = slip_could_hide(
         np.array([q.degenerate for q in quality]),
-        np.array([q.axial_sigma_m for q in quality]),
+        np.array([q.gate_sigma_m for q in quality]),
         steps,
     )
     allowance = unseen_slip_allowance(steps, held, slips, window)
