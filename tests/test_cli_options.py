@@ -65,9 +65,20 @@ def test_the_summary_says_the_odometer_slipped_and_where_that_widened_the_chaina
     out = capsys.readouterr().out
     assert "chainage within ±62.0 cm at the end" in out
     assert (
-        "the odometer slipped twice where features were in view (up to 44 cm); the ± above "
-        "allows for slips at that rate where it was alone"
-    ) in out
+        "the odometer slipped twice where features were in view (up to 44 cm); allowed for "
+        "where it was alone"
+    ) in out  # a summary stored before the allowance was kept
+    allowed = reg | {"unseen_slips_allowed_m": 0.44}
+    _print_summary(dataclasses.replace(summary, registration=allowed))
+    out = capsys.readouterr().out
+    assert "(up to 44 cm); the ± allows 0.44 m for unseen ones where it was alone" in out
+    assert "as large as the largest caught (0.44 m); a larger one there is not" in out
+    # Frames rested on the odometer, but never for a slide window: nothing could hide there.
+    none = reg | {"unseen_slips_allowed_m": 0.0}
+    _print_summary(dataclasses.replace(summary, registration=none))
+    out = capsys.readouterr().out
+    assert "(up to 44 cm); no stretch rested on the odometer long enough to hide one" in out
+    assert "largest caught" not in out
     # Where no frame rested on the odometer there is nothing to allow for.
     _print_summary(dataclasses.replace(summary, registration=reg | {"degenerate_frames": 0}))
     out = capsys.readouterr().out

@@ -564,6 +564,65 @@ def test_chaining_allows_for_the_slips_seen_in_every_chunk():
     want = [0.25 * max(1, _net_slips_within(1.0 * x / 2)) for x in held_by]
     assert u[:11] == pytest.approx([0.0] * 11) and u[11:] == pytest.approx(want)
     assert u[11] == pytest.approx(0.25) and u[-1] == pytest.approx(0.5)
+    assert chained.unseen_slips_m == pytest.approx(0.5)  # kept for the summary and the report
+    assert registration_summary(chained, RegistrationParams())["unseen_slips_allowed_m"] == 0.5
+
+
+def test_a_slip_caught_just_before_the_frames_turn_held_may_go_on_unseen():
+    def chunk(first, held, slips=(), caught_at=None, overrode=(), held_at=()):
+        q = tuple(
+            FrameQuality(
+                first + k,
+                1.0,
+                0.0,
+                held or first + k in held_at,
+                0.0 if held or first + k in held_at else 1.0,
+                fault="odometer_slip" if first + k == caught_at else None,
+                overrode=first + k in overrode,
+            )
+            for k in range(11)
+        )
+        T = np.repeat(np.eye(4)[None], 11, axis=0)
+        T[:, 0, 3] = 0.1 * np.arange(11)
+        return Trajectory(T, q, tuple(range(first, first + 11)), odometer_slips_m=slips)
+
+    def u(chunks):
+        return np.array([q.chainage_uncertainty_m for q in chain_trajectories(chunks).quality])
+
+    hidden_only = u([chunk(0, False, (0.25,)), chunk(10, True)])
+    # A 0.25 m slip caught at frame 9, ICP still overriding the odometer at frame 10, and the
+    # features lost at frame 11 (held on): the slip was going on as the view was lost, and
+    # the rest of it leaves no trace. From the first held frame on, one more slip is allowed
+    # for, on top of those the held stretch may hide.
+    went_on = u([chunk(0, False, (0.25,), caught_at=9, overrode={9, 10}), chunk(10, True)])
+    assert went_on[:11] == pytest.approx(np.zeros(11))
+    assert went_on[11:] == pytest.approx(hidden_only[11:] + 0.25)
+    # ICP agreed with the odometer again at frame 10: the slip had ended in view.
+    ended = u([chunk(0, False, (0.25,), caught_at=9, overrode={9}), chunk(10, True)])
+    assert ended == pytest.approx(hidden_only)
+    # Held for one frame, then overriding again: the override puts the frame where ICP sees
+    # it, so the slip's size takes in what happened while held; it then ends in view.
+    seen_again = [
+        chunk(0, False, (0.25,), caught_at=8, overrode={8, 10}, held_at={9}),
+        chunk(10, False),
+        chunk(20, True),
+    ]
+    same_unflagged = [chunk(0, False, (0.25,), held_at={9}), chunk(10, False), chunk(20, True)]
+    assert u(seen_again) == pytest.approx(u(same_unflagged))
+    # Seen again, then lost while still overriding: that exit hides the rest.
+    lost_later = [
+        chunk(0, False, (0.25,), caught_at=8, overrode={8, 10}, held_at={9}),
+        chunk(10, True),
+    ]
+    lost_unflagged = [chunk(0, False, (0.25,), held_at={9}), chunk(10, True)]
+    extra = u(lost_later) - u(lost_unflagged)
+    assert extra[:11] == pytest.approx(np.zeros(11)) and extra[11:] == pytest.approx(0.25)
+    # Caught 2.1 m before the features are lost, more than two slide windows: the slip was
+    # seen to end (SlipLog closes it there too), and only the hidden ones are allowed for.
+    early = [chunk(0, False, (0.25,), caught_at=0, overrode={0}), chunk(10, False, overrode={20})]
+    unflagged = [chunk(0, False, (0.25,)), chunk(10, False)]
+    assert u([*early, chunk(20, True)]) == pytest.approx(u([*unflagged, chunk(20, True)]))
+    assert u([*early, chunk(20, True)])[-1] > 0
 
 
 def test_a_frame_whose_gate_sigma_is_below_a_third_of_a_step_could_have_caught_a_slip():

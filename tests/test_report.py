@@ -623,15 +623,37 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
     assert "possible slips" in rows["chainage uncertainty"]
     assert plain(rows["odometer slips caught"]) == (
         "2 with features in view, up to 0.44 m; allowed for where it was alone"
+    )  # a summary stored before the allowance was kept
+    kept = dict(
+        _registration_only_rows(
+            dataclasses.replace(inp, registration=reg | {"unseen_slips_allowed_m": 0.5})
+        )
     )
-    assert "unseen odometer slips" not in rows
-    # Registered at every k-th frame, fewer slips are caught: the ± may allow for too few.
-    strided = reg | {"frame_stride": 4, "frame_stride_reason": "views"}
-    rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=strided)))
-    assert plain(rows["unseen odometer slips"]).startswith(
-        "Every 4th frame was registered: fewer slips are caught than with every frame"
+    assert plain(kept["odometer slips caught"]) == (
+        "2 with features in view, up to 0.44 m; the ± allows 0.50 m for unseen ones where it "
+        "was alone"
     )
-    assert "PIPESCAN_FRAME_STRIDE=1" in plain(rows["unseen odometer slips"])
+    short = dict(
+        _registration_only_rows(
+            dataclasses.replace(inp, registration=reg | {"unseen_slips_allowed_m": 0.0})
+        )
+    )
+    assert "possible slips" not in short["chainage uncertainty"]
+    assert "unseen odometer slips" not in short
+    assert plain(short["odometer slips caught"]).endswith(
+        "no stretch rested on the odometer long enough to hide one"
+    )
+    # Where frames rested on the odometer, the ± allows for slips as large as the largest
+    # caught, and the block says that a larger one is not allowed for (at any stride).
+    held_some = reg | {"degenerate_frames": 40}
+    for extra in ({}, {"frame_stride": 4, "frame_stride_reason": "views"}):
+        rows = dict(
+            _registration_only_rows(dataclasses.replace(inp, registration=held_some | extra))
+        )
+        assert plain(rows["unseen odometer slips"]).startswith(
+            "The ± allows for slips where the odometer was alone as large as the largest "
+            "caught (0.44 m); a larger one there is not allowed for"
+        )
     # An odometer never caught slipping: no such row; the ± claims no slips, and where frames
     # rested on the odometer the block says what it cannot allow for.
     held = inp.registration | {

@@ -337,8 +337,10 @@ def _print_summary(summary) -> None:
                 f"  the odometer slipped {times} where features were in view "
                 f"(up to {100 * max(slips):.0f} cm)"
             )
-            if reg["degenerate_frames"]:
-                line += "; the ± above allows for slips at that rate where it was alone"
+            from pipescan.core.registration.metrics import unseen_slips_clause
+
+            if clause := unseen_slips_clause(reg):
+                line += f"; {clause}"
             typer.echo(line)
         from pipescan.core.registration.metrics import unseen_slip_caveat
 

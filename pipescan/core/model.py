@@ -198,3 +198,6 @@ class FrameQuality:
     own error along the axis and the prior's together (``√(P² + 1/I)``; infinite where ICP
     had no information there). Where it is below a third of the crawler's step, a slip shows
     frame by frame."""
+    overrode: bool = False
+    """Whether ICP overrode the odometer along the axis at this frame (its disagreement beyond
+    the innovation gate's 3σ): an odometer slip going on in view."""

@@ -41,6 +41,7 @@ from pipescan.core.registration.fusion import (
     degenerate_directions,
     gravity_corrected,
     point_to_plane_hessian,
+    slips_out_of_view,
     unseen_slip_allowance,
 )
 from pipescan.core.registration.metrics import (
@@ -52,6 +53,7 @@ from pipescan.core.registration.metrics import (
     slide_spans,
     trajectory_errors,
     unseen_slip_caveat,
+    unseen_slips_clause,
 )
 from pipescan.core.registration.params import (
     REGISTRATION_ENGINES,
@@ -127,10 +129,12 @@ __all__ = [
     "sample_frame_indices",
     "seen_twice",
     "slide_spans",
+    "slips_out_of_view",
     "trajectory_errors",
     "transform",
     "unseen_slip_allowance",
     "unseen_slip_caveat",
+    "unseen_slips_clause",
     "used_frame_indices",
     "voxel_downsample",
 ]

@@ -303,6 +303,8 @@ class AxialFilter:
         self.last_gate_sigma_m = float("inf")
         """The σ of both errors together that the last update's innovation gate measured the
         disagreement against (``√(P² + 1/I)``, m); infinite without information."""
+        self.last_overrode = False
+        """Whether the last update's ICP overrode the odometer through the innovation gate."""
         self._held_m = 0.0
         self._icp_var = 0.0
         self._widened_m = 0.0
@@ -327,6 +329,7 @@ class AxialFilter:
         self._cap, self._step, self._odometer = cap, abs(step_m), odometer
         self.last_innovation_sigmas = 0.0  # until update() weighs this frame's ICP
         self.last_gate_sigma_m = float("inf")
+        self.last_overrode = False
         return bound
 
     def update(
@@ -377,6 +380,7 @@ class AxialFilter:
             self._held_m += (1.0 - w) * step_bound_m
             self._icp_var += self.last_icp_var
         self.P = float(np.sqrt(1.0 - w)) * self.P
+        self.last_overrode = overrode
         return w, overrode
 
     def widen(self, by_m: float) -> None:
@@ -447,8 +451,72 @@ def slip_could_hide(
     return np.asarray(degenerate, dtype=bool) & ~(_INNOVATION_SIGMAS * sigma < steps)
 
 
+def slips_out_of_view(
+    caught: np.ndarray,
+    overrode: np.ndarray,
+    held: np.ndarray,
+    steps_m: np.ndarray,
+    window_m: float,
+) -> np.ndarray:
+    """Frames where a slip caught against features went out of view while still going on,
+    (F,) bool.
+
+    A slip is caught while it happens (:class:`SlipLog`): a crawler stuck for two seconds is
+    caught a third of the way in. While it goes on in view, ICP overrides the odometer frame
+    by frame through the innovation gate (``overrode``), and the slip's size follows it. If
+    the frames turn ``held`` straight after such an override, the slip was still going on as
+    the view was lost, and the rest of it leaves no trace: the frames follow the odometer
+    again, and the caught size is only what was seen. A run of held frames that starts
+    within two slide windows of odometer travel after a catch (``caught``, the frames whose
+    fault is ``"odometer_slip"``; how long :class:`SlipLog` follows a slip) is marked at its
+    first frame when the frame before it overrode the odometer, unless the frame after it
+    overrides again (seen again at once: that override puts the frame where ICP sees it, so
+    the slip's size takes in what happened while held). From a marked frame on, the slip may
+    have gone on for as long again as the largest caught (:func:`unseen_slip_allowance`).
+
+    Found on a slipping-odometer draw read every fourth frame (``docs/registration.md``,
+    *A slip that goes out of view*): a crawler stuck for 1.2 s was caught after 0.5 s, ICP
+    overrode the odometer for two frames, and the frames turned held while it stood for
+    0.7 s more: caught as 13 cm, 20 cm in truth.
+
+    >>> caught = np.array([False, True, False, False, False, False])
+    >>> overrode = np.array([False, True, True, False, False, False])
+    >>> held = np.array([False, False, False, True, True, False])
+    >>> slips_out_of_view(caught, overrode, held, np.full(6, 0.1), 0.5).tolist()
+    [False, False, False, True, False, False]
+
+    Not when the features stayed in view for two windows (1.2 m here) after the catch, nor
+    when ICP no longer disagreed with the odometer as the view was lost (the slip had ended):
+
+    >>> bool(slips_out_of_view(caught, overrode, held, np.full(6, 0.6), 0.5).any())
+    False
+    >>> ended = np.array([False, True, False, False, False, False])
+    >>> bool(slips_out_of_view(caught, ended, held, np.full(6, 0.1), 0.5).any())
+    False
+    """
+    caught = np.asarray(caught, dtype=bool)
+    overrode = np.asarray(overrode, dtype=bool)
+    held = np.asarray(held, dtype=bool)
+    travel = np.cumsum(np.asarray(steps_m, dtype=float))
+    marked = np.zeros(len(held), dtype=bool)
+    # Where each run of held frames starts, and the first frame after it.
+    starts = np.flatnonzero(held & ~np.concatenate(([False], held[:-1])))
+    ends = np.flatnonzero(held & ~np.concatenate((held[1:], [False]))) + 1
+    for h, e in zip(starts, ends, strict=True):
+        if h == 0 or not overrode[h - 1] or (e < len(held) and overrode[e]):
+            continue
+        before = np.flatnonzero(caught[:h])
+        if len(before) and travel[h] - travel[before[-1]] <= 2.0 * window_m:
+            marked[h] = True
+    return marked
+
+
 def unseen_slip_allowance(
-    steps_m: np.ndarray, held: np.ndarray, slips_m: Sequence[float], window_m: float
+    steps_m: np.ndarray,
+    held: np.ndarray,
+    slips_m: Sequence[float],
+    window_m: float,
+    out_of_view: np.ndarray | None = None,
 ) -> np.ndarray:
     """What the odometer may have slipped unseen by each frame, (F,) m, for the chainage
     uncertainty.
@@ -485,6 +553,10 @@ def unseen_slip_allowance(
     under both rules). All of one sign at a Poisson 95 % count would leave 4, with a ± 1.5-2.6
     times as wide.
 
+    A caught slip may go on where the frames turn held before it is seen to end
+    (``out_of_view``, :func:`slips_out_of_view`): from each such frame on, the allowance
+    holds one more slip as large as ``largest``, for the rest of it.
+
     A run whose odometer was never caught slipping (or that saw no feature at all) gets
     nothing: nothing in it says the odometer slips, and its stated scale error stands alone.
 
@@ -498,12 +570,16 @@ def unseen_slip_allowance(
         Sizes of the slips caught, one per slip.
     window_m : float
         The slide window's travel.
+    out_of_view : (F,) bool, optional
+        Frames where a caught slip went out of view (:func:`slips_out_of_view`).
     """
     steps = np.asarray(steps_m, dtype=float)
     held = np.asarray(held, dtype=bool)
     allowance = np.zeros(len(steps))
     if not len(slips_m):
         return allowance
+    if out_of_view is not None:
+        allowance += float(max(slips_m)) * np.cumsum(np.asarray(out_of_view, dtype=bool))
     edges = np.flatnonzero(np.diff(np.concatenate(([0], held.astype(np.int8), [0]))))
     runs: list[list[int]] = []
     for a, b in zip(edges[::2], edges[1::2], strict=True):
@@ -529,11 +605,11 @@ def unseen_slip_allowance(
 
     before_m, done = 0.0, 0
     for a, b in stretches:
-        allowance[done:a] = largest * slips(np.array([before_m]))[0]
+        allowance[done:a] += largest * slips(np.array([before_m]))[0]
         held_by_m = before_m + np.cumsum(steps[a:b])
-        allowance[a:b] = largest * np.maximum(1.0, slips(held_by_m))
+        allowance[a:b] += largest * np.maximum(1.0, slips(held_by_m))
         before_m, done = float(held_by_m[-1]), b
-    allowance[done:] = largest * max(1.0, float(slips(np.array([before_m]))[0]))
+    allowance[done:] += largest * max(1.0, float(slips(np.array([before_m]))[0]))
     return allowance
 
 

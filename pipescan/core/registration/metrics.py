@@ -84,6 +84,7 @@ def registration_summary(
         "slides": sum(x.fault == "slide" for x in q),
         "odometer_slips": sum(x.fault == "odometer_slip" for x in q),
         "odometer_slips_caught_m": [round(float(m), 4) for m in trajectory.odometer_slips_m],
+        "unseen_slips_allowed_m": round(float(trajectory.unseen_slips_m), 4),
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
         "odometer_uncertainty_ratio": params.odometer_scale_error_ratio,
     }
@@ -97,6 +98,29 @@ def registration_summary(
             "along the pipe axis: their chainage is extrapolated, not measured"
         )
     return summary
+
+
+def unseen_slips_clause(summary: dict) -> str:
+    """What the chainage uncertainty allows for odometer slips nothing could see, in words
+    ("" where no frame rested on the odometer), for the line that reports the slips caught.
+    ``summary`` is a stored :func:`registration_summary`; one stored before it kept
+    ``unseen_slips_allowed_m`` gets the general clause.
+
+    >>> unseen_slips_clause({"degenerate_frames": 40, "unseen_slips_allowed_m": 0.62})
+    'the ± allows 0.62 m for unseen ones where it was alone'
+    >>> unseen_slips_clause({"degenerate_frames": 7, "unseen_slips_allowed_m": 0.0})
+    'no stretch rested on the odometer long enough to hide one'
+    >>> unseen_slips_clause({"degenerate_frames": 40})
+    'allowed for where it was alone'
+    """
+    if not summary.get("degenerate_frames"):
+        return ""
+    allowed = summary.get("unseen_slips_allowed_m")
+    if allowed is None:
+        return "allowed for where it was alone"
+    if allowed > 0:
+        return f"the ± allows {allowed:.2f} m for unseen ones where it was alone"
+    return "no stretch rested on the odometer long enough to hide one"
 
 
 def unseen_slip_caveat(summary: dict) -> str | None:
@@ -117,29 +141,37 @@ def unseen_slip_caveat(summary: dict) -> str | None:
     >>> unseen_slip_caveat({"degenerate_frames": 200, "frames": 201,
     ...     "odometer_slips_caught_m": []}).split("(")[1].split(";")[0]
     'no features were in view to catch one'
+
+    A run that caught slips has them allowed for where the odometer was alone, each as large
+    as the largest caught: a larger one there is not (``docs/registration.md``, *A slip that
+    goes out of view*: on a slip draw whose unseen slips were 18-22 cm and whose largest
+    caught was 11 cm, frames lay up to 23 cm beyond their ±). This holds at every stride;
+    registering every frame caught as many slips as the flow's stride on the slip draws
+    (12 and 12), so it is not offered as the remedy.
+
     >>> unseen_slip_caveat({"degenerate_frames": 40, "along_axis_prior": "odometer",
-    ...     "odometer_slips_caught_m": [0.2]}) is None
+    ...     "odometer_slips_caught_m": [0.2, 0.44]}).split(";")[0]
+    'The ± allows for slips where the odometer was alone as large as the largest caught (0.44 m)'
+    >>> unseen_slip_caveat({"degenerate_frames": 0, "odometer_slips_caught_m": [0.2]}) is None
     True
 
-    Registered at every k-th frame, fewer slips are caught than with every frame, and the
-    allowance, built from those caught, can fall short (``docs/registration.md``, *With
-    every k-th frame read*): a run that caught one is told so.
+    Nor where no stretch rested on the odometer long enough to hide a slip (the summary's
+    ``unseen_slips_allowed_m`` is 0; summaries stored before it was kept get the caveat):
 
-    >>> unseen_slip_caveat({"degenerate_frames": 40, "odometer_slips_caught_m": [0.2],
-    ...     "frame_stride": 3}).split(":")[0]
-    'Every 3rd frame was registered'
+    >>> unseen_slip_caveat({"degenerate_frames": 7, "odometer_slips_caught_m": [0.17],
+    ...     "unseen_slips_allowed_m": 0.0}) is None
+    True
     """
     if not summary.get("degenerate_frames"):
         return None
-    if summary.get("odometer_slips_caught_m"):
-        k = int(summary.get("frame_stride") or 1)
-        if k <= 1:
-            return None
+    if caught := summary.get("odometer_slips_caught_m"):
+        if summary.get("unseen_slips_allowed_m", 1.0) <= 0:
+            return None  # no stretch held long enough to hide a slip: the ± allows for none
         return (
-            f"Every {k}{_ordinal_suffix(k)} frame was registered: fewer slips are caught "
-            "than with every frame, so the ± may allow for too few where the odometer was "
-            "alone; for a crawler known to slip, register every frame "
-            "(PIPESCAN_FRAME_STRIDE=1)"
+            "The ± allows for slips where the odometer was alone as large as the largest "
+            f"caught ({max(caught):.2f} m); a larger one there is not allowed for (for a "
+            "crawler known to slip further, state a wider odometer_uncertainty_ratio in "
+            "inspection.toml)"
         )
     if summary.get("along_axis_prior", "odometer") == "constant_velocity":
         return None  # no odometer at all: the summary's warning says the chainage is not measured
@@ -159,12 +191,6 @@ def unseen_slip_caveat(summary: dict) -> str | None:
         f"{travel} rested on the odometer alone: the ± there is {stated} and allows for no "
         f"slip ({why}; one where it was alone would not be seen)"
     )
-
-
-def _ordinal_suffix(k: int) -> str:
-    if k % 100 in (11, 12, 13):
-        return "th"
-    return {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
 
 
 @dataclass(frozen=True)

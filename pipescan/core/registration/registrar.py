@@ -252,6 +252,7 @@ class FrameRegistrar:
             along_axis_weight=weight,
             chainage_uncertainty_m=self._axial.chainage_uncertainty_m,
             gate_sigma_m=self._axial.last_gate_sigma_m,
+            overrode=self._axial.last_overrode,
         )
 
     def _icp(self, pts: np.ndarray, pred: np.ndarray) -> np.ndarray:

@@ -12,7 +12,11 @@ import numpy as np
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
 from pipescan.core.registration.engines import transform
-from pipescan.core.registration.fusion import slip_could_hide, unseen_slip_allowance
+from pipescan.core.registration.fusion import (
+    slip_could_hide,
+    slips_out_of_view,
+    unseen_slip_allowance,
+)
 from pipescan.core.registration.params import AlongAxisPrior
 
 
@@ -42,6 +46,10 @@ class Trajectory:
     slip_window_m : float
         The travel over which registration compared itself with the odometer (a stretch held
         to the odometer for less than this could not hide a slip).
+    unseen_slips_m : float
+        What the chainage uncertainty at the end allows for odometer slips that nothing could
+        see (m; 0 where no slip was caught, or no stretch held long enough to hide one), set
+        when chunks are chained (:func:`chain_trajectories`).
     """
 
     T_world_frame: np.ndarray
@@ -50,6 +58,7 @@ class Trajectory:
     along_axis_prior: AlongAxisPrior = "odometer"
     odometer_slips_m: tuple[float, ...] = ()
     slip_window_m: float = 0.5
+    unseen_slips_m: float = 0.0
 
     def positions_m(self) -> np.ndarray:
         """Sensor positions in the world frame, (F, 3)."""
@@ -134,14 +143,18 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
         np.array([q.gate_sigma_m for q in quality]),
         steps,
     )
-    allowance = unseen_slip_allowance(steps, held, slips, window)
+    caught = np.array([q.fault == "odometer_slip" for q in quality])
+    overrode = np.array([q.overrode for q in quality])
+    out_of_view = slips_out_of_view(caught, overrode, held, steps, window)
+    allowance = unseen_slip_allowance(steps, held, slips, window, out_of_view)
     quality = [
         dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
         if a > 0
         else q
         for q, a in zip(quality, allowance, strict=True)
     ]
-    return Trajectory(T, tuple(quality), tuple(indices), prior, slips, window)
+    unseen = float(allowance.max()) if len(allowance) else 0.0
+    return Trajectory(T, tuple(quality), tuple(indices), prior, slips, window, unseen)
 
 
 def iter_registered_points(
