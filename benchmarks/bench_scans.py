@@ -4,6 +4,7 @@ error against the stated 95 % uncertainty, per kind of scan.
     python benchmarks/bench_scans.py table            # the closing table (all kinds below)
     python benchmarks/bench_scans.py ring-sweep       # ring profilers over randomised conditions
     python benchmarks/bench_scans.py table --seeds 0 1 2
+    python benchmarks/bench_scans.py rays             # the simulator's ray caster, rays a second
 
 Kinds: dense frames (the forward-looking sensor, `paper` scenario), a 2D ring profiler
 (`ring`), a sparse static terrestrial scan (`static`), water at 10 % and 30 % of the diameter
@@ -30,7 +31,14 @@ from pipescan.core.model import SectionStatus
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.core.start import cloud_start
 from pipescan.simulator.archive import world_cloud
-from pipescan.simulator.scan import Effects, Scenario, get_scenario, simulate_scan
+from pipescan.simulator.scan import (
+    Effects,
+    Scenario,
+    cast_rays,
+    get_scenario,
+    ray_directions_sensor,
+    simulate_scan,
+)
 from pipescan.simulator.sensors import RingProfiler, WaterLevel
 
 MAX_RANGE_M = 5.0
@@ -244,14 +252,35 @@ def ring_sweep(count: int, seed: int) -> None:
     )
 
 
+def rays(runs: int) -> None:
+    """The simulator's ray caster on the paper scan (every third frame, the sensor's own ray
+    pattern), one thread: rays cast a second, in each of ``runs`` runs, and their median."""
+    s = get_scenario("paper")
+    scan = simulate_scan(s, seed=0)
+    poses = [scan.T_pipe_sensor(i) for i in range(0, len(scan), 3)]
+    directions = [ray_directions_sensor(s, i) for i in range(0, len(scan), 3)]
+    rates = []
+    for run in range(runs):
+        n, start = 0, time.perf_counter()
+        for T, d in zip(poses, directions, strict=True):
+            cast_rays(s, T[:3, 3], d @ T[:3, :3].T, min_range_m=s.blind_zone_m)
+            n += d.shape[0]
+        rates.append(n / (time.perf_counter() - start))
+        print(f"run {run + 1}: {len(poses)} frames, {n:,} rays, {rates[-1] / 1e6:.2f} M rays/s")
+    median = np.median(rates) / 1e6
+    print(f"median: {median:.2f} M rays/s (one thread; the machine's load moves it)")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("what", choices=["table", "ring-sweep"])
+    parser.add_argument("what", choices=["table", "ring-sweep", "rays"])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--runs", type=int, default=20)
     args = parser.parse_args()
     if args.what == "table":
         table(args.seeds)
+    elif args.what == "rays":
+        rays(3)
     else:
         ring_sweep(args.runs, args.seeds[0])
 

@@ -6,7 +6,6 @@ from __future__ import annotations
 import email
 import email.policy
 import socket
-import time
 from datetime import UTC, datetime
 from email.message import Message
 from pathlib import Path
@@ -241,7 +240,6 @@ def test_cli_report_deliver(smtp_server, tmp_path, monkeypatch):
         monkeypatch.setenv(name, value)
     monkeypatch.chdir(tmp_path)
     runner = CliRunner()
-    t0 = time.perf_counter()
     result = runner.invoke(app, ["report", "--inspection", str(inspection_id), "--deliver"])
     assert result.exit_code == 0, result.output
     name = f"MH1042-MH1043_2025-03-14_inspection-{inspection_id}.pdf"
@@ -257,7 +255,6 @@ def test_cli_report_deliver(smtp_server, tmp_path, monkeypatch):
     assert "MH1042-MH1043" in message["Subject"] and "defect" in message["Subject"]
     assert _attachments(message) == [(name, delivered)]
     assert not (tmp_path / "reports").exists()  # delivered only, no stray copy
-    assert time.perf_counter() - t0 < 30
 
     # The network summary goes to the network's addresses, plus one given on the line.
     result = runner.invoke(app, ["report", "--network", "--deliver", "--email", "me@x.example"])

@@ -7,7 +7,6 @@ import dataclasses
 import math
 import re
 import tempfile
-import time
 from datetime import UTC, datetime
 from pathlib import Path
 
@@ -136,12 +135,10 @@ def report_input() -> ReportInput:
 
 
 @pytest.fixture(scope="module")
-def rendered(report_input, tmp_path_factory) -> tuple[Path, str, float]:
+def rendered(report_input, tmp_path_factory) -> tuple[Path, str]:
     out = tmp_path_factory.mktemp("report") / "nested" / "report.pdf"
-    t0 = time.perf_counter()
     render_pdf(report_input, out)
-    elapsed_s = time.perf_counter() - t0
-    return out, pdf_text(out), elapsed_s
+    return out, pdf_text(out)
 
 
 def test_defects_are_the_ground_truth(report_input):
@@ -183,7 +180,7 @@ def test_fmt_pct_never_prints_none_or_nan():
 
 
 def test_pdf_holds_the_figures(rendered):
-    path, text, _ = rendered
+    path, text = rendered
     assert path.exists() and path.read_bytes().startswith(b"%PDF")
     assert not list(path.parent.glob("*.part")), "temporary file left behind"
     assert "MH1042-MH1043" in text
@@ -202,11 +199,6 @@ def test_pdf_holds_the_figures(rendered):
     assert re.search(r"page 1 of \d", text)
     for bad in ("None", "nan", "NaN"):
         assert not re.search(rf"\b{bad}\b", text), bad
-
-
-def test_pdf_renders_fast(rendered):
-    *_, elapsed_s = rendered
-    assert elapsed_s < 8.0  # ~60 sections; typically 1-2 s on one core
 
 
 def test_unmeasured_never_drawn_as_zero():
@@ -391,14 +383,13 @@ def test_compact_appendix_for_a_long_scan():
 
 
 @pytest.mark.slow
-def test_a_100_m_scan_renders_in_under_15_s(tmp_path):
+def test_a_100_m_scan_renders_with_a_compact_listing(tmp_path):
+    """1,000 sections: the listing is compacted and points to the export. How long it takes
+    is measured by ``benchmarks/bench_report.py``, not here."""
     inp = sample_input(100.0)
-    t0 = time.perf_counter()
     out = render_pdf(inp, tmp_path / "long.pdf")
-    elapsed_s = time.perf_counter() - t0
     text = pdf_text(out)
     assert "compact listing" in text and "pipescan export sections" in text
-    assert elapsed_s < 15.0, elapsed_s
 
 
 # --- network summary ---------------------------------------------------------------------

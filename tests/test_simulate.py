@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 import tomllib
 import tracemalloc
 from pathlib import Path
@@ -496,17 +495,15 @@ def test_read_ground_truth_of_a_plain_directory(tmp_path: Path):
 
 
 @pytest.mark.slow
-def test_ray_caster_throughput():
+def test_the_ray_caster_hits_only_the_pipes_surfaces():
+    """Every third frame of the paper scan: every ray ends on one of the scene's four
+    surfaces, and the last frames see the end wall. Its speed is measured by
+    ``benchmarks/bench_scans.py rays``, not here."""
     s = get_scenario("paper")
     scan = simulate_scan(s, seed=0)
-    n, start = 0, time.perf_counter()
     for i in range(0, len(scan), 3):
         T = scan.T_pipe_sensor(i)
         d = ray_directions_sensor(s, i) @ T[:3, :3].T
         _, surface = cast_rays(s, T[:3, 3], d, min_range_m=s.blind_zone_m)
-        n += d.shape[0]
         assert np.all(np.isin(surface, [1, 2, 3, 4]))
-    rays_per_s = n / (time.perf_counter() - start)
-    print(f"ray caster: {rays_per_s / 1e6:.2f} M rays/s")
-    assert rays_per_s > 1.0e6  # 2-4 M rays/s on an idle core; shared CI cores are slower
     assert SURFACE_END_WALL in surface
