@@ -541,6 +541,9 @@ def test_inspection_toml_value_forms() -> None:
         base + 'asset_id = "A"\ninspected_at = 2024-05-17\nodometer_uncertainty_ratio = 0.05\n'
     )
     assert meta.odometer_uncertainty_ratio == 0.05
+    assert meta.odometer_slip_m is None  # no slip stated
+    meta = _meta(base + 'asset_id = "A"\ninspected_at = 2024-05-17\nodometer_slip_m = 0.25\n')
+    assert meta.odometer_slip_m == 0.25
 
 
 @pytest.mark.parametrize(
@@ -559,6 +562,9 @@ def test_inspection_toml_value_forms() -> None:
         ("nominal_diameter_m = 0.02\n", "nominal_diameter_m", "not a plausible pipe diameter"),
         ("odometer_uncertainty_ratio = 3\n", "odometer_uncertainty_ratio", "less than or equal"),
         ("odometer_uncertainty_ratio = 0\n", "odometer_uncertainty_ratio", "greater than 0"),
+        ("odometer_slip_m = -0.1\n", "odometer_slip_m", "greater than or equal to 0"),
+        ("odometer_slip_m = 20\n", "odometer_slip_m", "less than or equal to 10"),
+        ("odometer_slip_m = inf\n", "odometer_slip_m", "finite"),
     ],
 )
 def test_inspection_toml_errors(extra: str, field: str, message: str) -> None:

@@ -110,8 +110,17 @@ def test_the_summary_says_what_the_chainage_cannot_allow_for_when_no_slip_was_ca
     assert (
         "  1.8 m of travel rested on the odometer alone: the ± there is the odometer's 3 % and "
         "allows for no slip (none was caught where features were in view; one where it was "
-        "alone would not be seen)\n"
+        "alone would not be seen; state the crawler's largest slip as odometer_slip_m in "
+        "inspection.toml)\n"
     ) in out
+    # The operator stated the crawler's largest slip: one such is allowed for, and said so.
+    stated = reg | {"odometer_slip_stated_m": 0.25, "unseen_slips_allowed_m": 0.25}
+    _print_summary(dataclasses.replace(summary, registration=stated))
+    assert (
+        "  1.8 m of travel rested on the odometer alone: the ± there is the odometer's 3 % and "
+        "one unseen slip of the stated 0.25 m (none was caught; more than one, or a larger "
+        "one, is not allowed for)\n"
+    ) in capsys.readouterr().out
     # Slips caught: the ± allows for them (the line of the test above), no caveat.
     _print_summary(
         dataclasses.replace(summary, registration=reg | {"odometer_slips_caught_m": [0.2]})

@@ -548,6 +548,40 @@ def test_unseen_slips_are_allowed_for_at_the_rate_and_size_seen():
     assert not unseen_slip_allowance(steps, np.ones(60, bool), [0.3], window_m=0.5).any()
 
 
+def test_a_stated_slip_is_allowed_for_where_none_was_caught_and_sets_the_least_size():
+    steps = np.full(60, 0.1)
+    steps[0] = 0.0
+    held = np.zeros(60, dtype=bool)
+    held[10:20] = True  # 1.0 m held to the odometer
+    # None caught, none stated: nothing says the odometer slips.
+    assert not unseen_slip_allowance(steps, held, [], 0.5).any()
+    # The operator states 0.25 m: with no rate to go by, one such slip from the first held
+    # frame on; nothing before it.
+    stated = unseen_slip_allowance(steps, held, [], 0.5, stated_m=0.25)
+    assert stated[:10] == pytest.approx(np.zeros(10)) and stated[10:] == pytest.approx(0.25)
+    # Slips caught, but smaller than stated: the rate is the caught one, the size the stated.
+    caught = unseen_slip_allowance(steps, held, [0.1], 0.5)
+    both = unseen_slip_allowance(steps, held, [0.1], 0.5, stated_m=0.25)
+    assert both == pytest.approx(caught * 2.5)
+    # No feature anywhere: a stated slip still stands.
+    assert unseen_slip_allowance(steps, np.ones(60, bool), [], 0.5, stated_m=0.25)[-1] == 0.25
+    # Through chaining, from the chunks' registration parameters.
+    T = np.repeat(np.eye(4)[None], 11, axis=0)
+    T[:, 0, 3] = 0.1 * np.arange(11)
+
+    def chunk(first, is_held):
+        q = tuple(FrameQuality(first + k, 1.0, 0.0, is_held, 0.0) for k in range(11))
+        return Trajectory(T, q, tuple(range(first, first + 11)), stated_slip_m=0.25)
+
+    chained = chain_trajectories([chunk(0, False), chunk(10, True)])
+    assert chained.quality[-1].chainage_uncertainty_m == pytest.approx(0.25)
+    assert chained.unseen_slips_m == pytest.approx(0.25) and chained.stated_slip_m == 0.25
+    summary = registration_summary(chained, RegistrationParams(odometer_slip_m=0.25))
+    assert summary["odometer_slip_stated_m"] == 0.25
+    with pytest.raises(ValueError, match="odometer_slip_m must be >= 0"):
+        RegistrationParams(odometer_slip_m=-0.1)
+
+
 def test_chaining_allows_for_the_slips_seen_in_every_chunk():
     def chunk(first, held, slips):
         q = tuple(FrameQuality(first + k, 1.0, 0.0, held, 0.0 if held else 1.0) for k in range(11))

@@ -52,7 +52,8 @@ class InspectionMeta:
     ``start_xyz`` is the sensor's first position in a registered cloud's frame (where its
     scan starts: docs/archive.md); ``ros`` names a bag's topics.
     ``odometer_uncertainty_ratio`` is the crawler's odometer's stated uncertainty, a share of
-    the distance (None: registration's default, 3 %).
+    the distance (None: registration's default, 3 %); ``odometer_slip_m`` the largest slip its
+    operator says it may make unseen (None: none stated).
     """
 
     asset_id: str
@@ -71,6 +72,7 @@ class InspectionMeta:
     start_xyz: tuple[float, float, float] | None = None
     ros: RosTopics | None = None
     odometer_uncertainty_ratio: float | None = None
+    odometer_slip_m: float | None = None
 
     @property
     def nominal_area_m2(self) -> float:

@@ -174,7 +174,10 @@ def inspect_archive(
         # The crawler's own odometer uncertainty, where inspection.toml states it, is what
         # registration uses and what is stored with the inspection.
         params = replace(
-            params, registration=params.registration.for_odometer(meta.odometer_uncertainty_ratio)
+            params,
+            registration=params.registration.for_odometer(
+                meta.odometer_uncertainty_ratio, meta.odometer_slip_m
+            ),
         )
         if reuse_stored:
             # The same choice as the grade task's, so the same parameters and hash as a save.

@@ -517,6 +517,7 @@ def unseen_slip_allowance(
     slips_m: Sequence[float],
     window_m: float,
     out_of_view: np.ndarray | None = None,
+    stated_m: float = 0.0,
 ) -> np.ndarray:
     """What the odometer may have slipped unseen by each frame, (F,) m, for the chainage
     uncertainty.
@@ -559,6 +560,10 @@ def unseen_slip_allowance(
 
     A run whose odometer was never caught slipping (or that saw no feature at all) gets
     nothing: nothing in it says the odometer slips, and its stated scale error stands alone.
+    Unless the crawler's operator states the largest slip it may make (``stated_m``,
+    ``inspection.toml``'s ``odometer_slip_m``): then ``largest`` is at least that, and a run
+    that caught none (no rate to go by) allows for one such slip from its first held
+    stretch on.
 
     Parameters
     ----------
@@ -572,14 +577,17 @@ def unseen_slip_allowance(
         The slide window's travel.
     out_of_view : (F,) bool, optional
         Frames where a caught slip went out of view (:func:`slips_out_of_view`).
+    stated_m : float
+        The largest unseen slip the crawler's operator states (0: none stated).
     """
     steps = np.asarray(steps_m, dtype=float)
     held = np.asarray(held, dtype=bool)
     allowance = np.zeros(len(steps))
-    if not len(slips_m):
+    if not len(slips_m) and not stated_m > 0:
         return allowance
+    largest = max(float(max(slips_m, default=0.0)), float(stated_m))
     if out_of_view is not None:
-        allowance += float(max(slips_m)) * np.cumsum(np.asarray(out_of_view, dtype=bool))
+        allowance += largest * np.cumsum(np.asarray(out_of_view, dtype=bool))
     edges = np.flatnonzero(np.diff(np.concatenate(([0], held.astype(np.int8), [0]))))
     runs: list[list[int]] = []
     for a, b in zip(edges[::2], edges[1::2], strict=True):
@@ -588,14 +596,13 @@ def unseen_slip_allowance(
         else:
             runs.append([a, b])
     stretches = [(a, b) for a, b in runs if steps[a:b].sum() >= window_m]
-    if not stretches or held.all():
+    if not stretches or (held.all() and not stated_m > 0):
         return allowance
     from scipy.stats import skellam  # scipy.stats takes a while to import: only when needed
 
     held_m = sum(float(steps[a:b].sum()) for a, b in stretches)
     seen_m = max(float(steps.sum()) - held_m, window_m)
     rate = len(slips_m) / seen_m
-    largest = float(max(slips_m))
 
     def slips(held_by_m: np.ndarray) -> np.ndarray:
         mean = rate * np.asarray(held_by_m, dtype=float) / 2.0

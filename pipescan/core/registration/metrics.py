@@ -87,6 +87,7 @@ def registration_summary(
         "unseen_slips_allowed_m": round(float(trajectory.unseen_slips_m), 4),
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
         "odometer_uncertainty_ratio": params.odometer_scale_error_ratio,
+        "odometer_slip_stated_m": params.odometer_slip_m,
     }
     if odometer_m is not None and None not in odometer_m:
         first, last = odometer_m
@@ -161,17 +162,36 @@ def unseen_slip_caveat(summary: dict) -> str | None:
     >>> unseen_slip_caveat({"degenerate_frames": 7, "odometer_slips_caught_m": [0.17],
     ...     "unseen_slips_allowed_m": 0.0}) is None
     True
+
+    Where the crawler's operator stated the largest slip it may make (``inspection.toml``'s
+    ``odometer_slip_m``), that is the size allowed for when it is larger than any caught,
+    and a run that caught none allows for one:
+
+    >>> unseen_slip_caveat({"degenerate_frames": 40, "odometer_slips_caught_m": [0.2],
+    ...     "odometer_slip_stated_m": 0.5}).split(";")[0]
+    'The ± allows for slips where the odometer was alone as large as the stated 0.50 m'
+    >>> text = unseen_slip_caveat({"degenerate_frames": 40, "odometer_slips_caught_m": [],
+    ...     "odometer_slip_stated_m": 0.3, "odometer_uncertainty_ratio": 0.03,
+    ...     "unconstrained_spans": [{"start_travel_m": 1.0, "end_travel_m": 3.5}]})
+    >>> "the odometer's 3 % and one unseen slip of the stated 0.30 m (none was caught" in text
+    True
     """
     if not summary.get("degenerate_frames"):
         return None
-    if caught := summary.get("odometer_slips_caught_m"):
+    caught = summary.get("odometer_slips_caught_m") or []
+    stated_m = float(summary.get("odometer_slip_stated_m") or 0.0)
+    if caught:
         if summary.get("unseen_slips_allowed_m", 1.0) <= 0:
             return None  # no stretch held long enough to hide a slip: the ± allows for none
+        size = (
+            f"the stated {stated_m:.2f} m"
+            if stated_m > max(caught)
+            else f"the largest caught ({max(caught):.2f} m)"
+        )
         return (
-            "The ± allows for slips where the odometer was alone as large as the largest "
-            f"caught ({max(caught):.2f} m); a larger one there is not allowed for (for a "
-            "crawler known to slip further, state a wider odometer_uncertainty_ratio in "
-            "inspection.toml)"
+            f"The ± allows for slips where the odometer was alone as large as {size}; a "
+            "larger one there is not allowed for (for a crawler known to slip further, state "
+            "its largest slip as odometer_slip_m in inspection.toml)"
         )
     if summary.get("along_axis_prior", "odometer") == "constant_velocity":
         return None  # no odometer at all: the summary's warning says the chainage is not measured
@@ -187,9 +207,16 @@ def unseen_slip_caveat(summary: dict) -> str | None:
         if frames and summary["degenerate_frames"] >= frames - 1
         else "none was caught where features were in view"
     )
+    if stated_m > 0 and summary.get("unseen_slips_allowed_m", 1.0) > 0:
+        return (
+            f"{travel} rested on the odometer alone: the ± there is {stated} and one unseen "
+            f"slip of the stated {stated_m:.2f} m (none was caught; more than one, or a "
+            "larger one, is not allowed for)"
+        )
     return (
         f"{travel} rested on the odometer alone: the ± there is {stated} and allows for no "
-        f"slip ({why}; one where it was alone would not be seen)"
+        f"slip ({why}; one where it was alone would not be seen; state the crawler's largest "
+        "slip as odometer_slip_m in inspection.toml)"
     )
 
 

@@ -61,6 +61,11 @@ class RegistrationParams:
         odometer-held stretches, and is what a slide must exceed to be caught.
     odometer_noise_m : float
         1σ noise of one odometer reading (its resolution and jitter).
+    odometer_slip_m : float
+        The largest slip the crawler's odometer may make where nothing can see it, as its
+        operator states it (0: none stated). The chainage uncertainty allows for unseen slips
+        at least this large, even where none was caught
+        (:func:`~pipescan.core.registration.fusion.unseen_slip_allowance`).
     slide_window_m : float
         Slide detection compares registered and odometer travel over the frames of this
         much travel. Over 0.5 m, a 3 % odometer allows 1.5 cm (plus 3σ of its reading noise,
@@ -113,6 +118,7 @@ class RegistrationParams:
     degeneracy_ratio: float = 0.01
     odometer_scale_error_ratio: float = 0.03
     odometer_noise_m: float = 0.001
+    odometer_slip_m: float = 0.0
     slide_window_m: float = 0.5
     source_voxel_m: float | None = 0.045
     early_return_ratio: float = 0.8
@@ -144,6 +150,10 @@ class RegistrationParams:
                 raise ValueError(
                     f"RegistrationParams.{name} must be > 0, got {getattr(self, name)!r}."
                 )
+        if not self.odometer_slip_m >= 0:
+            raise ValueError(
+                f"RegistrationParams.odometer_slip_m must be >= 0, got {self.odometer_slip_m!r}."
+            )
         if self.source_voxel_m is not None and not self.source_voxel_m > 0:
             raise ValueError(
                 "RegistrationParams.source_voxel_m must be > 0 or None, "
@@ -170,18 +180,27 @@ class RegistrationParams:
                 f"got {self.degeneracy_ratio!r}."
             )
 
-    def for_odometer(self, uncertainty_ratio: float | None) -> RegistrationParams:
-        """These parameters with the crawler's own stated odometer uncertainty (from
-        ``inspection.toml``), or unchanged when it states none.
+    def for_odometer(
+        self, uncertainty_ratio: float | None, slip_m: float | None = None
+    ) -> RegistrationParams:
+        """These parameters with the crawler's own stated odometer uncertainty and largest
+        unseen slip (from ``inspection.toml``), each unchanged where it states none.
 
         >>> RegistrationParams().for_odometer(0.05).odometer_scale_error_ratio
         0.05
+        >>> RegistrationParams().for_odometer(None, 0.2).odometer_slip_m
+        0.2
         >>> RegistrationParams().for_odometer(None) == RegistrationParams()
         True
         """
-        if uncertainty_ratio is None:
-            return self
-        return dataclasses.replace(self, odometer_scale_error_ratio=float(uncertainty_ratio))
+        params = self
+        if uncertainty_ratio is not None:
+            params = dataclasses.replace(
+                params, odometer_scale_error_ratio=float(uncertainty_ratio)
+            )
+        if slip_m is not None:
+            params = dataclasses.replace(params, odometer_slip_m=float(slip_m))
+        return params
 
     @property
     def label(self) -> str:

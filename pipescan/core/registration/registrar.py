@@ -500,6 +500,7 @@ def register_frames(
         reg.along_axis_prior,
         odometer_slips_m=reg.odometer_slips_m,
         slip_window_m=params.slide_window_m,
+        stated_slip_m=params.odometer_slip_m,
     )
 
 

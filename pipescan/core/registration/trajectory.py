@@ -48,8 +48,10 @@ class Trajectory:
         to the odometer for less than this could not hide a slip).
     unseen_slips_m : float
         What the chainage uncertainty at the end allows for odometer slips that nothing could
-        see (m; 0 where no slip was caught, or no stretch held long enough to hide one), set
-        when chunks are chained (:func:`chain_trajectories`).
+        see (m; 0 where no slip was caught or stated, or no stretch held long enough to hide
+        one), set when chunks are chained (:func:`chain_trajectories`).
+    stated_slip_m : float
+        The largest unseen slip the crawler's operator stated (``odometer_slip_m``; 0: none).
     """
 
     T_world_frame: np.ndarray
@@ -59,6 +61,7 @@ class Trajectory:
     odometer_slips_m: tuple[float, ...] = ()
     slip_window_m: float = 0.5
     unseen_slips_m: float = 0.0
+    stated_slip_m: float = 0.0
 
     def positions_m(self) -> np.ndarray:
         """Sensor positions in the world frame, (F, 3)."""
@@ -146,7 +149,8 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     caught = np.array([q.fault == "odometer_slip" for q in quality])
     overrode = np.array([q.overrode for q in quality])
     out_of_view = slips_out_of_view(caught, overrode, held, steps, window)
-    allowance = unseen_slip_allowance(steps, held, slips, window, out_of_view)
+    stated = max(c.stated_slip_m for c in chunks)
+    allowance = unseen_slip_allowance(steps, held, slips, window, out_of_view, stated)
     quality = [
         dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
         if a > 0
@@ -154,7 +158,7 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
         for q, a in zip(quality, allowance, strict=True)
     ]
     unseen = float(allowance.max()) if len(allowance) else 0.0
-    return Trajectory(T, tuple(quality), tuple(indices), prior, slips, window, unseen)
+    return Trajectory(T, tuple(quality), tuple(indices), prior, slips, window, unseen, stated)
 
 
 def iter_registered_points(

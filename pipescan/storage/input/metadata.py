@@ -208,6 +208,7 @@ class InspectionDocument(BaseModel):
     start_xyz: list[float] | None = None
     ros: _RosTable | None = None
     odometer_uncertainty_ratio: float | None = Field(default=None, gt=0.0, le=0.5)
+    odometer_slip_m: float | None = Field(default=None, ge=0.0, le=10.0, allow_inf_nan=False)
 
     @field_validator("start_xyz")
     @classmethod
@@ -408,6 +409,7 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         if doc.ros is None
         else RosTopics(doc.ros.points_topic, doc.ros.odometry_topic, doc.ros.imu_topic),
         odometer_uncertainty_ratio=doc.odometer_uncertainty_ratio,
+        odometer_slip_m=doc.odometer_slip_m,
     )
 
 
