@@ -883,9 +883,10 @@ def _registered_in_memory(scan, params: RegistrationParams, frame_stride: int | 
     return register_scan(scan, params=params, frame_stride=frame_stride)
 
 
-def _slip_draw(job: tuple[str, int | None]) -> str:
+def _slip_draw(job: tuple[str, int | None, float]) -> str:
     """One draw registered in memory as the flow registers it (every k-th frame, k the flow's
-    choice unless given); its row of ``bench_slips``."""
+    choice unless given; the crawler's largest unseen slip stated as given, 0 for none); its
+    row of ``bench_slips``."""
     from pipescan.simulator.sweep import (
         along_axis_travel,
         chainage_bound_misses,
@@ -893,10 +894,10 @@ def _slip_draw(job: tuple[str, int | None]) -> str:
         sweep_draws,
     )
 
-    name, stride = job
+    name, stride, stated_slip_m = job
     draw = next(d for d in [*slip_draws(), *sweep_draws(long_run=False)] if d.name == name)
     scan = simulate_scan(draw.scenario, draw.seed)
-    params = RegistrationParams()
+    params = RegistrationParams(odometer_slip_m=stated_slip_m)
     trajectory = _registered_in_memory(scan, params, stride)
     idx, est, true = along_axis_travel(trajectory, scan)
     error = est - true
@@ -916,13 +917,16 @@ def _slip_draw(job: tuple[str, int | None]) -> str:
 def bench_slips(args) -> None:
     """Does the chainage uncertainty cover the odometer's unseen slips? Draws whose odometer
     slips often, and the sweep's short draws, registered in memory two at a time as the flow
-    registers them (every k-th frame; ``--frame-stride`` sets k); each frame's registered
+    registers them (every k-th frame; ``--frame-stride`` sets k; ``--odometer-slip-m`` states
+    the crawler's largest unseen slip, as ``inspection.toml`` can); each frame's registered
     position along the axis against the truth and its stated ±."""
     from pipescan.simulator.sweep import slip_draws, sweep_draws
 
     names = _names([*slip_draws(), *sweep_draws(long_run=False)], args.only)
+    stated = f"{args.odometer_slip_m:g} m" if args.odometer_slip_m else "none"
     print(
-        f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
+        f"{len(names)} draws; stated slip (odometer_slip_m): {stated}; "
+        f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs. "
         "slip frames: frames during which the simulated odometer slipped; caught: slips the "
         "registration caught against features (the largest); held: frames resting on the "
         "odometer; beyond: frames further off along the axis than their chainage ± by more "
@@ -934,7 +938,8 @@ def bench_slips(args) -> None:
     )
     rows = []
     with ProcessPoolExecutor(2) as pool:
-        for row in pool.map(_slip_draw, [(n, args.frame_stride) for n in names]):
+        jobs = [(n, args.frame_stride, args.odometer_slip_m) for n in names]
+        for row in pool.map(_slip_draw, jobs):
             print(row, flush=True)
             rows.append(row.split(" | "))
     caught = [r for r in rows if r[3] != "0"]
@@ -1419,6 +1424,13 @@ def main() -> None:
         type=int,
         default=None,
         help="slips: register every k-th frame (default: the flow's choice for each scan)",
+    )
+    parser.add_argument(
+        "--odometer-slip-m",
+        type=float,
+        default=0.0,
+        help="slips: the crawler's largest unseen slip, stated (inspection.toml's "
+        "odometer_slip_m; default 0, none stated)",
     )
     parser.add_argument("--no-kiss", action="store_true", help="leave kiss-icp out")
     args = parser.parse_args()
