@@ -17,7 +17,11 @@ from typing import Any, TypeGuard
 
 from pipescan.core.grading import ThresholdTable, is_flagged, pipe_class_for_material
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
-from pipescan.core.registration.metrics import unseen_slip_caveat, unseen_slips_clause
+from pipescan.core.registration.metrics import (
+    allows_unseen_slips,
+    unseen_slip_caveat,
+    unseen_slips_clause,
+)
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.summary import ADJACENT_TOL_M, adjacent_runs, blockage_summary, peak_blockage
 from pipescan.core.trends import (
@@ -438,7 +442,7 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
         if degenerate == 0:
             # Every frame was placed against features: the ± is registration's own error.
             what = "registration's own error: no frame rested on the odometer"
-        elif reg.get("odometer_slips_caught_m") and reg.get("unseen_slips_allowed_m", 1.0) > 0:
+        elif reg.get("odometer_slips_caught_m") and allows_unseen_slips(reg):
             what = "odometer-held travel and its possible slips"
         else:
             what = "odometer-held travel"

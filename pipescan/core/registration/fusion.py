@@ -499,16 +499,21 @@ def slips_out_of_view(
     held = np.asarray(held, dtype=bool)
     travel = np.cumsum(np.asarray(steps_m, dtype=float))
     marked = np.zeros(len(held), dtype=bool)
-    # Where each run of held frames starts, and the first frame after it.
-    starts = np.flatnonzero(held & ~np.concatenate(([False], held[:-1])))
-    ends = np.flatnonzero(held & ~np.concatenate((held[1:], [False]))) + 1
-    for h, e in zip(starts, ends, strict=True):
-        if h == 0 or not overrode[h - 1] or (e < len(held) and overrode[e]):
+    # The last frame up to each frame that caught a slip (-1: none yet).
+    last_catch = np.maximum.accumulate(np.where(caught, np.arange(len(caught)), -1))
+    for h, e in zip(*_runs(held), strict=True):
+        c = int(last_catch[h - 1]) if h > 0 else -1
+        if c < 0 or not overrode[h - 1] or (e < len(held) and overrode[e]):
             continue
-        before = np.flatnonzero(caught[:h])
-        if len(before) and travel[h] - travel[before[-1]] <= 2.0 * window_m:
+        if travel[h] - travel[c] <= 2.0 * window_m:
             marked[h] = True
     return marked
+
+
+def _runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each run of True in ``mask`` starts, and the index just past its end."""
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], mask.astype(np.int8), [0]))))
+    return edges[::2], edges[1::2]
 
 
 def unseen_slip_allowance(
@@ -588,9 +593,8 @@ def unseen_slip_allowance(
     largest = max(float(max(slips_m, default=0.0)), float(stated_m))
     if out_of_view is not None:
         allowance += largest * np.cumsum(np.asarray(out_of_view, dtype=bool))
-    edges = np.flatnonzero(np.diff(np.concatenate(([0], held.astype(np.int8), [0]))))
     runs: list[list[int]] = []
-    for a, b in zip(edges[::2], edges[1::2], strict=True):
+    for a, b in zip(*_runs(held), strict=True):
         if runs and steps[runs[-1][1] : a].sum() < window_m:
             runs[-1][1] = b  # features for less than a window between: one stretch
         else:

@@ -101,6 +101,17 @@ def registration_summary(
     return summary
 
 
+def allows_unseen_slips(summary: dict) -> bool:
+    """Whether the chainage uncertainty at the end allows for odometer slips nothing could
+    see (``unseen_slips_allowed_m`` > 0). A summary stored before that was kept cannot say,
+    and is taken to allow for them, as it was then reported.
+
+    >>> allows_unseen_slips({"unseen_slips_allowed_m": 0.0}), allows_unseen_slips({})
+    (False, True)
+    """
+    return summary.get("unseen_slips_allowed_m", 1.0) > 0
+
+
 def unseen_slips_clause(summary: dict) -> str:
     """What the chainage uncertainty allows for odometer slips nothing could see, in words
     ("" where no frame rested on the odometer), for the line that reports the slips caught.
@@ -181,7 +192,7 @@ def unseen_slip_caveat(summary: dict) -> str | None:
     caught = summary.get("odometer_slips_caught_m") or []
     stated_m = float(summary.get("odometer_slip_stated_m") or 0.0)
     if caught:
-        if summary.get("unseen_slips_allowed_m", 1.0) <= 0:
+        if not allows_unseen_slips(summary):
             return None  # no stretch held long enough to hide a slip: the ± allows for none
         size = (
             f"the stated {stated_m:.2f} m"
@@ -207,7 +218,7 @@ def unseen_slip_caveat(summary: dict) -> str | None:
         if frames and summary["degenerate_frames"] >= frames - 1
         else "none was caught where features were in view"
     )
-    if stated_m > 0 and summary.get("unseen_slips_allowed_m", 1.0) > 0:
+    if stated_m > 0 and allows_unseen_slips(summary):
         return (
             f"{travel} rested on the odometer alone: the ± there is {stated} and one unseen "
             f"slip of the stated {stated_m:.2f} m (none was caught; more than one, or a "
