@@ -664,6 +664,13 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
         "1.5 m of travel rested on the odometer alone: the ± there is the odometer's 5 % and "
         "allows for no slip"
     )
+    # The operator stated the crawler's largest slip: the ± holds one, and both rows say so.
+    stated = held | {"odometer_slip_stated_m": 0.2, "unseen_slips_allowed_m": 0.2}
+    rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=stated)))
+    assert plain(rows["chainage uncertainty"]) == (
+        "up to ±0.09 m at the end (odometer-held travel and its possible slips)"
+    )
+    assert "one unseen slip of the stated 0.20 m" in plain(rows["unseen odometer slips"])
     # Every frame placed against features: the ± is registration's own, whatever was caught.
     anchored = reg | {"degenerate_frames": 0}
     rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=anchored)))

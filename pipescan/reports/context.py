@@ -442,7 +442,9 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
         if degenerate == 0:
             # Every frame was placed against features: the ± is registration's own error.
             what = "registration's own error: no frame rested on the odometer"
-        elif reg.get("odometer_slips_caught_m") and allows_unseen_slips(reg):
+        elif (
+            reg.get("odometer_slips_caught_m") or reg.get("odometer_slip_stated_m")
+        ) and allows_unseen_slips(reg):
             what = "odometer-held travel and its possible slips"
         else:
             what = "odometer-held travel"
