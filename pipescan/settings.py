@@ -13,7 +13,7 @@ from contextvars import ContextVar
 from pathlib import Path
 from typing import Any, Literal
 
-from pydantic import Field, SecretStr
+from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pipescan.storage.input.limits import InputLimits
@@ -28,7 +28,8 @@ class Settings(BaseSettings):
 
     database_url: str = Field(
         "sqlite:///pipescan.db",
-        description="SQLAlchemy URL; a SQLite file by default, postgresql+psycopg://... at scale",
+        description="SQLAlchemy URL, or the path of a SQLite file; a SQLite file by default, "
+        "postgresql+psycopg://... at scale",
     )
     database_password_block: str | None = Field(
         None,
@@ -116,9 +117,27 @@ class Settings(BaseSettings):
     points_max_count: int = Field(_LIMITS.points_max_count, gt=0)
     metadata_max_bytes: int = Field(_LIMITS.metadata_max_bytes, gt=0, description="32 MiB")
 
+    @field_validator("database_url")
+    @classmethod
+    def _path_is_sqlite(cls, value: str) -> str:
+        return as_database_url(value)
+
     def input_limits(self) -> InputLimits:
         """The input limits these settings give, to pass down explicitly."""
         return InputLimits.from_settings(self)
+
+
+def as_database_url(value: str) -> str:
+    """A database URL as given, or a file's path (no ``scheme://``) as that SQLite file's URL.
+
+    >>> as_database_url("surveys/pipescan.db"), as_database_url("/data/p.db")
+    ('sqlite:///surveys/pipescan.db', 'sqlite:////data/p.db')
+    >>> as_database_url("postgresql+psycopg://pipescan@db/pipescan")
+    'postgresql+psycopg://pipescan@db/pipescan'
+    """
+    if not value.strip() or "://" in value or value.startswith("sqlite:"):
+        return value
+    return "sqlite:///" + str(Path(value).expanduser())
 
 
 _OVERRIDES: ContextVar[dict[str, Any] | None] = ContextVar("pipescan_settings", default=None)

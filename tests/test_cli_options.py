@@ -155,3 +155,26 @@ def test_the_cli_keeps_prefects_log_handler_and_writes_to_the_stderr_of_the_mome
         assert "windows measured" in capsys.readouterr().err
     finally:
         logger.handlers[:], logger.level, logger.propagate = saved
+
+
+def test_a_database_given_as_a_file_path_is_that_sqlite_file(tmp_path):
+    """``--db surveys/p.db`` (a path, not a URL) is the SQLite file there; it used to end in a
+    traceback from SQLAlchemy's URL parser."""
+    made = run_cli(["db", "upgrade", "--db", "surveys/p.db"], tmp_path)
+    assert made.returncode == 0, made.stderr
+    assert (tmp_path / "surveys" / "p.db").is_file()
+    listed = run_cli(["inspections"], tmp_path, PIPESCAN_DATABASE_URL="surveys/p.db")
+    assert listed.returncode == 0, listed.stderr
+    assert "Traceback" not in listed.stderr
+    missing = run_cli(["inspections", "--db", "elsewhere.db"], tmp_path)
+    assert missing.returncode == 2
+    assert "elsewhere.db does not exist" in missing.stderr
+
+
+@pytest.mark.parametrize("command", [["inspections"], ["db", "current"], ["db", "upgrade"]])
+def test_a_database_url_that_cannot_be_parsed_is_one_line(command, tmp_path):
+    result = run_cli([*command, "--db", "postgresql://h:port/db"], tmp_path)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "cannot parse database URL 'postgresql://h:port/db'" in lines[0]
+    assert list(tmp_path.iterdir()) == []

@@ -443,9 +443,14 @@ def test_deleting_an_inspection_cascades(engine: sa.Engine) -> None:
     assert count_rows(engine, "assets") == 1
 
 
-def test_bad_url_raises_storage_error() -> None:
+@pytest.mark.parametrize("url", ["not a url", "postgresql://h:port/db"])
+def test_bad_url_raises_storage_error(url: str) -> None:
+    from pipescan.flows.database import absolute_database_url
+
     with pytest.raises(db.StorageError, match="cannot parse"):
-        db.create_engine_for("not a url")
+        db.create_engine_for(url)
+    with pytest.raises(db.StorageError, match="cannot parse"):
+        absolute_database_url(url)  # what a run checks first
 
 
 def test_session_scope_rolls_back_on_error(engine: sa.Engine) -> None:

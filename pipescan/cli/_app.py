@@ -257,7 +257,9 @@ app.add_typer(db_app, name="db")
 DbOption = Annotated[
     str | None,
     typer.Option(
-        "--db", help="Database URL [env PIPESCAN_DATABASE_URL; default sqlite:///pipescan.db]"
+        "--db",
+        help="Database URL, or a SQLite file's path [env PIPESCAN_DATABASE_URL; "
+        "default sqlite:///pipescan.db]",
     ),
 ]
 
@@ -310,9 +312,9 @@ def _settings():
 
 
 def _db_url(db: str | None) -> str:
-    from pipescan.settings import database_url  # with a Prefect Secret block's password
+    from pipescan.settings import as_database_url, database_url  # with a Secret's password
 
-    return db or database_url(_settings())
+    return as_database_url(db) if db else database_url(_settings())
 
 
 def _stored_db_url(db: str | None) -> str:

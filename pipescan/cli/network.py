@@ -289,4 +289,4 @@ def _deploy_database_check(db: str | None) -> str:
             hint="give an absolute path: sqlite:////srv/pipescan/pipescan.db",
         )
     check_database(url)
-    return make_url(db or settings.database_url).render_as_string(hide_password=True)
+    return make_url(url).render_as_string(hide_password=True)

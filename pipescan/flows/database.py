@@ -22,9 +22,29 @@ WORKER_HINT = (
 )
 
 
+def _parsed(url: str):
+    """``make_url``, with a URL it cannot parse reported in one line."""
+    import sqlalchemy as sa
+
+    try:
+        return make_url(url)
+    except (sa.exc.ArgumentError, ValueError) as exc:  # a port that is not a number
+        raise StorageError(
+            f"cannot parse database URL {url!r}",
+            hint="give a SQLite file's path, or a URL such as sqlite:///pipescan.db or "
+            "postgresql+psycopg://user@host/db",
+        ) from exc
+
+
 def absolute_database_url(url: str) -> str:
-    """A SQLite URL with a relative file made absolute; any other URL unchanged."""
-    parsed = make_url(url)
+    """A SQLite URL with a relative file made absolute; any other URL unchanged.
+
+    Raises
+    ------
+    StorageError
+        When ``url`` cannot be parsed.
+    """
+    parsed = _parsed(url)
     if not is_relative_sqlite(url):
         return url
     return parsed.set(database=str(Path(parsed.database or "").resolve())).render_as_string(
@@ -33,7 +53,7 @@ def absolute_database_url(url: str) -> str:
 
 
 def is_relative_sqlite(url: str) -> bool:
-    parsed = make_url(url)
+    parsed = _parsed(url)
     database = parsed.database or ""
     return not (
         parsed.get_backend_name() != "sqlite"

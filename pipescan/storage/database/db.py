@@ -88,7 +88,7 @@ def create_engine_for(url: str | URL) -> Engine:
     """
     try:
         parsed = make_url(url)
-    except sa.exc.ArgumentError as exc:
+    except (sa.exc.ArgumentError, ValueError) as exc:  # a port that is not a number
         raise StorageError(
             f"cannot parse database URL {url!r}",
             hint="use e.g. sqlite:///pipescan.db or postgresql+psycopg://user@host/db",
