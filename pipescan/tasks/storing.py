@@ -32,6 +32,8 @@ def stage_archive(
     overlap hashing its content (a registered cloud needs none).
     """
     with open_archive(archive, workdir=run_dir, limits=limits) as arc:
+        if arc.frame_count:
+            enginepool.import_here_ahead()
         if engine_processes and arc.frame_count:
             enginepool.prestart(engine_processes)
         # Hash while the extracted files are still where the archive object expects them.
