@@ -72,22 +72,27 @@ def _start_worker(parent: int) -> None:
     import pipescan.tasks.staged  # noqa: F401
 
 
-def _import_engines() -> None:
+def _import_for_registration() -> None:
     try:
         import open3d  # noqa: F401
+        import scipy.stats  # noqa: F401
         import small_gicp  # noqa: F401
-    except Exception:  # noqa: S110  (the first real use raises it where it is understood)
+    except Exception:  # the first real use raises it, where it is understood
         pass
 
 
 def import_here_ahead() -> threading.Thread:
-    """Import the engines in this process too, in a background thread. Choosing the frame
-    stride, the first step after staging, voxelises a few frames here; importing Open3D
-    for it took 0.43 s between staging and the first chunk. Started as staging opens an
-    archive of frames, the import overlaps the hashing of its content instead (hashing
-    releases the GIL). A second import of a module waits for this one, so nothing can see
-    it half done."""
-    thread = threading.Thread(target=_import_engines, name="pipescan-engine-imports", daemon=True)
+    """Import, in this process too and in a background thread, what registering needs here:
+    the engines, and SciPy's statistics. Choosing the frame stride, the first step after
+    staging, voxelises a few frames here, and importing Open3D for it took 0.43 s between
+    staging and the first chunk; chaining the chunks' trajectories sizes the unseen slips
+    with ``scipy.stats``, whose import took 0.35 s of the 0.38 s between the last chunk and
+    the axis fit. Started as staging opens an archive of frames, the imports overlap the
+    hashing of its content instead (hashing releases the GIL). A second import of a module
+    waits for this one, so nothing can see it half done."""
+    thread = threading.Thread(
+        target=_import_for_registration, name="pipescan-registration-imports", daemon=True
+    )
     thread.start()
     return thread
 
