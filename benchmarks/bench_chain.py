@@ -9,8 +9,10 @@
 ``prepare`` simulates the ``long`` scenario (a forward-looking sensor, 10 frames a second, about
 25k points a frame in a 0.5 m pipe, 0.15 m/s) over each length once as ``.npy`` frames, then
 writes the same frames as LAZ and LAS (0.1 mm grid) and the same scan as one registered cloud
-(``cloud.laz``, with GPS time). Scans are large (30 m: 2,000 frames, 0.6 GB as ``.npy``):
-write them outside the repository.
+(``cloud.laz``, with GPS time; 49 M points for 30 m). ``--cloud-points 30e6`` also writes
+each cloud thinned to 30 M points (``long30-cloud30M``: the same pipe and recording, a regular
+share of the points kept). Scans are large (30 m: 2,000 frames, 0.6 GB as ``.npy``): write
+them outside the repository.
 
 ``run`` runs ``pipescan inspect`` on each archive in a fresh process (SQLite database and work
 directory in a temporary directory) and prints, per archive, the wall and CPU time of each
@@ -100,7 +102,40 @@ def _convert_frames(src: Path, dst: Path, suffix: str) -> None:
     tmp.rename(dst)
 
 
-def prepare(out: Path, lengths: list[float], cloud: bool) -> None:
+def _thin_cloud(src: Path, dst: Path, points: int) -> None:
+    """The same archive with a regular ``points`` of the cloud's points kept, in their order
+    (row i is kept where ``(i + 1) points // total > i points // total``), with their
+    GPS times: the same pipe and recording, scanned less densely."""
+    import laspy
+    import numpy as np
+
+    if (dst / "inspection.toml").is_file():
+        print(f"{dst}: exists, kept")
+        return
+    print(f"writing {dst} ...", flush=True)
+    tmp = dst.with_name(dst.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    with laspy.open(src / "cloud.laz") as reader:
+        total = reader.header.point_count
+        if points >= total:
+            raise SystemExit(f"--cloud-points {points:,}: the cloud has only {total:,}")
+        header = laspy.LasHeader(
+            point_format=reader.header.point_format.id, version=reader.header.version
+        )
+        header.scales, header.offsets = reader.header.scales, reader.header.offsets
+        first = 0
+        with laspy.open(tmp / "cloud.laz", mode="w", header=header, do_compress=True) as writer:
+            for chunk in reader.chunk_iterator(2_000_000):
+                i = np.arange(first, first + len(chunk), dtype=np.int64)
+                writer.write_points(chunk[(i + 1) * points // total > i * points // total])
+                first += len(chunk)
+    shutil.copy(src / "inspection.toml", tmp / "inspection.toml")
+    shutil.copytree(src / "ground_truth", tmp / "ground_truth")
+    tmp.rename(dst)
+
+
+def prepare(out: Path, lengths: list[float], cloud: bool, cloud_points: list[float] = ()) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for length in lengths:
         name = f"long{length:g}"
@@ -110,6 +145,9 @@ def prepare(out: Path, lengths: list[float], cloud: bool) -> None:
         _convert_frames(npy, out / f"{name}-las", ".las")
         if cloud:
             _simulate(out / f"{name}-cloud", length, "cloud")
+            for n in cloud_points:
+                thinned = out / f"{name}-cloud{n / 1e6:g}M"
+                _thin_cloud(out / f"{name}-cloud", thinned, int(n))
 
 
 # --- run --------------------------------------------------------------------------------------
@@ -443,6 +481,14 @@ def main() -> None:
     p.add_argument("--out", type=Path, required=True)
     p.add_argument("--lengths", type=float, nargs="+", default=[10.0, 30.0])
     p.add_argument("--no-cloud", action="store_true", help="skip the registered clouds")
+    p.add_argument(
+        "--cloud-points",
+        type=float,
+        nargs="*",
+        default=[],
+        help="also write each cloud thinned to this many points, as <scan>-cloud<N>M "
+        "(30e6: the 30 M-point cloud of issue 16)",
+    )
     r = sub.add_parser("run", help="time pipescan inspect on archives")
     r.add_argument("archives", type=Path, nargs="*")
     r.add_argument(
@@ -460,7 +506,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.command == "prepare":
-        prepare(args.out, args.lengths, not args.no_cloud)
+        prepare(args.out, args.lengths, not args.no_cloud, args.cloud_points)
     elif args.top is not None:
         for name, share in top_cumulative(args.top):
             print(f"{100 * share:5.1f} %  {name}")
