@@ -56,8 +56,12 @@ FACING_COS = 0.25
 # 0.13-0.23 (median), the obstacle's faces under 5 mm of noise 0.002-0.03.
 _MAX_SURFACE_VARIATION = 0.05
 MIN_FACING_SUPPORT = 10
-"""Correspondences on surfaces facing along the axis below which there is no information:
-ten map points at 3 cm spacing are a patch of ~1 dm², the smallest face worth the name."""
+"""Correspondences on surfaces facing along the axis below which there is no information.
+Set as ten map points at 3 cm spacing, a patch of ~1 dm², the smallest face worth the name;
+the correspondences are the frame's points, though, voxelised at ``source_voxel_m`` (4.5 cm
+by default), so ten of them cover ~2 dm² of a face seen head-on. Five (~1 dm²) was tried on
+random layout 2, whose unseen slips pass a 0.9 dm² obstacle face: nothing more was caught
+(``docs/registration.md``, *Unseen slips*)."""
 FACE_PATCH_M = 0.1
 """The side of the patch (~1 dm², the smallest face, :data:`MIN_FACING_SUPPORT`) whose points
 count as one observation along the axis: their errors are not independent."""
