@@ -178,3 +178,16 @@ def test_a_database_url_that_cannot_be_parsed_is_one_line(command, tmp_path):
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "cannot parse database URL 'postgresql://h:port/db'" in lines[0]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_inspect_refuses_a_report_path_it_cannot_write_before_any_work(tmp_path):
+    """``inspect --report`` into a folder it cannot make: one line, exit 2, before the
+    archive is even opened (it used to run the whole inspection, store it, then fail)."""
+    (tmp_path / "notes.txt").write_text("x")
+    result = run_cli(
+        ["inspect", "no-such-archive", "--db", "p.db", "--report", "notes.txt/r.pdf"], tmp_path
+    )
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and "file notes.txt/r.pdf: cannot write the report" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]

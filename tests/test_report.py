@@ -5,6 +5,7 @@ from __future__ import annotations
 import base64
 import dataclasses
 import math
+import os
 import re
 import tempfile
 from datetime import UTC, datetime
@@ -677,3 +678,37 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
     assert plain(rows["chainage uncertainty"]) == (
         "up to ±0.62 m at the end (registration's own error: no frame rested on the odometer)"
     )
+
+
+def test_a_report_path_that_cannot_be_written_is_one_error_and_leaves_nothing(tmp_path):
+    """A folder, a path under a file, or a folder without write permission: an OutputError
+    naming the path (the CLI prints it in one line, exit 2), found before any work by
+    ``check_report_path``, and nothing left behind by ``render_pdf``. They used to end in
+    tracebacks from ``os.replace`` and ``mkdir``."""
+    from pipescan.core.errors import OutputError
+    from pipescan.reports.render import check_report_path
+
+    folder = tmp_path / "reports"
+    folder.mkdir()
+    a_file = tmp_path / "notes.txt"
+    a_file.write_text("x")
+    locked = tmp_path / "locked"
+    locked.mkdir(mode=0o500)
+    bad = {
+        folder: "it is a folder",
+        a_file / "r.pdf": "is not a folder",
+        a_file / "sub" / "r.pdf": "is not a folder",
+    }
+    if os.geteuid() != 0:  # root may write anywhere
+        bad[locked / "sub" / "r.pdf"] = "no permission"
+    inp = sample_input(10.0, earlier=0)
+    for path, reason in bad.items():
+        with pytest.raises(OutputError, match=reason) as caught:
+            check_report_path(path)
+        assert str(path) in str(caught.value)
+        with pytest.raises(OutputError, match="cannot write the report"):
+            render_pdf(inp, path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["locked", "notes.txt", "reports"]
+    assert list(folder.iterdir()) == []
+    check_report_path(tmp_path / "new" / "deeper" / "r.pdf")  # folders to be made: fine
+    assert not (tmp_path / "new").exists()

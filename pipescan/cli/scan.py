@@ -371,6 +371,10 @@ def inspect(
     try:
         settings = _settings()
         _check_contour(settings, contour)  # cheap: before the archive
+        if report is not None:
+            from pipescan.reports.render import check_report_path
+
+            check_report_path(report)  # not after the whole run
         _check_archive(archive, settings)  # before the checks that load scipy
         params = _inspection_params(contour, registration, _checked_settings(contour, registration))
         summary = _run_inspection(archive, _db_url(db), report, params)

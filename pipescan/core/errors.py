@@ -98,5 +98,10 @@ class LayerError(PipescanError):
     geometry that is not one line per pipe, or no usable CRS."""
 
 
+class OutputError(PipescanError):
+    """An output file cannot be written: its folder cannot be made, it names a folder, or
+    the user may not write there. Nothing is left under its name."""
+
+
 class OptionError(PipescanError):
     """A processing option names something pipescan does not know (e.g. a contour method)."""

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import secrets
 from functools import cache
@@ -12,6 +13,7 @@ from urllib.request import url2pathname
 
 from jinja2 import Environment, PackageLoader, StrictUndefined
 
+from pipescan.core.errors import OutputError
 from pipescan.reports.context import ReportInput, build_context
 from pipescan.reports.network import NetworkInput, build_network_context
 
@@ -117,12 +119,51 @@ def render_network_pdf(inp: NetworkInput, out_path: Path | str) -> Path:
     return _write_pdf(render_network_html(inp), Path(out_path))
 
 
+def check_report_path(out_path: Path | str) -> None:
+    """Refuse, before any work, a report path that cannot be written: one that names a
+    folder, or whose nearest existing folder is not a folder or not writable (the folders
+    below it would be created). Nothing is created here.
+
+    Raises
+    ------
+    OutputError
+        Naming the path and what is wrong.
+    """
+    path = Path(out_path)
+    reason = None
+    if path.is_dir():
+        reason = "it is a folder"
+    else:
+        existing = path.parent.absolute()
+        while not existing.exists() and existing != existing.parent:
+            existing = existing.parent
+        if not existing.is_dir():
+            reason = f"{existing} is not a folder"
+        elif not os.access(existing, os.W_OK | os.X_OK):
+            reason = f"no permission to write in {existing}"
+    if reason:
+        raise OutputError(
+            f"cannot write the report: {reason}",
+            file=str(path),
+            hint="give the path of a PDF file in a folder you can write to",
+        )
+
+
 def _write_pdf(html: str, out_path: Path) -> Path:
     # WeasyPrint loads Pango at import; keep it out of HTML-only use.
     from weasyprint import HTML
 
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = _create_part_file(out_path)
+    try:
+        if out_path.is_dir():
+            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR))
+        out_path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = _create_part_file(out_path)
+    except OSError as exc:
+        raise OutputError(
+            f"cannot write the report: {exc.strerror or exc}",
+            file=str(out_path),
+            hint="give the path of a PDF file in a folder you can write to",
+        ) from exc
     try:
         with os.fdopen(fd, "wb") as tmp:
             HTML(
@@ -131,9 +172,15 @@ def _write_pdf(html: str, out_path: Path) -> Path:
             tmp.flush()
             os.fsync(tmp.fileno())
         os.replace(tmp_name, out_path)
-    except BaseException:
+    except BaseException as exc:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp_name)
+        if isinstance(exc, OSError):  # a full disk, a folder removed meanwhile
+            raise OutputError(
+                f"cannot write the report: {exc.strerror or exc}",
+                file=str(out_path),
+                hint="nothing was written under that name",
+            ) from exc
         raise
     return out_path
 
