@@ -463,6 +463,16 @@ def test_cli_trend(
     run("trend", "P1", "--chainage", "12", "--plot", str(png), "--db", db_url)
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert png.stat().st_size > 20_000
+    # A name without a suffix is that file (matplotlib would add .png, and the command said
+    # it wrote the name it was given); a folder, or a path under a file, is one line.
+    bare = tmp_path / "trend-plot"  # type: ignore[operator]
+    run("trend", "P1", "--plot", str(bare), "--db", db_url)
+    assert bare.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not bare.with_suffix(".png").exists()
+    for bad, reason in ((tmp_path, "it is a folder"), (png / "x.png", "is not a folder")):
+        result = CliRunner().invoke(app, ["trend", "P1", "--plot", str(bad), "--db", db_url])
+        assert result.exit_code == 2
+        assert "cannot write the plot: " in result.output and reason in result.output
 
     result = CliRunner().invoke(app, ["trend", "nope", "--db", db_url])
     assert result.exit_code == 2

@@ -9,6 +9,7 @@ is worded and drawn as "no significant change".
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 from dataclasses import dataclass
@@ -21,7 +22,7 @@ import numpy as np
 import typer
 
 from pipescan.cli._app import DbOption, _fail, _stored_db_url, app
-from pipescan.core.errors import PipescanError
+from pipescan.core.errors import OutputError, PipescanError
 from pipescan.core.trends import (
     NO_SIGNIFICANT_CHANGE,
     SIGNIFICANT_CHANGE_RATIO,
@@ -322,13 +323,34 @@ def _trend_json(result: AssetTrend, cell: int | None) -> dict[str, Any]:
 
 
 def _plot_trend(result: AssetTrend, path: Path, cell: int | None) -> None:
-    """Draw :func:`_trend_figure` to a PNG (its folder created)."""
+    """Draw :func:`_trend_figure` to a PNG at exactly ``path`` (its folder created; written
+    under a temporary name and renamed into place). matplotlib would add ``.png`` to a name
+    without a suffix, and the command then said it wrote a file that was not there.
+
+    Raises
+    ------
+    OutputError
+        ``path`` is a folder, or its folder cannot be made or written to.
+    """
     import matplotlib.pyplot as plt
 
+    from pipescan.reports.render import check_output_path
+
+    check_output_path(path, "plot", "PNG")
     figure = _trend_figure(result, cell)
+    tmp = path.with_name(f".{path.name}.part")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        figure.savefig(path, dpi=110)
+        figure.savefig(tmp, dpi=110, format="png")
+        tmp.replace(path)
+    except OSError as exc:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        raise OutputError(
+            f"cannot write the plot: {exc.strerror or exc}",
+            file=str(path),
+            hint="give the path of a PNG file in a folder you can write to",
+        ) from exc
     finally:
         plt.close(figure)
 

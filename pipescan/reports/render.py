@@ -120,9 +120,15 @@ def render_network_pdf(inp: NetworkInput, out_path: Path | str) -> Path:
 
 
 def check_report_path(out_path: Path | str) -> None:
-    """Refuse, before any work, a report path that cannot be written: one that names a
+    """:func:`check_output_path` for a PDF report."""
+    check_output_path(out_path, "report", "PDF")
+
+
+def check_output_path(out_path: Path | str, what: str, kind: str) -> None:
+    """Refuse, before any work, an output path that cannot be written: one that names a
     folder, or whose nearest existing folder is not a folder or not writable (the folders
-    below it would be created). Nothing is created here.
+    below it would be created). Nothing is created here. ``what`` and ``kind`` name the
+    output in the message ("report", "PDF").
 
     Raises
     ------
@@ -143,9 +149,9 @@ def check_report_path(out_path: Path | str) -> None:
             reason = f"no permission to write in {existing}"
     if reason:
         raise OutputError(
-            f"cannot write the report: {reason}",
+            f"cannot write the {what}: {reason}",
             file=str(path),
-            hint="give the path of a PDF file in a folder you can write to",
+            hint=f"give the path of a {kind} file in a folder you can write to",
         )
 
 
