@@ -191,3 +191,19 @@ def test_inspect_refuses_a_report_path_it_cannot_write_before_any_work(tmp_path)
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1 and "file notes.txt/r.pdf: cannot write the report" in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["notes.txt"]
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["simulate", "afile/scan"], ["demo", "--out", "afile"], ["demo", "--out", "afile/demo"]],
+)
+def test_an_output_folder_behind_a_file_is_one_line(args, tmp_path):
+    """``simulate`` and ``demo`` into a path a file stands in: one line naming the file, exit
+    2, and nothing written (they ended in a traceback from mkdir)."""
+    (tmp_path / "afile").write_text("x")
+    result = run_cli(args, tmp_path)
+    assert result.returncode == 2, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"{tmp_path / 'afile'} is a file" in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]
+    assert (tmp_path / "afile").read_text() == "x"

@@ -395,13 +395,24 @@ def demo(
     db: DbOption = None,
 ) -> None:
     """Simulate the paper's scenario, inspect it and write the PDF report, printing each stage."""
-    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.core.errors import OutputError
+    from pipescan.settings import as_database_url
+    from pipescan.simulator.archive import file_in_the_way, write_simulated_archive
     from pipescan.simulator.scan import get_scenario, simulate_scan
 
     log = logging.getLogger("pipescan")
-    out.mkdir(parents=True, exist_ok=True)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file of that name, or one on its way
+        _fail(
+            OutputError(
+                f"cannot make the demo's folder: {file_in_the_way(out) or exc.strerror or exc}",
+                file=str(out),
+                hint="choose another --out",
+            )
+        )
     archive = out / "archive-paper"
-    db_url = db or f"sqlite:///{(out / 'pipescan.db').resolve()}"
+    db_url = as_database_url(db) if db else f"sqlite:///{(out / 'pipescan.db').resolve()}"
     pdf = out / "report.pdf"
     started = time.perf_counter()
     try:

@@ -150,6 +150,15 @@ def _is_simulated_archive(path: Path) -> bool:
         return False
 
 
+def file_in_the_way(path: Path) -> str | None:
+    """Why a folder cannot be made at ``path``: "<p> is a file" for the nearest existing
+    path at or above it when that is not a folder, else None."""
+    existing = Path(path).absolute()
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    return None if existing.is_dir() else f"{existing} is a file"
+
+
 def write_simulated_archive(
     scan: SimulatedScan,
     out_dir: Path,
@@ -210,8 +219,15 @@ def write_simulated_archive(
             file=str(_SCENE),
             hint="choose an empty or new directory, or delete it first",
         )
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
+    except OSError as exc:  # a file on the way to it, no permission
+        raise ArchiveError(
+            f"cannot make its folder: {file_in_the_way(out_dir) or exc.strerror or exc}",
+            archive=str(out_dir),
+            hint="choose a path in a folder you can write to",
+        ) from exc
     try:
         (tmp / "ground_truth").mkdir()
         if layout == "frames":
