@@ -249,6 +249,10 @@ def test_an_export_creates_its_folder_and_files_follow_the_umask(tmp_path, store
     assert run.lines == [f"wrote 5 rows to {out}"]
     assert out.read_text().count("\n") == 6  # header and 5 sections
     assert [p.name for p in out.parent.iterdir()] == ["sections.csv"]  # no .part left
+    dash = cli("export", "sections", "--inspection", "1", "--db", stored, "-o", "-", cwd=tmp_path)
+    assert dash.code == 0, dash.stderr
+    assert dash.stdout == out.read_text()  # "-" is stdout, not a file called "-"
+    assert not (tmp_path / "-").exists()
     umask = os.umask(0)
     os.umask(umask)
     pdf = tmp_path / "reports" / "r.pdf"

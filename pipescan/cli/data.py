@@ -25,7 +25,9 @@ from pipescan.core.wording import plural
 AssetOption = Annotated[str | None, typer.Option(help="Only this asset.")]
 InspectionOption = Annotated[int | None, typer.Option(help="Only this inspection id.")]
 FormatOption = Annotated[ExportFormat, typer.Option("--format", help="Output format.")]
-OutputOption = Annotated[Path | None, typer.Option("-o", "--output", help="File (default stdout).")]
+OutputOption = Annotated[
+    Path | None, typer.Option("-o", "--output", help="File (default, or -: stdout).")
+]
 
 
 @export_app.command("sections")
@@ -61,6 +63,8 @@ def export_defects(
 def _export(fn, asset, inspection, output, db) -> None:
     from pipescan.storage.database.db import connect
 
+    if output == Path("-"):  # the usual name for stdout, not a file called "-"
+        output = None
     try:
         engine = connect(_stored_db_url(db))
         try:
