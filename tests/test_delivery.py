@@ -262,4 +262,10 @@ def test_cli_report_deliver(smtp_server, tmp_path, monkeypatch):
     (_, to, message) = inbox.messages[-1]
     assert to == ["asset-team@utility.example", "me@x.example"]
     assert message["Subject"].strip().startswith("Network condition summary: 1 pipe,")
+    # An --email that is no address is one line before any report is made or sent.
+    sent = len(inbox.messages)
+    result = runner.invoke(app, ["report", "--inspection", str(inspection_id), "--email", "me"])
+    assert result.exit_code == 2
+    assert "field '--email': 'me' is not an e-mail address" in result.output
+    assert len(inbox.messages) == sent and not (tmp_path / "reports").exists()
     fsspec.filesystem("memory").rm("/pipescan-cli", recursive=True)

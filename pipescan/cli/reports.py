@@ -120,11 +120,14 @@ def report(
         # Prefect comes with these: after the checks, so that a mistake is reported at once.
         from pipescan.tasks import reporting
         from pipescan.tasks.delivery import (
+            checked_addresses,
             deliver_report,
             load_recipients,
             report_file_name,
             safe_name,
         )
+
+        extra = list(checked_addresses(extra, field="--email"))  # before the report is made
 
         with tempfile.TemporaryDirectory(prefix="pipescan-report-") as scratch:
             # Without -o, a delivered report is rendered to scratch space and written only to

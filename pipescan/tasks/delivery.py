@@ -116,7 +116,18 @@ class Delivery:
     emailed_to: tuple[str, ...]
 
 
-def _addresses(value: Any, file: str, field: str) -> tuple[str, ...]:
+def checked_addresses(value: Any, *, field: str, file: str | None = None) -> tuple[str, ...]:
+    """The e-mail addresses in ``value`` (a string or a list of them), stripped.
+
+    Raises
+    ------
+    DeliveryError
+        One is not an address (``name@domain.example``), naming the field (and the file).
+    """
+    return _addresses(value, file, field)
+
+
+def _addresses(value: Any, file: str | None, field: str) -> tuple[str, ...]:
     if isinstance(value, str):
         value = [value]
     if not isinstance(value, list) or not all(isinstance(a, str) for a in value):
