@@ -342,8 +342,10 @@ def _print_summary(summary) -> None:
             if clause := unseen_slips_clause(reg):
                 line += f"; {clause}"
             typer.echo(line)
-        from pipescan.core.registration.metrics import unseen_slip_caveat
+        from pipescan.core.registration.metrics import standstill_clause, unseen_slip_caveat
 
+        if stood := standstill_clause(reg):
+            typer.echo(f"  {stood}")
         if caveat := unseen_slip_caveat(reg):
             typer.echo(f"  {caveat}")
         if reg.get("warning"):

@@ -19,6 +19,7 @@ from pipescan.core.grading import ThresholdTable, is_flagged, pipe_class_for_mat
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 from pipescan.core.registration.metrics import (
     allows_unseen_slips,
+    standstill_clause,
     unseen_slip_caveat,
     unseen_slips_clause,
 )
@@ -443,12 +444,15 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
             # Every frame was placed against features: the ± is registration's own error.
             what = "registration's own error: no frame rested on the odometer"
         elif (
-            reg.get("odometer_slips_caught_m") or reg.get("odometer_slip_stated_m")
-        ) and allows_unseen_slips(reg):
+            (reg.get("odometer_slips_caught_m") or reg.get("odometer_slip_stated_m"))
+            and allows_unseen_slips(reg)
+        ) or reg.get("odometer_stood_frames"):
             what = "odometer-held travel and its possible slips"
         else:
             what = "odometer-held travel"
         rows.append(("chainage uncertainty", f"up to ±{fmt_m(uncertainty_m)} at the end ({what})"))
+    if stood := standstill_clause(reg):
+        rows.append(("odometer standstills", stood[0].upper() + stood[1:]))
     if caveat := unseen_slip_caveat(reg):
         rows.append(("unseen odometer slips", caveat))
     caught = reg.get("odometer_slips_caught_m")

@@ -42,6 +42,7 @@ from pipescan.core.registration.fusion import (
     gravity_corrected,
     point_to_plane_hessian,
     slips_out_of_view,
+    standstill_allowance,
     unseen_slip_allowance,
 )
 from pipescan.core.registration.metrics import (
@@ -51,6 +52,7 @@ from pipescan.core.registration.metrics import (
     registration_evidence,
     registration_summary,
     slide_spans,
+    standstill_clause,
     trajectory_errors,
     unseen_slip_caveat,
     unseen_slips_clause,
@@ -130,6 +132,8 @@ __all__ = [
     "seen_twice",
     "slide_spans",
     "slips_out_of_view",
+    "standstill_allowance",
+    "standstill_clause",
     "trajectory_errors",
     "transform",
     "unseen_slip_allowance",

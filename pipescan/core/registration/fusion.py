@@ -628,6 +628,60 @@ def unseen_slip_allowance(
     return allowance
 
 
+STOOD_SHARE = 0.5
+"""A held frame's odometer count stood when it advanced less than this share of the run's
+usual travel a frame (:func:`standstill_allowance`): stopped for at least half the frame's
+interval. Midway between a moving count (0.7-1.3 of usual under the sweep's speed
+variation) and a stopped one (its noise, under a tenth)."""
+
+
+def standstill_allowance(
+    steps_m: np.ndarray, frame_gaps: np.ndarray, held: np.ndarray
+) -> tuple[np.ndarray, int]:
+    """What the crawler may have moved unseen while the odometer's count stood, (F,) m
+    (cumulative: by each frame), and how many frames that was.
+
+    A slip the other way from a count that runs on: the crawler slides (on a slimy invert,
+    down a gradient) while its wheels and the count stand. Where frames rest on the odometer
+    (``held``, :func:`slip_could_hide`), nothing shows it. But the count shows the stand:
+    a held frame whose step is under :data:`STOOD_SHARE` of the run's usual travel a frame.
+    The crawler may then have gone on at its usual speed, so the allowance grows by the
+    usual travel over the frame's interval, less what was counted. A crawler that truly
+    stopped there gets the same allowance: in a featureless stretch nothing can tell the
+    two apart. The usual travel a frame is the median of the registered steps over the
+    archive frames they span (``frame_gaps``: a strided run reads every k-th).
+
+    Found on random layout 2 and slip draw 4, which caught no slip and whose ok sections lay
+    up to 27 and 13 cm beyond their ±: their odometers stood while the crawler slid
+    (``docs/registration.md``, *When the count stood*).
+
+    Parameters
+    ----------
+    steps_m : (F,) float
+        Each frame's travel from the previous one (0 for the first).
+    frame_gaps : (F,) int
+        Archive frames from the previous registered frame (0 for the first).
+    held : (F,) bool
+        Frames held to the odometer.
+
+    Examples
+    --------
+    >>> steps = np.array([0, .04, .04, .0, .002, .04, .04])
+    >>> allowance, stood = standstill_allowance(steps, np.array([0, 1, 1, 1, 1, 1, 1]),
+    ...                                         np.array([0, 1, 1, 1, 1, 1, 0], bool))
+    >>> allowance.round(3).tolist(), stood
+    ([0.0, 0.0, 0.0, 0.04, 0.078, 0.078, 0.078], 2)
+    """
+    steps = np.asarray(steps_m, dtype=float)
+    gaps = np.asarray(frame_gaps, dtype=float)
+    moved = gaps > 0
+    if not moved.any():
+        return np.zeros(len(steps)), 0
+    usual = float(np.median(steps[moved] / gaps[moved]))
+    stood = np.asarray(held, dtype=bool) & moved & (steps < STOOD_SHARE * usual * gaps)
+    return np.cumsum(np.where(stood, usual * gaps - steps, 0.0)), int(stood.sum())
+
+
 @dataclass
 class _WindowFrame:
     odometer_m: float

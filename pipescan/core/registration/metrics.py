@@ -85,6 +85,8 @@ def registration_summary(
         "odometer_slips": sum(x.fault == "odometer_slip" for x in q),
         "odometer_slips_caught_m": [round(float(m), 4) for m in trajectory.odometer_slips_m],
         "unseen_slips_allowed_m": round(float(trajectory.unseen_slips_m), 4),
+        "odometer_stood_frames": int(trajectory.standstill_frames),
+        "odometer_stood_allowed_m": round(float(trajectory.standstill_m), 4),
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
         "odometer_uncertainty_ratio": params.odometer_scale_error_ratio,
         "odometer_slip_stated_m": params.odometer_slip_m,
@@ -133,6 +135,29 @@ def unseen_slips_clause(summary: dict) -> str:
     if allowed > 0:
         return f"the ± allows {allowed:.2f} m for unseen ones where it was alone"
     return "no stretch rested on the odometer long enough to hide one"
+
+
+def standstill_clause(summary: dict) -> str:
+    """What the chainage uncertainty allows for the crawler moving on while the odometer's
+    count stood and the frames rested on it, in words ("" where it never did, and for a
+    summary stored before it was kept).
+
+    >>> text = standstill_clause({"odometer_stood_frames": 12, "odometer_stood_allowed_m": 0.42})
+    >>> for part in text.split(": "):
+    ...     print(part)
+    the odometer stood over 12 frames that rested on it
+    the ± allows 0.42 m for the crawler moving on meanwhile
+    >>> standstill_clause({"odometer_stood_frames": 0, "odometer_stood_allowed_m": 0.0})
+    ''
+    """
+    frames = summary.get("odometer_stood_frames") or 0
+    if not frames:
+        return ""
+    allowed = float(summary.get("odometer_stood_allowed_m") or 0.0)
+    return (
+        f"the odometer stood over {frames} {'frame' if frames == 1 else 'frames'} that rested "
+        f"on it: the ± allows {allowed:.2f} m for the crawler moving on meanwhile"
+    )
 
 
 def unseen_slip_caveat(summary: dict) -> str | None:
@@ -224,10 +249,13 @@ def unseen_slip_caveat(summary: dict) -> str | None:
             f"slip of the stated {stated_m:.2f} m (none was caught; more than one, or a "
             "larger one, is not allowed for)"
         )
+    stood = bool(summary.get("odometer_stood_frames"))
+    besides = ", and the crawler moving on where its count stood," if stood else ""
+    other = "no other slip" if stood else "no slip"
     return (
-        f"{travel} rested on the odometer alone: the ± there is {stated} and allows for no "
-        f"slip ({why}; one where it was alone would not be seen; state the crawler's largest "
-        "slip as odometer_slip_m in inspection.toml)"
+        f"{travel} rested on the odometer alone: the ± there is {stated}{besides} and allows "
+        f"for {other} ({why}; one where it was alone would not be seen; state the crawler's "
+        "largest slip as odometer_slip_m in inspection.toml)"
     )
 
 

@@ -15,6 +15,7 @@ from pipescan.core.registration.engines import transform
 from pipescan.core.registration.fusion import (
     slip_could_hide,
     slips_out_of_view,
+    standstill_allowance,
     unseen_slip_allowance,
 )
 from pipescan.core.registration.params import AlongAxisPrior
@@ -52,6 +53,13 @@ class Trajectory:
         one), set when chunks are chained (:func:`chain_trajectories`).
     stated_slip_m : float
         The largest unseen slip the crawler's operator stated (``odometer_slip_m``; 0: none).
+    standstill_m : float
+        What the chainage uncertainty at the end allows for the crawler moving on while the
+        odometer's count stood and the frames rested on it (m;
+        :func:`~pipescan.core.registration.fusion.standstill_allowance`), set when chunks
+        are chained.
+    standstill_frames : int
+        The registered frames over which the count stood so.
     """
 
     T_world_frame: np.ndarray
@@ -62,6 +70,8 @@ class Trajectory:
     slip_window_m: float = 0.5
     unseen_slips_m: float = 0.0
     stated_slip_m: float = 0.0
+    standstill_m: float = 0.0
+    standstill_frames: int = 0
 
     def positions_m(self) -> np.ndarray:
         """Sensor positions in the world frame, (F, 3)."""
@@ -151,14 +161,21 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     out_of_view = slips_out_of_view(caught, overrode, held, steps, window)
     stated = max(c.stated_slip_m for c in chunks)
     allowance = unseen_slip_allowance(steps, held, slips, window, out_of_view, stated)
+    gaps = np.diff(np.asarray(indices), prepend=indices[0])
+    stood_m, stood_frames = standstill_allowance(steps, gaps, held)
+    unseen = float(allowance.max()) if len(allowance) else 0.0
+    allowance = allowance + stood_m
     quality = [
         dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
         if a > 0
         else q
         for q, a in zip(quality, allowance, strict=True)
     ]
-    unseen = float(allowance.max()) if len(allowance) else 0.0
-    return Trajectory(T, tuple(quality), tuple(indices), prior, slips, window, unseen, stated)
+    standstill = float(stood_m[-1]) if len(stood_m) else 0.0
+    return Trajectory(
+        T, tuple(quality), tuple(indices), prior, slips, window, unseen, stated,
+        standstill, stood_frames,
+    )  # fmt: skip
 
 
 def iter_registered_points(
