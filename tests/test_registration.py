@@ -582,6 +582,48 @@ def test_a_stated_slip_is_allowed_for_where_none_was_caught_and_sets_the_least_s
         RegistrationParams(odometer_slip_m=-0.1)
 
 
+def test_where_the_count_stood_on_held_frames_the_crawler_may_have_moved_on():
+    from pipescan.core.registration import standstill_allowance, unseen_slip_caveat
+
+    # Every third archive frame registered, 0.12 m apart (0.04 m a frame), the count standing
+    # for two of them (a frame that moved 1 cm of its 12) inside a held stretch.
+    steps = np.full(30, 0.12)
+    steps[0] = 0.0
+    steps[[14, 15]] = [0.0, 0.01]
+    gaps = np.full(30, 3)
+    gaps[0] = 0
+    held = np.zeros(30, dtype=bool)
+    held[10:20] = True
+    allowance, stood = standstill_allowance(steps, gaps, held)
+    assert stood == 2
+    assert allowance[:14] == pytest.approx(0.0)
+    assert allowance[14:] == pytest.approx(np.r_[0.12, np.full(15, 0.23)])
+    # Where features held the frames, a standing count is what the frames saw: nothing.
+    assert not standstill_allowance(steps, gaps, np.zeros(30, bool))[0].any()
+    # A count that slowed, but never below half its usual travel, did not stand.
+    slow = steps.copy()
+    slow[[14, 15]] = 0.07
+    assert standstill_allowance(slow, gaps, held)[1] == 0
+
+    # Through chaining: the ± from the stand on, kept for the summary, the CLI and the report.
+    T = np.repeat(np.eye(4)[None], 30, axis=0)
+    T[:, 0, 3] = np.cumsum(steps)
+    q = tuple(
+        FrameQuality(3 * k, 1.0, 0.0, bool(held[k]), 0.0 if held[k] else 1.0) for k in range(30)
+    )
+    chained = chain_trajectories([Trajectory(T, q, tuple(3 * k for k in range(30)))])
+    u = np.array([x.chainage_uncertainty_m for x in chained.quality])
+    assert u[:14] == pytest.approx(0.0) and u[-1] == pytest.approx(0.23)
+    assert chained.standstill_m == pytest.approx(0.23) and chained.standstill_frames == 2
+    summary = registration_summary(chained, RegistrationParams())
+    assert summary["odometer_stood_frames"] == 2
+    assert summary["odometer_stood_allowed_m"] == pytest.approx(0.23)
+    caveat = unseen_slip_caveat(summary)
+    assert "and the crawler moving on where its count stood, and allows for no other slip" in (
+        caveat or ""
+    )
+
+
 def test_chaining_allows_for_the_slips_seen_in_every_chunk():
     def chunk(first, held, slips):
         q = tuple(FrameQuality(first + k, 1.0, 0.0, held, 0.0 if held else 1.0) for k in range(11))
