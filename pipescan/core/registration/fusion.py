@@ -651,6 +651,10 @@ def standstill_allowance(
     two apart. The usual travel a frame is the median of the registered steps over the
     archive frames they span (``frame_gaps``: a strided run reads every k-th).
 
+    The odometer then reads short, where a count running on reads long: the chainage
+    uncertainty takes the larger of this and :func:`unseen_slip_allowance` frame by frame,
+    not their sum (:func:`~pipescan.core.registration.trajectory.chain_trajectories`).
+
     Found on random layout 2 and slip draw 4, which caught no slip and whose ok sections lay
     up to 27 and 13 cm beyond their ±: their odometers stood while the crawler slid
     (``docs/registration.md``, *When the count stood*).

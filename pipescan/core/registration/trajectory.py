@@ -164,7 +164,11 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     gaps = np.diff(np.asarray(indices), prepend=indices[0])
     stood_m, stood_frames = standstill_allowance(steps, gaps, held)
     unseen = float(allowance.max()) if len(allowance) else 0.0
-    allowance = allowance + stood_m
+    # Where the count stood, the crawler may have gone on: the odometer reads short by up to
+    # the standstills' allowance. Slips the rate allows for either way; those that read
+    # long (the count running on) are what it adds beyond the standstills. The two err in
+    # opposite directions, so the error stays within the larger of them, not their sum.
+    allowance = np.maximum(allowance, stood_m)
     quality = [
         dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + float(a))
         if a > 0
