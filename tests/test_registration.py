@@ -622,6 +622,15 @@ def test_where_the_count_stood_on_held_frames_the_crawler_may_have_moved_on():
     assert "and the crawler moving on where its count stood, and allows for no other slip" in (
         caveat or ""
     )
+    # With a slip caught too, the two allowances err in opposite directions: the ± is the
+    # larger of them at each frame, not their sum.
+    caught = chain_trajectories(
+        [Trajectory(T, q, tuple(3 * k for k in range(30)), odometer_slips_m=(0.15,))]
+    )
+    rate_based = unseen_slip_allowance(steps, held, [0.15], window_m=0.5)
+    assert rate_based.max() > 0
+    u = np.array([x.chainage_uncertainty_m for x in caught.quality])
+    assert u == pytest.approx(np.maximum(rate_based, allowance))
 
 
 def test_chaining_allows_for_the_slips_seen_in_every_chunk():
