@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import errno
 import os
 import secrets
 from functools import cache
@@ -159,9 +158,8 @@ def _write_pdf(html: str, out_path: Path) -> Path:
     # WeasyPrint loads Pango at import; keep it out of HTML-only use.
     from weasyprint import HTML
 
+    check_report_path(out_path)  # a folder, or a file on the way: said as before a run
     try:
-        if out_path.is_dir():
-            raise IsADirectoryError(errno.EISDIR, os.strerror(errno.EISDIR))
         out_path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp_name = _create_part_file(out_path)
     except OSError as exc:

@@ -10,6 +10,7 @@ from scipy.spatial.transform import Rotation
 
 from pipescan.core.registration.params import RegistrationParams
 from pipescan.core.registration.trajectory import Trajectory
+from pipescan.core.wording import plural
 
 
 def degenerate_spans(trajectory: Trajectory) -> list[tuple[int, int]]:
@@ -155,7 +156,7 @@ def standstill_clause(summary: dict) -> str:
         return ""
     allowed = float(summary.get("odometer_stood_allowed_m") or 0.0)
     return (
-        f"the odometer stood over {frames} {'frame' if frames == 1 else 'frames'} that rested "
+        f"the odometer stood over {plural(frames, 'frame')} that rested "
         f"on it: the ± allows {allowed:.2f} m for the crawler moving on meanwhile"
     )
 
