@@ -85,19 +85,34 @@ def _convert_frames(src: Path, dst: Path, suffix: str) -> None:
 
     from pipescan.storage.input.pointfiles import write_points
 
-    if (dst / "inspection.toml").is_file():
-        print(f"{dst}: exists, kept")
+    tmp = _start_derived(dst)
+    if tmp is None:
         return
-    print(f"writing {dst} ...", flush=True)
-    tmp = dst.with_name(dst.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    (tmp / "frames").mkdir(parents=True)
+    (tmp / "frames").mkdir()
     for f in sorted((src / "frames").glob("*.npy")):
         write_points(tmp / "frames" / (f.stem + suffix), np.load(f).astype(np.float64))
     text = (src / "inspection.toml").read_text(encoding="utf-8")
     (tmp / "inspection.toml").write_text(
         re.sub(r'(file = "frames/\d+)\.npy"', rf'\1{suffix}"', text), encoding="utf-8"
     )
+    _finish_derived(src, tmp, dst)
+
+
+def _start_derived(dst: Path) -> Path | None:
+    """The empty folder an archive derived from another is written in before it is renamed
+    to ``dst``, or None when ``dst`` is already there (kept)."""
+    if (dst / "inspection.toml").is_file():
+        print(f"{dst}: exists, kept")
+        return None
+    print(f"writing {dst} ...", flush=True)
+    tmp = dst.with_name(dst.name + ".partial")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir(parents=True)
+    return tmp
+
+
+def _finish_derived(src: Path, tmp: Path, dst: Path) -> None:
+    """``src``'s ground truth beside the derived archive in ``tmp``, renamed into ``dst``."""
     shutil.copytree(src / "ground_truth", tmp / "ground_truth")
     tmp.rename(dst)
 
@@ -109,13 +124,9 @@ def _thin_cloud(src: Path, dst: Path, points: int) -> None:
     import laspy
     import numpy as np
 
-    if (dst / "inspection.toml").is_file():
-        print(f"{dst}: exists, kept")
+    tmp = _start_derived(dst)
+    if tmp is None:
         return
-    print(f"writing {dst} ...", flush=True)
-    tmp = dst.with_name(dst.name + ".partial")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir(parents=True)
     with laspy.open(src / "cloud.laz") as reader:
         total = reader.header.point_count
         if points >= total:
@@ -131,8 +142,7 @@ def _thin_cloud(src: Path, dst: Path, points: int) -> None:
                 writer.write_points(chunk[(i + 1) * points // total > i * points // total])
                 first += len(chunk)
     shutil.copy(src / "inspection.toml", tmp / "inspection.toml")
-    shutil.copytree(src / "ground_truth", tmp / "ground_truth")
-    tmp.rename(dst)
+    _finish_derived(src, tmp, dst)
 
 
 def prepare(out: Path, lengths: list[float], cloud: bool, cloud_points: list[float] = ()) -> None:
