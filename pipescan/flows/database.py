@@ -14,26 +14,12 @@ from pathlib import Path
 from sqlalchemy.engine import make_url
 
 from pipescan.settings import Settings, database_url, get_settings
-from pipescan.storage.database.db import StorageError, check_database
+from pipescan.storage.database.db import StorageError, check_database, parse_database_url
 
 WORKER_HINT = (
     "set PIPESCAN_DATABASE_URL (an absolute SQLite path or postgresql+psycopg://...) in the "
     "environment of the Prefect worker, see docs/operations.md"
 )
-
-
-def _parsed(url: str):
-    """``make_url``, with a URL it cannot parse reported in one line."""
-    import sqlalchemy as sa
-
-    try:
-        return make_url(url)
-    except (sa.exc.ArgumentError, ValueError) as exc:  # a port that is not a number
-        raise StorageError(
-            f"cannot parse database URL {url!r}",
-            hint="give a SQLite file's path, or a URL such as sqlite:///pipescan.db or "
-            "postgresql+psycopg://user@host/db",
-        ) from exc
 
 
 def absolute_database_url(url: str) -> str:
@@ -44,7 +30,7 @@ def absolute_database_url(url: str) -> str:
     StorageError
         When ``url`` cannot be parsed.
     """
-    parsed = _parsed(url)
+    parsed = parse_database_url(url)
     if not is_relative_sqlite(url):
         return url
     return parsed.set(database=str(Path(parsed.database or "").resolve())).render_as_string(
@@ -53,7 +39,7 @@ def absolute_database_url(url: str) -> str:
 
 
 def is_relative_sqlite(url: str) -> bool:
-    parsed = _parsed(url)
+    parsed = parse_database_url(url)
     database = parsed.database or ""
     return not (
         parsed.get_backend_name() != "sqlite"

@@ -122,12 +122,9 @@ def checked_addresses(value: Any, *, field: str, file: str | None = None) -> tup
     Raises
     ------
     DeliveryError
-        One is not an address (``name@domain.example``), naming the field (and the file).
+        It is not a list of strings, or one is not an address (``name@domain.example``),
+        naming the field (and the file).
     """
-    return _addresses(value, file, field)
-
-
-def _addresses(value: Any, file: str | None, field: str) -> tuple[str, ...]:
     if isinstance(value, str):
         value = [value]
     if not isinstance(value, list) or not all(isinstance(a, str) for a in value):
@@ -178,9 +175,10 @@ def load_recipients(path: Path | str) -> Recipients:
         )
     return Recipients(
         assets=tuple(
-            (key, _addresses(value, file, f"assets.{key}")) for key, value in assets.items()
+            (key, checked_addresses(value, field=f"assets.{key}", file=file))
+            for key, value in assets.items()
         ),
-        network=_addresses(data.get("network", []), file, "network"),
+        network=checked_addresses(data.get("network", []), field="network", file=file),
         path=file,
     )
 

@@ -57,6 +57,24 @@ class StorageError(PipescanError):
     """The database is unreachable, at the wrong schema revision, or refused a write."""
 
 
+def parse_database_url(url: str) -> URL:
+    """``url`` parsed (SQLAlchemy's ``make_url``).
+
+    Raises
+    ------
+    StorageError
+        It cannot be parsed (also a port that is not a number), in one line.
+    """
+    try:
+        return make_url(url)
+    except (sa.exc.ArgumentError, ValueError) as exc:  # a port that is not a number
+        raise StorageError(
+            f"cannot parse database URL {url!r}",
+            hint="give a SQLite file's path, or a URL such as sqlite:///pipescan.db or "
+            "postgresql+psycopg://user@host/db",
+        ) from exc
+
+
 def _is_sqlite(url: URL) -> bool:
     return url.get_backend_name() == "sqlite"
 
@@ -86,13 +104,7 @@ def create_engine_for(url: str | URL) -> Engine:
     StorageError
         If the URL cannot be parsed or names a driver that is not installed.
     """
-    try:
-        parsed = make_url(url)
-    except (sa.exc.ArgumentError, ValueError) as exc:  # a port that is not a number
-        raise StorageError(
-            f"cannot parse database URL {url!r}",
-            hint="use e.g. sqlite:///pipescan.db or postgresql+psycopg://user@host/db",
-        ) from exc
+    parsed = parse_database_url(url)
     try:
         if _is_sqlite(parsed):
             _ensure_sqlite_parent_dir(parsed)
