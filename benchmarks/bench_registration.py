@@ -54,6 +54,11 @@ from pipescan.simulator.scan import get_scenario, simulate_scan
 from pipescan.simulator.sweep import SectionScore
 from pipescan.tasks import enginepool
 
+# The sweep runs the flow on Prefect's ephemeral API, which reads this when it is imported
+# (later, in the sweep): no telemetry, which without a network fails and prints a traceback
+# into the benchmark's output.
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
 FRAME_RATE_HZ = 10.0
 SECTION_RANGE_M = 5.0  # the flow's max_section_range_m
 
