@@ -464,6 +464,49 @@ def run(
     print(TABLE_HEAD)
     for r in rows:
         print(TABLE_ROW.format(**r).replace("nan", "-"))
+    print()
+    for line in target_lines([r for r in rows if not r["scan"].endswith("(baseline)")]):
+        print(line)
+
+
+CHAIN_TARGET_X = 10.0
+"""The whole chain, staged to stored, at least this many times faster than the recording."""
+REGISTER_TARGET_X = 20.0
+"""Registration alone (archives of frames), at least this many times faster."""
+MEMORY_GROWTH_MAX = 1.2
+"""Peak RSS of the longest scan of a kind over that of the shortest, at most."""
+
+
+def _met(value: float, ok: bool, digits: int = 1) -> str:
+    return f"{value:.{digits}f}x ({'met' if ok else 'NOT MET'})"
+
+
+def target_lines(rows: list[dict]) -> list[str]:
+    """Each run against the throughput targets, and memory growth between the longest and
+    shortest scans of one kind (scans named ``<name>-<kind>``, as ``prepare`` writes them)."""
+    lines = [f"targets: chain >= {CHAIN_TARGET_X:g}x, registration >= {REGISTER_TARGET_X:g}x, "
+             f"peak RSS longest / shortest scan of a kind <= {MEMORY_GROWTH_MAX:g}x"]  # fmt: skip
+    for r in rows:
+        verdict = f"  {r['scan']}: chain {_met(r['rt_chain'], r['rt_chain'] >= CHAIN_TARGET_X)}"
+        if r["frames"]:
+            ok = r["rt_register"] >= REGISTER_TARGET_X
+            verdict += f", registration {_met(r['rt_register'], ok)}"
+        lines.append(verdict)
+    kinds: dict[str, list[dict]] = {}
+    for r in rows:
+        kinds.setdefault(r["scan"].partition("-")[2] or r["scan"], []).append(r)
+    for kind, same in sorted(kinds.items()):
+        if len({r["recorded_s"] for r in same}) < 2:
+            continue
+        short = min(same, key=lambda r: r["recorded_s"])
+        long = max(same, key=lambda r: r["recorded_s"])
+        for what, key in (("process tree", "tree_rss_mb"), ("pipescan process", "main_rss_mb")):
+            growth = long[key] / short[key]
+            lines.append(
+                f"  {kind}: peak RSS {long['scan']} / {short['scan']}, {what}: "
+                f"{_met(growth, growth <= MEMORY_GROWTH_MAX, digits=2)}"
+            )
+    return lines
 
 
 TABLE_HEAD = """
