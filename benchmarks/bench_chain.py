@@ -483,7 +483,8 @@ def _met(value: float, ok: bool, digits: int = 1) -> str:
 
 def target_lines(rows: list[dict]) -> list[str]:
     """Each run against the throughput targets, and memory growth between the longest and
-    shortest scans of one kind (scans named ``<name>-<kind>``, as ``prepare`` writes them)."""
+    shortest scans of one kind (scans named ``<name><length>-<format>``, as ``prepare`` writes
+    them: the same name and format at another length)."""
     lines = [f"targets: chain >= {CHAIN_TARGET_X:g}x, registration >= {REGISTER_TARGET_X:g}x, "
              f"peak RSS longest / shortest scan of a kind <= {MEMORY_GROWTH_MAX:g}x"]  # fmt: skip
     for r in rows:
@@ -494,7 +495,8 @@ def target_lines(rows: list[dict]) -> list[str]:
         lines.append(verdict)
     kinds: dict[str, list[dict]] = {}
     for r in rows:
-        kinds.setdefault(r["scan"].partition("-")[2] or r["scan"], []).append(r)
+        # long10-laz and long100-laz are one kind (long-laz); issue30-laz is another.
+        kinds.setdefault(re.sub(r"\d+(\.\d+)?(?=-)", "", r["scan"], count=1), []).append(r)
     for kind, same in sorted(kinds.items()):
         if len({r["recorded_s"] for r in same}) < 2:
             continue
