@@ -162,7 +162,13 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     stated = max(c.stated_slip_m for c in chunks)
     allowance = unseen_slip_allowance(steps, held, slips, window, out_of_view, stated)
     gaps = np.diff(np.asarray(indices), prepend=indices[0])
-    stood_m, stood_frames = standstill_allowance(steps, gaps, held)
+    # Along the run, signed: over a stand the count's reading noise cancels, where the
+    # lengths of the steps would add it up as travel counted.
+    positions = T[:, :3, 3]
+    travel = positions[-1] - positions[0]
+    length = float(np.linalg.norm(travel))
+    along = positions @ (travel / length if length > 0 else T[0, :3, 0])
+    stood_m, stood_frames = standstill_allowance(np.diff(along, prepend=along[0]), gaps, held)
     unseen = float(allowance.max()) if len(allowance) else 0.0
     # Where the count stood, the crawler may have gone on: the odometer reads short by up to
     # the standstills' allowance. Slips the rate allows for either way; those that read
