@@ -633,6 +633,25 @@ def test_where_the_count_stood_on_held_frames_the_crawler_may_have_moved_on():
     assert u == pytest.approx(np.maximum(rate_based, allowance))
 
 
+def test_over_a_stand_the_count_s_noise_is_not_counted_as_travel():
+    """The count stands for six registered frames while the crawler slides on at its usual
+    0.12 m a frame, and its readings jitter by ±1.5 cm about the stand. Step by step the
+    jitter reads as travel counted (0.015 + 0.03 · 4 + 0.015 = 0.15 m over the stand: the
+    allowance would be 0.57 m of the 0.72 m slid); along the run it cancels, and the stand
+    is allowed its whole 0.72 m."""
+    counted = np.r_[0.12 * np.arange(11), np.full(6, 1.2) + 0.015 * (-1.0) ** np.arange(6)]
+    counted = np.r_[counted, counted[-1] + 0.12 * np.arange(1, 11)]
+    T = np.repeat(np.eye(4)[None], len(counted), axis=0)
+    T[:, 0, 3] = counted
+    held = np.zeros(len(counted), dtype=bool)
+    held[5:22] = True
+    q = tuple(FrameQuality(3 * k, 1.0, 0.0, bool(h), 0.0 if h else 1.0) for k, h in enumerate(held))
+    chained = chain_trajectories([Trajectory(T, q, tuple(3 * k for k in range(len(counted))))])
+    assert chained.standstill_frames == 6
+    assert chained.standstill_m == pytest.approx(0.72, abs=0.02)
+    assert chained.quality[-1].chainage_uncertainty_m == pytest.approx(0.72, abs=0.02)
+
+
 def test_chaining_allows_for_the_slips_seen_in_every_chunk():
     def chunk(first, held, slips):
         q = tuple(FrameQuality(first + k, 1.0, 0.0, held, 0.0 if held else 1.0) for k in range(11))
