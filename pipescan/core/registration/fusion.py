@@ -663,7 +663,9 @@ def standstill_allowance(
     Parameters
     ----------
     steps_m : (F,) float
-        Each frame's travel from the previous one (0 for the first).
+        Each frame's travel from the previous one along the run, signed (0 for the first).
+        Signed, so that over a stand the count's reading noise cancels; the steps' lengths
+        would add it up as travel counted, and allow that much less.
     frame_gaps : (F,) int
         Archive frames from the previous registered frame (0 for the first).
     held : (F,) bool
