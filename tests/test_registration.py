@@ -636,9 +636,9 @@ def test_where_the_count_stood_on_held_frames_the_crawler_may_have_moved_on():
 def test_over_a_stand_the_count_s_noise_is_not_counted_as_travel():
     """The count stands for six registered frames while the crawler slides on at its usual
     0.12 m a frame, and its readings jitter by ±1.5 cm about the stand. Step by step the
-    jitter reads as travel counted (0.015 + 0.03 · 4 + 0.015 = 0.15 m over the stand: the
-    allowance would be 0.57 m of the 0.72 m slid); along the run it cancels, and the stand
-    is allowed its whole 0.72 m."""
+    jitter reads as travel counted (0.015 + 0.03 · 5 = 0.165 m over the stand: the allowance
+    would be 0.555 m of the 0.72 m slid); along the run it cancels, and the stand is allowed
+    its whole 0.72 m."""
     counted = np.r_[0.12 * np.arange(11), np.full(6, 1.2) + 0.015 * (-1.0) ** np.arange(6)]
     counted = np.r_[counted, counted[-1] + 0.12 * np.arange(1, 11)]
     T = np.repeat(np.eye(4)[None], len(counted), axis=0)

@@ -150,7 +150,8 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     T = np.concatenate(poses)
     slips = tuple(s for c in chunks for s in c.odometer_slips_m)
     window = max(c.slip_window_m for c in chunks)
-    steps = np.linalg.norm(np.diff(T[:, :3, 3], axis=0, prepend=T[:1, :3, 3]), axis=1)
+    positions = T[:, :3, 3]
+    steps = np.linalg.norm(np.diff(positions, axis=0, prepend=positions[:1]), axis=1)
     held = slip_could_hide(
         np.array([q.degenerate for q in quality]),
         np.array([q.gate_sigma_m for q in quality]),
@@ -164,7 +165,6 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     gaps = np.diff(np.asarray(indices), prepend=indices[0])
     # Along the run, signed: over a stand the count's reading noise cancels, where the
     # lengths of the steps would add it up as travel counted.
-    positions = T[:, :3, 3]
     travel = positions[-1] - positions[0]
     length = float(np.linalg.norm(travel))
     along = positions @ (travel / length if length > 0 else T[0, :3, 0])
