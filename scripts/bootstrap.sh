@@ -5,8 +5,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 # open3d needs libusb; WeasyPrint subsets fonts with HarfBuzz; poppler-utils renders report PDFs
-# to PNG (tests, docs); postgresql runs the storage tests against a real server.
-debs=(libusb-1.0-0 libharfbuzz-subset0 poppler-utils postgresql)
+# to PNG (tests, docs); postgresql runs the storage tests against a real server; chromium runs
+# the web view's browser tests (driven by Playwright, which downloads no browser of its own).
+debs=(libusb-1.0-0 libharfbuzz-subset0 poppler-utils postgresql chromium)
 missing=()
 for pkg in "${debs[@]}"; do
     dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")

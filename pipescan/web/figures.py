@@ -1,0 +1,384 @@
+"""The web view's own figures, as inline SVG built from the stored figures: the network map,
+the pipe's overlaid blockage profiles and the trend at one chainage.
+
+The numbers come from the storage layer (``asset_trend``, ``network_pipes``) and the core's
+rules (the noise threshold of :func:`pipescan.core.trends.change_thresholds`); this module only
+draws them. Every text is escaped here (:func:`markupsafe.escape`), since the templates
+insert the SVG as it is. The inspection page reuses the report's own matplotlib charts.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from datetime import datetime
+from urllib.parse import quote
+
+import numpy as np
+from markupsafe import Markup, escape
+
+from pipescan.core.trends import years
+from pipescan.storage.database.trends import AssetTrend
+from pipescan.storage.database.web_queries import PipeRow
+
+__all__ = [
+    "GRADE_COLOURS",
+    "NO_GRADE_COLOUR",
+    "grade_colour",
+    "network_map_svg",
+    "profiles_svg",
+    "trend_point_svg",
+]
+
+GRADE_COLOURS = {0: "#b2182b", 1: "#e66101", 2: "#d8a200", 3: "#7fbf7b", 4: "#1b7837"}
+"""Condition class (0 worst ... 4 best) to its colour, the same in map, table and legend."""
+
+NO_GRADE_COLOUR = "#8c8c8c"
+
+SURVEY_COLOURS = ("#3b6ea5", "#e08a2c", "#8a6bb8", "#6a9a58", "#c0392b", "#5b5b5b")
+"""The colours of the inspections on a pipe's charts, newest first (the report's blue first)."""
+
+
+def grade_colour(grade: int | None) -> str:
+    return GRADE_COLOURS.get(grade, NO_GRADE_COLOUR) if grade is not None else NO_GRADE_COLOUR
+
+
+def pipe_href(asset_id: str) -> str:
+    return "/pipes/" + quote(asset_id, safe="")
+
+
+def _num(value: float) -> str:
+    return f"{value:.2f}".rstrip("0").rstrip(".") if math.isfinite(value) else "0"
+
+
+@dataclass(frozen=True)
+class MapResult:
+    svg: Markup
+    drawn: int
+    crs: str | None
+    left_out: tuple[str, ...]
+    """Assets with a line in another CRS than the map's (drawn separately, one CRS at a time)."""
+
+
+def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = None) -> MapResult:
+    """The pipes as lines coloured by their latest worst condition class, each a link to its
+    pipe page. Lines are in the network's CRS (the most common one), north up, to scale; pipes
+    outside ``highlighted`` (when given) are drawn faint."""
+    with_line = [p for p in pipes if p.line_xy is not None]
+    if not with_line:
+        return MapResult(Markup(""), 0, None, ())
+    crs_counts: dict[str, int] = {}
+    for p in with_line:
+        crs_counts[p.crs or ""] = crs_counts.get(p.crs or "", 0) + 1
+    crs = max(crs_counts, key=lambda c: (crs_counts[c], c))
+    drawn = [p for p in with_line if (p.crs or "") == crs]
+    left_out = tuple(p.asset_id for p in with_line if (p.crs or "") != crs)
+    xy = np.array([v for p in drawn for v in p.line_xy or ()], dtype=np.float64)
+    x0, y0 = xy.min(axis=0)
+    x1, y1 = xy.max(axis=0)
+    span = max(x1 - x0, y1 - y0, 1.0)
+    width = 1000.0
+    scale = width / span
+    height = max(200.0, (y1 - y0) * scale)
+    pad = 24.0
+    # Centre the network in the box, north up (SVG's y runs down).
+    ox = pad + (width - (x1 - x0) * scale) / 2.0
+    oy = pad + (height - (y1 - y0) * scale) / 2.0
+
+    def point(x: float, y: float) -> str:
+        return f"{_num(ox + (x - x0) * scale)},{_num(oy + (y1 - y) * scale)}"
+
+    parts = [
+        f'<svg class="network-map" viewBox="0 0 {_num(width + 2 * pad)} {_num(height + 2 * pad)}"'
+        ' xmlns="http://www.w3.org/2000/svg" role="img" aria-label="Network map: pipes coloured '
+        'by the worst condition class of their latest inspection">'
+    ]
+    # Worst last, so that it is drawn on top where lines meet.
+    order = sorted(drawn, key=lambda p: -(p.worst_grade if p.worst_grade is not None else 5))
+    for p in order:
+        colour = grade_colour(p.worst_grade)
+        faint = highlighted is not None and p.asset_id not in highlighted
+        points = " ".join(point(x, y) for x, y in p.line_xy or ())
+        grade = "none" if p.worst_grade is None else str(p.worst_grade)
+        label = p.gis_id or p.asset_id
+        title = f"{label}: class {grade}" + (
+            "" if p.peak_blockage_ratio is None else f", peak {100 * p.peak_blockage_ratio:.1f} %"
+        )
+        parts.append(
+            f'<a href="{escape(pipe_href(p.asset_id))}">'
+            f'<polyline class="pipe{" faint" if faint else ""}" points="{points}" '
+            f'stroke="{colour}" data-asset="{escape(p.asset_id)}" data-grade="{grade}">'
+            f"<title>{escape(title)}</title></polyline></a>"
+        )
+    for p in drawn:
+        coords = p.line_xy or ()
+        for x, y in (coords[0], coords[-1]):
+            cx, cy = point(x, y).split(",")
+            parts.append(f'<circle class="node" cx="{cx}" cy="{cy}" r="3"/>')
+    # A scale bar: a round length near a fifth of the map's width.
+    bar_m = 10 ** math.floor(math.log10(span / 5.0))
+    for factor in (5, 2):
+        if bar_m * factor <= span / 4.0:
+            bar_m *= factor
+            break
+    bar_px = bar_m * scale
+    by = height + 2 * pad - 8
+    parts.append(
+        f'<g class="scale"><line x1="{pad}" y1="{_num(by)}" x2="{_num(pad + bar_px)}" '
+        f'y2="{_num(by)}"/><text x="{pad}" y="{_num(by - 4)}">{_num(bar_m)} m</text></g>'
+    )
+    parts.append("</svg>")
+    return MapResult(Markup("".join(parts)), len(drawn), crs or None, left_out)
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) index runs where ``mask`` is true."""
+    runs = []
+    k = 0
+    n = mask.size
+    while k < n:
+        if mask[k]:
+            j = k
+            while j < n and mask[j]:
+                j += 1
+            runs.append((k, j))
+            k = j
+        else:
+            k += 1
+    return runs
+
+
+def profiles_svg(trend: AssetTrend, *, selected_cell: int | None, href_at: str) -> Markup:
+    """Each inspection's blockage profile along the aligned chainage, overlaid (newest on
+    top), with a lane per inspection beneath: solid where measured, hatched where a section
+    was not measured, empty where it has no section. Each chainage cell is a link to the
+    trend at that chainage (``href_at`` + metres)."""
+    n, k = trend.blockage_ratio.shape
+    if k == 0:
+        return Markup("")
+    w, left, right, top = 1000.0, 56.0, 12.0, 12.0
+    plot_h = 240.0
+    lane_h, lane_gap = 9.0, 3.0
+    lanes_top = top + plot_h + 34.0
+    h = lanes_top + n * (lane_h + lane_gap) + 6.0
+    start = float(trend.chainage_start_m[0])
+    end = float(trend.chainage_start_m[-1]) + trend.step_m
+    finite = trend.blockage_ratio[np.isfinite(trend.blockage_ratio)]
+    top_pct = max(10.0, float(finite.max()) * 100.0 * 1.1) if finite.size else 10.0
+    low_pct = min(0.0, float(finite.min()) * 100.0) if finite.size else 0.0
+
+    def x(m: float) -> float:
+        return left + (m - start) / (end - start) * (w - left - right)
+
+    def y(pct: float) -> float:
+        return top + (top_pct - pct) / (top_pct - low_pct) * plot_h
+
+    parts = [
+        f'<svg class="profiles" viewBox="0 0 {_num(w)} {_num(h)}" '
+        'xmlns="http://www.w3.org/2000/svg" role="img" aria-label="Blockage along the pipe, '
+        'each inspection overlaid">',
+        '<defs><pattern id="hatch" width="6" height="6" patternUnits="userSpaceOnUse" '
+        'patternTransform="rotate(45)"><rect width="6" height="6" fill="#f2f2f2"/>'
+        '<line x1="0" y1="0" x2="0" y2="6" stroke="#8c8c8c" stroke-width="2"/></pattern></defs>',
+    ]
+    # Axes and ticks.
+    step = _nice_step(top_pct - low_pct, 5)
+    tick = math.ceil(low_pct / step) * step
+    while tick <= top_pct + 1e-9:
+        parts.append(
+            f'<line class="grid" x1="{left}" x2="{_num(w - right)}" y1="{_num(y(tick))}" '
+            f'y2="{_num(y(tick))}"/><text class="tick" x="{left - 6}" y="{_num(y(tick) + 4)}" '
+            f'text-anchor="end">{_num(tick)} %</text>'
+        )
+        tick += step
+    xstep = _nice_step(end - start, 8)
+    xt = math.ceil(start / xstep) * xstep
+    while xt <= end + 1e-9:
+        parts.append(
+            f'<text class="tick" x="{_num(x(xt))}" y="{_num(top + plot_h + 16)}" '
+            f'text-anchor="middle">{_num(xt)}</text>'
+        )
+        xt += xstep
+    parts.append(
+        f'<text class="axis" x="{_num(w - right)}" y="{_num(top + plot_h + 30)}" '
+        'text-anchor="end">chainage from the upstream node, m (the reference survey\'s)</text>'
+    )
+    if selected_cell is not None:
+        sx = x(float(trend.chainage_start_m[selected_cell]))
+        parts.append(
+            f'<rect class="selected" x="{_num(sx)}" y="{top}" '
+            f'width="{_num(max(2.0, x(start + trend.step_m) - x(start)))}" height="{plot_h}"/>'
+        )
+    # Oldest first, so that the newest is drawn on top.
+    for i in range(n):
+        colour = SURVEY_COLOURS[(n - 1 - i) % len(SURVEY_COLOURS)]
+        values = trend.blockage_ratio[i]
+        for a, b in _runs(np.isfinite(values)):
+            pts = " ".join(
+                f"{_num(x(float(trend.chainage_start_m[c]) + trend.step_m / 2))},"
+                f"{_num(y(100.0 * float(values[c])))}"
+                for c in range(a, b)
+            )
+            if b - a == 1:
+                cx, cy = pts.split(",")
+                parts.append(f'<circle cx="{cx}" cy="{cy}" r="2" fill="{colour}"/>')
+            else:
+                parts.append(
+                    f'<polyline class="profile" data-inspection='
+                    f'"{trend.surveys[i].inspection_id}" points="{pts}" stroke="{colour}"/>'
+                )
+        # The lane: measured, not measured (hatched), or no section.
+        ly = lanes_top + i * (lane_h + lane_gap)
+        status = trend.section_status[i]
+        has_section = np.array([s is not None for s in status])
+        measured = np.isfinite(values)
+        for a, b in _runs(measured):
+            parts.append(
+                f'<rect x="{_num(x(start + a * trend.step_m))}" y="{_num(ly)}" '
+                f'width="{_num(x(start + b * trend.step_m) - x(start + a * trend.step_m))}" '
+                f'height="{lane_h}" fill="{colour}"/>'
+            )
+        for a, b in _runs(has_section & ~measured):
+            x_a, x_b = x(start + a * trend.step_m), x(start + b * trend.step_m)
+            parts.append(
+                f'<rect class="unmeasured" x="{_num(x_a)}" y="{_num(ly)}" '
+                f'width="{_num(max(1.0, x_b - x_a))}" height="{lane_h}" fill="url(#hatch)">'
+                f"<title>{escape(_lane_title(trend, i, a, b))}</title></rect>"
+            )
+        parts.append(
+            f'<text class="tick" x="{left - 6}" y="{_num(ly + lane_h - 1)}" text-anchor="end">'
+            f"{trend.surveys[i].inspected_at.date().isoformat()}</text>"
+        )
+    # Stretches that no inspection measured, hatched across the plot.
+    none_measured = np.isfinite(trend.blockage_ratio).sum(axis=0) == 0
+    for a, b in _runs(none_measured):
+        x_a, x_b = x(start + a * trend.step_m), x(start + b * trend.step_m)
+        parts.append(
+            f'<rect class="unmeasured" x="{_num(x_a)}" y="{top}" '
+            f'width="{_num(max(1.0, x_b - x_a))}" height="{plot_h}" fill="url(#hatch)" '
+            'opacity="0.7"><title>not measured by any '
+            f"inspection: {_num(start + a * trend.step_m)}-{_num(start + b * trend.step_m)} m"
+            "</title></rect>"
+        )
+    parts.append(
+        f'<line class="axisline" x1="{left}" x2="{_num(w - right)}" y1="{_num(y(0))}" '
+        f'y2="{_num(y(0))}"/>'
+    )
+    # Invisible cells over the plot: a click picks that chainage.
+    cell_w = max(1.0, x(start + trend.step_m) - x(start))
+    for c in range(k):
+        m = float(trend.chainage_start_m[c])
+        parts.append(
+            f'<a href="{escape(href_at)}{m:.2f}"><rect class="cell" x="{_num(x(m))}" '
+            f'y="{top}" width="{_num(cell_w)}" height="{plot_h}"><title>'
+            f"{m:.2f}-{m + trend.step_m:.2f} m: show the trend here</title></rect></a>"
+        )
+    parts.append("</svg>")
+    return Markup("".join(parts))
+
+
+def _lane_title(trend: AssetTrend, i: int, a: int, b: int) -> str:
+    statuses = sorted({str(s) for s in trend.section_status[i, a:b] if s is not None})
+    start = float(trend.chainage_start_m[a])
+    end = float(trend.chainage_start_m[b - 1]) + trend.step_m
+    return (
+        f"{trend.surveys[i].inspected_at.date().isoformat()}: not measured "
+        f"{start:.2f}-{end:.2f} m ({', '.join(statuses)})"
+    )
+
+
+def _nice_step(span: float, count: int) -> float:
+    raw = max(span, 1e-9) / count
+    base = 10 ** math.floor(math.log10(raw))
+    for factor in (1, 2, 5, 10):
+        if base * factor >= raw:
+            return base * factor
+    return base * 10
+
+
+def trend_point_svg(
+    dates: Sequence[datetime],
+    values_ratio: Sequence[float],
+    *,
+    inspection_ids: Sequence[int],
+    noise_ratio: float,
+    slope_per_year: float | None,
+) -> Markup:
+    """Blockage at one chainage over time: a point per inspection that measured it, a band
+    of the change that noise alone can give (``noise_ratio`` either side of the first
+    measured reading) and the Theil–Sen growth line through the readings' median."""
+    w, left, right, top, plot_h = 640.0, 56.0, 16.0, 12.0, 220.0
+    h = top + plot_h + 40.0
+    measured = [
+        (d, v, i)
+        for d, v, i in zip(dates, values_ratio, inspection_ids, strict=True)
+        if math.isfinite(v)
+    ]
+    parts = [
+        f'<svg class="trend-point" viewBox="0 0 {_num(w)} {_num(h)}" '
+        'xmlns="http://www.w3.org/2000/svg" role="img" aria-label="Blockage at this chainage '
+        'over time">'
+    ]
+    if not measured:
+        parts.append(
+            f'<text x="{w / 2}" y="{h / 2}" text-anchor="middle">not measured by any '
+            "inspection</text></svg>"
+        )
+        return Markup("".join(parts))
+    t = np.array([years(d) for d, _, _ in measured])
+    v = np.array([100.0 * val for _, val, _ in measured])
+    t0, t1 = float(min(years(d) for d in dates)), float(max(years(d) for d in dates))
+    if t1 - t0 < 0.5:
+        t0, t1 = t0 - 0.5, t1 + 0.5
+    pad_t = 0.08 * (t1 - t0)
+    t0, t1 = t0 - pad_t, t1 + pad_t
+    first = float(v[0])
+    band = 100.0 * noise_ratio
+    hi = max(float(v.max()), first + band) + 2.0
+    lo = min(0.0, float(v.min()), first - band)
+
+    def x(tt: float) -> float:
+        return left + (tt - t0) / (t1 - t0) * (w - left - right)
+
+    def y(pct: float) -> float:
+        return top + (hi - pct) / (hi - lo) * plot_h
+
+    parts.append(
+        f'<rect class="noise" x="{_num(x(t0))}" y="{_num(y(first + band))}" '
+        f'width="{_num(x(t1) - x(t0))}" height="{_num(y(first - band) - y(first + band))}">'
+        f"<title>the change that noise alone can give: ±{band:.1f} pp around the first "
+        "reading</title></rect>"
+    )
+    step = _nice_step(hi - lo, 5)
+    tick = math.ceil(lo / step) * step
+    while tick <= hi + 1e-9:
+        parts.append(
+            f'<line class="grid" x1="{left}" x2="{_num(w - right)}" y1="{_num(y(tick))}" '
+            f'y2="{_num(y(tick))}"/><text class="tick" x="{left - 6}" y="{_num(y(tick) + 4)}" '
+            f'text-anchor="end">{_num(tick)} %</text>'
+        )
+        tick += step
+    for year in range(math.ceil(1970 + t0), math.floor(1970 + t1) + 1):
+        xx = x(year - 1970)
+        parts.append(
+            f'<text class="tick" x="{_num(xx)}" y="{_num(top + plot_h + 16)}" '
+            f'text-anchor="middle">{year}</text>'
+        )
+    if slope_per_year is not None and math.isfinite(slope_per_year) and len(t) >= 2:
+        # Theil–Sen's line passes through the median of the residual intercepts.
+        intercept = float(np.median(v - 100.0 * slope_per_year * t))
+        ya = intercept + 100.0 * slope_per_year * float(t[0])
+        yb = intercept + 100.0 * slope_per_year * float(t[-1])
+        parts.append(
+            f'<line class="fit" x1="{_num(x(float(t[0])))}" y1="{_num(y(ya))}" '
+            f'x2="{_num(x(float(t[-1])))}" y2="{_num(y(yb))}"/>'
+        )
+    for (d, val, inspection_id), tt in zip(measured, t, strict=True):
+        parts.append(
+            f'<circle class="reading" data-inspection="{inspection_id}" cx="{_num(x(float(tt)))}"'
+            f' cy="{_num(y(100.0 * val))}" r="5"><title>{d.date().isoformat()}: '
+            f"{100.0 * val:.1f} % (inspection {inspection_id})</title></circle>"
+        )
+    parts.append("</svg>")
+    return Markup("".join(parts))
