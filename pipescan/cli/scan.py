@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import os
 import time
 from datetime import UTC, datetime
 from pathlib import Path
@@ -222,17 +223,61 @@ def _checked_settings(contour: str | None, registration: str | None):
     return settings
 
 
-def _check_archive(archive: str, settings) -> None:
-    """Open a local archive and check its metadata and layout before Prefect starts, so that a
-    bad one fails in a fraction of a second. Point files are read by the run itself; a zip or
-    tar is unpacked here once more (about 1 s per 80 MB). A remote archive is checked by the
-    run, which copies it once."""
-    if "://" in archive and not archive.startswith("file://"):
-        return
-    from pipescan.storage.input.archive import open_archive
+def _first_look(archive: str, settings) -> None:
+    """Open a local archive, check its metadata, layout and first and last point files, and
+    say what it holds: the run's first lines, before Prefect starts (a bad archive fails here
+    in a fraction of a second). A zip or tar is unpacked here once more (about 1 s per 80 MB).
+    A remote archive is checked by the run, which copies it once."""
+    from pipescan.cli._precheck import first_look
 
-    with open_archive(archive, workdir=settings.work_dir, limits=settings.input_limits()):
-        pass
+    log = logging.getLogger("pipescan")
+    local = Path(archive.removeprefix("file://"))
+    if local.is_file() and local.stat().st_size > 50_000_000:
+        log.info(f"unpacking {archive} ({local.stat().st_size / 1e6:,.0f} MB) to check it")
+    look = first_look(archive, settings)
+    if look is None:
+        log.info(f"archive {archive}: a remote archive, copied and checked when the run starts")
+        return
+    log.info(look.found)
+    if look.checked:
+        log.info(look.checked)
+    for warning in look.warnings:
+        log.warning(f"warning: {warning}")
+
+
+def _prefect_api_url() -> str | None:
+    """The Prefect API the run will use, when one is set (PREFECT_API_URL, or the active
+    profile's), read without importing Prefect; None: Prefect starts a local one."""
+    if url := os.environ.get("PREFECT_API_URL", "").strip():
+        return url
+    import tomllib
+
+    home = Path(os.environ.get("PREFECT_HOME", "~/.prefect")).expanduser()
+    path = Path(os.environ.get("PREFECT_PROFILES_PATH", home / "profiles.toml")).expanduser()
+    try:
+        doc = tomllib.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    active = os.environ.get("PREFECT_PROFILE") or doc.get("active", "ephemeral")
+    url = doc.get("profiles", {}).get(active, {}).get("PREFECT_API_URL")
+    return str(url) if url else None
+
+
+_SAID = {"prefect": False}
+
+
+def _say_prefect_starts() -> None:
+    """Say, once a command, that Prefect's local API is starting (when no server is set):
+    before Prefect is imported, for the ten seconds of silence that follow."""
+    if not _SAID["prefect"] and _prefect_api_url() is None:
+        logging.getLogger("pipescan").info(PREFECT_STARTING_LINE)
+    _SAID["prefect"] = True
+
+
+PREFECT_STARTING_LINE = (
+    "starting Prefect's local API (about 10 s; set PREFECT_API_URL to a running server to "
+    "skip this)"
+)
 
 
 def _inspection_params(contour: str | None, registration: str | None, settings=None):
@@ -245,6 +290,16 @@ def _inspection_params(contour: str | None, registration: str | None, settings=N
 
 
 def _run_inspection(archive: str, db_url: str, report: Path | None, params):
+    """Run the flow, its stages as progress bars on a terminal (lines elsewhere)."""
+    from pipescan.cli._progress import run_progress
+
+    log = logging.getLogger("pipescan")
+    _say_prefect_starts()
+    with run_progress(log):
+        return _run_flow(archive, db_url, report, params)
+
+
+def _run_flow(archive: str, db_url: str, report: Path | None, params):
     from pipescan.flows.database import checked_database_url
     from pipescan.flows.inspect import inspect_archive
     from pipescan.flows.network import refuse_password_in_url
@@ -368,8 +423,10 @@ def inspect(
 ) -> None:
     """Process one scan archive: register, measure, grade, store (and report).
 
-    The archive's metadata and layout and every option are checked before any processing.
+    The archive's metadata and layout, its first and last point files (units, NaN, empty, the
+    diameter's scale) and every option are checked before Prefect starts, in about a second.
     """
+    _SAID["prefect"] = False
     try:
         settings = _settings()
         _check_contour(settings, contour)  # cheap: before the archive
@@ -377,8 +434,10 @@ def inspect(
             from pipescan.reports.render import check_report_path
 
             check_report_path(report)  # not after the whole run
-        _check_archive(archive, settings)  # before the checks that load scipy
-        params = _inspection_params(contour, registration, _checked_settings(contour, registration))
+        _first_look(archive, settings)  # the first lines: before the checks that load scipy
+        checked = _checked_settings(contour, registration)
+        _say_prefect_starts()  # the next import is Prefect's
+        params = _inspection_params(contour, registration, checked)
         summary = _run_inspection(archive, _db_url(db), report, params)
     except PipescanError as exc:
         _fail(exc)
@@ -403,6 +462,7 @@ def demo(
     from pipescan.simulator.scan import get_scenario, simulate_scan
 
     log = logging.getLogger("pipescan")
+    _SAID["prefect"] = False
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # a file of that name, or one on its way
