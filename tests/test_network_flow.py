@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import tarfile
 import time
 import zipfile
@@ -17,7 +18,7 @@ from typer.testing import CliRunner
 
 from pipescan.cli import app
 from pipescan.core.errors import GeometryError
-from pipescan.flows.network import inspect_network
+from pipescan.flows.network import format_network_summary, inspect_network
 from pipescan.settings import use_settings
 from pipescan.simulator.archive import read_ground_truth
 from pipescan.storage.database.db import StorageError, connect, upgrade
@@ -103,11 +104,15 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
         workers=1,
     )
     first_state = inspect_network(**run, return_state=True)
-    first = first_state.result()
+    # An archive not stored: the run is not green, its message names it.
+    assert first_state.is_failed(), first_state
+    assert "MH99-BAD" in first_state.message and "own content" in first_state.message
+    first = first_state.result(raise_on_failure=False).summary
 
-    assert first.counts == {"inspected": 2, "reused": 0, "failed": 1}
+    assert first.counts == _counts(inspected=2, failed=1)
     [failed] = first.failures
     assert failed.label == "MH99-BAD" and failed.error_type == "MetadataError"
+    assert (failed.cause, failed.attempts) == ("content", 1)
     assert "inspection.toml" in failed.error and "inspected_at" in failed.error
     assert [o.label for o in first.outcomes] == ["MH0-MH1", "MH1-MH2", "MH99-BAD"]
     stored = _stored(db_url)
@@ -135,7 +140,9 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     assert sum(f"[{n}/3]" in line for line in logged for n in (1, 2, 3)) == 3, logged
     assert any("[" in line and "MH99-BAD FAILED" in line for line in logged), logged
     # The report lists the archive that failed, with its one-line reason.
-    assert [(f.label, f.reason) for f in reported_failures] == [("MH99-BAD", failed.error)]
+    [(label, reason)] = [(f.label, f.reason) for f in reported_failures]
+    assert label == "MH99-BAD" and reason.endswith(failed.error)
+    assert reason.startswith("the archive itself (fix it; it is not retried)")
 
     # Started again: nothing is processed twice, nothing is stored twice; and a network
     # report that fails is recorded, not fatal.
@@ -144,8 +151,9 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
 
     monkeypatch.setattr("pipescan.tasks.reporting.render_network_report", broken)
     second_state = inspect_network(**run, return_state=True)
-    second = second_state.result()
-    assert second.counts == {"inspected": 0, "reused": 2, "failed": 1}
+    second = second_state.result(raise_on_failure=False).summary
+    assert second.counts == _counts(reused=2, failed=1)
+    assert [o.label for o in second.outcomes] == ["MH0-MH1", "MH1-MH2", "MH99-BAD"]
     assert [o.inspection_id for o in second.outcomes[:2]] == ids
     assert [(o.max_blockage_ratio, o.defect_count) for o in second.outcomes[:2]] == [
         (o.max_blockage_ratio, o.defect_count) for o in first.outcomes[:2]
@@ -154,6 +162,10 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     assert second.network_report_path is None
     assert second.network_report_error == "RuntimeError: no fonts"
     assert _flow_run(second_state).name != run_name  # so its report would not replace the first
+
+
+def _counts(**given: int) -> dict[str, int]:
+    return {k: given.get(k, 0) for k in ("inspected", "reused", "duplicate", "failed", "missing")}
 
 
 def _flow_run(state):
@@ -194,6 +206,26 @@ def test_zip_and_tar_archives_in_a_store_are_inspected(prefect, tmp_path, monkey
         write_network_report=False,
     )
     assert [o.status for o in summary.outcomes] == ["inspected", "inspected"], summary.failures
+
+
+def test_one_scan_under_two_names_is_one_inspection_said_once(prefect, tmp_path, monkeypatch):
+    db_url = f"sqlite:///{tmp_path / 'dup.db'}"
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", db_url)
+    root = tmp_path / "store"
+    folder = write_archive(root, 3)
+    shutil.make_archive(str(root / "real459-nested"), "zip", folder)  # the same scan, zipped
+    run = dict(store=str(root), work_dir=str(tmp_path / "work"), write_network_report=False)
+    for _ in range(2):  # processed now, then reused: said once either way
+        summary = inspect_network(**run, concurrency=2)
+        statuses = sorted((o.label, o.status, o.same_as) for o in summary.outcomes)
+        assert statuses[0] == ("MH3-MH4", statuses[0][1], None)
+        assert statuses[1] == ("real459-nested", "duplicate", "MH3-MH4")
+        assert len({o.inspection_id for o in summary.outcomes}) == 1
+        assert [o.label for o in summary.worst] == ["MH3-MH4"]
+        text = "\n".join(format_network_summary(summary))
+        assert text.count("real459-nested") == 1, text
+        assert "real459-nested = MH3-MH4" in text
+    assert len(_stored(db_url)) == 1
 
 
 # --- the database, checked once before any archive ---------------------------------------------

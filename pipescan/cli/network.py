@@ -83,12 +83,14 @@ def inspect_network_command(
     Archives already stored with the same content and parameters are reused, so a run that
     was interrupted can simply be started again: it finishes the rest.
 
-    One bad archive fails alone. Exit code 1 when an archive failed, 2 when the run could not
-    start.
+    One bad archive fails alone. An archive that fails for a transient cause (the database or
+    Prefect's API not answering) is tried again, with backoff, for up to 15 minutes. Exit code
+    1 when an archive was not stored, 2 when the run could not start.
     """
     from pipescan.cli.scan import _inspection_params
     from pipescan.flows.database import checked_database_url
     from pipescan.flows.network import (
+        NetworkIncomplete,
         format_network_summary,
         inspect_network,
         refuse_password_in_url,
@@ -115,6 +117,10 @@ def inspect_network_command(
                 write_network_report=not no_network_report,
                 reuse_stored=not force,
             )
+    except NetworkIncomplete as exc:  # archives not stored: the summary says which, exit 1
+        if exc.summary is None:
+            _fail(exc)
+        summary = exc.summary
     except (PipescanError, ValueError) as exc:
         _fail(exc)
     if as_json:

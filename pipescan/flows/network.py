@@ -6,10 +6,15 @@ and chainage windows, on a local pool or a Dask cluster. Tasks receive paths, id
 dataclasses, so nothing big crosses the wire to a Dask worker.
 
 A failing archive fails alone: its error is recorded in the network summary and on its
-sub-flow run, and the other archives go on. An archive whose content was already inspected
-under the same parameters is not processed again (``reuse_stored``), so a run that was killed
-can simply be started again: it finishes the remaining archives, and the database keeps one
-copy of each inspection.
+sub-flow run, and the other archives go on. An archive that failed for a transient cause (the
+database or Prefect's API unreachable, a concurrency slot not granted, its sub-flow taken for
+crashed) is tried again later in the run, with backoff, for up to :data:`RETRY_WINDOW_S`
+seconds; one that failed for its own content is not. Whatever is not stored at the end makes
+the run end Failed, naming the archives (``missing``: the next run takes them first; ``failed``:
+fix the archive). An archive whose content was already inspected under the same parameters is
+not processed again (``reuse_stored``), so a run that was killed can simply be started again: it
+finishes the remaining archives, and the database keeps one copy of each inspection. Two
+archives of the same content (a folder and its zip) are one inspection, said once.
 """
 
 from __future__ import annotations
@@ -18,23 +23,25 @@ import logging
 import re
 import time
 from contextlib import nullcontext
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
 from urllib.parse import urlsplit
 
 from prefect import flow, get_run_logger, tags, task
 from prefect.cache_policies import NO_CACHE
+from prefect.exceptions import Abort
 from prefect.futures import as_completed
 from prefect.runtime import flow_run
 from prefect.settings import PREFECT_API_URL, temporary_settings
+from prefect.states import Failed
 from prefect.task_runners import ThreadPoolTaskRunner
 
 from pipescan.core.contour.grid import GridParams
 from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
-from pipescan.core.sanitize import REDACTED, strip_credentials
+from pipescan.core.sanitize import REDACTED, strip_credentials, strip_credentials_in_text
 from pipescan.core.wording import plural
 from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
@@ -42,9 +49,44 @@ from pipescan.flows.recovery import close_earlier_attempts
 from pipescan.flows.runners import make_task_runner
 from pipescan.reports.network import FailedArchive
 from pipescan.settings import get_settings, use_settings
-from pipescan.tasks.network import IO_RETRY_OPTIONS, archive_label, discover_archives
+from pipescan.storage.database.db import StorageError
+from pipescan.tasks.network import (
+    IO_RETRY_OPTIONS,
+    archive_label,
+    discover_archives,
+    find_stored_archives,
+    unstored_first,
+)
+from pipescan.tasks.retries import TRANSIENT, failure_cause
 
 log = logging.getLogger("pipescan")
+
+RETRY_WINDOW_S = 900.0
+"""An archive that failed for a transient cause is tried again for up to this long after its
+first failure (15 min: a database or Prefect server restarted, a short network outage)."""
+RETRY_FIRST_DELAY_S = 15.0
+"""The wait before an archive's second attempt; each next wait doubles, up to
+:data:`RETRY_MAX_DELAY_S` (15, 30, 60, 120, 120... s)."""
+RETRY_MAX_DELAY_S = 120.0
+DATABASE_WAIT_S = 300.0
+"""A scheduled run whose database does not answer at the start tries again for this long
+(5, 10, 20, 40, 60, 60... s apart) before it fails: a blip at 02:00 does not cost the night."""
+DATABASE_FIRST_DELAY_S = 5.0
+DATABASE_MAX_DELAY_S = 60.0
+STATUSES = ("inspected", "reused", "duplicate", "failed", "missing")
+"""An archive's outcome in a network run, in the order summaries count them."""
+OUTCOMES_ARTIFACT = "pipescan-network-outcomes"
+"""Key of the table artifact where a run leaves each archive's outcome (``pipescan runs``)."""
+
+
+def backoff_delay(first_s: float, max_s: float, retry: int) -> float:
+    """The wait before retry number ``retry`` (1, 2...): ``first_s`` doubling each time, at
+    most ``max_s``.
+
+    >>> [backoff_delay(15, 120, n) for n in range(1, 6)]
+    [15, 30, 60, 120, 120]
+    """
+    return min(first_s * 2 ** (retry - 1), max_s)
 
 
 @dataclass(frozen=True)
@@ -52,7 +94,11 @@ class ArchiveOutcome:
     """What became of one archive of a network run.
 
     ``status`` is ``inspected`` (processed and stored now), ``reused`` (already stored under
-    the same content and parameters) or ``failed`` (``error`` says why; nothing was stored).
+    the same content and parameters), ``duplicate`` (the same content as the archive
+    ``same_as``, whose inspection it is), ``failed`` (for its own content, ``cause``
+    ``content``, or a defect, ``error``: not tried again; nothing stored) or ``missing`` (a
+    transient cause, still failing when the run's retries ran out: the next run takes it
+    first). ``error`` says why; ``attempts`` counts the tries in this run.
     """
 
     archive: str
@@ -69,6 +115,13 @@ class ArchiveOutcome:
     report_path: str | None = None
     error: str | None = None
     error_type: str | None = None
+    cause: str | None = None
+    attempts: int = 1
+    same_as: str | None = None
+
+    @property
+    def stored(self) -> bool:
+        return self.status in ("inspected", "reused", "duplicate")
 
     @classmethod
     def from_summary(cls, archive: str, label: str, summary: InspectionSummary, wall_s: float):
@@ -102,9 +155,21 @@ class NetworkSummary:
     network_report_error: str | None = None
     counts: dict[str, int] = field(default_factory=dict)
 
+    retry_window_s: float = RETRY_WINDOW_S
+
     @property
     def failures(self) -> list[ArchiveOutcome]:
-        return [o for o in self.outcomes if o.status == "failed"]
+        """The archives not stored: ``failed`` and ``missing``."""
+        return [o for o in self.outcomes if not o.stored]
+
+    @property
+    def missing(self) -> list[ArchiveOutcome]:
+        """The archives left out for a transient cause: the next run takes them first."""
+        return [o for o in self.outcomes if o.status == "missing"]
+
+    @property
+    def duplicates(self) -> list[ArchiveOutcome]:
+        return [o for o in self.outcomes if o.status == "duplicate"]
 
     @property
     def inspection_ids(self) -> list[int]:
@@ -212,6 +277,8 @@ def progress_line(done: int, total: int, outcome: ArchiveOutcome) -> str:
     head = f"[{done}/{total}] {outcome.label}"
     if outcome.status == "failed":
         return f"{head} FAILED after {outcome.wall_time_s:.1f} s: {outcome.error}"
+    if outcome.status == "missing":
+        return f"{head} MISSING after {plural(outcome.attempts, 'attempt')}: {outcome.error}"
     what = (
         f"reused inspection {outcome.inspection_id} (already stored)"
         if outcome.status == "reused"
@@ -227,18 +294,72 @@ def progress_line(done: int, total: int, outcome: ArchiveOutcome) -> str:
     return f"{head} {what}: asset {outcome.asset_id}, {defects}{worst}"
 
 
+def retry_line(outcome: ArchiveOutcome, delay_s: float) -> str:
+    """The line of an archive that failed for a transient cause and is tried again."""
+    return (
+        f"{outcome.label}: attempt {outcome.attempts} failed for a transient cause, trying "
+        f"again in {delay_s:.0f} s: {outcome.error}"
+    )
+
+
+def counts_line(counts: dict[str, int]) -> str:
+    """``2 inspected, 1 reused (already stored), ...``: the statuses a run had."""
+    words = {
+        "reused": "reused (already stored)",
+        "duplicate": "the same content as another archive",
+        "missing": "missing (to be taken first next time)",
+    }
+    parts = [f"{counts.get(k, 0)} {words.get(k, k)}" for k in STATUSES[:2]]
+    parts += [f"{counts[k]} {words.get(k, k)}" for k in STATUSES[2:] if counts.get(k)]
+    if not counts.get("failed") and not counts.get("missing"):
+        parts.append("0 failed")
+    return ", ".join(parts)
+
+
+def incomplete_message(summary: NetworkSummary) -> str:
+    """The Failed state's message of a run that left archives unstored: which ones, and why."""
+    parts = []
+    if summary.missing:
+        parts.append(
+            f"missing after {summary.retry_window_s / 60:.0f} min of retries (a transient "
+            "cause; the next run takes them first): "
+            + ", ".join(f"{o.label} ({o.error})" for o in summary.missing)
+        )
+    bad = [o for o in summary.failures if o.status == "failed"]
+    if bad:
+        parts.append(
+            "failed for their own content (not retried; fix the archive): "
+            + ", ".join(f"{o.label} ({o.error})" for o in bad)
+        )
+    count = len(summary.failures)
+    return f"{count} of {plural(len(summary.outcomes), 'archive')} not stored: " + "; ".join(parts)
+
+
 def format_network_summary(summary: NetworkSummary) -> list[str]:
     """The network summary as text lines (printed by the CLI, logged to the Prefect run)."""
-    c = summary.counts
     lines = [
         f"network run over {summary.store}: {plural(len(summary.outcomes), 'archive')} "
         f"in {summary.wall_time_s:.1f} s on {summary.executor}",
-        f"  {c.get('inspected', 0)} inspected, {c.get('reused', 0)} reused (already stored), "
-        f"{c.get('failed', 0)} failed",
+        f"  {counts_line(summary.counts)}",
     ]
-    if summary.failures:
-        lines.append("  failed archives (nothing stored for them):")
-        lines += [f"    {o.label}: {o.error}" for o in summary.failures]
+    if summary.duplicates:
+        lines.append("  the same content under two names (one inspection each, listed once):")
+        lines += [
+            f"    {o.label} = {o.same_as} (inspection {o.inspection_id})"
+            for o in summary.duplicates
+        ]
+    if summary.missing:
+        lines.append(
+            f"  MISSING, a transient cause outlasted {summary.retry_window_s / 60:.0f} min of "
+            "retries (nothing stored; the next run takes them first):"
+        )
+        lines += [
+            f"    {o.label}: {plural(o.attempts, 'attempt')}, {o.error}" for o in summary.missing
+        ]
+    bad = [o for o in summary.failures if o.status == "failed"]
+    if bad:
+        lines.append("  failed for their own content (nothing stored, not retried; fix them):")
+        lines += [f"    {o.label}: {o.error}" for o in bad]
     if summary.worst:
         lines.append("  worst pipes by peak blockage:")
         for rank, o in enumerate(summary.worst, 1):
@@ -254,8 +375,60 @@ def format_network_summary(summary: NetworkSummary) -> list[str]:
     return lines
 
 
+def merge_duplicates(outcomes: list[ArchiveOutcome]) -> list[ArchiveOutcome]:
+    """Archives stored as the same inspection (the same asset, content and parameters under
+    two names, e.g. a folder and its zip): the first keeps its outcome (``inspected`` if
+    either was processed now), the others become ``duplicate`` of it. Order is kept."""
+    first: dict[int, ArchiveOutcome] = {}
+    for o in outcomes:
+        if o.inspection_id is None:
+            continue
+        kept = first.setdefault(o.inspection_id, o)
+        if kept is not o and o.status == "inspected" and kept.status == "reused":
+            first[o.inspection_id] = replace(kept, status="inspected")
+    merged = []
+    for o in outcomes:
+        kept = first.get(o.inspection_id) if o.inspection_id is not None else None
+        if kept is None:
+            merged.append(o)
+        elif kept.archive == o.archive:
+            merged.append(kept)
+        else:
+            merged.append(replace(o, status="duplicate", same_as=kept.label))
+    return merged
+
+
+class NetworkIncomplete(PipescanError):
+    """A network run ended with archives not stored; ``summary`` has the whole run."""
+
+    def __init__(self, message: str, summary: NetworkSummary | None = None) -> None:
+        super().__init__(message)
+        self.summary = summary
+
+    def __reduce__(self):
+        return (type(self), (self.reason, self.summary))
+
+
+def failed_reason(outcome: ArchiveOutcome, retry_window_s: float) -> str:
+    """Why an archive is not stored, for the network report: what to do comes first, as a
+    database outage asks for nothing but the next run, a bad archive for a person."""
+    if outcome.status == "missing":
+        return (
+            f"not reached: a transient cause (the database or the Prefect server not answering) "
+            f"outlasted {retry_window_s / 60:.0f} min of retries; the archive is probably fine "
+            f"and the next run takes it first. {outcome.error}"
+        )
+    if outcome.cause == "content":
+        return f"the archive itself (fix it; it is not retried): {outcome.error}"
+    return f"an error of pipescan (report it with the run's log): {outcome.error}"
+
+
 def _write_network_report(
-    database_url: str, out_path: Path, inspection_ids: list[int], failed: list[ArchiveOutcome]
+    database_url: str,
+    out_path: Path,
+    inspection_ids: list[int],
+    failed: list[ArchiveOutcome],
+    retry_window_s: float = RETRY_WINDOW_S,
 ) -> tuple[str | None, str | None]:
     """Render the network report (listing the ``failed`` archives with their reasons) if
     this pipescan has one; returns (path, error)."""
@@ -272,7 +445,7 @@ def _write_network_report(
             database_url,
             out_path,
             inspection_ids=inspection_ids,
-            failed=[FailedArchive(o.label, o.error or "failed") for o in failed],
+            failed=[FailedArchive(o.label, failed_reason(o, retry_window_s)) for o in failed],
         )
     except Exception as exc:  # the inspections are stored; a report failure must not hide that
         log.warning("the network report failed: %s", exc)
@@ -317,16 +490,25 @@ def inspect_one_archive(
                 work_dir=work_dir,
                 reuse_stored=reuse_stored,
             )
-    except Exception as exc:
-        return ArchiveOutcome(
-            archive=strip_credentials(archive),
-            label=label,
-            status="failed",
-            wall_time_s=time.perf_counter() - started,
-            error=str(exc),
-            error_type=type(exc).__name__,
-        )
+    except (Exception, Abort) as exc:  # Abort: Prefect took the sub-flow for crashed
+        return failed_outcome(archive, label, exc, time.perf_counter() - started)
     return ArchiveOutcome.from_summary(archive, label, summary, time.perf_counter() - started)
+
+
+def failed_outcome(
+    archive: str, label: str, exc: BaseException, wall_s: float, attempts: int = 1
+) -> ArchiveOutcome:
+    """A ``failed`` outcome, with its cause (:func:`pipescan.tasks.retries.failure_cause`)."""
+    return ArchiveOutcome(
+        archive=strip_credentials(archive),
+        label=label,
+        status="failed",
+        wall_time_s=wall_s,
+        error=strip_credentials_in_text(str(exc)) or type(exc).__name__,
+        error_type=type(exc).__name__,
+        cause=failure_cause(exc),
+        attempts=attempts,
+    )
 
 
 @flow(name="inspect-network")
@@ -343,6 +525,8 @@ def inspect_network(
     write_network_report: bool = True,
     reuse_stored: bool = True,
     worst_count: int = 5,
+    retry_window_s: float | None = None,
+    startup_wait_s: float | None = None,
 ) -> NetworkSummary:
     """Inspect every archive of a store; end with a network summary (and the network report).
 
@@ -375,14 +559,30 @@ def inspect_network(
         False processes every archive again (each inspection is still stored once).
     worst_count
         How many of the worst pipes the summary lists.
+    retry_window_s
+        How long after its first failure an archive that failed for a transient cause is
+        tried again (None: :data:`RETRY_WINDOW_S`, 15 min; 0: never).
+    startup_wait_s
+        How long the database check at the start is repeated while the database does not
+        answer (None: :data:`DATABASE_WAIT_S`, 5 min, in a deployment's run; 0 otherwise,
+        where a person waits for the answer).
+
+    Returns
+    -------
+    NetworkSummary
+        When every archive is stored. Otherwise the run ends Failed, its message naming the
+        archives not stored, and calling the flow raises :class:`NetworkIncomplete`, whose
+        ``summary`` is the whole run's.
 
     Raises
     ------
     StorageError
-        The database is unreachable, not migrated or refuses writes; or, in a scheduled run,
-        the worker names no database (one error, before any archive).
+        The database is unreachable (for ``startup_wait_s``), not migrated or refuses writes;
+        or, in a scheduled run, the worker names no database (one error, before any archive).
     StoreError
         The store does not exist or holds no archive. A failing archive does not raise.
+    NetworkIncomplete
+        Archives were left unstored (see Returns).
     """
     started = time.perf_counter()
     run_log = get_run_logger()
@@ -395,11 +595,18 @@ def inspect_network(
             + ("; archives already stored are reused" if reuse_stored else ""),
         )
     s = get_settings()
-    database_url = checked_database_url(s)
+    if startup_wait_s is None:
+        startup_wait_s = DATABASE_WAIT_S if in_deployment() else 0.0
+    database_url = wait_for_database(s, startup_wait_s, run_log)
+    retry_window_s = RETRY_WINDOW_S if retry_window_s is None else retry_window_s
     params = params or params_from_settings(s)
     work_dir = absolute_location(str(work_dir or s.work_dir))
     report_out = (
-        _network_report_out(network_report_path, s.reports_dir) if write_network_report else None
+        _network_report_out(
+            network_report_path, Path(reports_dir) if reports_dir else s.reports_dir
+        )
+        if write_network_report
+        else None
     )
     dask_address = dask_address or s.dask_address
     runner_kind = task_runner or s.task_runner
@@ -411,7 +618,10 @@ def inspect_network(
 
     archives = discover_archives(absolute_location(store))
     total = len(archives)
-    labels = _unique_labels(archives)
+    labels = dict(zip(archives, _unique_labels(archives), strict=True))
+    # Archives with no stored inspection go first: those an earlier run left missing (and
+    # new ones), so that a short night still catches up.
+    order = unstored_first(archives, find_stored_archives(database_url))
     # On Dask each archive is one task on a worker (its chunks and windows on the worker's
     # own pool): Prefect's overhead per Dask task run (~0.15 s) would otherwise eat a large
     # share of a register-chunk or measure-window task (see docs/orchestration.md).
@@ -422,7 +632,6 @@ def inspect_network(
     )
     api_url = _api_url_for_workers(bool(dask_address))
     settings = temporary_settings({PREFECT_API_URL: api_url}) if api_url else nullcontext()
-    outcomes: dict[str, ArchiveOutcome] = {}
     # The sub-flows carry this run's tags (a deployment's), which its recovery automations
     # look for (pipescan.flows.deploy).
     with settings, pool, tags(*(flow_run.tags or [])):
@@ -435,54 +644,173 @@ def inspect_network(
             f"{total} archives in {strip_credentials(store)}; "
             f"{concurrency} at a time on {executor}",
         )
-        queue = list(zip(archives, labels, strict=True))
-        pending: dict = {}
-        while queue or pending:
-            while queue and len(pending) < max(1, concurrency):
-                archive, label = queue.pop(0)
-                future = pool.submit(
-                    inspect_one_archive.with_options(task_run_name=f"archive {label}"),
-                    parameters={
-                        "archive": archive,
-                        "label": label,
-                        "database_url": database_url,
-                        "params": params,
-                        "work_dir": work_dir,
-                        "runner_kind": runner_kind,
-                        "workers": workers,
-                        "report_path": (
-                            str(Path(reports_dir) / f"{label}.pdf") if reports_dir else None
-                        ),
-                        "reuse_stored": reuse_stored,
-                    },
-                )
-                pending[future] = archive
-            finished = next(iter(as_completed(list(pending))))
-            outcome = finished.result()
-            outcomes[pending.pop(finished)] = outcome
-            line = progress_line(len(outcomes), total, outcome)
-            _progress(run_log, line, failed=outcome.status == "failed")
 
-    ordered = [outcomes[a] for a in archives]
-    counts = {k: sum(o.status == k for o in ordered) for k in ("inspected", "reused", "failed")}
+        def submit(archive: str):
+            label = labels[archive]
+            return pool.submit(
+                inspect_one_archive.with_options(task_run_name=f"archive {label}"),
+                parameters={
+                    "archive": archive,
+                    "label": label,
+                    "database_url": database_url,
+                    "params": params,
+                    "work_dir": work_dir,
+                    "runner_kind": runner_kind,
+                    "workers": workers,
+                    "report_path": (
+                        str(Path(reports_dir) / f"{label}.pdf") if reports_dir else None
+                    ),
+                    "reuse_stored": reuse_stored,
+                },
+            )
+
+        outcomes = _run_archives(order, labels, submit, concurrency, retry_window_s, run_log, total)
+
+    ordered = merge_duplicates([outcomes[a] for a in archives])
+    counts = {k: sum(o.status == k for o in ordered) for k in STATUSES}
     report_path = report_error = None
-    ids = [o.inspection_id for o in ordered if o.inspection_id is not None]
+    ids = list(dict.fromkeys(o.inspection_id for o in ordered if o.inspection_id is not None))
     if report_out is not None and ids:
-        failed = [o for o in ordered if o.status == "failed"]
-        report_path, report_error = _write_network_report(database_url, report_out, ids, failed)
+        not_stored = [o for o in ordered if not o.stored]
+        report_path, report_error = _write_network_report(
+            database_url, report_out, ids, not_stored, retry_window_s
+        )
     summary = NetworkSummary(
         store=strip_credentials(store),
         executor=executor,
         outcomes=ordered,
-        worst=worst_pipes(ordered, worst_count),
+        worst=worst_pipes([o for o in ordered if o.status != "duplicate"], worst_count),
         wall_time_s=time.perf_counter() - started,
         network_report_path=report_path,
         network_report_error=report_error,
         counts=counts,
+        retry_window_s=retry_window_s,
     )
     for line in format_network_summary(summary):
         run_log.info(line)
+    _leave_outcomes(summary)
+    if summary.failures:
+        # Not green: Prefect's list, its UI and the automations see a Failed run, with the
+        # archives not stored in its message; the caller gets them with the summary.
+        message = incomplete_message(summary)
+        return Failed(message=message, data=NetworkIncomplete(message, summary))
     return summary
+
+
+def _run_archives(
+    order: list[str],
+    labels: dict[str, str],
+    submit,
+    concurrency: int,
+    retry_window_s: float,
+    run_log,
+    total: int,
+) -> dict[str, ArchiveOutcome]:
+    """Run each archive's task, ``concurrency`` at a time; an archive that fails for a
+    transient cause is submitted again after a backoff while its window lasts, and is
+    ``missing`` when the window closes. Returns each archive's last outcome."""
+    queue: list[tuple[float, str]] = [(0.0, a) for a in order]  # (not before, archive)
+    attempts: dict[str, int] = {}
+    first_failed: dict[str, float] = {}
+    outcomes: dict[str, ArchiveOutcome] = {}
+    pending: dict = {}
+    while queue or pending:
+        now = time.monotonic()
+        for due, archive in [q for q in queue if q[0] <= now]:
+            if len(pending) >= max(1, concurrency):
+                break
+            queue.remove((due, archive))
+            attempts[archive] = attempts.get(archive, 0) + 1
+            pending[submit(archive)] = archive
+        next_due = min((q[0] for q in queue), default=None)
+        wait_s = None if next_due is None else max(0.05, next_due - time.monotonic())
+        if not pending:
+            time.sleep(wait_s or 0.05)
+            continue
+        try:
+            finished = next(iter(as_completed(list(pending), timeout=wait_s)))
+        except TimeoutError:  # a retry is due and a slot may be free
+            continue
+        archive = pending.pop(finished)
+        started = time.monotonic()
+        try:
+            outcome = replace(finished.result(), attempts=attempts[archive])
+        except (Exception, Abort) as exc:  # the task itself did not finish (its API calls)
+            outcome = failed_outcome(archive, labels[archive], exc, 0.0, attempts[archive])
+        if outcome.status == "failed" and outcome.cause == TRANSIENT:
+            first = first_failed.setdefault(archive, started)
+            delay = backoff_delay(RETRY_FIRST_DELAY_S, RETRY_MAX_DELAY_S, attempts[archive])
+            if started + delay - first <= retry_window_s:
+                queue.append((started + delay, archive))
+                _progress(run_log, retry_line(outcome, delay), failed=True)
+                continue
+            outcome = replace(outcome, status="missing")
+        outcomes[archive] = outcome
+        line = progress_line(len(outcomes), total, outcome)
+        _progress(run_log, line, failed=not outcome.stored)
+    return outcomes
+
+
+def wait_for_database(settings, wait_s: float, run_log) -> str:
+    """The run's database (:func:`checked_database_url`), checked again while it does not
+    answer (a transient cause), for up to ``wait_s`` seconds, with backoff.
+
+    Raises
+    ------
+    StorageError
+        What is wrong with the database, once the wait is over or at once when it is not
+        transient (a refused login, a missing schema, a scheduled run without a database).
+    """
+    started = time.monotonic()
+    retry = 0
+    while True:
+        try:
+            return checked_database_url(settings)
+        except StorageError as exc:
+            retry += 1
+            delay = backoff_delay(DATABASE_FIRST_DELAY_S, DATABASE_MAX_DELAY_S, retry)
+            waited = time.monotonic() - started
+            if failure_cause(exc) != TRANSIENT or waited + delay > wait_s:
+                if retry > 1:
+                    raise StorageError(
+                        f"{exc.reason} (still so after {waited:.0f} s of trying)",
+                        hint=exc.hint,
+                    ) from exc
+                raise
+            _progress(
+                run_log,
+                f"the database does not answer, trying again in {delay:.0f} s (for up to "
+                f"{wait_s:.0f} s in all): {exc}",
+                failed=True,
+            )
+            time.sleep(delay)
+
+
+def _leave_outcomes(summary: NetworkSummary) -> None:
+    """Each archive's outcome as a table artifact of the run, where the UI shows it and
+    ``pipescan runs`` reads it. A failure to write it is logged, not fatal."""
+    from prefect.artifacts import create_table_artifact
+
+    rows = [
+        {
+            "archive": o.label,
+            "status": o.status,
+            "inspection": o.inspection_id,
+            "attempts": o.attempts,
+            "cause": o.cause,
+            "same_as": o.same_as,
+            "error": o.error,
+        }
+        for o in summary.outcomes
+    ]
+    try:
+        create_table_artifact(
+            table=rows,
+            key=OUTCOMES_ARTIFACT,
+            description=counts_line(summary.counts),
+        )
+    except Exception as exc:  # the API may be down; the log has the same lines
+        log.warning("the run's outcome table was not written to Prefect: %s", exc)
 
 
 def _progress(run_log, line: str, *, failed: bool = False) -> None:

@@ -12,6 +12,7 @@ import re
 from dataclasses import dataclass
 from pathlib import PurePosixPath
 
+import sqlalchemy as sa
 from prefect import task
 from prefect.cache_policies import NO_CACHE
 
@@ -19,7 +20,9 @@ from pipescan.core.errors import (
     PipescanError,
 )
 from pipescan.core.model import Defect, SectionMeasures
-from pipescan.storage.database.db import connect
+from pipescan.core.sanitize import strip_credentials
+from pipescan.storage.database.db import connect, session_scope
+from pipescan.storage.database.models import Inspection
 from pipescan.storage.database.repository import (
     InspectionRecord,
     find_inspection,
@@ -186,3 +189,30 @@ def load_stored_inspection(database_url: str, inspection_id: int) -> StoredInspe
         )
     finally:
         engine.dispose()
+
+
+def stored_archive_uris(database_url: str) -> set[str]:
+    """The archive URIs (without credentials) that stored inspections came from."""
+    engine = connect(database_url)
+    try:
+        with session_scope(engine) as session:
+            return set(session.scalars(sa.select(Inspection.archive_uri).distinct()))
+    finally:
+        engine.dispose()
+
+
+@task(name="stored-archives", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
+def find_stored_archives(database_url: str) -> set[str]:
+    """The archives with a stored inspection (see :func:`stored_archive_uris`)."""
+    return stored_archive_uris(database_url)
+
+
+def unstored_first(archives: list[str], stored: set[str]) -> list[str]:
+    """The archives with no stored inspection first (those an earlier run left missing, and
+    new ones), then the others, each group in store order.
+
+    >>> unstored_first(["a", "b", "c"], {"a"})
+    ['b', 'c', 'a']
+    """
+    missing = [a for a in archives if strip_credentials(a) not in stored]
+    return missing + [a for a in archives if strip_credentials(a) in stored]

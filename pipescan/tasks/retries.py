@@ -75,11 +75,77 @@ def is_transient_io_error(exc: BaseException) -> bool:
     False
     """
     for link in _causes(exc):
-        if isinstance(link, _DETERMINISTIC):
+        if isinstance(link, _DETERMINISTIC) or _refused_login(link):
             return False
         if isinstance(link, (*_TRANSIENT_DB, OSError)):
             return True
     return False
+
+
+# SQLSTATE classes of a database's answer that a second attempt gets the same way: the login
+# or the database itself is wrong (28: invalid authorization, 3D: no such database).
+_REFUSED_SQLSTATE_CLASSES = ("28", "3D")
+
+
+def _refused_login(link: BaseException) -> bool:
+    orig = getattr(link, "orig", None)
+    sqlstate = getattr(orig, "sqlstate", None) or getattr(link, "sqlstate", None)
+    return isinstance(sqlstate, str) and sqlstate[:2] in _REFUSED_SQLSTATE_CLASSES
+
+
+def _prefect_unreachable(link: BaseException) -> bool:
+    """Prefect's API did not answer, answered with a server error, or could not give a
+    concurrency slot, or Prefect took the run for crashed: all of it outside the archive."""
+    import httpx
+    from prefect.exceptions import Abort, CrashedRun
+
+    try:
+        from prefect.concurrency._asyncio import ConcurrencySlotAcquisitionError
+    except ImportError:  # pragma: no cover - another Prefect layout
+        ConcurrencySlotAcquisitionError = ()  # type: ignore[assignment]
+    if isinstance(link, httpx.HTTPStatusError):
+        return link.response.status_code >= 500 or link.response.status_code in (408, 429)
+    return isinstance(link, (httpx.TransportError, Abort, CrashedRun)) or (
+        bool(ConcurrencySlotAcquisitionError) and isinstance(link, ConcurrencySlotAcquisitionError)
+    )
+
+
+TRANSIENT = "transient"
+CONTENT = "content"
+OTHER = "error"
+
+
+def failure_cause(exc: BaseException) -> str:
+    """Why an archive failed, as a network run decides whether to try it again.
+
+    Returns
+    -------
+    str
+        ``"transient"``: outside the archive and likely to pass (the database or Prefect's API
+        unreachable, a concurrency slot not granted, the run taken for crashed, another
+        transient I/O error): worth another attempt later in the run.
+        ``"content"``: the archive's own content or figures (a bad file, metadata, geometry,
+        registration, a value the database refuses) or a refused database login: the same
+        input fails the same way, so it is not tried again.
+        ``"error"``: anything else (a defect of pipescan): not tried again either.
+
+    Examples
+    --------
+    >>> failure_cause(ConnectionRefusedError("connection refused"))
+    'transient'
+    >>> failure_cause(GeometryError("no points in the window"))
+    'content'
+    """
+    from pipescan.core.errors import PipescanError
+
+    links = list(_causes(exc))
+    if any(isinstance(link, _DETERMINISTIC) or _refused_login(link) for link in links):
+        return CONTENT
+    if is_transient_io_error(exc) or any(_prefect_unreachable(link) for link in links):
+        return TRANSIENT
+    if any(isinstance(link, PipescanError) for link in links):
+        return CONTENT
+    return OTHER
 
 
 def retry_on_io_error(task, task_run, state) -> bool:

@@ -1,0 +1,309 @@
+"""No pipe left behind: a network run retries an archive that failed for a transient cause
+(within a stated window, with backoff), never one that failed for its own content, ends Failed
+naming what is still missing, and the next run takes the missing archives first.
+
+The sub-flow is replaced by a fake that fails on cue, so that these run in seconds; the real
+sub-flow's failures are classified by ``failure_cause``, tested on the errors it raises."""
+
+from __future__ import annotations
+
+import httpx
+import pytest
+import sqlalchemy as sa
+from prefect import flow
+from prefect.exceptions import CrashedRun
+from prefect.testing.utilities import prefect_test_harness
+
+import pipescan.flows.network as network
+from pipescan.core.errors import MetadataError
+from pipescan.flows.inspect import InspectionSummary
+from pipescan.flows.network import (
+    ArchiveOutcome,
+    NetworkIncomplete,
+    backoff_delay,
+    format_network_summary,
+    inspect_network,
+    merge_duplicates,
+)
+from pipescan.settings import database_url, get_settings
+from pipescan.storage.database.db import StorageError, connect
+from pipescan.tasks.network import unstored_first
+from pipescan.tasks.retries import failure_cause
+from tests.test_db import save
+
+# --- what counts as transient -------------------------------------------------------------------
+
+
+def _wrapped(outer: BaseException, inner: BaseException) -> BaseException:
+    try:
+        try:
+            raise inner
+        except BaseException as exc:
+            raise outer from exc
+    except BaseException as raised:
+        return raised
+
+
+class _PgError(Exception):
+    def __init__(self, message: str, sqlstate: str | None):
+        super().__init__(message)
+        self.sqlstate = sqlstate
+
+
+def _db_error(message: str, sqlstate: str | None) -> BaseException:
+    return _wrapped(
+        StorageError(f"cannot open database: {message}"),
+        sa.exc.OperationalError("connect", {}, _PgError(message, sqlstate)),
+    )
+
+
+def _slot_error() -> BaseException:
+    from prefect.concurrency._asyncio import ConcurrencySlotAcquisitionError
+
+    return _wrapped(
+        ConcurrencySlotAcquisitionError("Unable to acquire concurrency slots on ['x']"),
+        httpx.ConnectError("All connection attempts failed"),
+    )
+
+
+def _http_500() -> BaseException:
+    request = httpx.Request("POST", "http://prefect/api/task_runs/")
+    response = httpx.Response(500, request=request)
+    return httpx.HTTPStatusError("Internal Server Error", request=request, response=response)
+
+
+@pytest.mark.parametrize(
+    ("make", "cause"),
+    [
+        (lambda: _db_error("connection refused", None), "transient"),
+        (lambda: _db_error("unable to open database file", None), "transient"),
+        (lambda: _db_error('password authentication failed for user "p"', "28P01"), "content"),
+        (lambda: _db_error('database "nope" does not exist', "3D000"), "content"),
+        (_slot_error, "transient"),
+        (lambda: httpx.ConnectError("All connection attempts failed"), "transient"),
+        (_http_500, "transient"),
+        (lambda: CrashedRun("the sub-flow was marked Crashed"), "transient"),
+        (lambda: ConnectionRefusedError(111, "refused"), "transient"),
+        (lambda: MetadataError("missing inspected_at"), "content"),
+        (lambda: _wrapped(MetadataError("bad toml"), OSError(5, "io")), "content"),
+        (lambda: KeyError("a defect of pipescan"), "error"),
+    ],
+)
+def test_failures_are_classed_as_transient_content_or_error(make, cause):
+    assert failure_cause(make()) == cause
+
+
+def test_backoff_doubles_up_to_its_cap():
+    assert [backoff_delay(15, 120, n) for n in range(1, 7)] == [15, 30, 60, 120, 120, 120]
+
+
+def test_archives_without_a_stored_inspection_go_first():
+    archives = ["/s/a", "/s/b", "/s/c", "/s/d"]
+    assert unstored_first(archives, {"/s/a", "/s/c"}) == ["/s/b", "/s/d", "/s/a", "/s/c"]
+
+
+def _outcome(label: str, status: str, inspection_id: int | None = None, **kw) -> ArchiveOutcome:
+    return ArchiveOutcome(
+        archive=f"/s/{label}",
+        label=label,
+        status=status,
+        wall_time_s=1.0,
+        inspection_id=inspection_id,
+        asset_id="A" if inspection_id else None,
+        **kw,
+    )
+
+
+def test_the_same_content_under_two_names_is_one_entry_said_once():
+    merged = merge_duplicates(
+        [
+            _outcome("good-real", "reused", 1),
+            _outcome("other", "inspected", 2),
+            _outcome("real459-nested", "inspected", 1),
+        ]
+    )
+    assert [(o.label, o.status, o.same_as) for o in merged] == [
+        ("good-real", "inspected", None),
+        ("other", "inspected", None),
+        ("real459-nested", "duplicate", "good-real"),
+    ]
+    summary = network.NetworkSummary(
+        store="/s",
+        executor="local",
+        outcomes=merged,
+        worst=[],
+        wall_time_s=1.0,
+        counts={k: sum(o.status == k for o in merged) for k in network.STATUSES},
+    )
+    text = "\n".join(format_network_summary(summary))
+    assert "2 inspected, 0 reused (already stored), 1 the same content as another" in text
+    assert text.count("real459-nested") == 1 and "real459-nested = good-real" in text
+
+
+# --- the flow, with a fake sub-flow --------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def prefect():
+    with prefect_test_harness(server_startup_timeout=60):
+        yield
+
+
+def _summary(archive: str, inspection_id: int) -> InspectionSummary:
+    return InspectionSummary(
+        inspection_id=inspection_id,
+        asset_id=f"A-{inspection_id}",
+        inspected_at="2026-12-01T02:00:00+00:00",
+        archive=archive,
+        frame_count=1,
+        point_count=1,
+        scanned_length_m=1.0,
+        section_count=1,
+        sections_ok=1,
+        defect_count=0,
+        max_blockage_ratio=0.05,
+        max_blockage_chainage_m=0.5,
+        unmeasured_by_status={},
+        registration={},
+        start_source=None,
+        report_path=None,
+        wall_time_s=0.1,
+    )
+
+
+class Countdown:
+    """Fails ``times`` times with ``exc``, then passes."""
+
+    def __init__(self, times: int, exc: BaseException):
+        self.times, self.exc = times, exc
+
+    def __call__(self) -> None:
+        if self.times > 0:
+            self.times -= 1
+            raise self.exc
+
+
+class FakeSubflow:
+    """Stands for ``inspect-archive``: archive ``aN`` is stored as inspection N, unless its
+    countdown fails it; records the order of the calls."""
+
+    def __init__(self, monkeypatch, failures: dict[str, Countdown]):
+        self.failures = failures
+        self.calls: list[str] = []
+        fake = self
+
+        @flow(name="inspect-archive")
+        def fake_inspect_archive(archive, report_path=None, params=None, work_dir=None, **kw):
+            name = archive.rstrip("/").rsplit("/", 1)[-1]
+            fake.calls.append(name)
+            if name in fake.failures:
+                fake.failures[name]()
+            engine = connect(database_url(get_settings()))
+            try:
+                stored = save(engine, archive_uri=archive, content_hash=f"sha256:{name}")
+            finally:
+                engine.dispose()
+            return _summary(archive, stored)
+
+        monkeypatch.setattr(network, "inspect_archive", fake_inspect_archive)
+
+
+def _store(root, names):
+    for name in names:
+        (root / name).mkdir(parents=True)
+        (root / name / "inspection.toml").write_text("", encoding="utf-8")
+    return str(root)
+
+
+@pytest.fixture
+def fast_retries(monkeypatch, tmp_path):
+    monkeypatch.setattr(network, "RETRY_FIRST_DELAY_S", 0.2)
+    monkeypatch.setattr(network, "RETRY_MAX_DELAY_S", 0.4)
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", f"sqlite:///{tmp_path / 'r.db'}")
+
+
+def _run(store, tmp_path, **kw):
+    return inspect_network(
+        store=store,
+        work_dir=str(tmp_path / "work"),
+        write_network_report=False,
+        concurrency=2,
+        return_state=True,
+        **kw,
+    )
+
+
+def test_a_transient_failure_is_retried_within_the_run_and_a_bad_archive_is_not(
+    prefect, tmp_path, fast_retries, monkeypatch
+):
+    fake = FakeSubflow(
+        monkeypatch,
+        {
+            "a2": Countdown(2, _db_error("unable to open database file", None)),
+            "a3": Countdown(1, _slot_error()),  # the Prefect server came back
+            "a9": Countdown(99, MetadataError("missing inspected_at", file="inspection.toml")),
+        },
+    )
+    store = _store(tmp_path / "store", ["a1", "a2", "a3", "a9"])
+    state = _run(store, tmp_path, retry_window_s=30)
+
+    assert state.is_failed(), state  # a bad archive is an archive not stored: not green
+    exc = state.result(raise_on_failure=False)
+    assert isinstance(exc, NetworkIncomplete)
+    by = {o.label: o for o in exc.summary.outcomes}
+    assert {k: (o.status, o.attempts) for k, o in by.items()} == {
+        "a1": ("inspected", 1),
+        "a2": ("inspected", 3),
+        "a3": ("inspected", 2),
+        "a9": ("failed", 1),
+    }
+    assert by["a9"].cause == "content" and fake.calls.count("a9") == 1  # never retried
+    assert exc.summary.missing == []
+    assert state.message.startswith("1 of 4 archives not stored")
+    assert "a9" in state.message and "own content" in state.message
+
+
+def test_what_is_still_missing_fails_the_run_and_goes_first_next_time(
+    prefect, tmp_path, fast_retries, monkeypatch
+):
+    refused = _db_error("connection refused", None)
+    fake = FakeSubflow(
+        monkeypatch, {"a2": Countdown(10**6, refused), "a4": Countdown(10**6, refused)}
+    )
+    store = _store(tmp_path / "store", ["a1", "a2", "a3", "a4"])
+    state = _run(store, tmp_path, retry_window_s=1.0)
+
+    assert state.is_failed(), state
+    summary = state.result(raise_on_failure=False).summary
+    assert [o.label for o in summary.missing] == ["a2", "a4"]
+    assert all(o.cause == "transient" and o.attempts >= 2 for o in summary.missing)
+    assert "missing after" in state.message and "a2" in state.message and "a4" in state.message
+    text = "\n".join(format_network_summary(summary))
+    assert "MISSING" in text and "the next run takes them first" in text
+
+    # The next run: the missing archives first, then the stored ones (reused).
+    fake.failures.clear()
+    fake.calls.clear()
+    summary = inspect_network(
+        store=store, work_dir=str(tmp_path / "work"), write_network_report=False, concurrency=1
+    )
+    assert fake.calls == ["a2", "a4", "a1", "a3"]
+    assert summary.failures == []
+
+
+def test_the_network_report_goes_into_the_reports_folder(
+    prefect, tmp_path, fast_retries, monkeypatch
+):
+    FakeSubflow(monkeypatch, {})
+    written = []
+
+    def fake_report(database_url, out_path, *, inspection_ids=None, failed=(), since=None):
+        written.append(out_path)
+        return out_path
+
+    monkeypatch.setattr("pipescan.tasks.reporting.render_network_report", fake_report)
+    monkeypatch.setenv("PIPESCAN_REPORTS_DIR", str(tmp_path / "elsewhere"))
+    store = _store(tmp_path / "store", ["a1"])
+    inspect_network(store=store, work_dir=str(tmp_path / "work"), reports_dir=str(tmp_path / "r"))
+    [out] = written
+    assert out.parent == tmp_path / "r"
