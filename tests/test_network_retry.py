@@ -307,3 +307,58 @@ def test_the_network_report_goes_into_the_reports_folder(
     inspect_network(store=store, work_dir=str(tmp_path / "work"), reports_dir=str(tmp_path / "r"))
     [out] = written
     assert out.parent == tmp_path / "r"
+
+
+# --- start-up survives a blip -------------------------------------------------------------------
+
+
+def test_the_database_check_at_the_start_waits_out_a_blip(
+    prefect, tmp_path, fast_retries, monkeypatch
+):
+    FakeSubflow(monkeypatch, {})
+    monkeypatch.setattr(network, "DATABASE_FIRST_DELAY_S", 0.2)
+    real_check = network.checked_database_url
+    blip = Countdown(2, _db_error("connection refused", None))
+
+    def flaky_check(settings=None):
+        blip()
+        return real_check(settings)
+
+    monkeypatch.setattr(network, "checked_database_url", flaky_check)
+    store = _store(tmp_path / "store", ["a1"])
+    summary = inspect_network(
+        store=store, work_dir=str(tmp_path / "work"), write_network_report=False, startup_wait_s=10
+    )
+    assert [o.status for o in summary.outcomes] == ["inspected"] and blip.times == 0
+
+    # Down for longer than the wait: one error saying how long it tried.
+    blip.times = 10**6
+    with pytest.raises(StorageError, match=r"connection refused \(still so after \d+ s of trying"):
+        inspect_network(store=store, write_network_report=False, startup_wait_s=0.5)
+
+
+def test_a_refused_login_is_not_waited_on(prefect, tmp_path, fast_retries, monkeypatch):
+    calls = []
+
+    def refused(settings=None):
+        calls.append(1)
+        raise _db_error('password authentication failed for user "p"', "28P01")
+
+    monkeypatch.setattr(network, "checked_database_url", refused)
+    with pytest.raises(StorageError, match="password authentication failed"):
+        inspect_network(store=str(tmp_path), write_network_report=False, startup_wait_s=60)
+    assert len(calls) == 1
+
+
+def test_a_scheduled_run_waits_five_minutes_for_its_database_and_a_person_does_not(monkeypatch):
+    assert network.DATABASE_WAIT_S == 300 and network.RETRY_WINDOW_S == 900
+    waits = []
+    monkeypatch.setattr(
+        network, "wait_for_database", lambda s, wait_s, log: waits.append(wait_s) or 1 / 0
+    )
+    monkeypatch.setattr(network, "get_run_logger", lambda: network.log)
+    for deployed in (True, False):
+        monkeypatch.setattr(network, "in_deployment", lambda deployed=deployed: deployed)
+        with pytest.raises(ZeroDivisionError):
+            inspect_network.fn(store="/nowhere")
+    assert waits == [300, 0]
