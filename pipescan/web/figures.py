@@ -157,7 +157,7 @@ def profiles_svg(trend: AssetTrend, *, selected_cell: int | None, href_at: str) 
     n, k = trend.blockage_ratio.shape
     if k == 0:
         return Markup("")
-    w, left, right, top = 1000.0, 56.0, 12.0, 12.0
+    w, left, right, top = 1000.0, 84.0, 12.0, 12.0
     plot_h = 240.0
     lane_h, lane_gap = 9.0, 3.0
     lanes_top = top + plot_h + 34.0
