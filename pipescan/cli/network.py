@@ -187,6 +187,7 @@ def deploy(
     from pipescan.flows.deploy import (
         CANCELLING_AFTER_S,
         MAX_ATTEMPTS,
+        PLACEHOLDER_NOTE,
         RETRY_AFTER_S,
         RETRY_PARAMETER,
         SILENT_AFTER_S,
@@ -202,7 +203,7 @@ def deploy(
         parameters["concurrency"] = concurrency
     try:
         refuse_password_in_url(store)
-        shown_url = _deploy_database_check(db)
+        _deploy_database_check(db)
         try:
             found = len(find_archives(absolute_location(store)))
         except EmptyStoreError:
@@ -229,8 +230,8 @@ def deploy(
         f"for {CANCELLING_AFTER_S} s is marked Cancelled\n"
         f"    (automations {', '.join(repr(a) for a in info.automations)})\n"
         f"  start workers, under systemd or another supervisor, with this environment "
-        f"(docs/operations.md):\n"
-        + "".join(f"    {line}\n" for line in _worker_environment(info.api_url, shown_url))
+        f"(docs/operations.md; {PLACEHOLDER_NOTE}):\n"
+        + "".join(f"    {line}\n" for line in _worker_environment(info.api_url, store, db))
         + f"    prefect worker start --pool {info.work_pool}\n"
         f"  run now:               prefect deployment run '{full}'\n"
         f"  re-inspect everything: prefect deployment run '{full}' "
@@ -244,19 +245,19 @@ def deploy(
         )
 
 
-def _worker_environment(api_url: str, shown_url: str) -> list[str]:
-    """What a worker's environment must hold, as far as this shell knows it."""
-    from pipescan.settings import get_settings
+def _worker_environment(api_url: str, store: str, db: str | None) -> list[str]:
+    """What a worker's environment must hold, as far as this shell (and ``--db``) knows it."""
+    from prefect.settings import PREFECT_API_AUTH_STRING
 
-    settings = get_settings()
-    reports = settings.reports_dir.expanduser()
-    lines = [f"PREFECT_API_URL={api_url}", f"PIPESCAN_DATABASE_URL={shown_url}"]
-    if settings.database_password_block:
-        lines.append(f"PIPESCAN_DATABASE_PASSWORD_BLOCK={settings.database_password_block}")
-    lines.append(
-        f"PIPESCAN_REPORTS_DIR={reports if reports.is_absolute() else '/an/absolute/folder'}"
-    )
-    return lines
+    from pipescan.flows.deploy import worker_environment
+    from pipescan.settings import get_settings, use_settings
+
+    auth = PREFECT_API_AUTH_STRING.value()
+    if hasattr(auth, "get_secret_value"):
+        auth = auth.get_secret_value()
+    with use_settings(database_url=db):
+        settings = get_settings()
+    return worker_environment(api_url, settings, store=store, auth_string=auth or None)
 
 
 def _deploy_database_check(db: str | None) -> str:
@@ -271,12 +272,13 @@ def _deploy_database_check(db: str | None) -> str:
     """
     from sqlalchemy.engine import make_url
 
-    from pipescan.flows.database import is_relative_sqlite
+    from pipescan.flows.database import is_relative_sqlite, refuse_unencoded_password
     from pipescan.settings import database_url, get_settings, use_settings
     from pipescan.storage.database.db import StorageError, check_database
 
     with use_settings(database_url=db):
         settings = get_settings()
+        refuse_unencoded_password(settings.database_url)
         if "database_url" not in settings.model_fields_set:
             raise StorageError(
                 "no database named: scheduled runs would write to a pipescan.db in the "

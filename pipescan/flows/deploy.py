@@ -48,6 +48,76 @@ RETRY_PARAMETER = "reuse_stored"
 """The parameter that, set to false, makes a run process every archive again."""
 
 
+PLACEHOLDER_NOTE = "replace each <...> with its value: secrets are never printed"
+
+
+def _placeholder_url(url: str, *, drop_password: bool) -> str:
+    """A database URL as a worker's environment line may show it: a password replaced by
+    ``<password>`` (or left out, when a Secret block gives it), never its value."""
+    from sqlalchemy.engine import make_url
+
+    parsed = make_url(url)
+    if parsed.password is None:
+        return url
+    if drop_password:
+        return parsed.set(password=None).render_as_string(hide_password=False)
+    shown = parsed.render_as_string(hide_password=True)  # user:***@host
+    return shown.replace(":***@", ":<password>@", 1)
+
+
+def worker_environment(
+    api_url: str,
+    settings,
+    *,
+    store: str = "",
+    auth_string: str | None = None,
+) -> list[str]:
+    """The environment a worker of the deployment needs, as ``NAME=value`` lines for an
+    ``EnvironmentFile``: what the deploying shell has, with every secret a ``<placeholder>``
+    (never its value, nor a mask such as ``***`` that would be copied as a value).
+
+    Parameters
+    ----------
+    api_url
+        The Prefect API the deployment was made on.
+    settings
+        The deploying shell's :class:`pipescan.settings.Settings` (``--db`` applied).
+    store
+        The deployment's store: an ``s3://`` one asks for the object store's credentials.
+    auth_string
+        The shell's ``PREFECT_API_AUTH_STRING`` (``user:password``), if any: its user is kept.
+    """
+    lines = [f"PREFECT_API_URL={api_url}"]
+    if auth_string:
+        user = auth_string.split(":", 1)[0] if ":" in auth_string else "<user>"
+        lines.append(f"PREFECT_API_AUTH_STRING={user}:<password>")
+    block = settings.database_password_block
+    lines.append(
+        "PIPESCAN_DATABASE_URL="
+        + _placeholder_url(settings.database_url, drop_password=bool(block))
+    )
+    if block:
+        lines.append(f"PIPESCAN_DATABASE_PASSWORD_BLOCK={block}")
+    reports = settings.reports_dir.expanduser()
+    lines.append(
+        f"PIPESCAN_REPORTS_DIR={reports if reports.is_absolute() else '/an/absolute/folder'}"
+    )
+    work = settings.work_dir.expanduser()
+    if work.is_absolute():
+        lines.append(f"PIPESCAN_WORK_DIR={work}")
+    if settings.dask_address:
+        lines.append(f"PIPESCAN_DASK_ADDRESS={settings.dask_address}")
+    if store.startswith("s3://"):
+        lines += ["AWS_ACCESS_KEY_ID=<key id>", "AWS_SECRET_ACCESS_KEY=<secret key>"]
+    if settings.smtp_host:
+        lines.append(f"PIPESCAN_SMTP_HOST={settings.smtp_host}")
+        if settings.smtp_username:
+            lines.append(f"PIPESCAN_SMTP_USERNAME={settings.smtp_username}")
+        if settings.smtp_password is not None:
+            lines.append("PIPESCAN_SMTP_PASSWORD=<smtp password>")
+    return lines
+
+
 class DeploymentError(PipescanError):
     """The deployment could not be created: no Prefect server, a bad schedule, a bad pool."""
 
