@@ -23,7 +23,7 @@ import pytest
 
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 
-from tests.test_web_api import PIPES, YEARS, build_network  # noqa: E402
+from tests.test_web_api import PIPES, YEARS, build_network
 
 CHROMIUM = Path(os.environ.get("PIPESCAN_CHROMIUM", "/usr/bin/chromium"))
 CHROMIUM_ARGS = [
@@ -107,9 +107,11 @@ def _page(browser, width: int, height: int, **options):
     outside: list[str] = []
     context.on(
         "request",
-        lambda r: outside.append(r.url)
-        if not r.url.startswith(("http://127.0.0.1", "data:", "about:"))
-        else None,
+        lambda r: (
+            outside.append(r.url)
+            if not r.url.startswith(("http://127.0.0.1", "data:", "about:"))
+            else None
+        ),
     )
     return context, context.new_page(), outside
 
