@@ -54,6 +54,7 @@ from pipescan.reports.context import (
 from pipescan.storage.database import web_queries
 from pipescan.storage.database.db import StorageError, connect, session_scope
 from pipescan.storage.database.models import Inspection
+from pipescan.storage.database.network import gis_ids
 from pipescan.storage.database.queries import defect_counts
 from pipescan.storage.database.repository import (
     get_defects,
@@ -608,7 +609,11 @@ def create_app(config: WebConfig) -> FastAPI:
         latest = records[-1]
         defects = get_defects(engine, latest.id)
         _server_timing(request, "queries", started)
-        row = next((p for p in pipes() if p.asset_id == asset_id), None)
+        # This pipe's own head line, without reading the whole network.
+        row = _PipeHead(
+            gis_id=gis_ids(engine, [asset_id]).get(asset_id),
+            worst_grade=web_queries.worst_grades(engine, [latest.id]).get(latest.id),
+        )
         spans = _Spans.of(trend)
         cell = _cell(trend, at)
         colours = {
@@ -993,6 +998,12 @@ def _schema_words(schema: dict[str, Any]) -> str:
     if "pattern" in schema:
         bounds.append(f"pattern {schema['pattern']}")
     return words + (f" ({', '.join(bounds)})" if bounds else "")
+
+
+@dataclass(frozen=True)
+class _PipeHead:
+    gis_id: str | None
+    worst_grade: int | None
 
 
 @dataclass(frozen=True)
