@@ -7,14 +7,18 @@ sub-flow's failures are classified by ``failure_cause``, tested on the errors it
 
 from __future__ import annotations
 
+import json
+
 import httpx
 import pytest
 import sqlalchemy as sa
 from prefect import flow
 from prefect.exceptions import CrashedRun
 from prefect.testing.utilities import prefect_test_harness
+from typer.testing import CliRunner
 
 import pipescan.flows.network as network
+from pipescan.cli import app
 from pipescan.core.errors import MetadataError
 from pipescan.flows.inspect import InspectionSummary
 from pipescan.flows.network import (
@@ -362,3 +366,68 @@ def test_a_scheduled_run_waits_five_minutes_for_its_database_and_a_person_does_n
         with pytest.raises(ZeroDivisionError):
             inspect_network.fn(store="/nowhere")
     assert waits == [300, 0]
+
+
+# --- pipescan runs ----------------------------------------------------------------------------
+
+
+def test_runs_shows_each_runs_outcome_and_what_was_stored_since(
+    prefect, tmp_path, fast_retries, monkeypatch
+):
+    bad = MetadataError("missing inspected_at", file="inspection.toml")
+    fake = FakeSubflow(
+        monkeypatch,
+        {"a2": Countdown(10**6, _db_error("connection refused", None)), "a9": Countdown(99, bad)},
+    )
+    store = _store(tmp_path / "store", ["a1", "a2", "a9"])
+    assert _run(store, tmp_path, retry_window_s=0.5).is_failed()
+    fake.failures.pop("a2")  # the database is back: the next run stores a2
+    assert _run(store, tmp_path).is_failed()  # a9 is still bad
+
+    result = CliRunner().invoke(app, ["runs", "--json", "--limit", "2"])
+    assert result.exit_code == 0, result.output
+    newest, older = json.loads(result.output)
+    assert (older["state"], older["source"]) == ("FAILED", "outcomes")
+    assert {k: v for k, v in older["counts"].items() if v} == {
+        "inspected": 1,
+        "failed": 1,
+        "missing": 1,
+    }
+    [missing] = older["missing"]
+    assert missing["archive"] == "a2" and "connection refused" in missing["why"]
+    assert missing["stored_since"] is True
+    # (the fake sub-flow stores again what a real one would reuse)
+    assert {k: v for k, v in newest["counts"].items() if v} == {"inspected": 2, "failed": 1}
+    [failed] = newest["failed"]
+    assert failed["archive"] == "a9" and "missing inspected_at" in failed["why"]
+    assert failed["stored_since"] is False and newest["missing"] == []
+    assert newest["started"] and newest["finished"]
+
+    text = CliRunner().invoke(app, ["runs", "--limit", "2"]).output
+    assert "missing a2 [stored since]: " in text
+    assert "failed  a9 [still not stored]: " in text
+
+
+def test_a_run_that_did_not_finish_is_counted_from_its_sub_flows():
+    from types import SimpleNamespace as NS
+
+    from pipescan.flows.runs import outcomes_from_subflows
+
+    def sub(name, state, at, message=None):
+        return NS(
+            name=name,
+            expected_start_time=at,
+            created=at,
+            state=NS(type=NS(value=state), message=message),
+        )
+
+    counts, failed, missing = outcomes_from_subflows(
+        [
+            sub("a1", "COMPLETED", 1),
+            sub("a2", "CRASHED", 2, "no heartbeat for 90 s"),
+            sub("a3", "FAILED", 3, "cannot open database"),
+            sub("a3", "COMPLETED", 4),  # its retry
+        ]
+    )
+    assert (counts["inspected"], counts["missing"], failed) == (2, 1, [])
+    assert [(n.archive, n.why) for n in missing] == [("a2", "crashed: no heartbeat for 90 s")]

@@ -298,3 +298,6 @@ def _deploy_database_check(db: str | None) -> str:
         )
     check_database(url)
     return make_url(url).render_as_string(hide_password=True)
+
+
+from pipescan.cli import runs as _runs  # noqa: E402,F401  (registers `pipescan runs` after these)

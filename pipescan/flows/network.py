@@ -794,6 +794,7 @@ def _leave_outcomes(summary: NetworkSummary) -> None:
     rows = [
         {
             "archive": o.label,
+            "uri": o.archive,
             "status": o.status,
             "inspection": o.inspection_id,
             "attempts": o.attempts,
