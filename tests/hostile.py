@@ -409,6 +409,132 @@ def dangling_link(where: Path, scale: float) -> str:
     return str(root)
 
 
+# --- E57: the XML that libE57 parses, rewritten (with each page's CRC-32C) ---------------------
+
+_E57_HEADER = struct.Struct("<8sIIQQQQ")
+
+
+def _crc32c_table() -> list[int]:
+    table = []
+    for i in range(256):
+        c = i
+        for _ in range(8):
+            c = (c >> 1) ^ 0x82F63B78 if c & 1 else c >> 1
+        table.append(c)
+    return table
+
+
+_CRC32C = _crc32c_table()
+
+
+def crc32c(data: bytes) -> int:
+    c = 0xFFFFFFFF
+    table = _CRC32C
+    for byte in data:
+        c = table[(c ^ byte) & 0xFF] ^ (c >> 8)
+    return c ^ 0xFFFFFFFF
+
+
+def e57_xml(data: bytes) -> str:
+    """The XML of an E57 file."""
+    logical = b"".join(data[i : i + 1020] for i in range(0, len(data), 1024))
+    _, _, _, _, offset, length, _ = _E57_HEADER.unpack(data[:48])
+    start = (offset // 1024) * 1020 + offset % 1024
+    return logical[start : start + length].decode("utf-8")
+
+
+def e57_with_xml(data: bytes, xml: str | bytes) -> bytes:
+    """An E57 file's bytes with its XML replaced (the binary sections where they were), its
+    header and every page's checksum right: what libE57 opens as a sound file."""
+    logical = bytearray(b"".join(data[i : i + 1020] for i in range(0, len(data), 1024)))
+    sig, major, minor, _, offset, _, page = _E57_HEADER.unpack(bytes(logical[:48]))
+    start = (offset // 1024) * 1020 + offset % 1024
+    body = xml.encode("utf-8") if isinstance(xml, str) else xml
+    logical = logical[:start] + body
+    logical += b"\0" * (-len(logical) % 1020)
+    pages = len(logical) // 1020
+    logical[:48] = _E57_HEADER.pack(sig, major, minor, pages * 1024, offset, len(body), page)
+    out = bytearray()
+    for i in range(pages):
+        chunk = bytes(logical[i * 1020 : (i + 1) * 1020])
+        out += chunk + struct.pack(">I", crc32c(chunk))
+    return bytes(out)
+
+
+def _e57_scans(where: Path, scans: int = 2, n: int = 2000) -> bytes:
+    from pipescan.storage.input.readers.e57 import write_scans
+
+    path = where / "legit.e57"
+    write_scans(path, [(frame(n, seed=i), None, None) for i in range(scans)])
+    return path.read_bytes()
+
+
+def e57_doctype(url: str) -> Callable[[Path], bytes]:
+    """An E57 whose XML names an external DTD at ``url`` (libE57's parser fetches it)."""
+
+    def build(where: Path) -> bytes:
+        data = _e57_scans(where)
+        xml = e57_xml(data).replace("<e57Root", f'<!DOCTYPE e57Root SYSTEM "{url}">\n<e57Root', 1)
+        return e57_with_xml(data, xml)
+
+    return build
+
+
+def e57_entities(where: Path) -> bytes:
+    """An E57 whose XML declares nested internal entities (a "billion laughs")."""
+    data = _e57_scans(where)
+    decl = '<!DOCTYPE e57Root [\n<!ENTITY a "aaaaaaaaaa">\n' + "".join(
+        f'<!ENTITY {c} "{("&" + p + ";") * 10}">\n' for p, c in zip("abcdefgh", "bcdefghi", strict=True)
+    ) + "]>\n"
+    xml = e57_xml(data).replace("<e57Root", decl + "<e57Root", 1)
+    xml = xml.replace("<![CDATA[Scan 0]]>", "&i;", 1)
+    return e57_with_xml(data, xml)
+
+
+def e57_deep(where: Path, scale: float) -> str:
+    """An E57 whose XML nests 200,000 elements (libE57's parser recurses on each; 2,000 at
+    the tests' scale, still far past the bound)."""
+    depth = max(2000, int(200_000 * scale))
+    data = _e57_scans(where, scans=1, n=100)
+    nest = '<d type="Structure">' * depth + "</d>" * depth
+    xml = e57_xml(data).replace("</e57Root>", nest + "</e57Root>", 1)
+    root = _dir_archive(where)
+    (root / "cloud.e57").write_bytes(e57_with_xml(data, xml))
+    return str(root)
+
+
+def e57_shared_section(copies: int) -> Callable[[Path], bytes]:
+    """An E57 of ``copies`` scans that all point at the first scan's binary section."""
+
+    def build(where: Path) -> bytes:
+        data = _e57_scans(where, scans=1, n=2000)
+        xml = e57_xml(data)
+        begin = xml.index("<vectorChild")
+        end = xml.index("</vectorChild>") + len("</vectorChild>")
+        scan = xml[begin:end]
+        return e57_with_xml(data, xml[:end] + scan * (copies - 1) + xml[end:])
+
+    return build
+
+
+def e57_count_lies(where: Path) -> bytes:
+    """An E57 scan whose recordCount says 100 M records, in a section of 2,000."""
+    data = _e57_scans(where, scans=1, n=2000)
+    xml = e57_xml(data).replace('recordCount="2000"', 'recordCount="100000000"', 1)
+    return e57_with_xml(data, xml)
+
+
+def in_cloud(name: str, data: Callable[[Path], bytes]) -> Callable[[Path, float], str]:
+    """A directory archive whose registered cloud is ``name``, of ``data``'s bytes."""
+
+    def build(where: Path, scale: float) -> str:
+        root = _dir_archive(where)
+        (root / name).write_bytes(data(where))
+        return str(root)
+
+    return build
+
+
 def _toml_with(line: str) -> Callable[[Path, float], str]:
     def build(where: Path, scale: float) -> str:
         toml = TOML.replace(b'asset_id = "MH1-MH2"\n', b"") + line.encode("utf-8") + b"\n"
@@ -485,6 +611,13 @@ CASES: tuple[Case, ...] = (
     Case("text", "asset_id of 300 characters", _toml_with('asset_id = "' + "M" * 300 + '"'), MetadataError, "at most 64 characters"),
     Case("text", "upstream_node with CR LF", _toml_with('asset_id = "A"\nupstream_node = "MH1\\r\\nMH2"'), MetadataError, "control or invisible"),
     Case("text", "asset_id with a NUL", _toml_with('asset_id = "MH1\\u0000"'), MetadataError, "control or invisible"),
+    # round 2: E57 (no fetch, no shared section, bounded XML)
+    Case("fetch", "E57 XML with an external DTD (http)", in_cloud("cloud.e57", e57_doctype("http://127.0.0.1:9/d")), PointFileError, "DOCTYPE"),
+    Case("fetch", "E57 XML with an external DTD (file)", in_cloud("cloud.e57", e57_doctype("file:///etc/passwd")), PointFileError, "DOCTYPE"),
+    Case("fetch", "E57 XML with nested entities (billion laughs)", in_cloud("cloud.e57", e57_entities), PointFileError, "DOCTYPE"),
+    Case("parse", "E57 XML nested 200,000 deep", e57_deep, PointFileError, "more than 64 deep"),
+    Case("expansion", "E57: 200 scans sharing one binary section", in_cloud("cloud.e57", e57_shared_section(200)), PointFileError, "shares its binary section"),
+    Case("lying header", "E57: 1e8 records in a section of 2,000", in_cloud("cloud.e57", e57_count_lies), PointFileError, "its section holds"),
     Case("text", "asset_id with a right-to-left override", _toml_with('asset_id = "MH1\\u202eFDP"'), MetadataError, "control or invisible"),
 )  # fmt: skip
 

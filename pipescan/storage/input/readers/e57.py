@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from pipescan.storage.input.readers._common import Where, joined
+from pipescan.storage.input.readers._e57file import check_layout
 
 SUFFIXES = (".e57",)
 CHUNK_POINTS = 1_000_000
@@ -42,6 +43,7 @@ def _short(exc: BaseException) -> str:
 def _opened(path: Path, where: Where) -> Iterator[object]:
     import pye57
 
+    check_layout(path, where)  # before libE57's XML parser sees the file
     try:
         e57 = pye57.E57(str(path))
     except _errors() as exc:

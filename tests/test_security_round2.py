@@ -1,0 +1,90 @@
+"""Security, round 2 (issue 56): no reader fetches anything, every expansion is bounded by what
+was read, no credential passes in any URL form fsspec accepts, temporary files are created
+exclusively, and parsing is bounded. The crafted inputs that fit the corpus are in
+``tests/hostile.py`` (run by ``tests/test_hostile_inputs.py``); the ones that need a server, a
+second process or a planted file are here."""
+
+from __future__ import annotations
+
+import http.server
+import os
+import subprocess
+import sys
+import threading
+from pathlib import Path
+from typing import ClassVar
+
+import pytest
+
+from pipescan.core.errors import PointFileError
+from pipescan.storage.input.archive import open_archive, validate_archive
+from tests.hostile import e57_doctype, e57_shared_section, in_cloud
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _Recorder(http.server.BaseHTTPRequestHandler):
+    hits: ClassVar[list[str]] = []
+
+    def do_GET(self) -> None:
+        self.hits.append(self.path)
+        self.send_response(200)
+        self.end_headers()
+        self.wfile.write(b'<!ENTITY % leak "x">')
+
+    def log_message(self, *args) -> None:
+        pass
+
+
+@pytest.fixture
+def http_server():
+    """A local HTTP server that records every request (served from a thread of this process:
+    the reader runs in a child, since libE57 holds the GIL while it parses)."""
+    _Recorder.hits = []
+    server = http.server.HTTPServer(("127.0.0.1", 0), _Recorder)
+    thread = threading.Thread(target=server.serve_forever, daemon=True)
+    thread.start()
+    yield server
+    server.shutdown()
+    server.server_close()
+
+
+_VALIDATE = """
+import sys
+from pipescan.core.errors import PipescanError
+from pipescan.storage.input.archive import open_archive, validate_archive
+try:
+    with open_archive(sys.argv[1]) as arc:
+        validate_archive(arc)
+    print("accepted")
+except PipescanError as exc:
+    print(f"refused: {exc}")
+"""
+
+
+def test_an_e57_dtd_is_never_fetched(http_server, tmp_path) -> None:
+    """The issue's exploit: an external DTD whose entities would read a local file and send it.
+    libE57 fetched ``/d`` before this rule; now the file is refused before libE57 opens it."""
+    url = f"http://127.0.0.1:{http_server.server_port}/d"
+    given = in_cloud("cloud.e57", e57_doctype(url))(tmp_path, 1.0)
+    done = subprocess.run(
+        [sys.executable, "-c", _VALIDATE, given],
+        env=dict(os.environ, PYTHONPATH=str(ROOT)),
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert done.stdout.startswith("refused: "), done.stdout + done.stderr
+    assert "DOCTYPE" in done.stdout and "cloud.e57" in done.stdout
+    assert _Recorder.hits == []
+
+
+def test_e57_scans_sharing_a_section_are_refused_naming_the_scan(tmp_path) -> None:
+    given = in_cloud("cloud.e57", e57_shared_section(3))(tmp_path, 1.0)
+    with pytest.raises(PointFileError) as info, open_archive(given) as arc:
+        validate_archive(arc)
+    assert info.value.file == "cloud.e57"
+    assert info.value.field == "/data3D/vectorChild[1]/points"
+    assert "shares its binary section with /data3D/vectorChild[0]/points" in str(info.value)
