@@ -236,7 +236,9 @@ def recovery_automations(deployment_id: str, deployment_name: str) -> list:
         actions=[
             ChangeFlowRunState(
                 state=StateType.CRASHED,
-                message=f"no heartbeat for {SILENT_AFTER_S} s: the run's process or host died",
+                message=f"no heartbeat for {SILENT_AFTER_S} s: the run's process or host died "
+                "(its output, with the error, is in PIPESCAN_REPORTS_DIR/logs/ on the worker; "
+                "a retried attempt logs it)",
             )
         ],
     )

@@ -45,7 +45,12 @@ from pipescan.core.sanitize import REDACTED, strip_credentials, strip_credential
 from pipescan.core.wording import plural
 from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
-from pipescan.flows.recovery import close_earlier_attempts
+from pipescan.flows.recovery import (
+    close_earlier_attempts,
+    keep_output,
+    last_error,
+    run_output_path,
+)
 from pipescan.flows.runners import make_task_runner
 from pipescan.reports.network import FailedArchive
 from pipescan.settings import get_settings, use_settings
@@ -586,15 +591,18 @@ def inspect_network(
     """
     started = time.perf_counter()
     run_log = get_run_logger()
+    s = get_settings()
+    died_of = _keep_scheduled_output(s, reports_dir, run_log)
     if flow_run.run_count > 1:  # retried after a crash (pipescan.flows.deploy)
-        closed = close_earlier_attempts(flow_run.id, flow_run.name)
+        closed = close_earlier_attempts(flow_run.id, flow_run.name, died_of)
         _progress(
             run_log,
             f"attempt {flow_run.run_count} of this run: {closed[0]} sub-flow and {closed[1]} "
             "task runs of the earlier attempts marked Crashed"
-            + ("; archives already stored are reused" if reuse_stored else ""),
+            + ("; archives already stored are reused" if reuse_stored else "")
+            + (f"; the earlier attempt died of: {died_of}" if died_of else ""),
+            failed=bool(died_of),
         )
-    s = get_settings()
     if startup_wait_s is None:
         startup_wait_s = DATABASE_WAIT_S if in_deployment() else 0.0
     database_url = wait_for_database(s, startup_wait_s, run_log)
@@ -812,6 +820,27 @@ def _leave_outcomes(summary: NetworkSummary) -> None:
         )
     except Exception as exc:  # the API may be down; the log has the same lines
         log.warning("the run's outcome table was not written to Prefect: %s", exc)
+
+
+def _keep_scheduled_output(settings, reports_dir: str | None, run_log) -> str | None:
+    """In a deployment's run, send the process's output to its file in the reports folder
+    (``logs/network-<date>-<run>.log``, :func:`pipescan.flows.recovery.keep_output`), and
+    return the error the earlier attempt of a retried run died of, if its output says."""
+    if not in_deployment():
+        return None
+    folder = (Path(reports_dir) if reports_dir else settings.reports_dir).expanduser()
+    if not folder.is_absolute():  # the run fails on it shortly, saying so
+        return None
+    stem = network_report_name(flow_run.name, flow_run.scheduled_start_time).removesuffix(".pdf")
+    path = run_output_path(folder, stem)
+    died_of = last_error(path) if flow_run.run_count > 1 else None
+    try:
+        keep_output(path, flow_run.run_count, flow_run.name)
+    except OSError as exc:
+        run_log.warning(f"this run's process output goes nowhere: cannot write {path}: {exc}")
+        return died_of
+    run_log.info(f"this run's process output (errors included): {path} on the worker")
+    return died_of
 
 
 def _progress(run_log, line: str, *, failed: bool = False) -> None:

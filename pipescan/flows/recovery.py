@@ -1,4 +1,6 @@
-"""What a retried network run does first: close what its dead attempts left open.
+"""What a scheduled network run does so that nothing of a crash is lost: its process's output
+goes to a named file (:func:`keep_output`), and a retried attempt first closes what its dead
+attempts left open and says why the last one died (:func:`last_error`).
 
 When the process of a run dies (SIGKILL, OOM, a host crash), nothing marks the task runs and
 sub-flow runs it was executing: Prefect leaves them Running for good, even after the run
@@ -9,9 +11,23 @@ now: it marks them Crashed, so that no run of it stays Running.
 
 from __future__ import annotations
 
+import faulthandler
+import os
+import re
+import sys
 from collections.abc import Callable, Iterator
+from datetime import UTC, datetime
+from pathlib import Path
 from typing import Any
 
+RUN_LOGS = "logs"
+"""The folder, in the reports folder, of the scheduled runs' process output."""
+TAIL_BYTES = 65536
+"""How much of the end of an output file :func:`last_error` reads."""
+# The last line of a Python traceback: ``package.module.SomeError: message``.
+_ERROR_LINE = re.compile(
+    r"^(?:[A-Za-z_][\w.]*\.)?[A-Z]\w*(?:Error|Exception|Exit|Interrupt|Run)\b.*"
+)
 PAGE = 200
 """Runs read per request (the server's default cap)."""
 MESSAGE = "left running by an earlier attempt of {run}, whose process died"
@@ -27,10 +43,12 @@ def _pages(read: Callable[..., list[Any]], **filters: Any) -> Iterator[Any]:
         offset += PAGE
 
 
-def close_earlier_attempts(flow_run_id: str, run_name: str) -> tuple[int, int]:
+def close_earlier_attempts(
+    flow_run_id: str, run_name: str, died_of: str | None = None
+) -> tuple[int, int]:
     """Mark Crashed the sub-flow runs and task runs of this flow run (and of its sub-flows) that
-    are still active; call it before the run starts any of its own. Returns (sub-flow runs,
-    task runs) marked."""
+    are still active, their message naming the error the earlier attempt ``died_of`` if known;
+    call it before the run starts any of its own. Returns (sub-flow runs, task runs) marked."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
         FlowRunFilter,
@@ -44,7 +62,7 @@ def close_earlier_attempts(flow_run_id: str, run_name: str) -> tuple[int, int]:
     from prefect.states import Crashed
 
     active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
-    message = MESSAGE.format(run=run_name)
+    message = MESSAGE.format(run=run_name) + (f": {died_of}" if died_of else "")
     with get_client(sync_client=True) as client:
         subflows = list(
             _pages(
@@ -70,3 +88,62 @@ def close_earlier_attempts(flow_run_id: str, run_name: str) -> tuple[int, int]:
         for subflow in open_subflows:
             client.set_flow_run_state(subflow.id, Crashed(message=message), force=True)
     return len(open_subflows), len(tasks)
+
+
+def run_output_path(reports_dir: Path, file_stem: str) -> Path:
+    """Where a scheduled run's process writes its output: ``<reports>/logs/<stem>.log``, beside
+    the run's network report (``<stem>.pdf``), so that one name finds both."""
+    return reports_dir / RUN_LOGS / f"{file_stem}.log"
+
+
+def keep_output(path: Path, attempt: int, run_name: str) -> Path:
+    """Send this process's standard output and error (file descriptors 1 and 2: Python's
+    tracebacks, Prefect's console lines, a native library's messages, a fatal signal's stack
+    through :mod:`faulthandler`) to the end of ``path``, line by line.
+
+    A worker runs a scheduled run's process without a pipe (``stream_output`` off, so that
+    the run outlives its worker), which sends that output nowhere: the error that killed a
+    run would be lost.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o640)
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    for stream in (sys.stdout, sys.stderr):
+        reconfigure = getattr(stream, "reconfigure", None)
+        if reconfigure is not None:
+            reconfigure(line_buffering=True)
+    faulthandler.enable(file=sys.stderr, all_threads=True)
+    print(
+        f"--- {datetime.now(UTC):%Y-%m-%d %H:%M:%S} UTC: attempt {attempt} of run {run_name}, "
+        f"process {os.getpid()}",
+        flush=True,
+    )
+    return path
+
+
+def last_error(path: Path) -> str | None:
+    """The last error line (a traceback's last line, or a fatal signal's) of the latest
+    attempt in an output file that :func:`keep_output` wrote, or None. Call it before this
+    attempt's :func:`keep_output`."""
+    try:
+        with path.open("rb") as f:
+            f.seek(max(0, path.stat().st_size - TAIL_BYTES))
+            tail = f.read().decode("utf-8", "replace")
+    except OSError:
+        return None
+    lines = tail.splitlines()
+    # Only the latest attempt: from its header on.
+    headers = [i for i, line in enumerate(lines) if line.startswith("--- ")]
+    if headers:
+        lines = lines[headers[-1] :]
+    found = None
+    for line in lines:
+        stripped = line.strip()
+        if stripped.startswith("Fatal Python error") or _ERROR_LINE.match(stripped):
+            found = stripped
+    return found[:500] if found else None
