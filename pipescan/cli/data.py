@@ -217,7 +217,11 @@ def db_upgrade(
     if before == after:
         typer.echo(f"database already at revision {after}")
     else:
-        typer.echo(f"database migrated from {before or 'empty'} to revision {after}")
+        from pipescan.flows.database import migration_steps
+
+        typer.echo(f"database migrated from {before or 'empty'} to revision {after}:")
+        for step in migration_steps(before, after):
+            typer.echo(f"  {step}")
 
 
 @db_app.command("current")

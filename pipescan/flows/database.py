@@ -133,3 +133,41 @@ def checked_database_url(settings: Settings | None = None) -> str:
     url = run_database_url(settings)
     check_database(url)
     return url
+
+
+def migration_steps(before: str | None, after: str | None) -> list[str]:
+    """The schema migrations between two revisions, one line each, in the order they ran: the
+    revision, what it did, and what it means for rows stored before (from the migration's
+    docstring), e.g. ``3f6c2d8a1b47 Clock positions and characterisation of each defect
+    (NULL for defects stored before: they were not coded)``. Migrations undone by a downgrade
+    start with ``undone``."""
+    import re
+
+    from alembic.script import ScriptDirectory
+
+    from pipescan.storage.database.db import alembic_config
+
+    if before == after:
+        return []
+    script = ScriptDirectory.from_config(alembic_config())
+    try:
+        revisions = list(reversed(list(script.iterate_revisions(after, before or "base"))))
+        undone = ""
+    except Exception:  # a downgrade: ``after`` is below ``before``
+        revisions = list(script.iterate_revisions(before, after or "base"))
+        undone = "undone "
+    lines = []
+    for revision in revisions:
+        text = " ".join((revision.longdoc or revision.doc or "").split())
+        what = " ".join((revision.doc or "").split())
+        before_note = next(
+            (
+                sentence.strip()
+                for sentence in re.split(r"(?<=[.:])\s+(?=[A-Z])", text)
+                if "before" in sentence and ("NULL" in sentence or "none" in sentence)
+            ),
+            None,
+        )
+        note = f" {before_note.rstrip('.')}." if before_note and not undone else ""
+        lines.append(f"{undone}{revision.revision} {what}{note}")
+    return lines
