@@ -72,15 +72,16 @@ def test_an_unencoded_at_in_a_password_is_refused_without_showing_it(url):
     refuse_unencoded_password(url.replace("ETX3@xy", "ETX3%40xy"))  # encoded: fine
 
 
-@pytest.mark.parametrize("command", ["deploy", "inspect-network"])
+@pytest.mark.parametrize("command", ["deploy", "inspect-network", "db upgrade", "inspections"])
 def test_the_commands_refuse_it_in_one_line(tmp_path, command):
     url = "postgresql+psycopg://pipescan:ETX3@xy@127.0.0.1:5544/pipescan"
     (tmp_path / "store").mkdir()
-    args = (
-        ["deploy", "--store", str(tmp_path / "store"), "--cron", "0 2 * * *", "--db", url]
-        if command == "deploy"
-        else ["inspect-network", str(tmp_path / "store"), "--db", url]
-    )
+    args = {
+        "deploy": ["deploy", "--store", str(tmp_path / "store"), "--cron", "0 2 * * *"],
+        "inspect-network": ["inspect-network", str(tmp_path / "store")],
+        "db upgrade": ["db", "upgrade"],
+        "inspections": ["inspections"],
+    }[command] + ["--db", url]
     result = CliRunner().invoke(app, args)
     assert result.exit_code == 2, result.output
     [line] = result.output.strip().splitlines()

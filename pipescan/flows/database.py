@@ -12,48 +12,19 @@ from __future__ import annotations
 from pathlib import Path
 
 from sqlalchemy.engine import make_url
-from sqlalchemy.exc import ArgumentError
 
 from pipescan.settings import Settings, database_url, get_settings
-from pipescan.storage.database.db import StorageError, check_database, parse_database_url
+from pipescan.storage.database.db import (
+    StorageError,
+    check_database,
+    parse_database_url,
+    refuse_unencoded_password,
+)
 
 WORKER_HINT = (
     "set PIPESCAN_DATABASE_URL (an absolute SQLite path or postgresql+psycopg://...) in the "
     "environment of the Prefect worker, see docs/operations.md"
 )
-
-
-UNENCODED_PASSWORD_HINT = (
-    "percent-encode it in the URL (@ as %40, : as %3A, / as %2F, % as %25), or keep the "
-    "password out of the URL in a Prefect Secret block (PIPESCAN_DATABASE_PASSWORD_BLOCK, "
-    "docs/operations.md)"
-)
-
-
-def refuse_unencoded_password(url: str) -> None:
-    """Refuse a URL whose password holds an unencoded ``@``, before it is parsed or used:
-    the URL parser ends the password at its first ``@`` and takes the rest of it for the
-    host, which a connection error would then print.
-
-    Raises
-    ------
-    StorageError
-        In one line that names no part of the URL but its scheme.
-    """
-    scheme, sep, rest = url.partition("://")
-    if not sep or rest.count("@") < 2:
-        return
-    try:
-        parsed = make_url(url)
-        unencoded = "@" in (parsed.host or "")
-    except (ArgumentError, ValueError):  # e.g. the password's tail read as a port
-        unencoded = True
-    if unencoded:
-        raise StorageError(
-            f"the {scheme}:// database URL holds an unencoded '@' in its password, which would "
-            "be read as part of the host (the URL is not shown: it holds the password)",
-            hint=UNENCODED_PASSWORD_HINT,
-        )
 
 
 def absolute_database_url(url: str) -> str:

@@ -57,14 +57,49 @@ class StorageError(PipescanError):
     """The database is unreachable, at the wrong schema revision, or refused a write."""
 
 
+UNENCODED_PASSWORD_HINT = (
+    "percent-encode it in the URL (@ as %40, : as %3A, / as %2F, % as %25), or keep the "
+    "password out of the URL in a Prefect Secret block (PIPESCAN_DATABASE_PASSWORD_BLOCK, "
+    "docs/operations.md)"
+)
+
+
+def refuse_unencoded_password(url: str) -> None:
+    """Refuse a URL whose password holds an unencoded ``@``, before it is parsed or used:
+    the URL parser ends the password at its first ``@`` and takes the rest of it for the
+    host, which a connection error would then print.
+
+    Raises
+    ------
+    StorageError
+        In one line that names no part of the URL but its scheme.
+    """
+    scheme, sep, rest = url.partition("://")
+    if not sep or rest.count("@") < 2:
+        return
+    try:
+        parsed = make_url(url)
+        unencoded = "@" in (parsed.host or "")
+    except (sa.exc.ArgumentError, ValueError):  # e.g. the password's tail read as a port
+        unencoded = True
+    if unencoded:
+        raise StorageError(
+            f"the {scheme}:// database URL holds an unencoded '@' in its password, which would "
+            "be read as part of the host (the URL is not shown: it holds the password)",
+            hint=UNENCODED_PASSWORD_HINT,
+        )
+
+
 def parse_database_url(url: str) -> URL:
     """``url`` parsed (SQLAlchemy's ``make_url``).
 
     Raises
     ------
     StorageError
-        It cannot be parsed (also a port that is not a number), in one line.
+        It cannot be parsed (also a port that is not a number), or its password holds an
+        unencoded ``@`` (:func:`refuse_unencoded_password`), in one line.
     """
+    refuse_unencoded_password(url)
     try:
         return make_url(url)
     except (sa.exc.ArgumentError, ValueError) as exc:  # a port that is not a number
