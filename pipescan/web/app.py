@@ -402,6 +402,54 @@ class _Cache:
         return value
 
 
+class _Network:
+    """The network page's rows (:func:`web_queries.network_pipes`), read once and read again
+    in the background when the database changes (its :func:`web_queries.database_version`).
+
+    Reading a large network takes seconds (the worst class of every latest inspection is an
+    aggregate over its sections); a request never waits for it, except while the very first
+    read since the start runs. Until a new read is done, requests get the previous one: the
+    page may be one read behind a save, for as long as a read takes.
+    """
+
+    def __init__(self, engine: sa.Engine) -> None:
+        self._engine = engine
+        self._lock = threading.Lock()
+        self._held: tuple[Any, list[web_queries.PipeRow]] | None = None
+        self._building = False
+        self._first = threading.Event()
+
+    def warm(self) -> None:
+        self._refresh(web_queries.database_version(self._engine))
+
+    def rows(self) -> list[web_queries.PipeRow]:
+        self._refresh(web_queries.database_version(self._engine))
+        if not self._first.wait(timeout=300):
+            raise StorageError("reading the network takes more than 5 minutes")
+        with self._lock:
+            held = self._held
+        if held is None:
+            raise StorageError("the network could not be read from the database (see the log)")
+        return held[1]
+
+    def _refresh(self, version: Any) -> None:
+        with self._lock:
+            if (self._held is not None and self._held[0] == version) or self._building:
+                return
+            self._building = True
+        threading.Thread(target=self._build, args=(version,), daemon=True).start()
+
+    def _build(self, version: Any) -> None:
+        try:
+            rows = web_queries.network_pipes(self._engine)
+            with self._lock:
+                self._held = (version, rows)
+        finally:
+            with self._lock:
+                self._building = False
+            self._first.set()
+
+
 def _server_timing(request: Request, name: str, started: float) -> None:
     timings = getattr(request.state, "timings", [])
     timings.append(f"{name};dur={1000 * (time.perf_counter() - started):.1f}")
@@ -431,6 +479,7 @@ def create_app(config: WebConfig) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+        network.warm()  # read the network now, not on the first visitor's request
         yield
         engine.dispose()
 
@@ -465,8 +514,10 @@ def create_app(config: WebConfig) -> FastAPI:
     def version() -> tuple[Any, ...]:
         return web_queries.database_version(engine)
 
+    network = _Network(engine)
+
     def pipes() -> list[web_queries.PipeRow]:
-        return cache.get(("network", version()), lambda: web_queries.network_pipes(engine))
+        return network.rows()
 
     @app.middleware("http")
     async def guard(request: Request, call_next: Any) -> Response:

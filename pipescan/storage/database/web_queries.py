@@ -28,12 +28,13 @@ from sqlalchemy.engine import Engine
 
 from pipescan.core.model import SectionStatus
 from pipescan.storage.database.db import StorageError, parse_database_url, session_scope
-from pipescan.storage.database.models import Inspection, NetworkPipe, Section
+from pipescan.storage.database.models import Asset, Inspection, NetworkPipe, Section
 from pipescan.storage.database.network import asset_geometries
 from pipescan.storage.database.queries import defect_counts, latest_per_asset_statement
 from pipescan.storage.database.repository import (
     InspectionRecord,
     inspection_records,
+    mm_to_m,
     record_statement,
     section_from_row,
 )
@@ -127,7 +128,6 @@ class PipeRow:
     inspection_count: int
     last_inspection_id: int
     last_inspected_at: datetime
-    section_count: int
     measured_section_count: int
     worst_grade: int | None
     peak_blockage_ratio: float | None
@@ -161,14 +161,34 @@ def _inspection_counts(engine: Engine) -> dict[str, int]:
         return dict(session.connection().execute(statement).all())  # type: ignore[arg-type]
 
 
+def _latest_statement() -> sa.Select[Any]:
+    """The latest inspection of each asset with the figures the network page shows: plain
+    columns (no ORM objects, no JSON parsed), by asset id."""
+    latest = latest_per_asset_statement()
+    return (
+        sa.select(
+            Inspection.id,
+            Inspection.asset_id,
+            Inspection.inspected_at,
+            Inspection.measured_section_count,
+            Inspection.peak_blockage_ratio,
+            Inspection.peak_chainage_start_mm,
+            Asset.upstream_node,
+            Asset.downstream_node,
+            Asset.nominal_diameter_m,
+            Asset.material,
+        )
+        .join(Asset, Asset.asset_id == Inspection.asset_id)
+        .where(Inspection.id.in_(latest))
+        .order_by(Inspection.asset_id)
+    )
+
+
 def network_pipes(engine: Engine) -> list[PipeRow]:
     """Every asset with an inspection, with its latest inspection's figures, by asset id."""
-    latest = latest_per_asset_statement()
     with session_scope(engine) as session:
-        records = inspection_records(
-            session, record_statement(latest).order_by(Inspection.asset_id)
-        )
-    grades = worst_grades(engine, latest)
+        records = session.connection().execute(_latest_statement()).all()
+    grades = worst_grades(engine, latest_per_asset_statement())
     growth = {
         r.asset_id: r.peak_change_per_year
         for r in worst_assets(engine, by="current", limit=len(records) + 1)
@@ -194,11 +214,12 @@ def network_pipes(engine: Engine) -> list[PipeRow]:
                 inspection_count=scans.get(r.asset_id, 1),
                 last_inspection_id=r.id,
                 last_inspected_at=r.inspected_at,
-                section_count=r.section_count,
                 measured_section_count=r.measured_section_count,
                 worst_grade=grades.get(r.id),
                 peak_blockage_ratio=r.peak_blockage_ratio,
-                peak_chainage_m=r.peak_chainage_m,
+                peak_chainage_m=(
+                    None if r.peak_chainage_start_mm is None else mm_to_m(r.peak_chainage_start_mm)
+                ),
                 peak_change_per_year=growth.get(r.asset_id),
                 defect_count=counts.get(r.id, 0),
                 line_xy=line,
