@@ -168,7 +168,8 @@ def test_context_figures(report_input):
     assert [w["blockage"] for w in ctx["worst"][:5]] == ["31.0", "24.0", "18.0", "12.0", "11.0"]
     assert len(ctx["worst"]) == 10
     rows = ctx["sections"]
-    assert rows[10]["reason"] == "not measured: low coverage" and "blockage" not in rows[10]
+    assert rows[10]["reason"] == "not measured" and "blockage" not in rows[10]
+    assert rows[10]["status"] == "low coverage"
     assert rows[22]["blockage"] == "31.0" and rows[22]["flagged"]
 
 
@@ -191,8 +192,8 @@ def test_pdf_holds_the_figures(rendered):
     # Peak blockage over 5.00-5.20 m: max(0.0165, 0.0172) of the background pattern.
     assert re.search(r"BBC .*?5\.00 5\.20 0\.20 5\.00 deposit height 30\.0 1\.7 2", flat)
     # Unmeasured sections are named, with their reason and where they are.
-    assert "not measured: low coverage" in text
-    assert "not measured: too few points" in text
+    assert "not measured" in text and "low coverage" in text
+    assert "too few points" in text
     assert "1.00–1.40 m" in text
     # Cover facts.
     assert "DN 500" in text and "1 234 567" in text
@@ -248,7 +249,7 @@ def test_all_unmeasured_report(tmp_path):
     html = render_html(inp)
     assert "Nothing measured" in html and "No defects: no measured section" not in html
     assert not re.search(r"\b(None|nan|NaN)\b", html)
-    assert html.count("not measured: low coverage") == 5
+    assert html.count('<td class="status">low coverage</td>') == 5
 
 
 def test_a_crash_while_writing_leaves_no_pdf(tmp_path, monkeypatch, report_input):
@@ -659,7 +660,7 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
     rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=held)))
     assert "odometer slips caught" not in rows
     assert plain(rows["chainage uncertainty"]) == (
-        "up to ±0.09 m at the end (odometer-held travel)"
+        "up to ±0.09 m at the end (the odometer's error over the travel it placed)"
     )
     assert plain(rows["unseen odometer slips"]).startswith(
         "1.5 m of travel rested on the odometer alone: the ± there is the odometer's 5 % and "
@@ -669,7 +670,8 @@ def test_the_registration_block_says_the_odometer_slipped_and_that_the_chainage_
     stated = held | {"odometer_slip_stated_m": 0.2, "unseen_slips_allowed_m": 0.2}
     rows = dict(_registration_only_rows(dataclasses.replace(inp, registration=stated)))
     assert plain(rows["chainage uncertainty"]) == (
-        "up to ±0.09 m at the end (odometer-held travel and its possible slips)"
+        "up to ±0.09 m at the end (the odometer's error over the travel it placed, and its "
+        "possible slips)"
     )
     assert "one unseen slip of the stated 0.20 m" in plain(rows["unseen odometer slips"])
     # Every frame placed against features: the ± is registration's own, whatever was caught.

@@ -20,6 +20,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Circle, Patch
 from shapely.geometry import LineString, Point
 
+from pipescan.core.grading import flag_section
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import adjacent_runs, touches
 
@@ -82,15 +83,19 @@ def blockage_chart_svg(
     defects: Sequence[Defect],
     *,
     blockage_threshold_ratio: float,
+    flag_grade: int = 2,
+    min_coverage_ratio: float | None = None,
     width_in: float = 6.7,
     height_in: float = 3.3,
 ) -> str:
     """Blockage along the chainage, with flagged and unmeasured spans, as an SVG document.
 
     Measured (``ok``) sections are bars of blockage % over their chainage interval, red where
-    the section lies in a flagged defect. The flag threshold is a dashed line; flagged spans
-    are shaded. Sections that are not ``ok`` are a grey hatched band labelled "not measured",
-    never bars at 0. A strip below shows each section's angular coverage %.
+    the section itself is flagged (``pipescan.core.grading.flag_section``: the report's one
+    rule). The flag threshold is a dashed line; flagged defects' spans are shaded. Sections
+    that are not ``ok`` are a grey hatched band labelled "not measured", never bars at 0. A
+    strip below shows each section's angular coverage %, with the coverage a section needs
+    (``min_coverage_ratio``) as a dotted line.
 
     Parameters
     ----------
@@ -98,8 +103,12 @@ def blockage_chart_svg(
         The inspection's sections (any order); chainages in metres.
     defects
         Flagged spans to shade.
-    blockage_threshold_ratio
-        Flag threshold as a fraction (0.10 is drawn at 10 %).
+    blockage_threshold_ratio, flag_grade
+        The flag rule: a blockage at or above this fraction (0.10 is drawn at 10 %), or a
+        condition class this bad or worse.
+    min_coverage_ratio
+        The coverage a section needs to be measured, drawn on the coverage strip (None: not
+        drawn).
     width_in, height_in
         Figure size in inches (the default fits an A4 text width).
 
@@ -116,8 +125,9 @@ def blockage_chart_svg(
     threshold_pct = blockage_threshold_ratio * 100.0
 
     def in_defect(s: SectionMeasures) -> bool:
-        mid = 0.5 * (s.chainage_start_m + s.chainage_end_m)
-        return any(d.chainage_start_m <= mid < d.chainage_end_m for d in defects)
+        return flag_section(
+            s, blockage_threshold_ratio=blockage_threshold_ratio, flag_grade=flag_grade
+        )
 
     with mpl.rc_context(_STYLE):  # type: ignore[arg-type]  # stubs want Literal keys
         fig = Figure(figsize=(width_in, height_in), layout="constrained")
@@ -224,6 +234,17 @@ def blockage_chart_svg(
             baseline=None,
             zorder=2,
         )
+        if min_coverage_ratio is not None:
+            ax_cov.axhline(100 * min_coverage_ratio, color="#2d7d46", lw=0.6, ls=":", zorder=1)
+            ax_cov.text(
+                x_max_m,
+                100 * min_coverage_ratio,
+                f" {100 * min_coverage_ratio:g} %",
+                color="#2d7d46",
+                fontsize=6,
+                ha="left",
+                va="center",
+            )
         ax_cov.set_ylim(0, 105)
         ax_cov.set_yticks([0, 50, 100])
         ax_cov.set_ylabel("coverage\n(%)")

@@ -10,12 +10,17 @@ from __future__ import annotations
 
 import base64
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import datetime
 from typing import Any, TypeGuard
 
-from pipescan.core.grading import ThresholdTable, is_flagged, pipe_class_for_material
+from pipescan.core.grading import (
+    ThresholdTable,
+    flag_section,
+    is_flagged,
+    pipe_class_for_material,
+)
 from pipescan.core.model import Defect, SectionMeasures, SectionStatus
 from pipescan.core.registration.metrics import (
     allows_unseen_slips,
@@ -90,6 +95,78 @@ STATUS_EXPLANATIONS: dict[str, str] = {
         "saw the bare wall (registration may have slid along the pipe unseen)"
     ),
 }
+
+
+@dataclass(frozen=True)
+class MeasureLimits:
+    """The limits a section is measured under (from ``MeasureParams``): at least
+    ``min_coverage_ratio`` of the wall seen, by angle, no unseen arc over ``max_gap_deg``, the
+    blockage known to within ``max_uncertainty_ratio`` (95 %, ±), at least ``min_points``."""
+
+    min_coverage_ratio: float
+    max_gap_deg: float
+    max_uncertainty_ratio: float
+    min_points: int
+
+    @classmethod
+    def of(cls, given: Mapping[str, Any] | None) -> MeasureLimits:
+        from pipescan.core.measures import MeasureParams
+
+        default = MeasureParams()
+        given = given or {}
+        return cls(
+            min_coverage_ratio=float(given.get("min_coverage_ratio", default.min_coverage_ratio)),
+            max_gap_deg=float(given.get("max_gap_deg", default.max_gap_deg)),
+            max_uncertainty_ratio=float(
+                given.get("max_uncertainty_ratio", default.max_uncertainty_ratio)
+            ),
+            min_points=int(given.get("min_points", default.min_points)),
+        )
+
+    @property
+    def coverage(self) -> str:
+        return fmt_pct(self.min_coverage_ratio, 0)
+
+    @property
+    def uncertainty(self) -> str:
+        return f"{100 * self.max_uncertainty_ratio:g}"
+
+
+def status_words(s: SectionMeasures, limits: MeasureLimits) -> tuple[str, str]:
+    """A section's status as a reader understands it: a label with its reason in a word
+    (``"uncertain: wall scatter"``), and a sentence that gives the limit it missed.
+
+    ``too_few_points`` is also what a section with thousands of points gets when its wall
+    scatters too much for its blockage to be known (``MeasureParams.max_uncertainty_ratio``):
+    it is named for that. ``low_coverage`` on a section that saw most of its wall is an unseen
+    arc, not a low share.
+    """
+    if s.status == SectionStatus.LOW_COVERAGE:
+        if not (_finite(s.coverage_ratio) and s.coverage_ratio >= limits.min_coverage_ratio):
+            return "low coverage", (
+                f"less than {limits.coverage} of the wall, by angle, was seen (a section is "
+                f"measured from {limits.coverage} with no unseen arc over "
+                f"{limits.max_gap_deg:g}°)"
+            )
+        return "low coverage: unseen arc", (
+            f"{limits.coverage} or more of the wall was seen, but an unseen arc over "
+            f"{limits.max_gap_deg:g}°, or unseen arcs together, leave the blockage uncertain by "
+            f"more than ±{limits.uncertainty} points"
+        )
+    if s.status == SectionStatus.TOO_FEW_POINTS:
+        if s.point_count < limits.min_points:
+            return "too few points", f"fewer than {limits.min_points} points in the section"
+        return "uncertain: wall scatter", (
+            "the wall's points scatter too much, or its edges are too ragged, for the blockage "
+            f"to be known within ±{limits.uncertainty} points (the section has enough points)"
+        )
+    if s.status == SectionStatus.WEAK_REGISTRATION:
+        return "uncertain: frames slid", STATUS_EXPLANATIONS[s.status]
+    if s.status == SectionStatus.SMEARED_WALL:
+        return "uncertain: frames disagree", STATUS_EXPLANATIONS[s.status]
+    return STATUS_LABELS.get(s.status, str(s.status)), STATUS_EXPLANATIONS.get(s.status, "")
+
+
 MEASURE_LABELS: dict[str, str] = {
     "blockage_ratio": "blockage",
     "deformation_ratio": "deformation",
@@ -214,6 +291,10 @@ class ReportInput:
     length_note: str | None = None
     start_source: str | None = None
     """Where the scan's start came from (``pipescan.core.start.START_SOURCES``)."""
+    measure_limits: Mapping[str, Any] | None = None
+    """The limits a section was measured under (the run's ``MeasureParams``, as stored:
+    ``min_coverage_ratio``, ``max_gap_deg``, ``max_uncertainty_ratio``, ``min_points``); None:
+    this pipescan's defaults. The report states them where it names a section's status."""
 
 
 # --- formatting -----------------------------------------------------------------------
@@ -337,26 +418,27 @@ def _spans(sections: Sequence[SectionMeasures]) -> list[tuple[float, float]]:
     ]
 
 
-def _is_flagged_at(defects: Sequence[Defect], s: SectionMeasures) -> bool:
-    mid = 0.5 * (s.chainage_start_m + s.chainage_end_m)
-    return any(d.chainage_start_m <= mid < d.chainage_end_m for d in defects)
+CHAINAGE_UNCERTAINTY_SHOWN_M = 0.05
+"""A section's chainage uncertainty is printed in its row from half a section (5 cm): below,
+the range the appendix's lead gives says all a reader needs."""
 
 
 def _uncertainty(s: SectionMeasures) -> str:
-    """The section's chainage uncertainty, shown from 1 cm (below, the chainage's own two
-    decimals say it); empty otherwise."""
+    """The section's chainage uncertainty, where it is worth a reader's attention
+    (:data:`CHAINAGE_UNCERTAINTY_SHOWN_M`); empty otherwise."""
     u = s.chainage_uncertainty_m
-    return fmt_m(u, unit=False) if u is not None and _finite(u) and u >= 0.01 else ""
+    shown = u is not None and _finite(u) and u >= CHAINAGE_UNCERTAINTY_SHOWN_M
+    return fmt_m(u, unit=False) if shown else ""
 
 
-def _section_row(s: SectionMeasures, flagged: bool) -> dict[str, Any]:
+def _section_row(s: SectionMeasures, flagged: bool, limits: MeasureLimits) -> dict[str, Any]:
     row: dict[str, Any] = {
         "start": fmt_m(s.chainage_start_m, unit=False),
         "end": fmt_m(s.chainage_end_m, unit=False),
         "uncertainty": _uncertainty(s),
         "coverage": fmt_pct(s.coverage_ratio, 0, unit=False),
         "points": fmt_int(s.point_count),
-        "status": STATUS_LABELS.get(s.status, str(s.status)),
+        "status": status_words(s, limits)[0],
         "ok": s.is_ok,
         "flagged": flagged,
     }
@@ -371,7 +453,7 @@ def _section_row(s: SectionMeasures, flagged: bool) -> dict[str, Any]:
         )
     else:
         # Figures computed for a section that is not trusted stay out of the report.
-        reason = f"{NOT_MEASURED}: {STATUS_LABELS.get(s.status, str(s.status))}"
+        reason = NOT_MEASURED
         if _finite(s.water_depth_ratio) and s.water_depth_ratio:
             reason += f" (water {fmt_pct(s.water_depth_ratio, 0)} of the diameter deep)"
         row.update(reason=reason)
@@ -379,14 +461,22 @@ def _section_row(s: SectionMeasures, flagged: bool) -> dict[str, Any]:
 
 
 def _with_uncertainty(ratio: float | None, uncertainty: float | None) -> str:
-    """A measured percentage with its 95 % uncertainty: ``"12.3 ± 0.4"``."""
+    """A measured percentage with its 95 % uncertainty: ``"12.3 ± 0.4"``; an uncertainty that
+    would round to 0.0 reads ``"± <0.05"``, never ``"± 0.0"``.
+
+    >>> _with_uncertainty(0.123, 0.004).split(), _with_uncertainty(0.235, 0.0002).split()
+    (['12.3', '±', '0.4'], ['23.5', '±', '<0.05'])
+    """
     text = fmt_pct(ratio, unit=False)
     if not _finite(ratio) or not _finite(uncertainty):
         return text
-    return f"{text} ± {uncertainty * 100.0:.1f}"
+    points = abs(uncertainty) * 100.0
+    return f"{text}\u00a0±\u00a0" + ("<0.05" if points < 0.05 else f"{points:.1f}")
 
 
 def _registration_rows(inp: ReportInput) -> list[tuple[str, str]]:
+    """The registration appendix: how the frames were placed along the pipe, for an engineer
+    who wants to know why the chainage can be trusted as far as the cover says."""
     from pipescan.core.start import START_SOURCES
 
     start = (
@@ -395,6 +485,12 @@ def _registration_rows(inp: ReportInput) -> list[tuple[str, str]]:
         else []
     )
     return start + _registration_only_rows(inp)
+
+
+def _stride_reason(reason: str) -> str:
+    """The stride's reason without the clause naming which bound chose it (a developer's
+    word: the figures before it say the same)."""
+    return "; ".join(part for part in reason.split("; ") if not part.startswith("bound by"))
 
 
 def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
@@ -407,35 +503,41 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     degenerate = reg.get("degenerate_frames")
     registered = reg.get("frames", inp.frame_count)
     stride = reg.get("frame_stride", 1)
+    closer = reg.get("frames_looked_closer")
+    used = f"all {fmt_int(inp.frame_count)}"
+    if stride > 1:
+        more = f", and {fmt_int(closer)} more where the scan and the odometer disagreed"
+        reason = _stride_reason(reg.get("frame_stride_reason", "set for the run"))
+        used = (
+            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}: every {stride}"
+            f"{more if closer else ''} ({reason})"
+        )
     rows = [
+        ("frames used", used),
+        ("scan matching", _text(engine)),
         (
-            "frames registered",
-            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}, every {stride}"
-            + (
-                f" and {fmt_int(closer)} more where ICP disagreed with the odometer"
-                if (closer := reg.get("frames_looked_closer"))
-                else ""
-            )
-            + f": {reg.get('frame_stride_reason', 'set for the run')}"
-            if stride > 1
-            else fmt_int(inp.frame_count),
+            "points matched",
+            f"{fmt_pct(fitness)} of each frame's points, on average, matched the frames before"
+            if _finite(fitness)
+            else NOT_RECORDED,
         ),
-        ("registration engine", _text(engine)),
         (
-            "mean ICP fitness",
-            f"{fmt_pct(fitness)} of points matched" if _finite(fitness) else NOT_RECORDED,
+            "match residual",
+            f"{rmse_m * 1000.0:.1f} mm, the mean distance between matched points"
+            if _finite(rmse_m)
+            else NOT_RECORDED,
         ),
-        ("mean ICP residual", f"{rmse_m * 1000.0:.1f} mm" if _finite(rmse_m) else NOT_RECORDED),
     ]
     if degenerate is None:
-        rows.append(("frames held to odometer", NOT_RECORDED))
+        rows.append(("placed by the odometer", NOT_RECORDED))
     else:
         rows.append(
             (
-                "frames held to odometer",
-                f"{degenerate} of {registered} (along-axis position from the odometer)"
+                "placed by the odometer",
+                f"{degenerate} of {registered} frames: where the pipe's shape gave no hold "
+                "along its axis, their place along the pipe is the odometer's"
                 if degenerate
-                else f"none of {registered}",
+                else f"none of {registered}: every frame was placed by the pipe's shape",
             )
         )
     uncertainty_m = reg.get("chainage_uncertainty_m")
@@ -447,9 +549,9 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
             (reg.get("odometer_slips_caught_m") or reg.get("odometer_slip_stated_m"))
             and allows_unseen_slips(reg)
         ) or reg.get("odometer_stood_frames"):
-            what = "odometer-held travel and its possible slips"
+            what = "the odometer's error over the travel it placed, and its possible slips"
         else:
-            what = "odometer-held travel"
+            what = "the odometer's error over the travel it placed"
         rows.append(("chainage uncertainty", f"up to ±{fmt_m(uncertainty_m)} at the end ({what})"))
     if stood := standstill_clause(reg):
         rows.append(("odometer standstills", stood[0].upper() + stood[1:]))
@@ -474,6 +576,36 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     return rows
 
 
+def _trust_rows(
+    inp: ReportInput, sections: Sequence[SectionMeasures], limits: MeasureLimits
+) -> list[tuple[str, str]]:
+    """The cover's two answers: can the chainage be trusted, and the figures, and how far.
+    The details are the registration appendix's."""
+    reg = inp.registration or {}
+    engine = reg.get("engine")
+    if inp.frame_count == 0 and (not engine or engine.startswith("none")):
+        chainage = "as the registered cloud gives it (pipescan did not register it)"
+    elif _finite(u := reg.get("chainage_uncertainty_m")):
+        chainage = f"within ±{fmt_m(u)} at the end of the scan, less before it"
+        if unseen_slip_caveat(reg):
+            chainage += "; more where the odometer may have slipped unseen"
+        if slides := reg.get("slides"):
+            chainage += f"; {slides} frame(s) slid, their sections are not measured"
+    else:
+        chainage = "not estimated"
+    ok = sum(s.is_ok for s in sections)
+    figures = (
+        f"each measured blockage within ±{limits.uncertainty} points (95 %); "
+        f"{ok} of {len(sections)} sections measured, the others carry no figure"
+        if sections
+        else "no sections"
+    )
+    rows = [("chainage", chainage), ("figures", figures)]
+    if reg.get("warning"):
+        rows.append(("caution", str(reg["warning"])))
+    return rows
+
+
 def _pipe_class_note(inp: ReportInput) -> str:
     """A caution when the material's usual class differs from the class graded with."""
     usual = pipe_class_for_material(inp.material)
@@ -489,10 +621,10 @@ def _svg_uri(svg: str) -> str:
     return "data:image/svg+xml;base64," + base64.b64encode(svg.encode()).decode("ascii")
 
 
-def _unmeasured_run_row(run: Sequence[SectionMeasures]) -> dict[str, Any]:
+def _unmeasured_run_row(run: Sequence[SectionMeasures], limits: MeasureLimits) -> dict[str, Any]:
     """One appendix row for touching unmeasured sections of one status."""
     first, last = run[0], run[-1]
-    status = STATUS_LABELS.get(first.status, str(first.status))
+    status = status_words(first, limits)[0]
     coverages = [s.coverage_ratio for s in run]
     coverage = (
         fmt_pct(coverages[0], 0, unit=False)
@@ -509,12 +641,14 @@ def _unmeasured_run_row(run: Sequence[SectionMeasures]) -> dict[str, Any]:
         "status": status,
         "ok": False,
         "flagged": False,
-        "reason": f"{NOT_MEASURED}: {status}{count}",
+        "reason": f"{NOT_MEASURED}{count}",
     }
 
 
 def _appendix(
-    sections: Sequence[SectionMeasures], defects: Sequence[Defect]
+    sections: Sequence[SectionMeasures],
+    is_flagged_section: Callable[[SectionMeasures], bool],
+    limits: MeasureLimits,
 ) -> tuple[list[dict[str, Any]], bool]:
     """The appendix rows, and whether the listing is complete.
 
@@ -525,20 +659,24 @@ def _appendix(
     (:data:`APPENDIX_SAMPLE_EVERY_M`). The CSV export holds every section.
     """
     if len(sections) <= APPENDIX_ALL_MAX_SECTIONS:
-        return [_section_row(s, _is_flagged_at(defects, s)) for s in sections], True
-    unmeasured = adjacent_runs(sections, [not s.is_ok for s in sections], same=lambda s: s.status)
+        return [_section_row(s, is_flagged_section(s), limits) for s in sections], True
+    unmeasured = adjacent_runs(
+        sections,
+        [not s.is_ok for s in sections],
+        same=lambda s: status_words(s, limits)[0],
+    )
     run_at = {run.start: run for run in unmeasured}
     rows: list[dict[str, Any]] = []
     for i, s in enumerate(sections):
         if i in run_at:
-            rows.append(_unmeasured_run_row(sections[run_at[i].start : run_at[i].stop]))
+            rows.append(_unmeasured_run_row(sections[run_at[i].start : run_at[i].stop], limits))
         if not s.is_ok:
             continue
-        flagged = _is_flagged_at(defects, s)
+        flagged = is_flagged_section(s)
         in_metres = s.chainage_start_m / APPENDIX_SAMPLE_EVERY_M
         on_metre = abs(in_metres - round(in_metres)) <= ADJACENT_TOL_M
         if flagged or on_metre:
-            rows.append(_section_row(s, flagged))
+            rows.append(_section_row(s, flagged, limits))
     return rows, False
 
 
@@ -753,6 +891,13 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "flag_grade": inp.flag_grade,
     }
     flagged = [d for d in defects if is_flagged(d, **flags)]
+    limits = MeasureLimits.of(inp.measure_limits)
+
+    def section_flagged(s: SectionMeasures) -> bool:
+        # The one rule, on the section's own figures: a section inside a flagged defect but
+        # itself under the rule is not flagged.
+        return flag_section(s, **flags)
+
     ok = [s for s in sections if s.is_ok]
     total_length_m = sum(_length_m(s) for s in sections)
     ok_length_m = sum(_length_m(s) for s in ok)
@@ -777,7 +922,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "pipe_class_note": _pipe_class_note(inp),
         "scanned_length": fmt_m(inp.scanned_length_m),
         "point_count": fmt_int(inp.point_count),
-        "registration": _registration_rows(inp),
+        "trust": _trust_rows(inp, sections, limits),
         "inspection_id": str(inp.inspection_id),
         "archive_uri": strip_credentials(inp.archive_uri),
         "software_version": inp.software_version,
@@ -806,20 +951,22 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
     ungraded_ok = [s for s in ok if s.grade is None]
 
     # Unmeasured metres by reason, with the spans so an engineer can find them.
+    # One row per status as the reader reads it ("low coverage" and "low coverage: unseen
+    # arc" are two rows, each with the limit it missed).
     unmeasured = []
+    by_words: dict[tuple[str, str], list[SectionMeasures]] = {}
     for status in SectionStatus:
-        if status == SectionStatus.OK:
-            continue
-        members = [s for s in sections if s.status == status]
-        if not members:
-            continue
+        for s in sections:
+            if s.status == status and status != SectionStatus.OK:
+                by_words.setdefault(status_words(s, limits), []).append(s)
+    for (label, explanation), members in by_words.items():
         spans = _spans(members)
         listed = [fmt_span(a, b) for a, b in spans[:MAX_LISTED_SPANS]]
         more = len(spans) - len(listed)
         unmeasured.append(
             {
-                "reason": STATUS_LABELS.get(status, str(status)),
-                "explanation": STATUS_EXPLANATIONS.get(status, ""),
+                "reason": label,
+                "explanation": explanation,
                 "count": len(members),
                 "length": fmt_m(sum(_length_m(s) for s in members), 1),
                 "spans": ", ".join(listed) + (f" and {more} more" if more else ""),
@@ -833,7 +980,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
     worst_sections = sorted(
         with_blockage, key=lambda s: (-(s.blockage_ratio or 0.0), s.chainage_start_m)
     )[:WORST_SECTIONS]
-    worst = [_section_row(s, _is_flagged_at(flagged, s)) for s in worst_sections]
+    worst = [_section_row(s, section_flagged(s), limits) for s in worst_sections]
 
     defect_rows = []
     for d in defects:
@@ -892,10 +1039,14 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
 
         chart_uri = _svg_uri(
             blockage_chart_svg(
-                sections, flagged, blockage_threshold_ratio=inp.blockage_threshold_ratio
+                sections,
+                flagged,
+                blockage_threshold_ratio=inp.blockage_threshold_ratio,
+                flag_grade=inp.flag_grade,
+                min_coverage_ratio=limits.min_coverage_ratio,
             )
         )
-    appendix_rows, appendix_complete = _appendix(sections, flagged)
+    appendix_rows, appendix_complete = _appendix(sections, section_flagged, limits)
 
     return {
         "title": f"Pipe condition report {inp.asset_id}",
@@ -920,4 +1071,28 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "trend": _trend(inp, sections, defects, chart=chart),
         "chart_uri": chart_uri,
         "not_measured": NOT_MEASURED,
+        "limits": {
+            "coverage": limits.coverage,
+            "gap_deg": f"{limits.max_gap_deg:g}",
+            "uncertainty": limits.uncertainty,
+            "min_points": limits.min_points,
+        },
+        "registration": _registration_rows(inp),
+        "chainage_uncertainty": _chainage_uncertainty_range(sections),
     }
+
+
+def _chainage_uncertainty_range(sections: Sequence[SectionMeasures]) -> str:
+    """How far the sections' chainages may be off, first to last: ``"±0.01 m at 0.40 m to
+    ±0.03 m at 6.60 m"``; empty when not known."""
+    known = [s for s in sections if _finite(s.chainage_uncertainty_m)]
+    if not known:
+        return ""
+    first, last = known[0], known[-1]
+    a, b = first.chainage_uncertainty_m or 0.0, last.chainage_uncertainty_m or 0.0
+    if fmt_m(a) == fmt_m(b):
+        return f"within ±{fmt_m(b)}"
+    return (
+        f"within ±{fmt_m(a)} at {fmt_m(first.chainage_start_m)} to ±{fmt_m(b)} at "
+        f"{fmt_m(last.chainage_end_m)}"
+    )

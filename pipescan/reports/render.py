@@ -155,9 +155,6 @@ def check_output_path(out_path: Path | str, what: str, kind: str) -> None:
 
 
 def _write_pdf(html: str, out_path: Path) -> Path:
-    # WeasyPrint loads Pango at import; keep it out of HTML-only use.
-    from weasyprint import HTML
-
     check_report_path(out_path)  # a folder, or a file on the way: said as before a run
     try:
         out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -170,9 +167,7 @@ def _write_pdf(html: str, out_path: Path) -> Path:
         ) from exc
     try:
         with os.fdopen(fd, "wb") as tmp:
-            HTML(
-                string=html, base_url=ASSETS_DIR.as_uri() + "/", url_fetcher=_url_fetcher()
-            ).write_pdf(tmp)
+            _layout(html).write_pdf(tmp)
             tmp.flush()
             os.fsync(tmp.fileno())
         os.replace(tmp_name, out_path)
@@ -187,6 +182,57 @@ def _write_pdf(html: str, out_path: Path) -> Path:
             ) from exc
         raise
     return out_path
+
+
+MIN_TAIL_ROWS = 10
+"""A long table (rows marked ``data-row``) leaves at least this many rows for its last page:
+a page holding only a table's last few rows reads as a mistake."""
+
+
+def _layout(html: str):
+    """The laid-out document; a long table whose last page would hold fewer than
+    :data:`MIN_TAIL_ROWS` rows is laid out again, with a page break before the row that
+    leaves that many for the last page (the page before ends a little early instead)."""
+    from weasyprint import HTML
+
+    def lay_out(text: str):
+        return HTML(
+            string=text, base_url=ASSETS_DIR.as_uri() + "/", url_fetcher=_url_fetcher()
+        ).render()
+
+    document = lay_out(html)
+    move = _row_to_break_before(document)
+    if move is None:
+        return document
+    return lay_out(
+        html.replace(f'data-row="{move}"', f'data-row="{move}" style="break-before: page"', 1)
+    )
+
+
+def _row_to_break_before(document) -> int | None:
+    """The row to start a page with so that the long table's last page holds
+    :data:`MIN_TAIL_ROWS` rows; None when it already does, or the table is too short to
+    move rows without leaving the page before with fewer."""
+    pages: list[list[int]] = []
+    for page in document.pages:
+        rows = [
+            int(box.element.get("data-row"))
+            for box in page._page_box.descendants()
+            if type(box).__name__ == "TableRowBox"
+            and getattr(box, "element", None) is not None
+            and box.element.get("data-row") is not None
+        ]
+        pages.append(rows)
+    with_rows = [rows for rows in pages if rows]
+    if len(with_rows) < 2 or pages[-1] != with_rows[-1]:
+        return None  # the table is on one page, or something follows it
+    last, before = with_rows[-1], with_rows[-2]
+    if len(last) >= MIN_TAIL_ROWS:
+        return None
+    first = max(last) - MIN_TAIL_ROWS + 1
+    if first not in before or first - min(before) < MIN_TAIL_ROWS:
+        return None
+    return first
 
 
 def _create_part_file(out_path: Path) -> tuple[int, str]:

@@ -106,6 +106,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         gis_id=placement.gis_id,
         length_note=placement.length_note,
         start_source=rec.start_source,
+        measure_limits=params.get("measure"),
         history=[
             EarlierInspection(
                 inspection_id=e.id,
