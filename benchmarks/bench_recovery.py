@@ -6,13 +6,20 @@ simulated archives processed one at a time; once the first inspection is stored,
 Then nobody does anything (a killed worker or server is started again after 5 s, as a
 supervisor would) until every archive has its inspection and no run is active.
 
+The outages (``db45``, ``db120``, ``db600``: the database refusing connections for that many
+seconds from the same moment; ``dbstart30``: refusing for 30 s when the run starts;
+``server105``: the Prefect server down for 105 s) end by themselves; a run that ends Failed
+(not green, naming what is missing) also ends the wait.
+
 Prints, per scenario: the final state of the network run and its sub-flows, the inspections
-stored (and distinct identities), and the seconds from the kill until the work was finished.
+stored (and distinct identities), the seconds from the kill (or outage) until the work was
+finished, and what ``pipescan runs`` says of the run.
 
 Usage::
 
-    python benchmarks/bench_recovery.py                    # 4 archives, every scenario
+    python benchmarks/bench_recovery.py                    # 4 archives, every kill scenario
     python benchmarks/bench_recovery.py --scenarios both --archives 3 --time-limit 300
+    python benchmarks/bench_recovery.py --scenarios db45 dbstart30 server105
 """
 
 from __future__ import annotations
@@ -27,14 +34,16 @@ from pathlib import Path
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.kill_matrix import SCENARIOS, format_outcome, run_scenario
+from tests.kill_matrix import OUTAGES, SCENARIOS, format_outcome, run_scenario
 from tests.netstore import write_store
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--archives", type=int, default=4)
-    parser.add_argument("--scenarios", nargs="+", choices=SCENARIOS, default=list(SCENARIOS))
+    parser.add_argument(
+        "--scenarios", nargs="+", choices=[*SCENARIOS, *OUTAGES], default=list(SCENARIOS)
+    )
     parser.add_argument("--time-limit", type=float, default=600, help="seconds after the kill")
     parser.add_argument("--keep", action="store_true", help="keep the run folders (logs)")
     args = parser.parse_args()

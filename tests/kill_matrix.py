@@ -9,6 +9,13 @@ first inspection is stored and the next archive's sub-flow is running, a crash:
 - ``both``: SIGKILL of both at once, as a host crash; the worker is started again;
 - ``server``: SIGKILL of the Prefect server; it is started again on the same database.
 
+And outages, at the same moment, that end by themselves after their seconds:
+
+- ``db45``, ``db120``, ``db600``: the database refuses connections (the SQLite file is moved
+  away and a folder stands in its place: "unable to open database file"), then comes back;
+- ``dbstart30``: the database refuses connections when the run starts, for 30 s;
+- ``server105``: the Prefect server is down for 105 s (SIGKILL, started again after 105 s).
+
 Then it waits, doing nothing a person would do, until every archive has its inspection and no
 run is left active, or a time limit passes. Used by ``tests/test_crash_recovery.py`` and
 ``benchmarks/bench_recovery.py``.
@@ -16,6 +23,7 @@ run is left active, or a time limit passes. Used by ``tests/test_crash_recovery.
 
 from __future__ import annotations
 
+import json
 import shutil
 import signal
 import sqlite3
@@ -27,6 +35,8 @@ from pathlib import Path
 from tests.prefect_stack import ACTIVE_STATES, PrefectServer, Worker, run_pipescan
 
 SCENARIOS = ("worker", "flow", "both", "server")
+OUTAGES = {"db45": 45.0, "db120": 120.0, "db600": 600.0, "dbstart30": 30.0, "server105": 105.0}
+"""The outage scenarios and how long each outage lasts (s)."""
 RESTART_DELAY_S = 5.0
 """How long a supervisor (systemd's RestartSec) takes to start a killed process again."""
 DEPLOYMENT = "inspect-network/network-nightly"
@@ -54,6 +64,8 @@ class Outcome:
     active_task_runs: int
     """Task runs left Running or Pending (the tasks of a dead process)."""
     timeline: list[str] = field(default_factory=list)
+    runs_says: dict | None = None
+    """``pipescan runs --json --limit 1`` at the end: what an operator sees of the run."""
 
 
 def stored(db: Path) -> tuple[int, int]:
@@ -96,6 +108,34 @@ def _settled(server: PrefectServer, run_id: str, db: Path, archives: int) -> boo
     return network["state_type"] == "COMPLETED" and not active and not _active_task_runs(server)
 
 
+def _failed_for_good(server: PrefectServer, run_id: str) -> bool:
+    """The run ended Failed (not green: nothing retries it) and left nothing active."""
+    network, subflows = _runs(server, run_id)
+    return network["state_type"] == "FAILED" and not any(
+        r["state_type"] in ACTIVE_STATES for r in subflows
+    )
+
+
+def break_database(db: Path) -> Path:
+    """Make a SQLite database refuse connections: the file (and its WAL files) moved aside, a
+    folder in its place. Returns where the file went (see :func:`mend_database`)."""
+    aside = db.with_name(db.name + ".away")
+    aside.mkdir()
+    for suffix in ("", "-wal", "-shm"):
+        source = db.with_name(db.name + suffix)
+        if source.exists():
+            source.rename(aside / source.name)
+    db.mkdir()
+    return aside
+
+
+def mend_database(db: Path, aside: Path) -> None:
+    db.rmdir()
+    for moved in aside.iterdir():
+        moved.rename(db.with_name(moved.name))
+    aside.rmdir()
+
+
 def _active_task_runs(server: PrefectServer) -> int:
     return server.call(
         "POST",
@@ -114,7 +154,8 @@ def run_scenario(
     worker_env: dict[str, str] | None = None,
 ) -> Outcome:
     """Run one scenario under ``root`` (a fresh folder) over ``store``; see the module doc."""
-    assert scenario in SCENARIOS, scenario
+    assert scenario in SCENARIOS or scenario in OUTAGES, scenario
+    outage_s = OUTAGES.get(scenario)
     root.mkdir(parents=True)
     server = PrefectServer(root / "prefect").start()
     worker: Worker | None = None
@@ -151,36 +192,59 @@ def run_scenario(
         )
         assert deployed.returncode == 0, deployed.stdout + deployed.stderr
         worker = Worker(POOL, env, root / "worker-cwd", root).start()
+        aside: Path | None = None
+        mend_at: float | None = None
+        if scenario == "dbstart30":
+            aside = break_database(db)
+            killed = time.monotonic()
+            mend_at = killed + (outage_s or 0)
+            note("database refusing connections")
         run_id = server.run_deployment(DEPLOYMENT)
         note("run created")
-        # The crash comes when one archive is stored and the next one's sub-flow is running.
-        deadline = time.monotonic() + 300
-        while stored(db)[0] < 1 or not _subflow_running(server):
-            assert time.monotonic() < deadline, "nothing stored in 300 s:\n" + worker.log()[-3000:]
-            time.sleep(0.2)
-        at_kill = stored(db)[0]
-        flow_pids = worker.flow_processes()
-        assert flow_pids, "no flow-run process under the worker"
-        killed = time.monotonic()
-        note(f"{at_kill} stored; killing {scenario}")
+        at_kill = 0
+        if scenario != "dbstart30":
+            # The crash comes when one archive is stored and the next one's sub-flow is running.
+            deadline = time.monotonic() + 300
+            while stored(db)[0] < 1 or not _subflow_running(server):
+                assert time.monotonic() < deadline, (
+                    "nothing stored in 300 s:\n" + worker.log()[-3000:]
+                )
+                time.sleep(0.2)
+            at_kill = stored(db)[0]
+            flow_pids = worker.flow_processes()
+            assert flow_pids, "no flow-run process under the worker"
+            killed = time.monotonic()
+            note(f"{at_kill} stored; {scenario}")
         if scenario in ("worker", "both"):
             worker.kill()
         if scenario in ("flow", "both"):
             for pid in flow_pids:
                 _kill(pid)
-        if scenario == "server":
+        if scenario in ("server", "server105"):
             server.stop(signal.SIGKILL)
-        time.sleep(RESTART_DELAY_S)
+        if scenario.startswith("db") and scenario != "dbstart30":
+            aside = break_database(db)
+            mend_at = killed + (outage_s or 0)
+        if scenario in SCENARIOS:
+            time.sleep(RESTART_DELAY_S)
         if scenario in ("worker", "both"):
             worker.start()
             note("worker started again")
         if scenario == "server":
             server.start()
             note("server started again")
+        if scenario == "server105":
+            time.sleep(max(0.0, killed + (outage_s or 0) - time.monotonic()))
+            server.start()
+            note("server started again")
 
         finished: float | None = None
         last = ""
         while time.monotonic() - killed < time_limit_s:
+            if aside is not None and mend_at is not None and time.monotonic() >= mend_at:
+                mend_database(db, aside)
+                aside = None
+                note("database answering again")
             try:
                 settled = _settled(server, run_id, db, archives)
                 network, subflows = _runs(server, run_id)
@@ -196,12 +260,16 @@ def run_scenario(
             if now != last:
                 note(now)
                 last = now
-            if settled:
+            if settled or (aside is None and _failed_for_good(server, run_id)):
                 finished = time.monotonic() - killed
                 break
             time.sleep(2)
+        if aside is not None:
+            mend_database(db, aside)
         network, subflows = _runs(server, run_id)
         count, distinct = stored(db)
+        said = run_pipescan(["runs", "--json", "--limit", "1"], env, root)
+        runs_says = json.loads(said.stdout)[0] if said.returncode == 0 and said.stdout else None
         return Outcome(
             scenario=scenario,
             archives=archives,
@@ -215,6 +283,7 @@ def run_scenario(
             active_subflows=sum(r["state_type"] in ACTIVE_STATES for r in subflows),
             active_task_runs=_active_task_runs(server),
             timeline=timeline,
+            runs_says=runs_says,
         )
     finally:
         if worker is not None:
@@ -234,9 +303,17 @@ def _kill(pid: int) -> None:
 
 def format_outcome(o: Outcome) -> str:
     finished = f"{o.finished_after_s:.0f} s" if o.finished_after_s is not None else "not finished"
-    return (
+    text = (
         f"{o.scenario:<7} stored at kill {o.stored_at_kill}/{o.archives}; "
         f"finished: {finished}; inspections {o.inspections} "
         f"({o.distinct_identities} distinct); network run: {o.network_run}; "
         f"sub-flows: {o.subflow_states}; task runs left active: {o.active_task_runs}"
     )
+    if o.runs_says is not None:
+        r = o.runs_says
+        counts = {k: v for k, v in r["counts"].items() if v}
+        missing = [m["archive"] for m in r["missing"]]
+        text += f"\n        pipescan runs: {r['state_name']}, {counts}" + (
+            f", missing {missing}" if missing else ""
+        )
+    return text
