@@ -535,6 +535,125 @@ def in_cloud(name: str, data: Callable[[Path], bytes]) -> Callable[[Path, float]
     return build
 
 
+# --- ROS bags: a PointCloud2 of many points in a few KB, and bags whose sizes lie ------------
+
+
+def _cloud_msg(store, ros1: bool, points: int, *, step: int = 4, offsets=(0, 0, 0), height: int = 1, data: bytes | None = None):
+    """A PointCloud2 of ``height`` rows of ``points`` points of ``step`` bytes, all zeros (or
+    ``data``), x y z at ``offsets``."""
+    types = store.types
+    stamp = types["builtin_interfaces/msg/Time"](sec=1, nanosec=0)
+    if ros1:
+        header = types["std_msgs/msg/Header"](seq=0, stamp=stamp, frame_id="lidar")
+    else:
+        header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="lidar")
+    field = types["sensor_msgs/msg/PointField"]
+    fields = [field(name=a, offset=o, datatype=7, count=1) for a, o in zip("xyz", offsets, strict=True)]
+    body = np.zeros(points * step, np.uint8) if data is None else np.frombuffer(data, np.uint8)
+    return types["sensor_msgs/msg/PointCloud2"](
+        header=header, height=height, width=points, fields=fields, is_bigendian=False,
+        point_step=step, row_step=step * points,
+        data=body, is_dense=True,
+    )
+
+
+def _bag_points(scale: float) -> int:
+    """50 M points at full scale; at least 2 M (8 MB of zeros), past the 4 MiB ratio floor."""
+    return max(2_000_000, int(50_000_000 * scale))
+
+
+def ros1_bag(where: Path, compression: str | None, msg_kwargs: dict, points: int) -> Path:
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS1_NOETIC)
+    root = _dir_archive(where)
+    (root / "frames").rmdir()
+    path = root / "scan.bag"
+    writer = Writer(path)
+    if compression:
+        writer.set_compression(getattr(Writer.CompressionFormat, compression.upper()))
+    with writer:
+        conn = writer.add_connection("/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        msg = _cloud_msg(store, True, points, **msg_kwargs)
+        writer.write(conn, 10**9, store.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
+    return root
+
+
+def ros2_bag(where: Path, plugin: str, mode: str | None, msg_kwargs: dict, points: int) -> Path:
+    from rosbags.rosbag2 import CompressionFormat, CompressionMode, StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    root = _dir_archive(where)
+    (root / "frames").rmdir()
+    path = root / "scan"
+    writer = Writer(path, version=9, storage_plugin=getattr(StoragePlugin, plugin.upper()))
+    if mode:
+        writer.set_compression(getattr(CompressionMode, mode.upper()), CompressionFormat.ZSTD)
+    with writer:
+        conn = writer.add_connection("/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        msg = _cloud_msg(store, False, points, **msg_kwargs)
+        writer.write(conn, 10**9, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
+    return root
+
+
+def bag_bz2_bomb(where: Path, scale: float) -> str:
+    return str(ros1_bag(where, "bz2", {}, _bag_points(scale)))
+
+
+def bag_lz4_bomb(where: Path, scale: float) -> str:
+    return str(ros1_bag(where, "lz4", {}, _bag_points(scale)))
+
+
+def mcap_zstd_bomb(where: Path, scale: float) -> str:
+    return str(ros2_bag(where, "mcap", "storage", {}, _bag_points(scale)))
+
+
+def bag_file_compressed_bomb(where: Path, scale: float) -> str:
+    """A ROS 2 bag folder with ``compression_mode: file``: one zstd file of a few KB."""
+    return str(ros2_bag(where, "sqlite3", "file", {}, _bag_points(scale)))
+
+
+def db3_generated_zeroblob(where: Path, scale: float) -> str:
+    """A ``.db3`` whose ``messages.data`` is ``GENERATED ALWAYS AS (zeroblob(N))``: N bytes
+    per row that the file does not hold."""
+    import sqlite3
+
+    root = ros2_bag(where, "sqlite3", None, {"offsets": (0, 4, 8), "step": 12}, 10)
+    db = next((root / "scan").glob("*.db3"))
+    size = max(16 * MIB, int(600 * MIB * scale))
+    with sqlite3.connect(db) as conn:
+        conn.executescript(
+            "ALTER TABLE messages RENAME TO old;"
+            "CREATE TABLE messages (id INTEGER PRIMARY KEY, topic_id INTEGER NOT NULL, "
+            f"timestamp INTEGER NOT NULL, data BLOB GENERATED ALWAYS AS (zeroblob({size})) VIRTUAL);"
+            "INSERT INTO messages (id, topic_id, timestamp) SELECT id, topic_id, timestamp FROM old;"
+            "DROP TABLE old;"
+        )
+    return str(root)
+
+
+def mcap_record_length(where: Path, scale: float) -> str:
+    """An MCAP whose first summary record (after the data section's end) declares 2^40
+    bytes."""
+    root = ros2_bag(where, "mcap", None, {"offsets": (0, 4, 8), "step": 12}, 10)
+    path = next((root / "scan").glob("*.mcap"))
+    data = bytearray(path.read_bytes())
+    at, op = 8, 0
+    while op != 0x0F:  # DataEnd
+        op, length = data[at], struct.unpack_from("<Q", data, at + 1)[0]
+        at += 9 + length
+    struct.pack_into("<Q", data, at + 1, 1 << 40)
+    path.write_bytes(bytes(data))
+    return str(root)
+
+
+def bag_cloud(msg_kwargs: dict, points: int) -> Callable[[Path, float], str]:
+    """An uncompressed ROS 1 bag of one PointCloud2 built with ``msg_kwargs``."""
+    return lambda where, scale: str(ros1_bag(where, None, msg_kwargs, points))
+
+
 def _toml_with(line: str) -> Callable[[Path, float], str]:
     def build(where: Path, scale: float) -> str:
         toml = TOML.replace(b'asset_id = "MH1-MH2"\n', b"") + line.encode("utf-8") + b"\n"
@@ -618,6 +737,15 @@ CASES: tuple[Case, ...] = (
     Case("parse", "E57 XML nested 200,000 deep", e57_deep, PointFileError, "more than 64 deep"),
     Case("expansion", "E57: 200 scans sharing one binary section", in_cloud("cloud.e57", e57_shared_section(200)), PointFileError, "shares its binary section"),
     Case("lying header", "E57: 1e8 records in a section of 2,000", in_cloud("cloud.e57", e57_count_lies), PointFileError, "its section holds"),
+    # round 2: ROS bags (every expansion bounded by what was read)
+    Case("expansion", "ROS 1 bag, bz2 chunk of 50 M points", bag_bz2_bomb, PointFileError, "compression_max_ratio"),
+    Case("expansion", "ROS 1 bag, lz4 chunk of 50 M points", bag_lz4_bomb, PointFileError, "compression_max_ratio"),
+    Case("expansion", "MCAP, zstd chunk of 50 M points", mcap_zstd_bomb, PointFileError, "compression_max_ratio"),
+    Case("expansion", "ROS 2 bag folder, compression_mode file", bag_file_compressed_bomb, PointFileError, "compression_max_ratio"),
+    Case("expansion", ".db3 with a GENERATED zeroblob data column", db3_generated_zeroblob, PointFileError, "generated or hidden"),
+    Case("lying header", "MCAP record length 2^40", mcap_record_length, PointFileError, "declares 1,099,511,627,776 bytes"),
+    Case("lying header", "PointCloud2 x, y, z at offset 0", bag_cloud({}, 1000), PointFileError, "fields x and y overlap"),
+    Case("lying header", "PointCloud2 height 2^32-1", bag_cloud({"height": 2**32 - 1, "data": b"\0" * 48, "offsets": (0, 4, 8), "step": 12}, 4), PointFileError, "points_max_count"),
     Case("text", "asset_id with a right-to-left override", _toml_with('asset_id = "MH1\\u202eFDP"'), MetadataError, "control or invisible"),
 )  # fmt: skip
 

@@ -88,3 +88,57 @@ def test_e57_scans_sharing_a_section_are_refused_naming_the_scan(tmp_path) -> No
     assert info.value.file == "cloud.e57"
     assert info.value.field == "/data3D/vectorChild[1]/points"
     assert "shares its binary section with /data3D/vectorChild[0]/points" in str(info.value)
+
+
+# --- ROS bags --------------------------------------------------------------------------------
+
+_HOLD_SCRATCH = """
+import sys, time
+from pathlib import Path
+from pipescan.storage.input.bagguard import install
+install()
+from rosbags.rosbag2 import Reader
+with Reader(Path(sys.argv[1])):
+    print("open", flush=True)
+    time.sleep(60)
+"""
+
+
+def test_a_file_compressed_bag_is_decompressed_into_marked_scratch_swept_after_a_kill(
+    tmp_path,
+) -> None:
+    """A ROS 2 bag folder with ``compression_mode: file`` is decompressed into a run directory
+    pipescan marks (not a bare ``$TMPDIR`` folder); killed with ``kill -9`` while it is open, the
+    next bag read removes it."""
+    from pipescan.storage.input.bagguard import sweep_scratch
+    from pipescan.storage.scratch import RUN_MARKER
+    from tests.hostile import ros2_bag
+
+    root = ros2_bag(tmp_path, "sqlite3", "file", {"offsets": (0, 4, 8), "step": 12}, 10)
+    tmpdir = tmp_path / "tmp"
+    tmpdir.mkdir()
+    child = subprocess.Popen(
+        [sys.executable, "-c", _HOLD_SCRATCH, str(root / "scan")],
+        env=dict(os.environ, PYTHONPATH=str(ROOT), TMPDIR=str(tmpdir)),
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert child.stdout is not None
+        assert child.stdout.readline().strip() == "open"
+        runs = list((tmpdir / "pipescan-bags").iterdir())
+        assert len(runs) == 1 and (runs[0] / RUN_MARKER).is_file()
+        assert any(p.suffix == ".db3" or p.name.startswith("scan") for p in runs[0].iterdir())
+        assert [p for p in tmpdir.iterdir() if p.name != "pipescan-bags"] == []
+    finally:
+        child.kill()
+        child.wait()
+    import tempfile
+
+    old = tempfile.tempdir
+    tempfile.tempdir = str(tmpdir)
+    try:
+        sweep_scratch()
+    finally:
+        tempfile.tempdir = old
+    assert list((tmpdir / "pipescan-bags").iterdir()) == []

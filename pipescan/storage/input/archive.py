@@ -254,7 +254,9 @@ class ScanArchive:
             if not 0 <= i < self.frame_count:
                 raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
         bag = self.bag
-        for i, points in iter_bag_frames(self.root / bag.member, bag, wanted, archive=self.name):
+        for i, points in iter_bag_frames(
+            self.root / bag.member, bag, wanted, archive=self.name, limits=self.limits
+        ):
             yield (
                 i,
                 check_points(
@@ -589,7 +591,7 @@ def _bag_layout(
     bag_path = root / member
     for path in sorted(bag_path.rglob("*")) if bag_path.is_dir() else [bag_path]:
         _check_inside(root, str(path.relative_to(root)), name)
-    index, frames = index_bag(bag_path, member, archive=name, topics=meta.ros)
+    index, frames = index_bag(bag_path, member, archive=name, topics=meta.ros, limits=limits)
     if len(frames) > limits.archive_max_members:
         raise archive_limit_error(
             "archive_max_members",

@@ -17,6 +17,7 @@ not match its own fields) raises :class:`PointFileError` naming the bag and the 
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -26,6 +27,8 @@ import numpy as np
 
 from pipescan.core.errors import PointFileError
 from pipescan.core.model import FrameRef, RosTopics
+from pipescan.storage.input.bagguard import BagOverCap, bag_limits
+from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits, point_limit_error
 
 BAG_SUFFIXES = (".bag", ".db3", ".mcap")
 """Suffixes of bag files; a ROS 2 bag folder is recognised by its ``metadata.yaml``."""
@@ -34,6 +37,7 @@ POINTS_TYPE = "sensor_msgs/msg/PointCloud2"
 ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 IMU_TYPE = "sensor_msgs/msg/Imu"
 _FLOAT_TYPES = {7: "f4", 8: "f8"}  # sensor_msgs/PointField FLOAT32, FLOAT64
+_FIELD_BYTES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 8: 8}  # PointField datatypes' sizes
 _HINT = "the bag is corrupt or truncated: copy or record it again"
 
 
@@ -72,7 +76,15 @@ def _read_errors():
     from rosbags.rosbag2 import ReaderError as Reader2Error
     from rosbags.serde import SerdeError
 
+    errors: tuple[type[BaseException], ...] = ()
+    try:
+        import apsw
+
+        errors = (apsw.Error,)
+    except ImportError:  # pragma: no cover - rosbags' sqlite reader needs it
+        pass
     return (
+        *errors,
         AnyReaderError,
         Reader1Error,
         Reader2Error,
@@ -143,8 +155,19 @@ def _stat_key(path: Path) -> tuple:
     )
 
 
+def _over(exc: BagOverCap, limits: InputLimits, archive, member, topic) -> PointFileError:
+    return point_limit_error(
+        exc.cap, limits, exc.what, archive=archive, file=member, field=topic or "topics"
+    )
+
+
 def index_bag(
-    path: Path, member: str, *, archive: str | None, topics: RosTopics | None
+    path: Path,
+    member: str,
+    *,
+    archive: str | None,
+    topics: RosTopics | None,
+    limits: InputLimits = DEFAULT_LIMITS,
 ) -> tuple[BagIndex, tuple[FrameRef, ...]]:
     """List a bag's frames with their time, odometer reading and gravity.
 
@@ -169,7 +192,7 @@ def index_bag(
             return _CACHE[key]
     reading = None
     try:
-        with _reader(path) as reader:
+        with bag_limits(limits), _reader(path) as reader:
             points = _choose(reader, topics.points_topic, POINTS_TYPE, archive, member,
                              required=True)  # fmt: skip
             odometry = _choose(reader, topics.odometry_topic, ODOMETRY_TYPE, archive, member,
@@ -192,6 +215,8 @@ def index_bag(
                     imu_acc.append((a.x, a.y, a.z))
     except PointFileError:
         raise
+    except BagOverCap as exc:
+        raise _over(exc, limits, archive, member, reading) from None
     except _read_errors() as exc:
         raise _error(archive, member, reading, f"cannot read the bag: {exc}") from exc
     if not times:
@@ -252,45 +277,65 @@ def _gravity(frame_t: np.ndarray, imu_t: np.ndarray, acc: np.ndarray) -> np.ndar
     return g
 
 
-def cloud_to_points(msg) -> np.ndarray:
+def cloud_to_points(msg, *, points_max_count: int | None = None) -> np.ndarray:
     """A ``sensor_msgs/PointCloud2`` as ``(N, 3)`` float64; points with a NaN or infinite
     coordinate (no return, in an organised cloud) are left out.
+
+    The message must hold exactly ``height`` rows of ``row_step`` bytes, each row at least
+    ``width`` points of ``point_step`` bytes, and its fields must lie within a point without
+    overlapping: nothing is allocated for what the message does not hold.
 
     Raises
     ------
     ValueError
-        When the message's fields, steps and data disagree.
+        When the message's fields, steps and data disagree, or it declares more than
+        ``points_max_count`` points.
     """
     fields = {f.name: f for f in msg.fields}
     missing = [a for a in "xyz" if a not in fields]
     if missing:
         raise ValueError(f"the point cloud has no {', '.join(missing)} field")
+    rows, width = int(msg.height), int(msg.width)
+    step, row_step = int(msg.point_step), int(msg.row_step)
+    data = msg.data
+    if points_max_count is not None and rows * width > points_max_count:
+        raise ValueError(f"{rows:,} x {width:,} points are over the limit of "
+                         f"{points_max_count:,} (points_max_count)")  # fmt: skip
+    if rows * width and (row_step < width * step or len(data) != rows * row_step):
+        raise ValueError(
+            f"{rows:,} rows x {width:,} points of {step:,} bytes (rows of {row_step:,} bytes) "
+            f"need {rows * row_step:,} bytes, the message holds {len(data):,}"
+        )
+    spans = []
+    for f in msg.fields:
+        size = _FIELD_BYTES.get(int(f.datatype))
+        if size is None:
+            raise ValueError(f"field {f.name} has an unknown datatype {f.datatype}")
+        end = int(f.offset) + size * max(1, int(f.count))
+        if end > step:
+            raise ValueError(f"field {f.name} lies beyond the point step {step}")
+        spans.append((int(f.offset), end, f.name))
+    spans.sort()
+    for (_, end, first), (start, _, second) in itertools.pairwise(spans):
+        if start < end:
+            raise ValueError(f"fields {first} and {second} overlap")
     order = ">" if msg.is_bigendian else "<"
     formats, offsets = [], []
     for a in "xyz":
         f = fields[a]
         if f.datatype not in _FLOAT_TYPES:
             raise ValueError(f"field {a} has datatype {f.datatype}, not FLOAT32 or FLOAT64")
-        size = int(_FLOAT_TYPES[f.datatype][1])
-        if f.offset + size > msg.point_step:
-            raise ValueError(f"field {a} lies beyond the point step {msg.point_step}")
         formats.append(order + _FLOAT_TYPES[f.datatype])
         offsets.append(int(f.offset))
-    rows, width, step = int(msg.height), int(msg.width), int(msg.point_step)
-    data = np.asarray(msg.data, dtype=np.uint8)
     if rows * width == 0:
         return np.empty((0, 3))
-    if msg.row_step < width * step or len(data) < rows * msg.row_step:
-        raise ValueError(
-            f"{rows} x {width} points of {step} bytes need {rows * msg.row_step} bytes, "
-            f"the message holds {len(data)}"
-        )
+    data = np.asarray(data, dtype=np.uint8)
     dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets,
                       "itemsize": step})  # fmt: skip
     table = np.lib.stride_tricks.as_strided(
         np.frombuffer(data.tobytes(), dtype=np.uint8),
         shape=(rows, width * step),
-        strides=(int(msg.row_step), 1),
+        strides=(row_step, 1),
     )
     records = np.ascontiguousarray(table).view(dtype).reshape(-1)
     pts = np.column_stack([records[a].astype(np.float64) for a in "xyz"])
@@ -303,6 +348,7 @@ def iter_bag_frames(
     indices: Sequence[int],
     *,
     archive: str | None,
+    limits: InputLimits = DEFAULT_LIMITS,
 ) -> Iterator[tuple[int, np.ndarray]]:
     """Yield ``(i, points)`` for the frames ``indices`` (ascending), one message at a time.
 
@@ -321,7 +367,7 @@ def iter_bag_frames(
     i = first_at_start - 1
     where = f"{index.points_topic}"
     try:
-        with _reader(path) as reader:
+        with bag_limits(limits), _reader(path) as reader:
             conns = [c for c in reader.connections if c.topic == index.points_topic]
             messages = reader.messages(
                 connections=conns, start=times[wanted[0]], stop=times[wanted[-1]] + 1
@@ -331,7 +377,8 @@ def iter_bag_frames(
                 if i not in want:
                     continue
                 try:
-                    points = cloud_to_points(reader.deserialize(raw, conn.msgtype))
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    points = cloud_to_points(msg, points_max_count=limits.points_max_count)
                 except _read_errors() as exc:
                     raise _error(
                         archive, index.member, where, f"frame {i} cannot be read: {exc}"
@@ -341,6 +388,8 @@ def iter_bag_frames(
                     return
     except PointFileError:
         raise
+    except BagOverCap as exc:
+        raise _over(exc, limits, archive, index.member, where) from None
     except _read_errors() as exc:
         raise _error(archive, index.member, where, f"cannot read the bag: {exc}") from exc
     raise _error(archive, index.member, where, f"the bag ends before frame {wanted[-1]}")
