@@ -66,6 +66,8 @@ class Outcome:
     timeline: list[str] = field(default_factory=list)
     runs_says: dict | None = None
     """``pipescan runs --json --limit 1`` at the end: what an operator sees of the run."""
+    runs_text: str = ""
+    """``pipescan runs --limit 1`` at the end, as printed."""
 
 
 def stored(db: Path) -> tuple[int, int]:
@@ -270,6 +272,7 @@ def run_scenario(
         count, distinct = stored(db)
         said = run_pipescan(["runs", "--json", "--limit", "1"], env, root)
         runs_says = json.loads(said.stdout)[0] if said.returncode == 0 and said.stdout else None
+        runs_text = run_pipescan(["runs", "--limit", "1"], env, root).stdout
         return Outcome(
             scenario=scenario,
             archives=archives,
@@ -284,6 +287,7 @@ def run_scenario(
             active_task_runs=_active_task_runs(server),
             timeline=timeline,
             runs_says=runs_says,
+            runs_text=runs_text,
         )
     finally:
         if worker is not None:
@@ -316,4 +320,5 @@ def format_outcome(o: Outcome) -> str:
         text += f"\n        pipescan runs: {r['state_name']}, {counts}" + (
             f", missing {missing}" if missing else ""
         )
+    text += "".join(f"\n        | {line}" for line in o.runs_text.splitlines())
     return text

@@ -26,7 +26,6 @@ from contextlib import nullcontext
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
-from urllib.parse import urlsplit
 
 from prefect import flow, get_run_logger, tags, task
 from prefect.cache_policies import NO_CACHE
@@ -41,7 +40,7 @@ from pipescan.core.contour.grid import GridParams
 from pipescan.core.errors import PipescanError
 from pipescan.core.measures import MeasureParams
 from pipescan.core.registration import RegistrationParams
-from pipescan.core.sanitize import REDACTED, strip_credentials, strip_credentials_in_text
+from pipescan.core.sanitize import strip_credentials, strip_credentials_in_text
 from pipescan.core.wording import plural
 from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
@@ -54,7 +53,6 @@ from pipescan.flows.recovery import (
 from pipescan.flows.runners import make_task_runner
 from pipescan.reports.network import FailedArchive
 from pipescan.settings import get_settings, use_settings
-from pipescan.storage.database.db import StorageError
 from pipescan.tasks.network import (
     IO_RETRY_OPTIONS,
     archive_label,
@@ -227,7 +225,8 @@ def absolute_location(location: str) -> str:
 
 
 def refuse_password_in_url(location: str, what: str = "store") -> None:
-    """Refuse a URL with a secret in it (``s3://KEY:SECRET@bucket/...``, or a pre-signed
+    """Refuse a URL with a secret in it (``s3://KEY:SECRET@bucket/...``, a token as the user
+    ``https://TOKEN@host/...``, in any link of an fsspec chain, or a pre-signed
     ``?X-Amz-Signature=...``) before it becomes a flow or deployment parameter, which Prefect
     keeps and shows.
 
@@ -236,16 +235,11 @@ def refuse_password_in_url(location: str, what: str = "store") -> None:
     PipescanError
         Naming the URL without its secrets.
     """
-    if "://" not in location:
+    from pipescan.storage.input.urls import url_secret
+
+    if url_secret(location) is None:  # each link of a chain, as fsspec reads it
         return
-    try:
-        password = urlsplit(location).password
-    except ValueError:  # an unparseable port: not ours to judge
-        password = None
     shown = strip_credentials(location)
-    secret_query = f"={REDACTED}" in shown and f"={REDACTED}" not in location
-    if password is None and not secret_query:
-        return
     raise PipescanError(
         f"the {what} URL {shown} holds a secret, which Prefect would keep with the run's "
         "parameters",
@@ -774,14 +768,15 @@ def wait_for_database(settings, wait_s: float, run_log) -> str:
     while True:
         try:
             return checked_database_url(settings)
-        except StorageError as exc:
+        except PipescanError as exc:  # also a Secret block that Prefect's API did not give
             retry += 1
             delay = backoff_delay(DATABASE_FIRST_DELAY_S, DATABASE_MAX_DELAY_S, retry)
             waited = time.monotonic() - started
             if failure_cause(exc) != TRANSIENT or waited + delay > wait_s:
                 if retry > 1:
-                    raise StorageError(
+                    raise type(exc)(
                         f"{exc.reason} (still so after {waited:.0f} s of trying)",
+                        field=exc.field,
                         hint=exc.hint,
                     ) from exc
                 raise
