@@ -142,3 +142,89 @@ def test_a_file_compressed_bag_is_decompressed_into_marked_scratch_swept_after_a
     finally:
         tempfile.tempdir = old
     assert list((tmpdir / "pipescan-bags").iterdir()) == []
+
+
+# --- credentials in every URL form fsspec accepts ----------------------------------------------
+
+
+def _fsspec_forms() -> list[tuple[str, str, bool]]:
+    """``(url, secret, refused)``: every protocol fsspec registers, with a key and secret or a
+    user-only token in its authority, alone or as the inner link of a chain, over hosts
+    ``urllib`` reads and one it cannot (an unbalanced ``[``). Each form is checked against
+    fsspec's own split (``::`` links, :func:`fsspec.core.split_protocol`) to hold the secret in
+    a link's authority, where its backend reads credentials."""
+    from fsspec.core import split_protocol
+    from fsspec.registry import known_implementations
+
+    from pipescan.storage.input.urls import LOGIN_PROTOCOLS
+
+    forms = []
+    protocols = sorted(p for p in known_implementations if len(p) > 1 and "::" not in p)
+    for protocol in protocols:
+        for userinfo, secret in (
+            ("AKIAKEY:S3cretValue@", "S3cretValue"),
+            ("T0kenValue@", "T0kenValue"),
+        ):
+            for host in ("bucket", "host:8080", "[::1", "[host"):
+                for chain in (
+                    "",
+                    "simplecache::",
+                    "filecache::",
+                    "zip://inner.zip::",
+                    "blockcache::",
+                ):
+                    url = f"{chain}{protocol}://{userinfo}{host}/runs/x.zip"
+                    links = [split_protocol(link) for link in url.split("::")]
+                    assert any(rest.split("/", 1)[0].startswith(userinfo) for _, rest in links)
+                    user_only = ":" not in userinfo
+                    refused = not (user_only and protocol in LOGIN_PROTOCOLS)
+                    forms.append((url, secret, refused))
+    return forms
+
+
+def test_credentials_are_refused_in_every_url_form_fsspec_accepts() -> None:
+    from pipescan.core.errors import PipescanError
+    from pipescan.flows.network import refuse_password_in_url
+
+    forms = _fsspec_forms()
+    assert len(forms) > 1000
+    passed = []
+    for url, secret, refused in forms:
+        try:
+            refuse_password_in_url(url, "archive")
+        except PipescanError as exc:
+            assert refused, f"a login name refused: {url}"
+            assert secret not in str(exc), f"the refusal shows the secret: {exc}"
+            assert "\n" not in str(exc)
+        else:
+            if refused:
+                passed.append(url)
+    assert passed == [], f"{len(passed)} forms passed, e.g. {passed[:5]}"
+
+
+@pytest.mark.parametrize(
+    "url",
+    [
+        "s3://bucket/runs/x.zip",
+        "simplecache::s3://bucket/runs/x.zip",
+        "zip://inner.zip::s3://bucket/x.zip",
+        "https://host/x.zip?versionId=4",
+        "https://host/user@example.org/x.zip",  # an @ in the path, not the authority
+        "ftp://surveyor@host/x.zip",  # a login name, not a secret
+        "/data/scans/site7.zip",
+        "file:///data/scans/site7.zip",
+    ],
+)
+def test_urls_without_a_secret_pass(url) -> None:
+    from pipescan.flows.network import refuse_password_in_url
+
+    refuse_password_in_url(url, "archive")
+
+
+def test_a_secret_query_value_in_a_chain_is_refused() -> None:
+    from pipescan.core.errors import PipescanError
+    from pipescan.flows.network import refuse_password_in_url
+
+    with pytest.raises(PipescanError, match="holds a secret") as info:
+        refuse_password_in_url("simplecache::https://host/x.zip?X-Amz-Signature=abc123", "archive")
+    assert "abc123" not in str(info.value)

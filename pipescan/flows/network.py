@@ -235,11 +235,11 @@ def refuse_password_in_url(location: str, what: str = "store") -> None:
     PipescanError
         Naming the URL without its secrets.
     """
-    from pipescan.storage.input.urls import url_secret
+    from pipescan.storage.input.urls import url_secret, without_secrets
 
     if url_secret(location) is None:  # each link of a chain, as fsspec reads it
         return
-    shown = strip_credentials(location)
+    shown = without_secrets(location)
     raise PipescanError(
         f"the {what} URL {shown} holds a secret, which Prefect would keep with the run's "
         "parameters",

@@ -38,7 +38,6 @@ from pipescan.core.errors import (
     MetadataError,
 )
 from pipescan.core.model import FrameRef, InspectionMeta
-from pipescan.core.sanitize import strip_credentials
 from pipescan.storage.input.bags import BagIndex, index_bag, is_bag, iter_bag_frames
 from pipescan.storage.input.extract import (
     COPY_CHUNK_BYTES,
@@ -65,6 +64,7 @@ from pipescan.storage.input.pointfiles import (
     read_point_time,
     read_points,
 )
+from pipescan.storage.input.urls import without_secrets
 
 FRAMES_DIR = "frames"
 # Files that archiving tools add and that are never content (macOS resource forks, ...).
@@ -407,7 +407,7 @@ def open_archive(
     ScratchSpaceError
         The work directory could not hold the extraction (full, read-only).
     """
-    name = strip_credentials(name if name is not None else str(uri))
+    name = without_secrets(name if name is not None else str(uri))
     tempdir: Path | None = None
     try:
         local = local_path(uri, name)
