@@ -468,7 +468,9 @@ def test_cli_export_isybau(engine_with_inspection, tmp_path: Path) -> None:
 
 def test_an_unwritable_target_is_one_line(engine_with_inspection, tmp_path: Path) -> None:
     engine, inspection_id = engine_with_inspection
-    target = tmp_path / "no-such-folder" / "x.xml"
+    blocker = tmp_path / "a-file"  # a missing folder is made; a file on the way is refused
+    blocker.write_text("")
+    target = blocker / "x.xml"
     result = CliRunner().invoke(
         app,
         ["export", "isybau", "--inspection", str(inspection_id), "-o", str(target),

@@ -385,6 +385,60 @@ def _setup_logging(verbose: bool) -> None:
     logger.propagate = False
 
 
+_FORMAT_NAMES = {"pdf": "PDF", "png": "PNG", "svg": "SVG"}
+
+
+def output_format(
+    path: Path, *, option: str, what: str, formats: tuple[str, ...], bare: str | None = None
+) -> str:
+    """The format an output path's suffix names, one of ``formats`` (``"pdf"``, ``"png"``,
+    ``"svg"``); a name without a suffix is ``bare``. Any other suffix is one line, before any
+    work: the file would not be what its name says.
+
+    >>> output_format(Path("out/trend.svg"), option="--plot", what="plot", formats=("png", "svg"))
+    'svg'
+    """
+    suffix = path.suffix.lower().lstrip(".")
+    if suffix in formats:
+        return suffix
+    if not suffix and bare is not None:
+        return bare
+    names = " or ".join(f".{f}" for f in formats)
+    if suffix in _FORMAT_NAMES:
+        reason = f"a {what} is written as {', '.join(_FORMAT_NAMES[f] for f in formats)} only"
+    elif suffix:
+        reason = f".{suffix} is not a format pipescan writes a {what} in"
+    else:
+        reason = "the name has no suffix to say the format"
+    hint = f"end the name in {names}"
+    if what == "report" and suffix == "png":
+        hint += " (`pdftoppm -png` turns its pages into PNG images)"
+    raise OptionError(f"{option} {path}: {reason}", hint=hint)
+
+
+def make_output_folder(path: Path, what: str, kind: str) -> None:
+    """Create the folder an output goes into, as every command does (CSV, JSON lines, PDF,
+    XML, GeoPackage, plots); a path that names a folder, or runs through a file, is one line.
+
+    Raises
+    ------
+    OutputError
+        Naming the path and what is wrong.
+    """
+    from pipescan.core.errors import OutputError
+    from pipescan.reports.render import check_output_path
+
+    check_output_path(path, what, kind)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise OutputError(
+            f"cannot make the {what}'s folder: {exc.strerror or exc}",
+            file=str(path),
+            hint=f"give the path of a {kind} file in a folder you can write to",
+        ) from exc
+
+
 def _fail(exc: Exception) -> NoReturn:
     """Stop the command with an expected error: one line, exit code 2 (see _PipescanGroup)."""
     if isinstance(exc, PipescanError):

@@ -9,7 +9,7 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, _db_url, _fail, app, export_app
+from pipescan.cli._app import DbOption, _db_url, _fail, app, export_app, make_output_folder
 from pipescan.core.errors import PipescanError
 from pipescan.core.sanitize import escape_control
 
@@ -84,6 +84,7 @@ def export_isybau_command(
         if len(value) > limit or not value.isprintable():
             _fail(IsybauError(f"give at most {limit} printable characters", field=name))
     try:
+        make_output_folder(output, "ISYBAU file", "XML")
         engine = connect(_db_url(db))
         try:
             result = export_isybau(
@@ -144,6 +145,8 @@ def export_gis_command(
     from pipescan.storage.database.gis import export_gis
 
     try:
+        if fmt == GisFormat.gpkg:  # a geojson folder is made by the export itself
+            make_output_folder(output, "GeoPackage", "GeoPackage")
         engine = connect(_db_url(db))
         try:
             result = export_gis(

@@ -9,7 +9,14 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, _fail, _settings, _stored_db_url, app
+from pipescan.cli._app import (
+    DbOption,
+    _fail,
+    _settings,
+    _stored_db_url,
+    app,
+    output_format,
+)
 from pipescan.core.errors import OptionError, PipescanError
 
 
@@ -113,6 +120,11 @@ def report(
         _fail(OptionError("--since and --inspections go with --network"))
     extra = [a.strip() for a in email or [] if a.strip()]
     try:
+        if output is not None:  # a report is a PDF: another name is refused before any work
+            from pipescan.reports.render import check_report_path
+
+            output_format(output, option="-o", what="report", formats=("pdf",), bare="pdf")
+            check_report_path(output)
         settings = _settings()
         url = _stored_db_url(db)
         if inspection is not None:

@@ -430,10 +430,12 @@ def inspect(
     try:
         settings = _settings()
         _check_contour(settings, contour)  # cheap: before the archive
-        if report is not None:
+        if report is not None:  # not after the whole run
+            from pipescan.cli._app import output_format
             from pipescan.reports.render import check_report_path
 
-            check_report_path(report)  # not after the whole run
+            output_format(report, option="--report", what="report", formats=("pdf",), bare="pdf")
+            check_report_path(report)
         _first_look(archive, settings)  # the first lines: before the checks that load scipy
         checked = _checked_settings(contour, registration)
         _say_prefect_starts()  # the next import is Prefect's

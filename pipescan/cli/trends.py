@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Annotated, Any
 import numpy as np
 import typer
 
-from pipescan.cli._app import DbOption, _fail, _stored_db_url, app
+from pipescan.cli._app import DbOption, _fail, _stored_db_url, app, output_format
 from pipescan.core.errors import OutputError, PipescanError
 from pipescan.core.trends import (
     NO_SIGNIFICANT_CHANGE,
@@ -149,7 +149,11 @@ def trend(
         typer.Option(help="Only this chainage, in metres (the reference survey's chainage)."),
     ] = None,
     plot: Annotated[
-        Path | None, typer.Option(help="Also draw the profiles and the change per year (PNG).")
+        Path | None,
+        typer.Option(
+            help="Also draw the profiles and the change per year: PNG, PDF or SVG by the "
+            "name's suffix (PNG without one)."
+        ),
     ] = None,
     since: SinceOption = None,
     max_offset: Annotated[
@@ -171,14 +175,22 @@ def trend(
     from pipescan.storage.database.trends import asset_trend
 
     try:
+        fmt = None
+        if plot is not None:  # before the database: a wrong name is said at once
+            fmt = output_format(
+                plot, option="--plot", what="plot", formats=("png", "pdf", "svg"), bare="png"
+            )
+            from pipescan.reports.render import check_output_path
+
+            check_output_path(plot, "plot", _FORMATS[fmt])
         engine = connect(_stored_db_url(db))
         try:
             result = asset_trend(engine, asset, max_offset_m=max_offset, since=_since(since))
         finally:
             engine.dispose()
         cell = None if chainage is None else result.cell_at(chainage)
-        if plot is not None:
-            _plot_trend(result, plot, cell)
+        if plot is not None and fmt is not None:
+            _plot_trend(result, plot, cell, fmt)
     except PipescanError as exc:
         _fail(exc)
         return
@@ -322,10 +334,14 @@ def _trend_json(result: AssetTrend, cell: int | None) -> dict[str, Any]:
     }
 
 
-def _plot_trend(result: AssetTrend, path: Path, cell: int | None) -> None:
-    """Draw :func:`_trend_figure` to a PNG at exactly ``path`` (its folder created; written
-    under a temporary name and renamed into place). matplotlib would add ``.png`` to a name
-    without a suffix, and the command then said it wrote a file that was not there.
+_FORMATS = {"png": "PNG", "pdf": "PDF", "svg": "SVG"}
+
+
+def _plot_trend(result: AssetTrend, path: Path, cell: int | None, fmt: str = "png") -> None:
+    """Draw :func:`_trend_figure` in ``fmt`` (``png``, ``pdf`` or ``svg``) at exactly
+    ``path`` (its folder created; written under a temporary name and renamed into place).
+    matplotlib would add ``.png`` to a name without a suffix, and the command then said it
+    wrote a file that was not there.
 
     Raises
     ------
@@ -336,12 +352,12 @@ def _plot_trend(result: AssetTrend, path: Path, cell: int | None) -> None:
 
     from pipescan.reports.render import check_output_path
 
-    check_output_path(path, "plot", "PNG")
+    check_output_path(path, "plot", _FORMATS[fmt])
     figure = _trend_figure(result, cell)
     tmp = path.with_name(f".{path.name}.part")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        figure.savefig(tmp, dpi=110, format="png")
+        figure.savefig(tmp, dpi=110, format=fmt)
         tmp.replace(path)
     except OSError as exc:
         with contextlib.suppress(OSError):
@@ -349,7 +365,7 @@ def _plot_trend(result: AssetTrend, path: Path, cell: int | None) -> None:
         raise OutputError(
             f"cannot write the plot: {exc.strerror or exc}",
             file=str(path),
-            hint="give the path of a PNG file in a folder you can write to",
+            hint=f"give the path of a {_FORMATS[fmt]} file in a folder you can write to",
         ) from exc
     finally:
         plt.close(figure)
