@@ -110,8 +110,7 @@ def test_a_file_compressed_bag_is_decompressed_into_marked_scratch_swept_after_a
     """A ROS 2 bag folder with ``compression_mode: file`` is decompressed into a run directory
     pipescan marks (not a bare ``$TMPDIR`` folder); killed with ``kill -9`` while it is open, the
     next bag read removes it."""
-    from pipescan.storage.input.bagguard import sweep_scratch
-    from pipescan.storage.scratch import RUN_MARKER
+    from pipescan.storage.input.bagguard import SCRATCH_MARKER, sweep_scratch
     from tests.hostile import ros2_bag
 
     root = ros2_bag(tmp_path, "sqlite3", "file", {"offsets": (0, 4, 8), "step": 12}, 10)
@@ -127,7 +126,7 @@ def test_a_file_compressed_bag_is_decompressed_into_marked_scratch_swept_after_a
         assert child.stdout is not None
         assert child.stdout.readline().strip() == "open"
         runs = list((tmpdir / "pipescan-bags").iterdir())
-        assert len(runs) == 1 and (runs[0] / RUN_MARKER).is_file()
+        assert len(runs) == 1 and (runs[0] / SCRATCH_MARKER).is_file()
         assert any(p.suffix == ".db3" or p.name.startswith("scan") for p in runs[0].iterdir())
         assert [p for p in tmpdir.iterdir() if p.name != "pipescan-bags"] == []
     finally:

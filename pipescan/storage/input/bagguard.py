@@ -13,9 +13,9 @@ pipescan replaces, in ``rosbags``' modules, the few functions that do so with bo
   ``member_max_bytes``;
 - a record or field longer than what is left of the file is refused before it is read;
 - a ``.db3``'s ``messages`` table must be a plain table whose columns are all stored;
-- a file-compressed ROS 2 bag is decompressed under the same caps, into a run directory that
-  pipescan made and marked under :func:`scratch_root`, removed when the bag is closed, or by the
-  next bag read after a kill (:func:`~pipescan.storage.scratch.sweep_stale_runs`).
+- a file-compressed ROS 2 bag is decompressed under the same caps, into a folder that pipescan
+  made and marked (:data:`SCRATCH_MARKER`) under :func:`scratch_root`, removed when the bag is
+  closed, or by the next process that reads a bag after a kill (:func:`sweep_scratch`).
 
 The limits in force are set by :func:`bag_limits` around each read (a context variable, so
 threads reading bags with other limits do not mix).
@@ -24,6 +24,7 @@ threads reading bags with other limits do not mix).
 from __future__ import annotations
 
 import os
+import shutil
 import tempfile
 import threading
 from collections.abc import Callable, Iterator
@@ -169,33 +170,58 @@ def scratch_root() -> Path:
     return Path(tempfile.gettempdir()) / "pipescan-bags"
 
 
-def sweep_scratch() -> None:
-    """Remove the scratch of bag reads whose process is gone (killed while it decompressed)."""
-    from pipescan.storage.scratch import sweep_stale_runs
+SCRATCH_MARKER = ".pipescan-bag"
+"""The marker of a scratch folder of a bag read: the owning process's id and start time."""
 
+
+def _owner_alive(text: str) -> bool:
+    import psutil
+
+    try:
+        pid, started = text.split()
+        return abs(psutil.Process(int(pid)).create_time() - float(started)) < 1e-3
+    except (ValueError, psutil.Error):
+        return False
+
+
+def sweep_scratch() -> None:
+    """Remove the scratch folders of bag reads whose process is gone (killed while it read a
+    file-compressed bag). Only folders carrying the marker are removed, never a link."""
     root = scratch_root()
-    if root.is_dir() and not root.is_symlink():
-        sweep_stale_runs(root)
+    if root.is_symlink() or not root.is_dir():
+        return
+    for entry in root.iterdir():
+        marker = entry / SCRATCH_MARKER
+        if entry.is_symlink() or not entry.is_dir() or marker.is_symlink():
+            continue
+        try:
+            text = marker.read_text(encoding="ascii")
+        except OSError:  # no marker: not ours, or being created
+            continue
+        if not _owner_alive(text):
+            shutil.rmtree(entry, ignore_errors=True)
 
 
 class _MarkedScratch:
-    """``TemporaryDirectory``'s part that ``rosbags`` uses, as a run directory pipescan marks
-    (so the next read removes it after a kill), swept of dead runs first."""
+    """``TemporaryDirectory``'s part that ``rosbags`` uses, as a folder of pipescan's own
+    under :func:`scratch_root`, marked with this process (so that the next read removes it
+    after a kill); dead readers' folders are swept first."""
 
     def __init__(self) -> None:
-        from pipescan.storage.scratch import create_run_dir, sweep_stale_runs
+        import psutil
 
         root = scratch_root()
         root.mkdir(mode=0o700, exist_ok=True)
-        if root.is_symlink() or not root.is_dir():
-            raise OSError(f"{root} is not a folder of pipescan's")
-        sweep_stale_runs(root)
-        self.name = str(create_run_dir(root))
+        if root.is_symlink() or not root.is_dir() or root.stat().st_uid != os.getuid():
+            raise OSError(f"{root} is not a folder of this user's")
+        sweep_scratch()
+        folder = Path(tempfile.mkdtemp(prefix="bag-", dir=root))
+        started = psutil.Process().create_time()
+        (folder / SCRATCH_MARKER).write_text(f"{os.getpid()} {started!r}", encoding="ascii")
+        self.name = str(folder)
 
     def cleanup(self) -> None:
-        from pipescan.storage.scratch import remove_workspace
-
-        remove_workspace(Path(self.name))
+        shutil.rmtree(self.name, ignore_errors=True)
 
     def __enter__(self) -> str:
         return self.name
