@@ -368,8 +368,12 @@ def test_a_worker_runs_the_deployment_with_its_own_settings_and_no_secret_reache
     finally:
         engine.dispose()
     assert stored.asset_id == asset_id(0)
-    assert sorted(p.name for p in reports.iterdir()) == sorted(
+    assert sorted(p.name for p in reports.glob("*.pdf")) == sorted(
         f"network-{r['expected_start_time'][:10]}-{r['name']}.pdf" for r in (done, again)
+    )
+    # Each run's process output beside its report, under the same name.
+    assert sorted(p.name for p in (reports / "logs").iterdir()) == sorted(
+        f"network-{r['expected_start_time'][:10]}-{r['name']}.log" for r in (done, again)
     )
     assert any("[1/1] MH0-MH1 inspected in" in m for m in _logs(server, done["id"]))
     assert any("[1/1] MH0-MH1 inspected in" in m for m in _logs(server, again["id"]))

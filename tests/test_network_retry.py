@@ -431,3 +431,19 @@ def test_a_run_that_did_not_finish_is_counted_from_its_sub_flows():
     )
     assert (counts["inspected"], counts["missing"], failed) == (2, 1, [])
     assert [(n.archive, n.why) for n in missing] == [("a2", "crashed: no heartbeat for 90 s")]
+
+
+def test_the_cli_prints_the_summary_and_exits_1_when_an_archive_is_not_stored(
+    prefect, tmp_path, fast_retries, monkeypatch
+):
+    bad = MetadataError("missing inspected_at", file="inspection.toml")
+    FakeSubflow(monkeypatch, {"a9": Countdown(99, bad)})
+    store = _store(tmp_path / "store", ["a1", "a9"])
+    result = CliRunner().invoke(app, ["inspect-network", store, "--no-network-report"])
+    assert result.exit_code == 1, result.output
+    assert "1 inspected, 0 reused (already stored), 1 failed" in result.stdout
+    assert "failed for their own content" in result.stdout and "a9: " in result.stdout
+    result = CliRunner().invoke(app, ["inspect-network", store, "--no-network-report", "--json"])
+    assert result.exit_code == 1
+    payload = json.loads(result.stdout)
+    assert [(f["label"], f["cause"]) for f in payload["failures"]] == [("a9", "content")]
