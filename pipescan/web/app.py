@@ -480,6 +480,8 @@ def create_app(config: WebConfig) -> FastAPI:
     @contextlib.asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
         network.warm()  # read the network now, not on the first visitor's request
+        # The report's loader imports Prefect (seconds): not on the first inspection's request.
+        threading.Thread(target=_import_report_loader, daemon=True).start()
         yield
         engine.dispose()
 
@@ -1116,6 +1118,10 @@ def _defect_row(d: Any) -> dict[str, Any]:
         "grade": fmt_grade(d.grade),
         "grade_value": d.grade,
     }
+
+
+def _import_report_loader() -> None:
+    import pipescan.tasks.reporting  # noqa: F401
 
 
 def _report_context(url: str, inspection_id: int) -> dict[str, Any]:
