@@ -18,7 +18,9 @@ import pytest
 
 from pipescan.core.errors import PointFileError
 from pipescan.storage.input.archive import open_archive, validate_archive
+from tests import test_gis
 from tests.hostile import e57_doctype, e57_shared_section, in_cloud
+from tests.test_hostile_inputs import time_limit
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -227,3 +229,101 @@ def test_a_secret_query_value_in_a_chain_is_refused() -> None:
     with pytest.raises(PipescanError, match="holds a secret") as info:
         refuse_password_in_url("simplecache::https://host/x.zip?X-Amz-Signature=abc123", "archive")
     assert "abc123" not in str(info.value)
+
+
+# --- temporary output files: created exclusively, never a link followed -------------------------
+
+
+def _plant(folder: Path, names: list[str], victim: Path) -> None:
+    """Symlinks to ``victim`` at every name an export used to write through."""
+    for name in names:
+        (folder / name).symlink_to(victim)
+
+
+def _victim(tmp_path: Path) -> tuple[Path, bytes]:
+    victim = tmp_path / "victim.txt"
+    victim.write_bytes(b"precious\n")
+    return victim, victim.read_bytes()
+
+
+def _left_parts(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir() if ".part" in p.name or ".tmp" in p.name)
+
+
+def test_atomic_file_writes_through_no_planted_link_and_opens_no_fifo(tmp_path) -> None:
+    from pipescan.storage.atomic import atomic_file
+
+    victim, before = _victim(tmp_path)
+    out = tmp_path / "out"
+    out.mkdir()
+    _plant(out, [".a.csv.part"], victim)
+    os.mkfifo(out / ".b.csv.part")
+    with time_limit(10):
+        for name in ("a.csv", "b.csv"):
+            with atomic_file(out / name, "w", encoding="utf-8") as fh:
+                fh.write("x\n")
+    assert victim.read_bytes() == before
+    assert (out / "a.csv").read_text() == "x\n" and (out / "b.csv").read_text() == "x\n"
+    assert oct((out / "a.csv").stat().st_mode & 0o777) == oct(0o666 & ~_umask())
+    # A link at the output's own name is replaced, not written through.
+    (out / "c.csv").symlink_to(victim)
+    with atomic_file(out / "c.csv") as fh:
+        fh.write(b"y")
+    assert victim.read_bytes() == before and not (out / "c.csv").is_symlink()
+
+
+def _umask() -> int:
+    old = os.umask(0)
+    os.umask(old)
+    return old
+
+
+def test_an_interrupted_atomic_write_leaves_nothing(tmp_path) -> None:
+    from pipescan.storage.atomic import atomic_file, atomic_path
+
+    for opener in (atomic_file, atomic_path):
+        with pytest.raises(RuntimeError), opener(tmp_path / "x.bin"):
+            raise RuntimeError("interrupted")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_csv_export_does_not_write_through_a_planted_link(tmp_path) -> None:
+    from pipescan.cli.data import _write_atomically
+
+    victim, before = _victim(tmp_path)
+    out = tmp_path / "share"
+    out.mkdir()
+    _plant(out, [".export.csv.part"], victim)
+    os.mkfifo(out / ".export.jsonl.part")
+    with time_limit(10):
+        assert _write_atomically(out / "export.csv", lambda fh: fh.write("a,b\n")) == 4
+        assert _write_atomically(out / "export.jsonl", lambda fh: fh.write("{}\n")) == 3
+    assert victim.read_bytes() == before
+    assert (out / "export.csv").read_text() == "a,b\n"
+
+
+@pytest.fixture
+def gis_db(tmp_path):
+    """test_gis's database of two pipes on an imported GIS layer."""
+    yield from test_gis.network.__wrapped__(tmp_path)
+
+
+def test_gis_and_isybau_exports_do_not_write_through_planted_links(gis_db, tmp_path) -> None:
+    from datetime import date
+
+    from pipescan.storage.database.gis import export_gis
+    from pipescan.storage.database.isybau import IsybauHeader, export_isybau
+
+    engine, _ = gis_db
+    victim, before = _victim(tmp_path)
+    out = tmp_path / "share"
+    (out / "gj").mkdir(parents=True)
+    pid = os.getpid()
+    _plant(out, [f".net.{pid}.tmp.gpkg", f".sw2.xml.{pid}.tmp"], victim)
+    _plant(out / "gj", [f".pipes.{pid}.tmp.geojson", f".defects.{pid}.tmp.geojson"], victim)
+    export_gis(engine, out / "net.gpkg")
+    export_gis(engine, out / "gj", fmt="geojson")
+    export_isybau(engine, out / "sw2.xml", IsybauHeader(date(2026, 12, 1)), asset_id="SW-2")
+    assert victim.read_bytes() == before
+    assert (out / "net.gpkg").stat().st_size > 0 and (out / "sw2.xml").stat().st_size > 0
+    assert _left_parts(out) == [f".net.{pid}.tmp.gpkg", f".sw2.xml.{pid}.tmp"]  # the plants

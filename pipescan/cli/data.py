@@ -103,18 +103,15 @@ def _check_selection(engine, asset: str | None, inspection: int | None) -> None:
 def _write_atomically(output: Path, write) -> int:
     """Write through a temporary file beside ``output`` (its folder created), renamed into
     place at the end: an interrupted export leaves no half-written file under the name."""
-    tmp = output.with_name(f".{output.name}.part")
+    from pipescan.storage.atomic import atomic_file
+
     try:
         output.parent.mkdir(parents=True, exist_ok=True)
-        with tmp.open("w", newline="", encoding="utf-8") as fh:
+        # A new file of a random name (O_EXCL, no link followed), renamed onto ``output``.
+        with atomic_file(output, "w", newline="", encoding="utf-8") as fh:
             n = write(fh)
-        tmp.replace(output)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise OptionError(f"cannot write {output}: {exc.strerror or exc}") from exc
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return n
 
 

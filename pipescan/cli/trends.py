@@ -9,7 +9,6 @@ is worded and drawn as "no significant change".
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 from dataclasses import dataclass
@@ -351,17 +350,15 @@ def _plot_trend(result: AssetTrend, path: Path, cell: int | None, fmt: str = "pn
     import matplotlib.pyplot as plt
 
     from pipescan.reports.render import check_output_path
+    from pipescan.storage.atomic import atomic_file
 
     check_output_path(path, "plot", _FORMATS[fmt])
     figure = _trend_figure(result, cell)
-    tmp = path.with_name(f".{path.name}.part")
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        figure.savefig(tmp, dpi=110, format=fmt)
-        tmp.replace(path)
+        with atomic_file(path) as fh:  # a new file of a random name: no link followed
+            figure.savefig(fh, dpi=110, format=fmt)
     except OSError as exc:
-        with contextlib.suppress(OSError):
-            tmp.unlink(missing_ok=True)
         raise OutputError(
             f"cannot write the plot: {exc.strerror or exc}",
             file=str(path),

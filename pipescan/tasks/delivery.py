@@ -25,6 +25,7 @@ from __future__ import annotations
 import email.policy
 import fnmatch
 import re
+import secrets
 import smtplib
 import ssl
 import tomllib
@@ -228,6 +229,9 @@ def write_to_location(pdf_path: Path, location: str, name: str) -> str:
         The location cannot be written (the error names it and the cause).
     """
     import fsspec
+    from fsspec.implementations.local import LocalFileSystem
+
+    from pipescan.storage.atomic import atomic_file
 
     target = location.rstrip("/") + "/" + name.lstrip("/")
     try:
@@ -236,10 +240,16 @@ def write_to_location(pdf_path: Path, location: str, name: str) -> str:
         if parent:
             fs.makedirs(parent, exist_ok=True)
         data = Path(pdf_path).read_bytes()
-        # Write beside the target and move into place, so a reader never sees half a PDF.
-        partial = f"{path}.part"
-        fs.pipe_file(partial, data)
-        fs.mv(partial, path)
+        # Write beside the target and move into place, so a reader never sees half a PDF: on
+        # a local folder a new file of a random name (O_EXCL, no link followed); on a store,
+        # a random name no one can plant ahead.
+        if isinstance(fs, LocalFileSystem):
+            with atomic_file(path) as fh:
+                fh.write(data)
+        else:
+            partial = f"{path}.{secrets.token_hex(8)}.part"
+            fs.pipe_file(partial, data)
+            fs.mv(partial, path)
     except (OSError, ValueError, ImportError) as exc:
         raise DeliveryError(
             f"could not write the report to {target}: {exc}",

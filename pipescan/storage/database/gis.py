@@ -19,8 +19,8 @@ that was not measured is null, never 0.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Sequence
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -37,6 +37,7 @@ from pipescan.core.network import (
 )
 from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import growth_per_year
+from pipescan.storage.atomic import atomic_path
 from pipescan.storage.database.db import StorageError, session_scope
 from pipescan.storage.database.models import Inspection
 from pipescan.storage.database.network import asset_geometries, resolve_asset
@@ -351,10 +352,6 @@ def _write_layer(path: Path, layer: _Layer, *, driver: str, crs: str, append: bo
     )
 
 
-def _temporary(path: Path) -> Path:
-    return path.with_name(f".{path.stem}.{os.getpid()}.tmp{path.suffix}")
-
-
 def export_gis(
     engine: Engine,
     out: Path,
@@ -456,28 +453,18 @@ def _write(out: Path, layers: Sequence[_Layer], *, fmt: GisFormat, crs: str) -> 
 def _write_files(
     out: Path, layers: Sequence[_Layer], *, fmt: GisFormat, crs: str
 ) -> tuple[Path, ...]:
-    # Everything goes to temporary files next to the target, which replace it at the end: a
-    # failed export leaves nothing half-written.
+    # Everything is written in new private folders next to the target (GDAL adds journal
+    # files of its own), and renamed onto it at the end: a failed export leaves nothing
+    # half-written, and a link planted at a predictable name is never written through.
     if fmt == "gpkg":
-        tmp = _temporary(out)
-        try:
+        with atomic_path(out) as tmp:
             for i, layer in enumerate(layers):
                 _write_layer(tmp, layer, driver="GPKG", crs=crs, append=i > 0)
-            tmp.replace(out)
-        finally:
-            tmp.unlink(missing_ok=True)
         return (out,)
     out.mkdir(parents=True, exist_ok=True)
-    done: list[tuple[Path, Path]] = []
-    try:
-        for layer in layers:
-            target = out / f"{layer.name}.geojson"
-            tmp = _temporary(target)
-            done.append((tmp, target))
+    targets = [out / f"{layer.name}.geojson" for layer in layers]
+    with ExitStack() as stack:
+        for layer, target in zip(layers, targets, strict=True):
+            tmp = stack.enter_context(atomic_path(target))
             _write_layer(tmp, layer, driver="GeoJSON", crs=crs, append=False)
-        for tmp, target in done:
-            tmp.replace(target)
-    finally:
-        for tmp, _ in done:
-            tmp.unlink(missing_ok=True)
-    return tuple(target for _, target in done)
+    return tuple(targets)

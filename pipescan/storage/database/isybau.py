@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import io
 import math
-import os
 import xml.etree.ElementTree as ET
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -42,6 +41,7 @@ from sqlalchemy.engine import Engine
 from pipescan.core.errors import PipescanError
 from pipescan.core.model import Defect
 from pipescan.core.summary import worst_grade
+from pipescan.storage.atomic import atomic_file
 from pipescan.storage.database.db import session_scope
 from pipescan.storage.database.models import Inspection, Section
 from pipescan.storage.database.network import gis_ids, resolve_asset
@@ -664,18 +664,15 @@ def export_isybau(
             + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
             hint="nothing was written; this is a bug in pipescan, please report it",
         )
-    tmp = out_path.with_name(f".{out_path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_bytes(document)
-        tmp.replace(out_path)
+        with atomic_file(out_path) as fh:  # a new file of a random name: no link followed
+            fh.write(document)
     except OSError as exc:
         raise IsybauError(
             f"cannot write: {exc.strerror or exc}",
             file=str(out_path),
             hint="give a file in an existing folder you may write to; nothing was written",
         ) from exc
-    finally:
-        tmp.unlink(missing_ok=True)
     pipes = [_describe(i) for i in inspections]
     return IsybauExport(
         path=out_path,
