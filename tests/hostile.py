@@ -483,9 +483,14 @@ def e57_doctype(url: str) -> Callable[[Path], bytes]:
 def e57_entities(where: Path) -> bytes:
     """An E57 whose XML declares nested internal entities (a "billion laughs")."""
     data = _e57_scans(where)
-    decl = '<!DOCTYPE e57Root [\n<!ENTITY a "aaaaaaaaaa">\n' + "".join(
-        f'<!ENTITY {c} "{("&" + p + ";") * 10}">\n' for p, c in zip("abcdefgh", "bcdefghi", strict=True)
-    ) + "]>\n"
+    decl = (
+        '<!DOCTYPE e57Root [\n<!ENTITY a "aaaaaaaaaa">\n'
+        + "".join(
+            f'<!ENTITY {c} "{("&" + p + ";") * 10}">\n'
+            for p, c in zip("abcdefgh", "bcdefghi", strict=True)
+        )
+        + "]>\n"
+    )
     xml = e57_xml(data).replace("<e57Root", decl + "<e57Root", 1)
     xml = xml.replace("<![CDATA[Scan 0]]>", "&i;", 1)
     return e57_with_xml(data, xml)
@@ -538,7 +543,16 @@ def in_cloud(name: str, data: Callable[[Path], bytes]) -> Callable[[Path, float]
 # --- ROS bags: a PointCloud2 of many points in a few KB, and bags whose sizes lie ------------
 
 
-def _cloud_msg(store, ros1: bool, points: int, *, step: int = 4, offsets=(0, 0, 0), height: int = 1, data: bytes | None = None):
+def _cloud_msg(
+    store,
+    ros1: bool,
+    points: int,
+    *,
+    step: int = 4,
+    offsets=(0, 0, 0),
+    height: int = 1,
+    data: bytes | None = None,
+):
     """A PointCloud2 of ``height`` rows of ``points`` points of ``step`` bytes, all zeros (or
     ``data``), x y z at ``offsets``."""
     types = store.types
@@ -548,12 +562,20 @@ def _cloud_msg(store, ros1: bool, points: int, *, step: int = 4, offsets=(0, 0, 
     else:
         header = types["std_msgs/msg/Header"](stamp=stamp, frame_id="lidar")
     field = types["sensor_msgs/msg/PointField"]
-    fields = [field(name=a, offset=o, datatype=7, count=1) for a, o in zip("xyz", offsets, strict=True)]
+    fields = [
+        field(name=a, offset=o, datatype=7, count=1) for a, o in zip("xyz", offsets, strict=True)
+    ]
     body = np.zeros(points * step, np.uint8) if data is None else np.frombuffer(data, np.uint8)
     return types["sensor_msgs/msg/PointCloud2"](
-        header=header, height=height, width=points, fields=fields, is_bigendian=False,
-        point_step=step, row_step=step * points,
-        data=body, is_dense=True,
+        header=header,
+        height=height,
+        width=points,
+        fields=fields,
+        is_bigendian=False,
+        point_step=step,
+        row_step=step * points,
+        data=body,
+        is_dense=True,
     )
 
 
@@ -574,7 +596,9 @@ def ros1_bag(where: Path, compression: str | None, msg_kwargs: dict, points: int
     if compression:
         writer.set_compression(getattr(Writer.CompressionFormat, compression.upper()))
     with writer:
-        conn = writer.add_connection("/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        conn = writer.add_connection(
+            "/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=store
+        )
         msg = _cloud_msg(store, True, points, **msg_kwargs)
         writer.write(conn, 10**9, store.serialize_ros1(msg, "sensor_msgs/msg/PointCloud2"))
     return root
@@ -592,7 +616,9 @@ def ros2_bag(where: Path, plugin: str, mode: str | None, msg_kwargs: dict, point
     if mode:
         writer.set_compression(getattr(CompressionMode, mode.upper()), CompressionFormat.ZSTD)
     with writer:
-        conn = writer.add_connection("/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=store)
+        conn = writer.add_connection(
+            "/lidar/points", "sensor_msgs/msg/PointCloud2", typestore=store
+        )
         msg = _cloud_msg(store, False, points, **msg_kwargs)
         writer.write(conn, 10**9, store.serialize_cdr(msg, "sensor_msgs/msg/PointCloud2"))
     return root
