@@ -280,7 +280,11 @@ def test_map_draws_each_located_pipe_in_its_class_colour(client: TestClient) -> 
 
 def test_pipe_page_shows_a_reading_per_inspection(client: TestClient) -> None:
     html = client.get("/pipes/MH1-MH2", params={"at": 7.5}).text
-    assert html.count('class="reading"') == YEARS
+    # One reading per inspection at the chainage, and one per inspection of the pipe's peak.
+    at_chainage = html.split('class="chart small at-chainage"')[1].split("</figure>")[0]
+    assert at_chainage.count('class="reading"') == YEARS
+    peaks = html.split('class="chart small peaks"')[1].split("</figure>")[0]
+    assert peaks.count('class="reading"') == YEARS
     assert html.count('class="profile"') >= YEARS
     assert "growing" in html
     gaps = client.get("/pipes/MH2-MH3").text

@@ -202,7 +202,7 @@ def test_pipe_page_has_a_reading_per_inspection(server, browser, shots) -> None:
     context, page, outside = _page(browser, 1280, 800)
     try:
         page.goto(server + "/pipes/MH1-MH2?at=7.5")
-        readings = page.locator("svg.trend-point circle.reading")
+        readings = page.locator("figure.at-chainage circle.reading")
         assert readings.count() == YEARS
         for i in range(YEARS):
             assert readings.nth(i).is_visible()
@@ -210,7 +210,7 @@ def test_pipe_page_has_a_reading_per_inspection(server, browser, shots) -> None:
         assert xs == sorted(xs)  # in time order, left to right
         ys = [readings.nth(i).bounding_box()["y"] for i in range(YEARS)]
         assert ys[0] > ys[-1]  # the deposit grew: the latest reading sits higher
-        assert page.locator("svg.trend-point rect.noise").is_visible()
+        assert page.locator("figure.at-chainage rect.noise").is_visible()
         assert page.get_by_text("growing").first.is_visible()
         profiles = page.locator("svg.profiles polyline.profile")
         assert profiles.count() >= YEARS
@@ -221,7 +221,7 @@ def test_pipe_page_has_a_reading_per_inspection(server, browser, shots) -> None:
         assert page.locator("svg.profiles rect.unmeasured").count() >= 1  # hatched gaps
         page.locator("svg.profiles rect.cell").nth(105).click()
         page.wait_for_url("**/pipes/MH2-MH3?at=*")
-        assert page.locator("svg.trend-point circle.reading").count() >= 1
+        assert page.locator("figure.at-chainage circle.reading").count() >= 1
     finally:
         context.close()
     assert outside == []
@@ -276,7 +276,7 @@ def test_every_page_fits_a_phone(server, browser, shots, path: str) -> None:
         name = {"/": "network", "/runs": "runs", "/api": "api"}.get(path)
         if path.startswith("/pipes"):
             name = "pipe"
-            assert page.locator("svg.trend-point circle.reading").count() >= 1
+            assert page.locator("figure.at-chainage circle.reading").count() >= 1
         elif path.startswith("/inspections"):
             name = "inspection"
         if path == "/":

@@ -732,6 +732,17 @@ def create_app(config: WebConfig) -> FastAPI:
                 for s in reversed(trend.surveys)
             ],
             "point": point,
+            "peaks_svg": trend_point_svg(
+                [s.inspected_at for s in trend.surveys],
+                [
+                    math.nan if s.peak_blockage_ratio is None else s.peak_blockage_ratio
+                    for s in trend.surveys
+                ],
+                inspection_ids=[s.inspection_id for s in trend.surveys],
+                noise_ratio=spans.threshold_ratio,
+                slope_per_year=trend.peak_change_per_year,
+                label="The pipe's peak blockage over time",
+            ),
             "at": at,
             "peak_rate": _rate(trend.peak_change_per_year),
             "peak_verdict": _verdict(

@@ -304,6 +304,7 @@ def trend_point_svg(
     inspection_ids: Sequence[int],
     noise_ratio: float,
     slope_per_year: float | None,
+    label: str = "Blockage at this chainage over time",
 ) -> Markup:
     """Blockage at one chainage over time: a point per inspection that measured it, a band
     of the change that noise alone can give (``noise_ratio`` either side of the first
@@ -317,8 +318,7 @@ def trend_point_svg(
     ]
     parts = [
         f'<svg class="trend-point" viewBox="0 0 {_num(w)} {_num(h)}" '
-        'xmlns="http://www.w3.org/2000/svg" role="img" aria-label="Blockage at this chainage '
-        'over time">'
+        f'xmlns="http://www.w3.org/2000/svg" role="img" aria-label="{escape(label)}">'
     ]
     if not measured:
         parts.append(
