@@ -14,7 +14,9 @@ And outages, at the same moment, that end by themselves after their seconds:
 - ``db45``, ``db120``, ``db600``: the database refuses connections (the SQLite file is moved
   away and a folder stands in its place: "unable to open database file"), then comes back;
 - ``dbstart30``: the database refuses connections when the run starts, for 30 s;
-- ``server105``: the Prefect server is down for 105 s (SIGKILL, started again after 105 s).
+- ``server105``: the Prefect server is down for 105 s (SIGKILL, started again after 105 s);
+- ``pg20``: PostgreSQL, which holds both pipescan's database and Prefect's state (as
+  docs/operations.md recommends), is stopped for 20 s.
 
 Then it waits, doing nothing a person would do, until every archive has its inspection and no
 run is left active, or a time limit passes. Used by ``tests/test_crash_recovery.py`` and
@@ -35,7 +37,14 @@ from pathlib import Path
 from tests.prefect_stack import ACTIVE_STATES, PrefectServer, Worker, run_pipescan
 
 SCENARIOS = ("worker", "flow", "both", "server")
-OUTAGES = {"db45": 45.0, "db120": 120.0, "db600": 600.0, "dbstart30": 30.0, "server105": 105.0}
+OUTAGES = {
+    "db45": 45.0,
+    "db120": 120.0,
+    "db600": 600.0,
+    "dbstart30": 30.0,
+    "server105": 105.0,
+    "pg20": 20.0,
+}
 """The outage scenarios and how long each outage lasts (s)."""
 RESTART_DELAY_S = 5.0
 """How long a supervisor (systemd's RestartSec) takes to start a killed process again."""
@@ -70,8 +79,26 @@ class Outcome:
     """``pipescan runs --limit 1`` at the end, as printed."""
 
 
-def stored(db: Path) -> tuple[int, int]:
-    """(inspections, distinct (asset, content, parameters) identities) in a SQLite file."""
+def stored(db: Path | str) -> tuple[int, int]:
+    """(inspections, distinct (asset, content, parameters) identities) in a SQLite file, or a
+    PostgreSQL database given by its URL (0, 0 while it does not answer)."""
+    if isinstance(db, str):
+        import sqlalchemy as sa
+
+        engine = sa.create_engine(db, connect_args={"connect_timeout": 5})
+        try:
+            with engine.connect() as con:
+                row = con.execute(
+                    sa.text(
+                        "SELECT COUNT(*), COUNT(DISTINCT asset_id || content_hash || params_hash) "
+                        "FROM inspections"
+                    )
+                ).one()
+        except sa.exc.DBAPIError:
+            return 0, 0
+        finally:
+            engine.dispose()
+        return int(row[0]), int(row[1])
     if not db.exists():
         return 0, 0
     try:
@@ -159,11 +186,15 @@ def run_scenario(
     assert scenario in SCENARIOS or scenario in OUTAGES, scenario
     outage_s = OUTAGES.get(scenario)
     root.mkdir(parents=True)
-    server = PrefectServer(root / "prefect").start()
+    pg = _Postgres() if scenario == "pg20" else None
+    server = PrefectServer(
+        root / "prefect",
+        env={"PREFECT_API_DATABASE_CONNECTION_URL": pg.url("prefect", "asyncpg")} if pg else None,
+    ).start()
     worker: Worker | None = None
-    db = root / "network.db"
+    db: Path | str = pg.url("pipescan") if pg else root / "network.db"
     env = server.client_env() | {
-        "PIPESCAN_DATABASE_URL": f"sqlite:///{db}",
+        "PIPESCAN_DATABASE_URL": db if pg else f"sqlite:///{db}",
         "PIPESCAN_WORK_DIR": str(root / "work"),
         "PIPESCAN_REPORTS_DIR": str(root / "reports"),
         **(worker_env or {}),
@@ -227,6 +258,11 @@ def run_scenario(
         if scenario.startswith("db") and scenario != "dbstart30":
             aside = break_database(db)
             mend_at = killed + (outage_s or 0)
+        if pg is not None:
+            pg.stop()
+            time.sleep(max(0.0, killed + (outage_s or 0) - time.monotonic()))
+            pg.start()
+            note("PostgreSQL started again")
         if scenario in SCENARIOS:
             time.sleep(RESTART_DELAY_S)
         if scenario in ("worker", "both"):
@@ -293,6 +329,9 @@ def run_scenario(
         if worker is not None:
             worker.stop()
         server.stop()
+        if pg is not None:
+            (root / "postgres.log").write_text(pg.log())
+            pg.cluster.stop()
         (root / "worker.log").write_text(worker.log() if worker else "")
         shutil.rmtree(root / "work", ignore_errors=True)
 
@@ -322,3 +361,52 @@ def format_outcome(o: Outcome) -> str:
         )
     text += "".join(f"\n        | {line}" for line in o.runs_text.splitlines())
     return text
+
+
+class _Postgres:
+    """A PostgreSQL cluster (tests/pg_cluster.py) holding databases ``pipescan`` and
+    ``prefect``, that can be stopped and started again on its data."""
+
+    def __init__(self) -> None:
+        import psycopg
+
+        from tests.pg_cluster import PostgresCluster
+
+        self.cluster = PostgresCluster(durable=True).start()
+        with psycopg.connect(
+            f"host=127.0.0.1 port={self.cluster.port} user=postgres dbname=postgres",
+            autocommit=True,
+        ) as con:
+            for name in ("pipescan", "prefect"):
+                con.execute(f"CREATE DATABASE {name}")
+        self._options = " ".join(
+            [
+                "-c listen_addresses=127.0.0.1",
+                f"-p {self.cluster.port}",
+                f"-k {self.cluster.root}",
+                "-c max_connections=100",
+            ]
+        )
+        self._ctl("-m", "fast", "-w", "stop")
+        self.start()
+
+    def url(self, database: str, driver: str = "psycopg") -> str:
+        return f"postgresql+{driver}://postgres@127.0.0.1:{self.cluster.port}/{database}"
+
+    def _ctl(self, *args: str) -> None:
+        root = self.cluster.root
+        assert root is not None
+        self.cluster._run(str(self.cluster.bin_dir / "pg_ctl"), "-D", str(root / "data"), *args)
+
+    def stop(self) -> None:
+        self._ctl("-m", "fast", "-w", "stop")
+
+    def start(self) -> None:
+        root = self.cluster.root
+        assert root is not None
+        self._ctl("-l", str(root / "server.log"), "-w", "-t", "60", "-o", self._options, "start")
+
+    def log(self) -> str:
+        root = self.cluster.root
+        path = root / "server.log" if root is not None else None
+        return path.read_text(errors="replace")[-20000:] if path and path.exists() else ""
