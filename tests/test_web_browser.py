@@ -188,6 +188,20 @@ def test_network_map_shows_each_pipe_in_its_class_colour(server, browser, shots)
         first = page.locator("table.pipes tbody tr").first.get_attribute("data-asset")
         worst = max(pipes, key=lambda a: pipes[a]["peak_blockage_ratio"] or 0)
         assert first == worst
+        # The wheel zooms in where the pointer is, and a double-click shows it all again.
+        world = page.locator("svg.network-map")
+        whole = world.get_attribute("viewBox")
+        box = world.bounding_box()
+        page.mouse.move(box["x"] + box["width"] / 2, box["y"] + box["height"] / 2)
+        page.mouse.wheel(0, -300)
+        page.wait_for_function(
+            "w => document.querySelector('svg.network-map').getAttribute('viewBox') !== w",
+            arg=whole,
+        )
+        zoomed = [float(v) for v in world.get_attribute("viewBox").split()]
+        assert zoomed[2] < float(whole.split()[2])
+        world.dblclick(position={"x": 5, "y": 5})
+        assert world.get_attribute("viewBox") == whole
         # A click on a line opens its pipe.
         # (Playwright calls a horizontal line "not visible": its box has no height.)
         page.mouse.click(*_midpoint(page.locator('svg.network-map polyline[data-asset="MH1-MH2"]')))

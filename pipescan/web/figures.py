@@ -89,8 +89,12 @@ def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = Non
     def point(x: float, y: float) -> str:
         return f"{_num(ox + (x - x0) * scale)},{_num(oy + (y1 - y) * scale)}"
 
+    # A large network is drawn with thinner lines and without its nodes, so it stays legible
+    # (and the page small: a few hundred bytes a pipe).
+    dense = len(drawn) > 400
     parts = [
-        f'<svg class="network-map" viewBox="0 0 {_num(width + 2 * pad)} {_num(height + 2 * pad)}"'
+        f'<svg class="network-map{" dense" if dense else ""}" '
+        f'viewBox="0 0 {_num(width + 2 * pad)} {_num(height + 2 * pad)}"'
         ' xmlns="http://www.w3.org/2000/svg" role="img" aria-label="Network map: pipes coloured '
         'by the worst condition class of their latest inspection">'
     ]
@@ -111,7 +115,7 @@ def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = Non
             f'stroke="{colour}" data-asset="{escape(p.asset_id)}" data-grade="{grade}">'
             f"<title>{escape(title)}</title></polyline></a>"
         )
-    for p in drawn:
+    for p in [] if dense else drawn:
         coords = p.line_xy or ()
         for x, y in (coords[0], coords[-1]):
             cx, cy = point(x, y).split(",")
