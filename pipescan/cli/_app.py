@@ -144,7 +144,22 @@ def _catch_interrupts() -> Any:
     return previous
 
 
-class _PipescanGroup(TyperGroup):
+class _WholeHelpGroup(TyperGroup):
+    """A group whose ``--help`` lists each command with its whole first sentence."""
+
+    def format_commands(self, ctx: Any, formatter: Any) -> None:
+        """The commands with their whole first sentence, wrapped, not cut at the width."""
+        rows = []
+        for name in self.list_commands(ctx):
+            command = self.get_command(ctx, name)
+            if command is not None and not command.hidden:
+                rows.append((name, command.get_short_help_str(limit=1_000)))
+        if rows:
+            with formatter.section("Commands"):
+                formatter.write_dl(rows)
+
+
+class _PipescanGroup(_WholeHelpGroup):
     """The top-level command: every error a user can cause is one line on stderr.
 
     - A :class:`PipescanError` (bad archive, bad option, unknown inspection, ...) and a usage
@@ -155,6 +170,7 @@ class _PipescanGroup(TyperGroup):
     """
 
     def main(self, *args: Any, standalone_mode: bool = True, **kwargs: Any) -> Any:
+        args, kwargs = _take_debug(args, kwargs)
         if not standalone_mode:
             return super().main(*args, standalone_mode=False, **kwargs)
         previous = _catch_interrupts()
@@ -217,6 +233,20 @@ class _PipescanGroup(TyperGroup):
         sys.exit(code if isinstance(code, int) else 0)
 
 
+def _take_debug(args: tuple, kwargs: dict) -> tuple[tuple, dict]:
+    """``--debug`` anywhere on the command line (``pipescan inspect x --debug`` as well as
+    ``pipescan --debug inspect x``), taken out of the arguments before they are parsed; not
+    after ``--``, where an argument is an argument."""
+    given = kwargs.get("args", args[0] if args else None)
+    argv = list(sys.argv[1:] if given is None else given)
+    end = argv.index("--") if "--" in argv else len(argv)
+    _DEBUG["on"] = "--debug" in argv[:end]
+    kept = [a for a in argv[:end] if a != "--debug"] + argv[end:]
+    if args:
+        return (kept, *args[1:]), kwargs
+    return (), {**kwargs, "args": kept}
+
+
 def _prefect_did_not_start(exc: BaseException) -> OptionError | None:
     """Prefect's failure to start its temporary API server, as one line: it is the machine's
     state (busy), not a bug, and the user can act on it."""
@@ -240,17 +270,31 @@ def _unexpected(exc: BaseException) -> NoReturn:
     sys.exit(1)
 
 
+HELP_MARKUP = None
+"""``--help`` as plain text, not rich's panels: at 80 columns rich squeezes an option's help
+into a third of the width and cuts examples short with "…", and reads ``[default: ...]`` in
+a help text as markup (it vanished). Plain text wraps to the terminal and shows all of it."""
+
 app = typer.Typer(
     cls=_PipescanGroup,
     help="Measure the inside of underground pipes from LiDAR scans.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=HELP_MARKUP,
 )
 export_app = typer.Typer(
-    help="Export stored results (CSV, JSON lines, ISYBAU XML, GIS layers).", no_args_is_help=True
+    cls=_WholeHelpGroup,
+    help="Export stored results (CSV, JSON lines, ISYBAU XML, GIS layers).",
+    no_args_is_help=True,
+    rich_markup_mode=HELP_MARKUP,
 )
-db_app = typer.Typer(help="Database schema management.", no_args_is_help=True)
+db_app = typer.Typer(
+    cls=_WholeHelpGroup,
+    help="Database schema management.",
+    no_args_is_help=True,
+    rich_markup_mode=HELP_MARKUP,
+)
 app.add_typer(export_app, name="export")
 app.add_typer(db_app, name="db")
 

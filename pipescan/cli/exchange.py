@@ -9,12 +9,24 @@ from typing import Annotated
 
 import typer
 
-from pipescan.cli._app import DbOption, _db_url, _fail, app, export_app, make_output_folder
+from pipescan.cli._app import (
+    HELP_MARKUP,
+    DbOption,
+    _db_url,
+    _fail,
+    _WholeHelpGroup,
+    app,
+    export_app,
+    make_output_folder,
+)
 from pipescan.core.errors import PipescanError
 from pipescan.core.sanitize import escape_control
 
 network_app = typer.Typer(
-    help="The network's geometry: import the GIS layer of its pipes.", no_args_is_help=True
+    cls=_WholeHelpGroup,
+    help="The network's geometry: import the GIS layer of its pipes.",
+    no_args_is_help=True,
+    rich_markup_mode=HELP_MARKUP,
 )
 app.add_typer(network_app, name="network")
 

@@ -113,7 +113,15 @@ def report(
     ] = None,
     db: DbOption = None,
 ) -> None:
-    """Render a PDF report: one inspection's condition report, or a network summary."""
+    """Render a PDF report: one inspection's condition report, or a network summary.
+
+    Examples:
+
+    \b
+      pipescan report --inspection 7 -o reports/MH1042.pdf
+      pipescan report --network --since 2025-01-01 -o reports/network.pdf
+      pipescan report --inspection 7 --deliver
+    """
     if (inspection is None) == (not network):
         _fail(OptionError("give either --inspection ID or --network"))
     if not network and (since or inspections):

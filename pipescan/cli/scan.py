@@ -336,11 +336,44 @@ def _start_engines_ahead(settings, runner) -> None:
         enginepool.prestart(workers, ahead=True)
 
 
-def _print_summary(summary) -> None:
+def _stored_inspection_ids(db_url: str) -> set[int]:
+    """The ids of the inspections stored before a run: a run that stores one of them again
+    (the same archive under the same parameters) replaced its rows. Empty for a database
+    that does not exist yet or has no tables; nothing is created here."""
+    import sqlalchemy as sa
+
+    from pipescan.storage.database.db import create_engine_for, parse_database_url
+
+    try:
+        url = parse_database_url(db_url)
+        database = url.database or ""
+        if url.get_backend_name() == "sqlite" and (
+            database in ("", ":memory:") or not Path(database).expanduser().exists()
+        ):
+            return set()
+        engine = create_engine_for(db_url)
+    except PipescanError:
+        return set()  # the run says what is wrong with the URL
+    try:
+        with engine.connect() as connection:
+            rows = connection.execute(sa.text("SELECT id FROM inspections"))
+            return {int(row[0]) for row in rows}
+    except sa.exc.SQLAlchemyError:
+        return set()
+    finally:
+        engine.dispose()
+
+
+def _print_summary(summary, replaced: bool = False) -> None:
     pct = lambda r: "not measured" if r is None else f"{100 * r:.1f} %"  # noqa: E731
     typer.echo(
         f"inspection {summary.inspection_id}: asset {summary.asset_id}, {summary.inspected_at}"
     )
+    if replaced:
+        typer.echo(
+            f"  replaced the stored rows of inspection {summary.inspection_id} (this archive, "
+            "under the same parameters, was stored before)"
+        )
     # A frames archive has at least one frame; none is a registered cloud.
     content = plural(summary.frame_count, "frame") if summary.frame_count else "registered cloud"
     stride = (summary.registration or {}).get("frame_stride", 1)
@@ -425,6 +458,12 @@ def inspect(
 
     The archive's metadata and layout, its first and last point files (units, NaN, empty, the
     diameter's scale) and every option are checked before Prefect starts, in about a second.
+
+    Examples:
+
+    \b
+      pipescan inspect runs/MH1042-MH1043.zip --report reports/MH1042.pdf
+      pipescan inspect site7.zip --db postgresql+psycopg://db.example/pipescan
     """
     _SAID["prefect"] = False
     try:
@@ -440,13 +479,22 @@ def inspect(
         checked = _checked_settings(contour, registration)
         _say_prefect_starts()  # the next import is Prefect's
         params = _inspection_params(contour, registration, checked)
-        summary = _run_inspection(archive, _db_url(db), report, params)
+        db_url = _db_url(db)
+        stored_before = _stored_inspection_ids(db_url)
+        summary = _run_inspection(archive, db_url, report, params)
     except PipescanError as exc:
         _fail(exc)
+    replaced = summary.inspection_id in stored_before
     if as_json:
-        typer.echo(json.dumps(dataclasses.asdict(summary), indent=2, default=str))
+        if replaced:  # said on stderr too: stdout is the JSON
+            logging.getLogger("pipescan").info(
+                f"replaced the stored rows of inspection {summary.inspection_id}"
+            )
+        typer.echo(
+            json.dumps(dataclasses.asdict(summary) | {"replaced": replaced}, indent=2, default=str)
+        )
     else:
-        _print_summary(summary)
+        _print_summary(summary, replaced)
 
 
 @app.command()
@@ -486,11 +534,13 @@ def demo(
         write_simulated_archive(scan, archive)
         log.info("    archive: %s (%d frames)", archive, len(scan.times_s))
         log.info("2/3 inspecting: registration, axis, sections, measures, grading, storage")
-        summary = _run_inspection(str(archive), db_url, pdf, _inspection_params(None, None))
+        params = _inspection_params(None, None)
+        stored_before = _stored_inspection_ids(db_url)
+        summary = _run_inspection(str(archive), db_url, pdf, params)
         log.info("3/3 report written")
     except PipescanError as exc:
         _fail(exc)
-    _print_summary(summary)
+    _print_summary(summary, summary.inspection_id in stored_before)
     typer.echo(f"\ndemo finished in {time.perf_counter() - started:.0f} s")
     typer.echo(f"PDF report: {pdf.resolve()}")
     typer.echo(f"database:   {db_url}")

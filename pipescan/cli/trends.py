@@ -169,6 +169,12 @@ def trend(
     Surveys are aligned by cross-correlation; change per year is a Theil-Sen slope. A change
     smaller than two surveys of an unchanged pipe differ by (2 percentage points over the
     surveys' span; docs/measures.md) is "no significant change".
+
+    Examples:
+
+    \b
+      pipescan trend MH1042-MH1043
+      pipescan trend MH1042-MH1043 --chainage 41.5 --plot plots/MH1042.svg
     """
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.trends import asset_trend
