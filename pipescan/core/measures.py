@@ -94,14 +94,15 @@ class MeasureParams:
         table (BBE 0-5 %), so a measured figure is never more than one class off. A
         section within it but for the smear of frames that disagree
         (``uncertainty.smear_bias_m2``) is ``smeared_wall``.
-    max_wall_spread_m : float
+    max_wall_spread_m : float or None
         A section whose wall points spread around its contour by more than this (robust 1σ,
         pooled over the wall's angle bins) is ``smeared_wall``: the frames that saw it
-        disagree. A forward-looking sensor sees the wall at grazing incidence, where range
-        noise moves a point along the wall more than across it: with the true poses, the
-        spread reads 1-3 mm under the simulator's default noise and at most 6.6 mm at the
-        harsh end (20 mm range noise); frames that disagree by 10 mm (lateral) or 0.5°
-        (tilt) read 8-20 mm, with errors of 1-10 pp (``docs/registration.md``).
+        disagree. Frames that agree spread the wall by the noise one frame shows across it,
+        so a run sets this from the scan's own single-frame wall noise
+        (:attr:`pipescan.core.instrument.Instrument.max_wall_spread_m`: twice the noise).
+        The default, 8 mm, stands only where the noise is not known. None: no smear test
+        (a registered cloud: with no frames to tell apart, its spread is its noise, which
+        the uncertainty carries).
     max_wall_behind_deg : float
         A section where a surface was seen in front of the wall across more than this arc,
         with the wall behind it seen in the same sub-slices and continuing on both sides
@@ -124,7 +125,7 @@ class MeasureParams:
     veil_relative_density: float = 0.02
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
-    max_wall_spread_m: float = 0.008
+    max_wall_spread_m: float | None = 0.008
     max_wall_behind_deg: float = 10.0
     max_uncertainty_ratio: float = 0.025
 
@@ -499,7 +500,12 @@ def measure_section(
             _wall_bins(profile.radii_m, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio),
             polar=(point_angle, point_radius),
         )
-    if status == SectionStatus.OK and spread is not None and spread > params.max_wall_spread_m:
+    if (
+        status == SectionStatus.OK
+        and spread is not None
+        and params.max_wall_spread_m is not None
+        and spread > params.max_wall_spread_m
+    ):
         status = SectionStatus.SMEARED_WALL
     # Frames that disagree along the pipe about where an object is show it in front of a wall
     # that other frames saw bare, across the object's whole width.

@@ -15,6 +15,8 @@ from typing import Literal
 
 import numpy as np
 
+from pipescan.core.instrument import SensorProfile
+
 
 @dataclass(frozen=True)
 class FrameRef:
@@ -73,6 +75,8 @@ class InspectionMeta:
     ros: RosTopics | None = None
     odometer_uncertainty_ratio: float | None = None
     odometer_slip_m: float | None = None
+    sensor: SensorProfile | None = None
+    """The ``[sensor]`` table (:mod:`pipescan.core.instrument`); None: estimated from the scan."""
 
     @property
     def nominal_area_m2(self) -> float:

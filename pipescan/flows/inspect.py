@@ -17,6 +17,7 @@ from prefect.utilities.annotations import quote
 
 import pipescan
 from pipescan.core.grading import choose_grading, is_flagged
+from pipescan.core.instrument import instrument_summary, instrumented, partial_view_stride
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.registration import (
     FrameStride,
@@ -41,6 +42,7 @@ from pipescan.tasks import enginepool
 from pipescan.tasks.inspection import (
     bucket_points,
     choose_stride,
+    estimate_scan_instrument,
     fit_pipe_axis,
     grade,
     measure_sections,
@@ -216,12 +218,22 @@ def inspect_archive(
 
         trajectory = None
         closer = 0  # frames registration read besides the stride's (to look closer)
+        # The sensor's blind zone, noise and pattern, from inspection.toml's [sensor] or the
+        # scan: figures of the run, not of the stored parameters (the same archive and
+        # parameters give the same instrument, so the stored hash still keys re-runs).
+        instrument = (
+            estimate_scan_instrument(quote(staged), max_range_m=params.max_section_range_m)
+            if staged.frame_count
+            else None
+        )
+        reg_params, measure_params = instrumented(params.registration, params.measure, instrument)
         stride = (
             FrameStride(params.frame_stride, "set for the run")
             if params.frame_stride
-            else choose_stride(quote(staged), **params.stride_bounds())
-            if staged.frame_count
             else FrameStride(1, "a registered cloud")
+            if not staged.frame_count
+            else partial_view_stride(instrument)
+            or choose_stride(quote(staged), **params.stride_bounds())
         )
         chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
         # Each frame is decoded once: registration keeps what the sections need here.
@@ -231,9 +243,7 @@ def inspect_archive(
             log.info(f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks")
             # How the work is split, not the figures: kept out of the stored parameters.
             # In the engine pool's processes, one engine thread each: both cores are busy.
-            registering = replace(
-                params.registration, num_threads=1 if pooled else engine_threads()
-            )
+            registering = replace(reg_params, num_threads=1 if pooled else engine_threads())
             # Large arguments without futures in them (the staged archive's frame list, here
             # and below the trajectory, the axis, the windows, the evidence) are quoted:
             # Prefect would otherwise walk every element of them for every task, under the
@@ -312,7 +322,7 @@ def inspect_archive(
                 windows[w],
                 quote(fit.axis),
                 meta.nominal_diameter_m,
-                params.measure,
+                measure_params,
                 quote(evidence),
                 wait_for=after,
             )
@@ -353,7 +363,7 @@ def inspect_archive(
         # frames saw bare wall (both take sections on both sides of a window's edge).
         sections = withhold_smeared_object_edges(
             explain_invert_shadows([s for f in window_futures for s in f.result()]),
-            params.measure,
+            measure_params,
         )
         grading = grade(
             sections,
@@ -377,6 +387,7 @@ def inspect_archive(
                 "frame_stride_reason": stride.reason,
                 "frames_looked_closer": closer,
             }
+            | instrument_summary(instrument)
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
         )

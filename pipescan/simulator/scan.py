@@ -221,9 +221,12 @@ class Effects:
         ``grazing_noise_max_factor``. Defaults: 3.5 mm at 1 m facing the wall, ~8 mm on the
         wall 2 m ahead, ~11 mm at 5 m. A share ``spurious_return_ratio`` of the rays return
         early (mist, spray, dust, drips), anywhere along the ray between the blind zone and the
-        surface. Where the beam's footprint (``beam_footprint_deg`` from its centre) straddles
-        a depth edge between two surfaces, a share ``mixed_pixel_ratio`` of such rays return a
-        range between the two (a mixed pixel).
+        surface; with ``spurious_range_ratio`` (lowest, highest) they land at that share of the
+        true range instead, and the sensor reports those inside its blind zone too (dust on the
+        window, a drip on the lens: what a real sensor reports, where pipescan's own default
+        sensor reports nothing). Where the beam's footprint (``beam_footprint_deg`` from its
+        centre) straddles a depth edge between two surfaces, a share ``mixed_pixel_ratio`` of
+        such rays return a range between the two (a mixed pixel).
     Attitude and mount (per frame)
         ``rocking_deg``: smooth rocking, per axis a sum of sinusoids with periods of 1.5-20 s
         and peak at most this. ``vibration_deg``: 1σ per axis of an attitude change drawn
@@ -244,6 +247,7 @@ class Effects:
     range_noise_growth_per_m: float = 0.0005
     grazing_noise_max_factor: float = 2.0
     spurious_return_ratio: float = 0.005
+    spurious_range_ratio: tuple[float, float] | None = None
     mixed_pixel_ratio: float = 0.5
     beam_footprint_deg: float = 0.15
     rocking_deg: float = 1.0
@@ -273,6 +277,12 @@ class Effects:
             raise ValueError("Effects.grazing_noise_max_factor must be >= 1.")
         if not -0.5 < self.odometer_scale_error_ratio < 0.5:
             raise ValueError("Effects.odometer_scale_error_ratio must be in (-0.5, 0.5).")
+        if self.spurious_range_ratio is not None:
+            near, far = self.spurious_range_ratio
+            if not 0 < near <= far <= 1:
+                raise ValueError(
+                    "Effects.spurious_range_ratio must be (lowest, highest), 0 < both <= 1."
+                )
         lo, hi = self.slip_duration_s
         if not 0 <= lo <= hi:
             raise ValueError("Effects.slip_duration_s must be (shortest, longest), 0 <= shortest.")
@@ -282,7 +292,11 @@ class Effects:
         """No effect at all (a perfect sensor on a perfect crawler), except ``overrides``."""
         none: dict[str, object] = {f.name: 0.0 for f in dataclasses.fields(cls)}
         none.update(
-            grazing_noise_max_factor=1.0, slip_duration_s=(0.0, 0.0), imu=True, imu_noise_deg=0.0
+            grazing_noise_max_factor=1.0,
+            slip_duration_s=(0.0, 0.0),
+            spurious_range_ratio=None,
+            imu=True,
+            imu_noise_deg=0.0,
         )
         none.update(overrides)
         return cls(**none)  # type: ignore[arg-type]
@@ -330,6 +344,12 @@ class Scenario:
     fov_horizontal_deg: float = 120.0
     fov_vertical_deg: float = 25.0
     centre_to_edge_spacing_ratio: float = 2.0 / 3.0
+    frame_coverage_ratio: float = 1.0
+    """Share of the field of view one frame covers. 1: every frame covers all of it (a
+    repetitive pattern, or pipescan's own dense one). Below 1: a non-repetitive (rosette)
+    pattern, as Livox's Avia and Mid series have: each frame traces ``ROSETTE_PETALS``
+    wedges about the boresight, this share of the field of view in all, turned by the golden
+    angle from frame to frame, so that the field of view fills over a few frames."""
     blind_zone_m: float = 0.5
     max_range_m: float = 150.0
     mount_offset_y_m: float = 0.01
@@ -369,6 +389,8 @@ class Scenario:
         for name in ("blind_zone_m", "chainage_offset_m"):
             if not getattr(self, name) >= 0:
                 raise ValueError(f"Scenario.{name} must be >= 0, got {getattr(self, name)!r}.")
+        if not 0.05 <= self.frame_coverage_ratio <= 1:
+            raise ValueError("Scenario.frame_coverage_ratio must be in [0.05, 1].")
         if not 0 <= self.speed_variation_ratio < 1:
             raise ValueError("Scenario.speed_variation_ratio must be in [0, 1).")
         if self.truth_ray_stride < 1:
@@ -725,6 +747,37 @@ def _pattern_dirs(scenario: Scenario, ray_index: np.ndarray) -> np.ndarray:
     return np.stack([cos_el * np.cos(az), cos_el * np.sin(az), np.sin(el)], axis=1)
 
 
+ROSETTE_PETALS = 3
+"""Wedges a frame of the non-repetitive pattern traces (``Scenario.frame_coverage_ratio``)."""
+_GOLDEN_ANGLE_RAD = math.pi * (3.0 - math.sqrt(5.0))
+
+
+def _frame_pattern_dirs(
+    scenario: Scenario, frame_index: int, stride: int = 1, first: int = 0
+) -> np.ndarray:
+    """Directions of frame ``frame_index``'s rays (every ``stride``-th from ``first``).
+
+    A repetitive pattern takes rays ``i * N ... (i + 1) * N - 1`` of the endless sequence.
+    A non-repetitive one with coverage ``c < 1`` takes the next ``N / c`` rays of the
+    sequence and keeps those that fall in the frame's wedges: ``N`` rays on ``c`` of the field
+    of view (the wedges are equal shares of the angle about the boresight, in the field of
+    view's normalised coordinates, so each holds that share of the rays).
+    """
+    n, c = scenario.rays_per_frame, scenario.frame_coverage_ratio
+    if c >= 1.0:
+        return _pattern_dirs(
+            scenario, np.arange(frame_index * n + first, (frame_index + 1) * n, stride)
+        )
+    m = math.ceil(n / c)
+    k = np.arange(frame_index * m, (frame_index + 1) * m)
+    u = np.mod(0.5 + k * _R2_ALPHA[0], 1.0) - 0.5
+    v = np.mod(0.5 + k * _R2_ALPHA[1], 1.0) - 0.5
+    phase = np.mod(np.arctan2(v, u) - frame_index * _GOLDEN_ANGLE_RAD, 2.0 * math.pi)
+    petal = 2.0 * math.pi / ROSETTE_PETALS
+    k = k[np.mod(phase, petal) < c * petal][:n]
+    return _pattern_dirs(scenario, k[first::stride])
+
+
 def ray_directions_sensor(scenario: Scenario, frame_index: int) -> np.ndarray:
     """Unit ray directions of one frame, in the sensor frame.
 
@@ -741,8 +794,7 @@ def ray_directions_sensor(scenario: Scenario, frame_index: int) -> np.ndarray:
     """
     if scenario.sensor is not None:
         return scenario.sensor.directions(frame_index)
-    n = scenario.rays_per_frame
-    return _pattern_dirs(scenario, np.arange(frame_index * n, (frame_index + 1) * n))
+    return _frame_pattern_dirs(scenario, frame_index)
 
 
 def _circle_exit_t(
@@ -1463,7 +1515,12 @@ class SimulatedScan:
             share = s.water.surface_return_ratio * np.abs(dirs_pipe[:, 2])
             lost = (surface == SURFACE_WATER) & (draw >= share)
             range_m = np.where(lost, np.inf, range_m)
-        keep = np.isfinite(range_m) & (range_m >= s.blind_zone_m) & (range_m <= s.max_range_m)
+        # Early returns inside the blind zone come back negated from ``_returned_ranges``: a
+        # sensor reports them (dust on its window), where it reports no surface that near.
+        window = range_m < 0
+        range_m = np.abs(range_m)
+        keep = np.isfinite(range_m) & (range_m <= s.max_range_m)
+        keep &= (range_m >= s.blind_zone_m) | window
         points = (dirs_sensor[keep] * range_m[keep, None]).astype(np.float32)
         return SimulatedFrame(
             index=i,
@@ -1512,6 +1569,12 @@ class SimulatedScan:
         sigma = e.range_sigma_m(np.where(hit, range_m, 0.0), cos_incidence)
         out = out + sigma * np.random.default_rng((self.seed, 10, i)).normal(0.0, 1.0, n)
         rng = np.random.default_rng((self.seed, 11, i))
+        if e.spurious_range_ratio is not None:
+            near, far = e.spurious_range_ratio
+            spurious = (rng.random(n) < e.spurious_return_ratio) & hit
+            early = range_m * (near + rng.random(n) * (far - near))
+            # Reported wherever they land, the blind zone included (see ``frame``).
+            return np.where(spurious, -early, out)
         spurious = (rng.random(n) < e.spurious_return_ratio) & hit & (range_m > s.blind_zone_m)
         early = s.blind_zone_m + rng.random(n) * (range_m - s.blind_zone_m)
         return np.where(spurious, early, out)
@@ -1556,7 +1619,7 @@ class SimulatedScan:
             if s.sensor is not None:
                 dirs_sensor = s.sensor.directions(i, stride)
             else:
-                dirs_sensor = _pattern_dirs(s, np.arange(i * n + first, (i + 1) * n, stride))
+                dirs_sensor = _frame_pattern_dirs(s, i, stride, first)
             T = self._T_pipe_sensor[i]
             o, d = T[:3, 3], dirs_sensor @ T[:3, :3].T
             t, surface = _cast_free(s, o, d, s.blind_zone_m)

@@ -684,9 +684,25 @@ def register_scan(
     return _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_stride)[0]
 
 
+def scan_instrument(scan, max_section_range_m: float = 5.0):
+    """The instrument of a simulated scan as the inspect flow estimates it (a few frames
+    spread over the run, and a run of consecutive ones from its middle), with no profile."""
+    from pipescan.core.instrument import CONSECUTIVE_FRAMES, estimate_instrument
+    from pipescan.core.registration import sample_frame_indices
+
+    n = len(scan)
+    middle = max(0, min(n - CONSECUTIVE_FRAMES, n // 2 - CONSECUTIVE_FRAMES // 2))
+    return estimate_instrument(
+        [scan.frame(i).points_sensor for i in sample_frame_indices(n)],
+        [scan.frame(i).points_sensor for i in range(middle, min(n, middle + CONSECUTIVE_FRAMES))],
+        max_range_m=max_section_range_m,
+    )
+
+
 def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_stride):
     """:func:`register_scan`, and the stride's frames (those the sections are built from) as
-    ``(index, points, odometer, gravity)``."""
+    ``(index, points, odometer, gravity)``. ``params`` are used as given (the caller applies
+    the scan's instrument: :func:`measure_scan`)."""
     from pipescan.core.measures import MeasureParams
     from pipescan.core.registration import (
         chain_trajectories,
@@ -698,6 +714,8 @@ def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_s
     )
 
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
+    if frame_stride is None and params.map_seed_frames > 1:
+        frame_stride = 1  # a partial view: every frame (partial_view_stride)
     if frame_stride is None:
         frame_stride = choose_frame_stride(
             [frames[i][1] for i in sample_frame_indices(len(frames))],
@@ -728,9 +746,9 @@ def measure_scan(
     params: RegistrationParams | None = None,
     frame_stride: int | None = None,
 ):
-    """The inspect flow's stages on a simulated scan, in memory and without Prefect:
-    registration in chunks (chained), the axis, each section's registration evidence, and
-    the sections. For tests and studies of a scan small enough to hold in memory (the flow
+    """The inspect flow's stages on a simulated scan, in memory and without Prefect: the
+    scan's instrument (:func:`scan_instrument`) applied to the parameters, registration in
+    chunks (chained), the axis, each section's registration evidence, and the sections. For tests and studies of a scan small enough to hold in memory (the flow
     buckets points on disk instead). ``params``: the ``RegistrationParams`` to register with
     (the defaults when None). ``frame_stride``: every k-th frame is used (and the last), as
     the flow does; None chooses it as the flow does (``choose_frame_stride``).
@@ -740,7 +758,8 @@ def measure_scan(
     trajectory, sections
     """
     from pipescan.core.axis import fit_axis
-    from pipescan.core.measures import withhold_smeared_object_edges
+    from pipescan.core.instrument import instrumented
+    from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
     from pipescan.core.registration import (
         RegistrationParams,
         iter_registered_points,
@@ -750,6 +769,9 @@ def measure_scan(
     from pipescan.core.water import explain_invert_shadows
 
     params = params or RegistrationParams()
+    params, measure = instrumented(
+        params, MeasureParams(), scan_instrument(scan, max_section_range_m)
+    )
     trajectory, frames = _register_in_memory(
         scan, chunk_frames, max_section_range_m, params, frame_stride
     )
@@ -771,6 +793,7 @@ def measure_scan(
             axis,
             w,
             nominal_diameter_m=scan.scenario.nominal_diameter_m,
+            params=measure,
             evidence=evidence,
         )
-    return trajectory, withhold_smeared_object_edges(explain_invert_shadows(sections))
+    return trajectory, withhold_smeared_object_edges(explain_invert_shadows(sections), measure)

@@ -18,6 +18,7 @@ from prefect.cache_policies import NO_CACHE
 from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
 from pipescan.core.coding import code_sections
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
+from pipescan.core.instrument import CONSECUTIVE_FRAMES, Instrument, estimate_instrument
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.registration import (
@@ -112,6 +113,25 @@ def choose_stride(
     )
     log.info(choice.describe(staged.frame_count))
     return choice
+
+
+@task(name="estimate-instrument", cache_policy=NO_CACHE)
+def estimate_scan_instrument(staged: StagedArchive, *, max_range_m: float) -> Instrument:
+    """What the scan's instrument delivers (:func:`~pipescan.core.instrument.
+    estimate_instrument`): ``inspection.toml``'s ``[sensor]`` where it says, and a few frames
+    spread over the run and a run of consecutive ones from its middle otherwise."""
+    n = staged.frame_count
+    middle = max(0, min(n - CONSECUTIVE_FRAMES, n // 2 - CONSECUTIVE_FRAMES // 2))
+    with staged.reopen() as arc:
+        sample = [pts for _, pts in arc.iter_frames(sample_frame_indices(n))]
+        run = [
+            pts for _, pts in arc.iter_frames(range(middle, min(n, middle + CONSECUTIVE_FRAMES)))
+        ]
+    instrument = estimate_instrument(
+        sample, run, max_range_m=max_range_m, profile=staged.meta.sensor
+    )
+    log.info(instrument.describe())
+    return instrument
 
 
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):

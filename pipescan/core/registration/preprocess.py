@@ -38,8 +38,9 @@ EARLY_RETURN_NEIGHBOURS = 8
 _EARLY_RETURN_SUPPORT = 2
 
 
-def crop_range(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
-    """Points within ``max_range_m`` of the sensor, (K, 3) float64 (sensor frame).
+def crop_range(points_m: np.ndarray, max_range_m: float, min_range_m: float = 0.0) -> np.ndarray:
+    """Points between ``min_range_m`` and ``max_range_m`` of the sensor, (K, 3) float64
+    (sensor frame).
 
     Raises
     ------
@@ -49,7 +50,8 @@ def crop_range(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
     pts = np.asarray(points_m, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"A frame must have shape (N, 3), got {pts.shape}.")
-    return pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+    r2 = np.einsum("ij,ij->i", pts, pts)
+    return pts[(r2 <= max_range_m**2) & (r2 >= min_range_m**2)]
 
 
 def voxel_downsample(points_m: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -137,7 +139,7 @@ def preprocess_frame(points_m: np.ndarray, params: RegistrationParams) -> np.nda
     >>> bool(np.all(kept[:, 0] <= 2.0))
     True
     """
-    pts = crop_range(points_m, params.max_range_m)
+    pts = crop_range(points_m, params.max_range_m, params.min_range_m)
     if len(pts) == 0:
         return pts
     pts = voxel_downsample(pts, params.source_voxel_m or params.voxel_m)

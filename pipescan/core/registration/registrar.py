@@ -102,6 +102,9 @@ class FrameRegistrar:
         where it overrode the odometer (else infinite): what the slide window needs."""
         self.odometer_frames = 0
         self.count = 0
+        self._seed: list[np.ndarray] = []
+        """The frames (world frame) the local map was (re)started from, while they are fewer
+        than ``map_seed_frames`` (:meth:`_seeding`)."""
 
     # -- prediction -------------------------------------------------------------------------
     def _predict(self, odometer_m: float | None) -> tuple[np.ndarray, float]:
@@ -174,6 +177,7 @@ class FrameRegistrar:
         if self._prev is None:
             T = np.eye(4)
             quality = FrameQuality(index, 1.0, 0.0, False, along_axis_weight=1.0)
+            self._seed = [pts]
             self._map.add_keyframe([pts], T[:3, 0])
             self._last_key_position = T[:3, 3].copy()
             self._key_positions = [T[:3, 3].copy()]
@@ -193,7 +197,10 @@ class FrameRegistrar:
             if has_odometer:
                 assert odometer_m is not None
                 T, quality = self._check_slide(T, quality, odometer_m)
-            self._add_to_map(T, pts, quality)
+            if self._seeding() and quality.fault != "slide":
+                self._add_seed(T, pts)
+            else:
+                self._add_to_map(T, pts, quality)
         if self._down_world is None and gravity_sensor is not None:
             self._down_world = T[:3, :3] @ gravity_sensor
         if self._prev is not None and self._prev_constrained and not quality.degenerate:
@@ -204,14 +211,35 @@ class FrameRegistrar:
         self.count += 1
         return T, quality
 
+    def _seeding(self) -> bool:
+        """Whether the local map is still being seeded: it was (re)started from fewer than
+        ``map_seed_frames`` frames."""
+        return 0 < len(self._seed) < self.params.map_seed_frames
+
+    def _add_seed(self, T: np.ndarray, pts: np.ndarray) -> None:
+        """Add a registered frame to the map as a keyframe of its own while the map is being
+        seeded: a frame that covers only part of the field of view finds too little of a map
+        of one frame to be held by it, and each frame added widens what the next one finds.
+        A one-frame keyframe drops its isolated points (``seen_twice``)."""
+        self._seed.append(transform(T, pts))
+        self._map.add_keyframe(self._seed[-1:], T[:3, 0])
+        self._pending = []
+        self._last_key_position = T[:3, 3].copy()
+        self._key_positions = [*self._key_positions, T[:3, 3].copy()][-self.params.map_keyframes :]
+        self._axis_world = self._map.axis
+        if not self._seeding():
+            self._seed = []
+
     def _add_to_map(self, T: np.ndarray, pts: np.ndarray, quality: FrameQuality) -> None:
         p = self.params
         self._pending.append(transform(T, pts))
         assert self._last_key_position is not None
         if quality.fault == "slide":
-            # The map holds frames that slid: start it again from this frame.
+            # The map holds frames that slid: start it again from this frame (and, for a
+            # frame that covers part of the field of view, the next ones: ``_seeding``).
             self._map.clear()
             self._map.add_keyframe(self._pending[-1:], T[:3, 0])
+            self._seed = self._pending[-1:]
             self._pending.clear()
             self._last_key_position = T[:3, 3].copy()
             self._key_positions = [T[:3, 3].copy()]
