@@ -680,6 +680,16 @@ def bag_cloud(msg_kwargs: dict, points: int) -> Callable[[Path, float], str]:
     return lambda where, scale: str(ros1_bag(where, None, msg_kwargs, points))
 
 
+def toml_nested(body: Callable[[], str]) -> Callable[[Path, float], str]:
+    """A directory archive whose inspection.toml ends with ``body()`` (nested past the bound)."""
+
+    def build(where: Path, scale: float) -> str:
+        toml = TOML + body().encode("ascii")
+        return str(_dir_archive(where, {"1.npy": _npy_bytes(frame())}, toml=toml))
+
+    return build
+
+
 def _toml_with(line: str) -> Callable[[Path, float], str]:
     def build(where: Path, scale: float) -> str:
         toml = TOML.replace(b'asset_id = "MH1-MH2"\n', b"") + line.encode("utf-8") + b"\n"
@@ -763,6 +773,11 @@ CASES: tuple[Case, ...] = (
     Case("parse", "E57 XML nested 200,000 deep", e57_deep, PointFileError, "more than 64 deep"),
     Case("expansion", "E57: 200 scans sharing one binary section", in_cloud("cloud.e57", e57_shared_section(200)), PointFileError, "shares its binary section"),
     Case("lying header", "E57: 1e8 records in a section of 2,000", in_cloud("cloud.e57", e57_count_lies), PointFileError, "its section holds"),
+    # round 2: bounded parsing of inspection.toml
+    Case("parse", "inspection.toml: a table header of 200,000 parts", toml_nested(lambda: "[" + ".".join(["a"] * 200_000) + "]\n"), MetadataError, "more than 32 deep"),
+    Case("parse", "inspection.toml: 2,000 headers nesting one deeper each", toml_nested(lambda: "".join(f"[{'.'.join(['a'] * k)}]\n" for k in range(1, 2000))), MetadataError, "more than 32 deep"),
+    Case("parse", "inspection.toml: arrays nested 200,000 deep", toml_nested(lambda: "x = " + "[" * 200_000 + "]" * 200_000 + "\n"), MetadataError, "more than 32 deep"),
+    Case("parse", "inspection.toml: inline tables nested 100,000 deep", toml_nested(lambda: "x = " + "{a = " * 100_000 + "1" + "}" * 100_000 + "\n"), MetadataError, "more than 32 deep"),
     # round 2: ROS bags (every expansion bounded by what was read)
     Case("expansion", "ROS 1 bag, bz2 chunk of 50 M points", bag_bz2_bomb, PointFileError, "compression_max_ratio"),
     Case("expansion", "ROS 1 bag, lz4 chunk of 50 M points", bag_lz4_bomb, PointFileError, "compression_max_ratio"),

@@ -327,3 +327,45 @@ def test_gis_and_isybau_exports_do_not_write_through_planted_links(gis_db, tmp_p
     assert victim.read_bytes() == before
     assert (out / "net.gpkg").stat().st_size > 0 and (out / "sw2.xml").stat().st_size > 0
     assert _left_parts(out) == [f".net.{pid}.tmp.gpkg", f".sw2.xml.{pid}.tmp"]  # the plants
+
+
+# --- bounded parsing -----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "body",
+    [
+        pytest.param(lambda: "[" + ".".join(["a"] * 200_000) + "]\n", id="header of 200,000 parts"),
+        pytest.param(lambda: "x = " + "[" * 200_000 + "]" * 200_000, id="arrays 200,000 deep"),
+        pytest.param(lambda: ".".join(["k"] * 200_000) + " = 1", id="dotted key of 200,000 parts"),
+    ],
+)
+def test_a_deep_toml_is_refused_in_one_line_before_tomllib(body) -> None:
+    """tomllib took minutes on the first and raised RecursionError on the second."""
+    import time
+
+    from pipescan.core.errors import MetadataError
+    from pipescan.storage.input.metadata import parse_inspection_toml
+
+    text = 'asset_id = "A"\ninspected_at = 2024-05-17\nnominal_diameter_m = 0.5\n' + body()
+    started = time.perf_counter()
+    with pytest.raises(MetadataError, match="more than 32 deep") as info:
+        parse_inspection_toml(text, archive="run.zip")
+    assert time.perf_counter() - started < 2.0
+    assert info.value.field == "line 4" and "\n" not in str(info.value)
+
+
+def test_toml_that_only_looks_deep_passes() -> None:
+    """Dots and brackets inside strings and comments, floats, a genuine ``[[frames]]`` list."""
+    from pipescan.storage.input.tomlguard import check_toml_depth
+
+    text = (
+        'x = "' + "[{." * 100 + '"\n'
+        "y = '''" + "[[[" * 100 + "'''\n"
+        "# " + "[." * 100 + "\n"
+        "z = ["
+        + "1.5, " * 100
+        + "]\n"
+        + "".join(f'[[frames]]\nfile = "frames/{i}.npy"\ntime_s = {i / 10}\n' for i in range(1000))
+    )
+    check_toml_depth(text)
