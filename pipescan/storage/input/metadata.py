@@ -12,6 +12,7 @@ is reported as missing, with a "did you mean" for the key that was found instead
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 import math
 import re
@@ -33,6 +34,7 @@ from pydantic import (
 from pydantic_core import PydanticCustomError
 
 from pipescan.core.errors import MetadataError
+from pipescan.core.instrument import SensorProfile
 from pipescan.core.model import FrameRef, InspectionMeta, RosTopics
 from pipescan.storage.input.tomlguard import TomlTooDeep, check_toml_depth
 
@@ -158,6 +160,44 @@ class _RosTable(BaseModel):
     imu_topic: FileText | None = None
 
 
+class _SensorTable(BaseModel):
+    """The ``[sensor]`` table: a model from ``pipescan.core.instrument.SENSOR_MODELS``, the
+    sensor's own figures, or both (its figures override the model's)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, str_strip_whitespace=True)
+
+    model: str | None = Field(default=None, max_length=MAX_NAME_CHARS)
+    min_range_m: float | None = Field(default=None, ge=0.0, le=100.0)
+    max_range_m: float | None = Field(default=None, gt=0.0, le=10_000.0)
+    fov_horizontal_deg: float | None = Field(default=None, gt=0.0, le=360.0)
+    fov_vertical_deg: float | None = Field(default=None, gt=0.0, le=360.0)
+    pattern: Literal["repetitive", "non_repetitive", "profiler", "static"] | None = None
+    points_per_s: float | None = Field(default=None, gt=0.0, le=1e9)
+    range_noise_m: float | None = Field(default=None, ge=0.0, le=1.0)
+
+    @field_validator("model")
+    @classmethod
+    def _known_model(cls, value: str | None) -> str | None:
+        from pipescan.core.instrument import SENSOR_MODELS
+
+        if value is None:
+            return None
+        name = value.lower()
+        if name not in SENSOR_MODELS:
+            close = difflib.get_close_matches(name, SENSOR_MODELS, n=1)
+            known = ", ".join(SENSOR_MODELS)
+            raise PydanticCustomError(
+                "sensor_model",
+                "unknown sensor model",
+                {
+                    "value": value,
+                    "hint": (f"did you mean {close[0]!r}? " if close else "")
+                    + f"known models: {known}; or leave out model and give the figures",
+                },
+            )
+        return name
+
+
 class InspectionDocument(BaseModel):
     """The schema of ``inspection.toml`` (the archive contract: docs/archive.md).
 
@@ -208,6 +248,7 @@ class InspectionDocument(BaseModel):
 
     start_xyz: list[float] | None = None
     ros: _RosTable | None = None
+    sensor: _SensorTable | None = None
     odometer_uncertainty_ratio: float | None = Field(default=None, gt=0.0, le=0.5)
     odometer_slip_m: float | None = Field(default=None, ge=0.0, le=10.0, allow_inf_nan=False)
 
@@ -419,7 +460,24 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         else RosTopics(doc.ros.points_topic, doc.ros.odometry_topic, doc.ros.imu_topic),
         odometer_uncertainty_ratio=doc.odometer_uncertainty_ratio,
         odometer_slip_m=doc.odometer_slip_m,
+        sensor=_sensor_profile(doc.sensor, fail),
     )
+
+
+def _sensor_profile(table: _SensorTable | None, fail: Any) -> SensorProfile | None:
+    """The ``[sensor]`` table as a profile: the named model's figures, overridden by any
+    the table gives itself."""
+    from pipescan.core.instrument import SENSOR_MODELS
+
+    if table is None:
+        return None
+    own = table.model_dump(exclude_none=True, exclude={"model"})
+    base = SENSOR_MODELS[table.model] if table.model else SensorProfile()
+    source = base.source if not own else f"{base.source}; inspection.toml's [sensor]"
+    try:
+        return dataclasses.replace(base, **own, source=source)
+    except ValueError as exc:
+        raise fail(str(exc), "sensor") from exc
 
 
 def _as_position(value: Sequence[float] | None) -> tuple[float, ...] | None:
