@@ -416,3 +416,46 @@ def test_runs_page_says_what_it_shows(client: TestClient) -> None:
     html = client.get("/runs").text
     assert "failed archive" in html and "What was stored, by day" in html
     assert str(len(PIPES) * YEARS) in html
+
+
+def test_runs_from_prefect_are_shown_with_why_archives_failed(network_db: Path) -> None:
+    from pipescan.flows.runs import ArchiveNote, NetworkRun
+
+    asked: list[tuple[int, str]] = []
+
+    def runs(limit: int, url: str) -> list[NetworkRun]:
+        asked.append((limit, url))
+        return [
+            NetworkRun(
+                id="1",
+                name="nightly-<b>07</b>",
+                state="COMPLETED",
+                state_name="Completed",
+                message=None,
+                started=datetime(2026, 12, 7, 2, 0, tzinfo=UTC),
+                finished=datetime(2026, 12, 7, 2, 40, tzinfo=UTC),
+                run_count=1,
+                store="s3://surveys/",
+                counts={"inspected": 14, "reused": 3, "duplicate": 0, "failed": 1, "missing": 1},
+                failed=[ArchiveNote("MH9-MH10.zip", "inspection.toml: no 'inspected_at'")],
+                missing=[ArchiveNote("MH11-MH12.zip", "database unreachable", stored_since=True)],
+            )
+        ]
+
+    app = create_app(WebConfig(database_url=f"sqlite:///{network_db}", runs=runs))
+    with TestClient(app) as c:
+        page = c.get("/runs").text
+        assert "14 inspected" in page and "1 failed" in page and "1 missing" in page
+        assert "MH9-MH10.zip" in page and "no &#39;inspected_at&#39;" in page
+        assert "nightly-&lt;b&gt;07&lt;/b&gt;" in page  # escaped
+        network = c.get("/").text
+        assert "Latest network run" in network and "MH9-MH10.zip" in network
+    assert asked and asked[0][1].endswith("mode=ro&uri=true")  # the database read-only
+
+    def down(limit: int, url: str) -> list[NetworkRun]:
+        raise OSError("connection refused")
+
+    app = create_app(WebConfig(database_url=f"sqlite:///{network_db}", runs=down))
+    with TestClient(app) as c:
+        assert "Prefect&#39;s API did not answer" in c.get("/runs").text
+        assert c.get("/").status_code == 200

@@ -83,7 +83,16 @@ def serve(
 
     try:
         url = _stored_db_url(db)
-        web = create_app(WebConfig(database_url=url, token=token, database_label=_label(url)))
+        runs = None
+        if os.environ.get("PREFECT_API_URL"):  # else Prefect would start a server of its own
+            from pipescan.flows.runs import recent_network_runs
+
+            def runs(limit: int, read_only_url: str) -> list:
+                return recent_network_runs(limit, database_url=read_only_url)
+
+        web = create_app(
+            WebConfig(database_url=url, token=token, database_label=_label(url), runs=runs)
+        )
     except PipescanError as exc:
         _fail(exc)
         return

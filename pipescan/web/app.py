@@ -79,6 +79,10 @@ HERE = Path(__file__).parent
 TOKEN_COOKIE = "pipescan_token"
 PAGE_ROWS = 50
 """Rows of the network table per page."""
+RUNS_SHOWN = 20
+"""Recent network runs on the Runs page."""
+RUNS_TTL_S = 30.0
+"""How long the runs read from Prefect's API are shown before they are asked again."""
 
 _CSP = (
     "default-src 'self'; img-src 'self' data:; style-src 'self' 'unsafe-inline'; "
@@ -90,12 +94,17 @@ _CSP = (
 @dataclass(frozen=True)
 class WebConfig:
     """What the app serves: ``database_url`` (opened read-only), the ``token`` every request
-    must carry (None: none needed, for 127.0.0.1), and a short label of the database for the
-    page footer (never the URL: it may hold a password)."""
+    must carry (None: none needed, for 127.0.0.1), a short label of the database for the
+    page footer (never the URL: it may hold a password), and where recent runs come from."""
 
     database_url: str
     token: str | None = None
     database_label: str = ""
+    runs: Callable[[int, str], list[Any]] | None = None
+    """Recent network runs, newest first: ``runs(limit, read_only_database_url)`` returns
+    :class:`pipescan.flows.runs.NetworkRun` records (``pipescan serve`` passes
+    :func:`pipescan.flows.runs.recent_network_runs` when Prefect's API is set); None: no
+    source of runs, and the Runs page says so."""
 
 
 # ---------------------------------------------------------------------------------------------
@@ -646,6 +655,7 @@ def create_app(config: WebConfig) -> FastAPI:
             "grades": grades,
             "ungraded": sum(1 for p in everything if p.worst_grade is None),
             "filtered": filtered,
+            "last_run": _last_run(recent_runs()[0]),
         }
         return templates.TemplateResponse(request, "network.html", context)
 
@@ -791,8 +801,29 @@ def create_app(config: WebConfig) -> FastAPI:
             headers={"Content-Disposition": f'attachment; filename="{name}"'},
         )
 
+    runs_held: dict[str, Any] = {}
+    runs_lock = threading.Lock()
+
+    def recent_runs() -> tuple[list[Any] | None, str | None]:
+        """The recent runs and None, or None and why there are none; asked again at most
+        every :data:`RUNS_TTL_S` seconds."""
+        if config.runs is None:
+            return None, None
+        with runs_lock:
+            held = runs_held.get("value")
+            if held is not None and time.monotonic() - held[0] < RUNS_TTL_S:
+                return held[1], held[2]
+        try:
+            value: tuple[list[Any] | None, str | None] = (config.runs(RUNS_SHOWN, read_only), None)
+        except Exception as exc:  # Prefect's API down: the page says so, the rest works
+            value = (None, f"Prefect's API did not answer ({type(exc).__name__})")
+        with runs_lock:
+            runs_held["value"] = (time.monotonic(), *value)
+        return value
+
     @app.get("/runs", response_class=HTMLResponse, include_in_schema=False)
     def runs_page(request: Request) -> Response:
+        runs, runs_error = recent_runs()
         tables = set(sa.inspect(engine).get_table_names())
         run_tables = sorted(t for t in tables if "run" in t.lower())
         statement = (
@@ -810,6 +841,9 @@ def create_app(config: WebConfig) -> FastAPI:
             saves = session.execute(statement).all()
         context = {
             "title": "Runs",
+            "runs": None if runs is None else [_run_row(r) for r in runs],
+            "runs_error": runs_error,
+            "runs_configured": config.runs is not None,
             "run_tables": run_tables,
             "saves": [
                 {
@@ -1018,6 +1052,43 @@ def create_app(config: WebConfig) -> FastAPI:
         ]
 
     return app
+
+
+def _run_row(run: Any) -> dict[str, Any]:
+    """A :class:`pipescan.flows.runs.NetworkRun` as the Runs page shows it."""
+    took = ""
+    if run.started is not None and run.finished is not None:
+        took = f"{(run.finished - run.started).total_seconds() / 60:.0f} min"
+    return {
+        "name": run.name,
+        "state": run.state_name,
+        "green": run.green,
+        "message": run.message or "",
+        "started": fmt_datetime(_as_utc(run.started)) if run.started else "not started",
+        "finished": fmt_datetime(_as_utc(run.finished)) if run.finished else "not finished",
+        "took": took,
+        "attempts": run.run_count,
+        "store": _strip_credentials(run.store) if run.store else "",
+        "counts": run.counts,
+        "source": run.source,
+        "notes": [
+            {
+                "kind": kind,
+                "archive": note.archive,
+                "why": note.why,
+                "stored_since": note.stored_since,
+            }
+            for kind, notes in (("failed", run.failed), ("missing", run.missing))
+            for note in notes
+        ],
+    }
+
+
+def _last_run(runs: list[Any] | None) -> dict[str, Any] | None:
+    """The latest run's archives that were not stored, for the network page."""
+    if not runs:
+        return None
+    return _run_row(runs[0])
 
 
 def _as_utc(value: datetime) -> datetime:
