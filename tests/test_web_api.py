@@ -459,3 +459,39 @@ def test_runs_from_prefect_are_shown_with_why_archives_failed(network_db: Path) 
     with TestClient(app) as c:
         assert "Prefect&#39;s API did not answer" in c.get("/runs").text
         assert c.get("/").status_code == 200
+
+
+def test_serve_starts_on_loopback_and_answers(network_db: Path) -> None:
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    import httpx
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    command = [sys.executable, "-m", "pipescan.cli", "serve", "--db", str(network_db)]
+    process = subprocess.Popen(
+        [*command, "--port", str(port)],
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PREFECT_API_URL": ""},
+    )
+    try:
+        deadline = time.monotonic() + 120
+        while True:
+            try:
+                response = httpx.get(f"http://127.0.0.1:{port}/api/pipes", timeout=5)
+                break
+            except httpx.TransportError:
+                assert process.poll() is None, process.stderr.read() if process.stderr else ""
+                assert time.monotonic() < deadline, "serve did not answer in 120 s"
+                time.sleep(0.3)
+        assert response.status_code == 200 and response.json()["total"] == len(PIPES)
+        assert "server" not in response.headers  # uvicorn's banner is off
+    finally:
+        process.terminate()
+        _, err = process.communicate(timeout=30)
+    assert f"http://127.0.0.1:{port}/ (this machine only; read-only)" in err
