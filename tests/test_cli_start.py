@@ -161,3 +161,39 @@ def test_a_date_without_time_zone_is_a_warning_naming_the_utc_it_was_read_as(tmp
     assert "inspected_at has no time zone; read as 2025-03-14T00:00:00Z (UTC)" in warning
     result, _ = _run("inspect", str(write_archive(tmp_path / "tz")), cwd=tmp_path)
     assert "warning" not in result.stderr
+
+
+def test_a_run_s_stages_become_progress_bars_on_a_terminal_only(monkeypatch):
+    import io
+    import logging
+
+    from rich.console import Console
+
+    from pipescan.cli import _progress
+
+    handler = _progress.ProgressHandler(
+        Console(file=io.StringIO(), force_terminal=True, width=100),
+        logging.Formatter("%(message)s"),
+    )
+    lines = [
+        "every 3rd frame used, 89 of 265",
+        "registering 89 of 265 frames in 2 chunks",
+        "registered frames 132-264 of 265 (small_gicp gicp)",
+        "registered frames 0-132 of 265 (small_gicp gicp)",
+        "registered 101 of 265 frames (12 read where ICP disagreed with the odometer)",
+        "axis fitted; chainage 0.45-6.01 m in 3 windows",
+        "measured 0.4-2.4 m (701847 points)",
+        "measured 2.4-4.4 m (1094682 points)",
+    ]
+    shown = []
+    for text in lines:
+        record = logging.LogRecord("pipescan", logging.INFO, __file__, 0, text, None, None)
+        if not handler._stage(record.getMessage()):
+            shown.append(text)
+    frames, windows = handler.progress.tasks
+    assert (frames.description, frames.completed, frames.total) == ("frames registered", 265, 265)
+    assert (windows.description, windows.completed, windows.total) == ("windows measured", 2, 3)
+    # The chunk and window lines are the bars'; the others still print.
+    assert shown == [lines[0], lines[1], lines[4], lines[5]]
+    monkeypatch.setattr("sys.stderr", io.StringIO())  # not a terminal: no bars, lines as lines
+    assert not _progress.on_a_terminal()

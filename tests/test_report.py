@@ -259,7 +259,8 @@ def test_a_crash_while_writing_leaves_no_pdf(tmp_path, monkeypatch, report_input
         target.write(b"%PDF-1.7 truncated")
         raise RuntimeError("renderer crashed")
 
-    monkeypatch.setattr(weasyprint.HTML, "write_pdf", half_written)
+    # The laid-out document writes the PDF (render.py lays it out first, for the tables' tails).
+    monkeypatch.setattr(weasyprint.document.Document, "write_pdf", half_written)
     out = tmp_path / "report.pdf"
     out.write_bytes(b"%PDF previous report")
     with pytest.raises(RuntimeError, match="renderer crashed"):
