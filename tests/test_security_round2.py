@@ -11,6 +11,7 @@ import os
 import subprocess
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import ClassVar
 
@@ -369,3 +370,96 @@ def test_toml_that_only_looks_deep_passes() -> None:
         + "".join(f'[[frames]]\nfile = "frames/{i}.npy"\ntime_s = {i / 10}\n' for i in range(1000))
     )
     check_toml_depth(text)
+
+
+# --- no Prefect server left after a kill -------------------------------------------------------
+
+_START_SERVER = """
+import os, time
+import pipescan.flows  # guards the server
+from prefect import flow
+
+@flow
+def one():
+    return 1
+
+one()
+print("ran", flush=True)
+time.sleep(120)
+"""
+
+
+def _prefect_env(tmp_path: Path) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env.update(
+        PYTHONPATH=str(ROOT),
+        PREFECT_HOME=str(tmp_path / "prefect-home"),
+        PREFECT_SERVER_ANALYTICS_ENABLED="false",
+        PREFECT_LOGGING_LEVEL="ERROR",
+    )
+    return env
+
+
+def test_a_killed_runs_prefect_server_stops_with_it(tmp_path) -> None:
+    """kill -9 of a process on Prefect's ephemeral API, before any scratch marker recorded
+    its server: the server gets SIGTERM from the kernel (PR_SET_PDEATHSIG) and ends."""
+    import psutil
+
+    from pipescan.flows.housekeeping import OWNER_ENV, PREFECT_SERVER_APP
+
+    child = subprocess.Popen(
+        [sys.executable, "-c", _START_SERVER],
+        env=_prefect_env(tmp_path),
+        cwd=tmp_path,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+    )
+    try:
+        assert child.stdout is not None
+        assert child.stdout.readline().strip() == "ran"
+        servers = [
+            p for p in psutil.Process(child.pid).children() if PREFECT_SERVER_APP in p.cmdline()
+        ]
+        assert len(servers) == 1
+        assert servers[0].environ()[OWNER_ENV].split()[0] == str(child.pid)
+    finally:
+        child.kill()
+        child.wait()
+    _, alive = psutil.wait_procs(servers, timeout=30)
+    for proc in alive:
+        proc.kill()
+    assert alive == [], "the server outlived its killed parent"
+
+
+def test_the_next_run_stops_a_tagged_server_whose_owner_is_gone(tmp_path) -> None:
+    """The fallback when no parent-death signal was set (a server started from a thread):
+    a process running Prefect's server app, tagged with an owner that has ended, is stopped;
+    one whose owner runs, or without a tag, is left alone."""
+    import psutil
+
+    from pipescan.flows.housekeeping import (
+        OWNER_ENV,
+        PREFECT_SERVER_APP,
+        stop_untracked_servers,
+    )
+
+    ended = subprocess.Popen([sys.executable, "-c", "pass"])
+    ended_ref = f"{ended.pid} {psutil.Process(ended.pid).create_time()!r}"
+    ended.wait()
+    me = f"{os.getpid()} {psutil.Process().create_time()!r}"
+    fake = [sys.executable, "-c", "import time; time.sleep(60)", PREFECT_SERVER_APP]
+    env = dict(os.environ)
+    env.pop(OWNER_ENV, None)
+    orphan = subprocess.Popen(fake, env={**env, OWNER_ENV: ended_ref})
+    owned = subprocess.Popen(fake, env={**env, OWNER_ENV: me})
+    untagged = subprocess.Popen(fake, env=env)
+    try:
+        time.sleep(0.5)  # the children's environment is readable once they exec
+        assert stop_untracked_servers() >= 1
+        assert orphan.wait(10) is not None
+        assert owned.poll() is None and untagged.poll() is None
+    finally:
+        for proc in (orphan, owned, untagged):
+            proc.kill()
+            proc.wait()
