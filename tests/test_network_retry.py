@@ -447,3 +447,26 @@ def test_the_cli_prints_the_summary_and_exits_1_when_an_archive_is_not_stored(
     assert result.exit_code == 1
     payload = json.loads(result.stdout)
     assert [(f["label"], f["cause"]) for f in payload["failures"]] == [("a9", "content")]
+
+
+def test_a_sub_flow_that_failed_for_a_transient_cause_leaves_no_task_run_pending(prefect):
+    from prefect import task
+    from prefect.client.orchestration import get_client
+    from prefect.states import Pending
+
+    from pipescan.flows.recovery import close_task_runs_of
+
+    @flow(name="inspect-archive")
+    def subflow():
+        pass
+
+    @task(name="fit-axis")
+    def fit_axis():
+        pass
+
+    with get_client(sync_client=True) as client:
+        run = client.create_flow_run(subflow)
+        left = client.create_task_run(fit_axis, run.id, dynamic_key="0", state=Pending())
+        assert close_task_runs_of(str(run.id), "slot refused, tried again") == 1
+        state = client.read_task_run(left.id).state
+    assert (state.type.value, state.message) == ("CRASHED", "slot refused, tried again")

@@ -46,6 +46,7 @@ from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
 from pipescan.flows.recovery import (
     close_earlier_attempts,
+    close_task_runs_of,
     keep_output,
     last_error,
     run_output_path,
@@ -479,18 +480,29 @@ def inspect_one_archive(
     subflow = inspect_archive.with_options(
         flow_run_name=label, task_runner=make_task_runner(runner_kind, workers)
     )
+    state = None
     try:
         # The network run resolved the URL (and any Secret block's password) already.
         with use_settings(database_url=database_url, database_password_block=""):
-            summary = subflow(
+            state = subflow(
                 archive=archive,
                 report_path=report_path,
                 params=params,
                 work_dir=work_dir,
                 reuse_stored=reuse_stored,
+                return_state=True,
             )
+        summary = state.result()
     except (Exception, Abort) as exc:  # Abort: Prefect took the sub-flow for crashed
-        return failed_outcome(archive, label, exc, time.perf_counter() - started)
+        outcome = failed_outcome(archive, label, exc, time.perf_counter() - started)
+        if outcome.cause == TRANSIENT and state is not None:
+            # Its task runs would otherwise stay Pending for good (seen with a concurrency
+            # slot refused after a Prefect server outage); the retry is a new sub-flow run.
+            close_task_runs_of(
+                str(state.state_details.flow_run_id),
+                f"its sub-flow failed for a transient cause, tried again: {outcome.error}",
+            )
+        return outcome
     return ArchiveOutcome.from_summary(archive, label, summary, time.perf_counter() - started)
 
 

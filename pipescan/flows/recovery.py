@@ -147,3 +147,38 @@ def last_error(path: Path) -> str | None:
         if stripped.startswith("Fatal Python error") or _ERROR_LINE.match(stripped):
             found = stripped
     return found[:500] if found else None
+
+
+def close_task_runs_of(flow_run_id: str, message: str) -> int:
+    """Mark Crashed the task runs of one flow run that are still active: a sub-flow that failed
+    for a transient cause (Prefect's API gone, a concurrency slot not granted) can leave a task
+    run Pending for good. Returns how many were marked; an API that does not answer marks none.
+    """
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import (
+        FlowRunFilter,
+        FlowRunFilterId,
+        TaskRunFilter,
+        TaskRunFilterState,
+        TaskRunFilterStateType,
+    )
+    from prefect.client.schemas.objects import StateType
+    from prefect.states import Crashed
+
+    active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
+    try:
+        with get_client(sync_client=True) as client:
+            tasks = list(
+                _pages(
+                    client.read_task_runs,
+                    flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])),
+                    task_run_filter=TaskRunFilter(
+                        state=TaskRunFilterState(type=TaskRunFilterStateType(any_=active))
+                    ),
+                )
+            )
+            for task_run in tasks:
+                client.set_task_run_state(task_run.id, Crashed(message=message), force=True)
+    except Exception:  # the API is still away: the next attempt's sub-flow is a new run anyway
+        return 0
+    return len(tasks)
