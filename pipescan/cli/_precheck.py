@@ -130,7 +130,8 @@ def first_look(archive: str, settings) -> FirstLook | None:
             kind = "bag" if arc.bag is not None else Path(meta.frames[0].file).suffix or "files"
             content = f"{plural(n, 'frame')} ({kind})"
             ends = [0, n - 1] if n > 1 else [0]
-            for i, points in arc.iter_frames(ends):
+            # One frame at a time: a bag is then read at two places, not end to end.
+            for i, points in (next(arc.iter_frames([end])) for end in ends):
                 widths.append(
                     (
                         f"frame {i + 1}" if arc.bag is not None else meta.frames[i].file,
