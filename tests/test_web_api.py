@@ -4,7 +4,9 @@ output escaped, the database opened read-only, no credentials shown."""
 
 from __future__ import annotations
 
+import math
 import os
+import re
 from dataclasses import replace
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
@@ -495,3 +497,65 @@ def test_serve_starts_on_loopback_and_answers(network_db: Path) -> None:
         process.terminate()
         _, err = process.communicate(timeout=30)
     assert f"http://127.0.0.1:{port}/ (this machine only; read-only)" in err
+
+
+def _utm_forward(lat_deg: float, lon_deg: float, zone: int) -> tuple[float, float]:
+    """Latitude and longitude to UTM by Krüger's forward series (the inverse's counterpart,
+    written out here independently of it)."""
+    f = 1 / 298.257223563
+    n = f / (2 - f)
+    a_rect = 6378137.0 / (1 + n) * (1 + n**2 / 4 + n**4 / 64)
+    alpha = (n / 2 - 2 * n**2 / 3 + 5 * n**3 / 16, 13 * n**2 / 48 - 3 * n**3 / 5, 61 * n**3 / 240)
+    phi, dl = math.radians(lat_deg), math.radians(lon_deg - (zone * 6 - 183))
+    c = 2 * math.sqrt(n) / (1 + n)
+    t = math.sinh(math.atanh(math.sin(phi)) - c * math.atanh(c * math.sin(phi)))
+    xi, eta = math.atan(t / math.cos(dl)), math.atanh(math.sin(dl) / math.sqrt(1 + t * t))
+    terms = list(enumerate(alpha, start=1))
+    e = eta + sum(a * math.cos(2 * j * xi) * math.sinh(2 * j * eta) for j, a in terms)
+    nn = xi + sum(a * math.sin(2 * j * xi) * math.cosh(2 * j * eta) for j, a in terms)
+    return 500_000 + 0.9996 * a_rect * e, 0.9996 * a_rect * nn + (10_000_000 if lat_deg < 0 else 0)
+
+
+def test_utm_to_web_mercator() -> None:
+    from pipescan.web.figures import _utm_to_lonlat, web_mercator
+
+    # On the central meridian the northing is 0.9996 times the meridian arc: 4,984,944.378 m
+    # from the equator to 45 degrees on WGS 84.
+    lon, lat = _utm_to_lonlat(np.array([500_000.0]), np.array([0.9996 * 4_984_944.378]), 32, False)
+    assert lon[0] == pytest.approx(9.0) and lat[0] == pytest.approx(45.0, abs=1e-7)
+    for lat_deg, lon_deg, zone in [(48.85837, 2.294481, 31), (60.1, 13.5, 32), (-33.9, 18.4, 34)]:
+        e, n = _utm_forward(lat_deg, lon_deg, zone)
+        lon, lat = _utm_to_lonlat(np.array([e]), np.array([n]), zone, lat_deg < 0)
+        assert (lat[0], lon[0]) == pytest.approx((lat_deg, lon_deg), abs=1e-7)  # a centimetre
+    e, n = _utm_forward(50.0, 7.0, 32)
+    x, y = web_mercator("EPSG:25832", np.array([[e, n]]))[0]
+    assert x == pytest.approx(6378137.0 * math.radians(7.0), abs=0.01)
+    assert y == pytest.approx(
+        6378137.0 * math.log(math.tan(math.pi / 4 + math.radians(25))), abs=0.01
+    )
+    assert web_mercator("EPSG:2056", np.array([[2_600_000.0, 1_200_000.0]])) is None
+
+
+def test_a_basemap_from_the_configured_tile_server(network_db: Path) -> None:
+    tiles = "http://127.0.0.1:9/tiles/{z}/{x}/{y}.png"
+    app = create_app(WebConfig(database_url=f"sqlite:///{network_db}", tile_url=tiles))
+    with TestClient(app) as c:
+        response = c.get("/")
+        html = response.text
+        hrefs = re.findall(r'<image href="([^"]+)"', html)
+        assert hrefs and all(h.startswith("http://127.0.0.1:9/tiles/") for h in hrefs)
+        z = {h.split("/")[4] for h in hrefs}
+        assert len(z) == 1 and 17 <= int(z.pop()) <= 19  # a 60 m network: street-level tiles
+        assert (
+            "img-src 'self' data: http://127.0.0.1:9;"
+            in response.headers["content-security-policy"]
+        )
+        assert "Basemap: tiles from http://127.0.0.1:9" in html
+        assert 'data-asset="MH1-MH2"' in html  # the lines are still there
+    for bad in (
+        "ftp://x/{z}/{x}/{y}",
+        "https://tiles.example/{z}/{x}.png",
+        "https://u:p@h/{z}/{x}/{y}",
+    ):
+        with pytest.raises(db.StorageError):
+            create_app(WebConfig(database_url=f"sqlite:///{network_db}", tile_url=bad))

@@ -12,6 +12,9 @@ Without /usr/bin/chromium the tests are skipped locally, and fail in CI (``CI`` 
 
 from __future__ import annotations
 
+import contextlib
+import http.server
+import io
 import os
 import socket
 import threading
@@ -56,15 +59,11 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
-@pytest.fixture(scope="module")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
+@contextlib.contextmanager
+def _serving(app) -> Iterator[str]:
+    """``app`` on a free port of 127.0.0.1, in a thread: its base URL."""
     import uvicorn
 
-    from pipescan.web import WebConfig, create_app
-
-    path = tmp_path_factory.mktemp("web-browser") / "network.db"
-    build_network(f"sqlite:///{path}")
-    app = create_app(WebConfig(database_url=f"sqlite:///{path}", database_label="sqlite"))
     port = _free_port()
     config = uvicorn.Config(app, host="127.0.0.1", port=port, log_level="warning")
     uv = uvicorn.Server(config)
@@ -80,6 +79,22 @@ def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[str]:
     finally:
         uv.should_exit = True
         thread.join(timeout=10)
+
+
+@pytest.fixture(scope="module")
+def network_db(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("web-browser") / "network.db"
+    build_network(f"sqlite:///{path}")
+    return path
+
+
+@pytest.fixture(scope="module")
+def server(network_db: Path) -> Iterator[str]:
+    from pipescan.web import WebConfig, create_app
+
+    app = create_app(WebConfig(database_url=f"sqlite:///{network_db}", database_label="sqlite"))
+    with _serving(app) as url:
+        yield url
 
 
 @pytest.fixture(scope="module")
@@ -299,3 +314,70 @@ def test_every_page_fits_a_phone(server, browser, shots, path: str) -> None:
     finally:
         context.close()
     assert outside == []
+
+
+TILE_RGB = (200, 225, 245)
+
+
+@contextlib.contextmanager
+def _tile_server() -> Iterator[tuple[str, list[str]]]:
+    """A tile server on 127.0.0.1: every tile one pale blue square; the paths asked for."""
+    from PIL import Image
+
+    png = io.BytesIO()
+    Image.new("RGB", (256, 256), TILE_RGB).save(png, format="PNG")
+    body = png.getvalue()
+    asked: list[str] = []
+
+    class Tiles(http.server.BaseHTTPRequestHandler):
+        def do_GET(self) -> None:
+            asked.append(self.path)
+            self.send_response(200)
+            self.send_header("Content-Type", "image/png")
+            self.send_header("Content-Length", str(len(body)))
+            self.end_headers()
+            self.wfile.write(body)
+
+        def log_message(self, *args) -> None:
+            pass
+
+    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Tiles)
+    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
+    thread.start()
+    try:
+        yield f"http://127.0.0.1:{httpd.server_address[1]}", asked
+    finally:
+        httpd.shutdown()
+
+
+def test_a_basemap_under_the_lines(network_db, browser, shots) -> None:
+    from pipescan.web import WebConfig, create_app
+    from pipescan.web.figures import grade_colour
+
+    with _tile_server() as (tiles, asked):
+        app = create_app(
+            WebConfig(database_url=f"sqlite:///{network_db}", tile_url=tiles + "/{z}/{x}/{y}.png")
+        )
+        with _serving(app) as server:
+            context, page, outside = _page(browser, 1280, 800)
+            try:
+                page.goto(server + "/")
+                page.wait_for_function(
+                    "() => [...document.querySelectorAll('svg.network-map image')].length > 0"
+                )
+                page.wait_for_load_state("networkidle")
+                assert asked and all(p.count("/") == 3 for p in asked)  # /z/x/y.png
+                shot = _pixels(page)
+                # Beside the lines the tiles show; on a line, its class colour.
+                box = page.locator("svg.network-map").bounding_box()
+                corner = shot.getpixel((round(box["x"] + 8), round(box["y"] + 8)))[:3]
+                assert max(abs(a - b) for a, b in zip(corner, TILE_RGB, strict=True)) < 12
+                line = page.locator('svg.network-map polyline[data-asset="MH1-MH2"]')
+                seen = shot.getpixel(tuple(round(v) for v in _midpoint(line)))[:3]
+                want = grade_colour(int(line.get_attribute("data-grade")))
+                rgb = tuple(int(want[i : i + 2], 16) for i in (1, 3, 5))
+                assert max(abs(a - b) for a, b in zip(seen, rgb, strict=True)) < 40
+                page.screenshot(path=str(shots / "network-basemap.png"))
+            finally:
+                context.close()
+    assert outside == []  # the tile server is on 127.0.0.1 too

@@ -52,6 +52,14 @@ def serve(
             "Needed to listen beyond this machine.",
         ),
     ] = None,
+    tile_url: Annotated[
+        str | None,
+        typer.Option(
+            envvar="PIPESCAN_WEB_TILE_URL",
+            help="A basemap: your tile server's https://host/{z}/{x}/{y}.png (browsers fetch "
+            "the tiles from it). Without it the map draws the lines alone, offline.",
+        ),
+    ] = None,
     db: DbOption = None,
 ) -> None:
     """The network, each pipe's history and each inspection in a browser, read-only.
@@ -91,7 +99,13 @@ def serve(
                 return recent_network_runs(limit, database_url=read_only_url)
 
         web = create_app(
-            WebConfig(database_url=url, token=token, database_label=_label(url), runs=runs)
+            WebConfig(
+                database_url=url,
+                token=token,
+                database_label=_label(url),
+                tile_url=tile_url or None,
+                runs=runs,
+            )
         )
     except PipescanError as exc:
         _fail(exc)

@@ -23,7 +23,7 @@ from datetime import UTC, date, datetime
 from enum import StrEnum
 from pathlib import Path
 from typing import Annotated, Any
-from urllib.parse import urlencode
+from urllib.parse import urlencode, urlsplit
 
 import numpy as np
 import sqlalchemy as sa
@@ -100,6 +100,9 @@ class WebConfig:
     database_url: str
     token: str | None = None
     database_label: str = ""
+    tile_url: str | None = None
+    """A basemap's tiles, ``https://host/{z}/{x}/{y}.png`` (Web Mercator, the usual XYZ
+    scheme): the organisation's own tile server. None: the lines are drawn on their own."""
     runs: Callable[[int, str], list[Any]] | None = None
     """Recent network runs, newest first: ``runs(limit, read_only_database_url)`` returns
     :class:`pipescan.flows.runs.NetworkRun` records (``pipescan serve`` passes
@@ -505,6 +508,11 @@ def create_app(config: WebConfig) -> FastAPI:
         openapi_url="/api/openapi.json",
     )
     app.state.engine = engine
+    csp = _CSP
+    if config.tile_url:
+        check_tile_url(config.tile_url)
+        tiles = _origin(config.tile_url)
+        csp = _CSP.replace("img-src 'self' data:", f"img-src 'self' data: {tiles}")
     templates = Jinja2Templates(directory=str(HERE / "templates"))
     templates.env.globals.update(
         version=pipescan.__version__,
@@ -543,7 +551,7 @@ def create_app(config: WebConfig) -> FastAPI:
                 response.set_cookie(
                     TOKEN_COOKIE, config.token, httponly=True, samesite="strict", secure=False
                 )
-                return _secure_headers(response)
+                return _secure_headers(response, csp)
             bearer = request.headers.get("authorization", "")
             presented = request.cookies.get(TOKEN_COOKIE) or (
                 bearer[7:] if bearer.lower().startswith("bearer ") else ""
@@ -561,7 +569,7 @@ def create_app(config: WebConfig) -> FastAPI:
         timings = [*getattr(request.state, "timings", [])]
         timings.append(f"total;dur={1000 * (time.perf_counter() - started):.1f}")
         response.headers["Server-Timing"] = ", ".join(timings)
-        return _secure_headers(response)
+        return _secure_headers(response, csp)
 
     @app.exception_handler(StorageError)
     async def storage_error(request: Request, exc: StorageError) -> Response:
@@ -614,7 +622,9 @@ def create_app(config: WebConfig) -> FastAPI:
         shown = kept[(page - 1) * PAGE_ROWS : page * PAGE_ROWS]
         filtered = any((flt.q, flt.grade, min_peak, min_growth, since, before))
         drawn = network_map_svg(
-            everything, highlighted={p.asset_id for p in kept} if filtered else None
+            everything,
+            highlighted={p.asset_id for p in kept} if filtered else None,
+            tile_url=config.tile_url,
         )
         params = {
             "q": q,
@@ -656,6 +666,7 @@ def create_app(config: WebConfig) -> FastAPI:
             "ungraded": sum(1 for p in everything if p.worst_grade is None),
             "filtered": filtered,
             "last_run": _last_run(recent_runs()[0]),
+            "tile_host": _origin(config.tile_url) if config.tile_url else None,
         }
         return templates.TemplateResponse(request, "network.html", context)
 
@@ -1095,8 +1106,35 @@ def _as_utc(value: datetime) -> datetime:
     return value if value.tzinfo is not None else value.replace(tzinfo=UTC)
 
 
-def _secure_headers(response: Response) -> Response:
-    response.headers["Content-Security-Policy"] = _CSP
+def _origin(url: str) -> str:
+    """``scheme://host[:port]`` of a URL."""
+    parts = urlsplit(url)
+    return f"{parts.scheme}://{parts.netloc}"
+
+
+def check_tile_url(url: str) -> str:
+    """A tile URL template as given, or a StorageError saying what is wrong with it."""
+    parts = urlsplit(url)
+    if parts.scheme not in ("http", "https") or not parts.hostname:
+        raise StorageError(f"tile URL {url!r} is not an http(s) address", field="--tile-url")
+    if parts.username or parts.password:
+        raise StorageError(
+            "the tile URL holds credentials, which every browser would be sent",
+            field="--tile-url",
+            hint="use a tile server the browsers may reach without them",
+        )
+    missing = [p for p in ("{z}", "{x}", "{y}") if p not in url]
+    if missing:
+        raise StorageError(
+            f"tile URL {url!r} lacks {', '.join(missing)}",
+            field="--tile-url",
+            hint="give a template such as https://tiles.example/{z}/{x}/{y}.png",
+        )
+    return url
+
+
+def _secure_headers(response: Response, csp: str = _CSP) -> Response:
+    response.headers["Content-Security-Policy"] = csp
     response.headers["X-Content-Type-Options"] = "nosniff"
     response.headers["Referrer-Policy"] = "no-referrer"
     response.headers["X-Frame-Options"] = "DENY"

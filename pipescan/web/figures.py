@@ -10,6 +10,7 @@ insert the SVG as it is. The inspection page reuses the report's own matplotlib 
 from __future__ import annotations
 
 import math
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from datetime import datetime
@@ -58,13 +59,103 @@ class MapResult:
     drawn: int
     crs: str | None
     left_out: tuple[str, ...]
-    """Assets with a line in another CRS than the map's (drawn separately, one CRS at a time)."""
+    """Assets with a line in another CRS than the map's (not drawn: one CRS at a time)."""
+    basemap: bool = False
+    """Drawn in Web Mercator over the tile server's tiles."""
 
 
-def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = None) -> MapResult:
+_EARTH_RADIUS_M = 6378137.0
+"""WGS 84's semi-major axis: the sphere of Web Mercator (EPSG:3857)."""
+
+
+def _utm_to_lonlat(
+    easting_m: np.ndarray, northing_m: np.ndarray, zone: int, south: bool
+) -> tuple[np.ndarray, np.ndarray]:
+    """UTM (WGS 84 or ETRS89/GRS 80, the same to a millimetre here) to longitude and latitude
+    in degrees: the inverse transverse Mercator by Krüger's series to n³ (millimetres within
+    the zone)."""
+    f = 1 / 298.257223563
+    n = f / (2 - f)
+    a_rect = _EARTH_RADIUS_M / (1 + n) * (1 + n**2 / 4 + n**4 / 64)
+    k0 = 0.9996
+    beta = (n / 2 - 2 * n**2 / 3 + 37 * n**3 / 96, n**2 / 48 + n**3 / 15, 17 * n**3 / 480)
+    delta = (2 * n - 2 * n**2 / 3 - 2 * n**3, 7 * n**2 / 3 - 8 * n**3 / 5, 56 * n**3 / 15)
+    xi = (northing_m - (10_000_000.0 if south else 0.0)) / (k0 * a_rect)
+    eta = (easting_m - 500_000.0) / (k0 * a_rect)
+    xi_p, eta_p = xi.copy(), eta.copy()
+    for j, b in enumerate(beta, start=1):
+        xi_p -= b * np.sin(2 * j * xi) * np.cosh(2 * j * eta)
+        eta_p -= b * np.cos(2 * j * xi) * np.sinh(2 * j * eta)
+    chi = np.arcsin(np.sin(xi_p) / np.cosh(eta_p))
+    lat = chi + sum(d * np.sin(2 * j * chi) for j, d in enumerate(delta, start=1))
+    lon = np.radians(zone * 6 - 183) + np.arctan2(np.sinh(eta_p), np.cos(xi_p))
+    return np.degrees(lon), np.degrees(lat)
+
+
+def web_mercator(crs: str | None, xy: np.ndarray) -> np.ndarray | None:
+    """(N, 2) coordinates in ``crs`` as Web Mercator metres (EPSG:3857), for a basemap's
+    tiles; None for a CRS this does not convert (it knows EPSG:3857 and the UTM zones of
+    WGS 84, EPSG:326xx and 327xx, and of ETRS89, EPSG:25828-25838)."""
+    match = re.fullmatch(r"EPSG:+(\d+)", (crs or "").strip().upper())
+    if match is None:
+        return None
+    code = int(match[1])
+    if code == 3857:
+        return np.asarray(xy, dtype=np.float64)
+    if 32601 <= code <= 32660 or 32701 <= code <= 32760:
+        zone, south = code % 100, code > 32700
+    elif 25828 <= code <= 25838:
+        zone, south = code - 25800, False
+    else:
+        return None
+    lon, lat = _utm_to_lonlat(xy[:, 0], xy[:, 1], zone, south)
+    x = _EARTH_RADIUS_M * np.radians(lon)
+    y = _EARTH_RADIUS_M * np.log(np.tan(np.pi / 4 + np.radians(lat) / 2))
+    return np.column_stack([x, y])
+
+
+def _tile_layer(
+    x_range: tuple[float, float], y_range: tuple[float, float], scale: float
+) -> tuple[list[tuple[int, int, int, float, float, float]], int]:
+    """The tiles covering a Web Mercator box, at the zoom whose tiles show about 256 units
+    wide at ``scale`` (units per metre): ``(z, x, y, left, top, size)`` each, at most 64."""
+    world = 2 * math.pi * _EARTH_RADIUS_M
+    zoom = int(min(19, max(0, round(math.log2(world * scale / 256.0)))))
+    while True:
+        size = world / 2**zoom
+        first_x = math.floor((x_range[0] + world / 2) / size)
+        last_x = math.floor((x_range[1] + world / 2) / size)
+        first_y = math.floor((world / 2 - y_range[1]) / size)
+        last_y = math.floor((world / 2 - y_range[0]) / size)
+        if (last_x - first_x + 1) * (last_y - first_y + 1) <= 64 or zoom == 0:
+            break
+        zoom -= 1
+    tiles = []
+    for ty in range(max(0, first_y), min(2**zoom - 1, last_y) + 1):
+        for tx in range(max(0, first_x), min(2**zoom - 1, last_x) + 1):
+            tiles.append((zoom, tx, ty, tx * size - world / 2, world / 2 - ty * size, size))
+    return tiles, zoom
+
+
+def tile_href(tile_url: str, z: int, x: int, y: int) -> str:
+    """A tile's address from the template (``{z}``, ``{x}``, ``{y}`` replaced; nothing else
+    in the template is interpreted)."""
+    return tile_url.replace("{z}", str(z)).replace("{x}", str(x)).replace("{y}", str(y))
+
+
+def network_map_svg(
+    pipes: Sequence[PipeRow],
+    highlighted: set[str] | None = None,
+    *,
+    tile_url: str | None = None,
+) -> MapResult:
     """The pipes as lines coloured by their latest worst condition class, each a link to its
     pipe page. Lines are in the network's CRS (the most common one), north up, to scale; pipes
-    outside ``highlighted`` (when given) are drawn faint."""
+    outside ``highlighted`` (when given) are drawn faint.
+
+    With ``tile_url`` (``https://host/{z}/{x}/{y}.png``) and a CRS that
+    :func:`web_mercator` converts, the map is drawn in Web Mercator over that server's tiles;
+    otherwise the lines are drawn on their own."""
     with_line = [p for p in pipes if p.line_xy is not None]
     if not with_line:
         return MapResult(Markup(""), 0, None, ())
@@ -74,7 +165,24 @@ def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = Non
     crs = max(crs_counts, key=lambda c: (crs_counts[c], c))
     drawn = [p for p in with_line if (p.crs or "") == crs]
     left_out = tuple(p.asset_id for p in with_line if (p.crs or "") != crs)
-    xy = np.array([v for p in drawn for v in p.line_xy or ()], dtype=np.float64)
+    lines = {p.asset_id: np.asarray(p.line_xy, dtype=np.float64) for p in drawn}
+    # Ground metres per map unit: 1 in a projected CRS, cos(latitude) in Web Mercator.
+    ground_per_unit = 1.0
+    basemap = False
+    if tile_url:
+        everything = np.vstack(list(lines.values()))
+        mercator = web_mercator(crs, everything)
+        if mercator is not None:
+            basemap = True
+            k = 0
+            for asset_id, line in lines.items():
+                lines[asset_id] = mercator[k : k + len(line)]
+                k += len(line)
+            mid_y = float(mercator[:, 1].mean())
+            ground_per_unit = math.cos(
+                2 * math.atan(math.exp(mid_y / _EARTH_RADIUS_M)) - math.pi / 2
+            )
+    xy = np.vstack(list(lines.values()))
     x0, y0 = xy.min(axis=0)
     x1, y1 = xy.max(axis=0)
     span = max(x1 - x0, y1 - y0, 1.0)
@@ -89,6 +197,8 @@ def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = Non
     def point(x: float, y: float) -> str:
         return f"{_num(ox + (x - x0) * scale)},{_num(oy + (y1 - y) * scale)}"
 
+    view_w, view_h = width + 2 * pad, height + 2 * pad
+
     # A large network is drawn with thinner lines and without its nodes, so it stays legible
     # (and the page small: a few hundred bytes a pipe).
     dense = len(drawn) > 400
@@ -98,12 +208,27 @@ def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = Non
         ' xmlns="http://www.w3.org/2000/svg" role="img" aria-label="Network map: pipes coloured '
         'by the worst condition class of their latest inspection">'
     ]
+    if basemap and tile_url:
+        # The tiles behind the lines: the box the view shows, in Web Mercator metres.
+        x_range = (x0 - ox / scale, x0 + (view_w - ox) / scale)
+        y_range = (y1 - (view_h - oy) / scale, y1 + oy / scale)
+        tiles, _ = _tile_layer(x_range, y_range, scale)
+        parts.append('<g class="basemap">')
+        # Each tile 0.6 units larger than its place: no hairline seams between them.
+        for z, tx, ty, left, top, size in tiles:
+            href = escape(tile_href(tile_url, z, tx, ty))
+            parts.append(
+                f'<image href="{href}" x="{_num(ox + (left - x0) * scale)}" '
+                f'y="{_num(oy + (y1 - top) * scale)}" width="{_num(size * scale + 0.6)}" '
+                f'height="{_num(size * scale + 0.6)}" preserveAspectRatio="none"/>'
+            )
+        parts.append("</g>")
     # Worst last, so that it is drawn on top where lines meet.
     order = sorted(drawn, key=lambda p: -(p.worst_grade if p.worst_grade is not None else 5))
     for p in order:
         colour = grade_colour(p.worst_grade)
         faint = highlighted is not None and p.asset_id not in highlighted
-        points = " ".join(point(x, y) for x, y in p.line_xy or ())
+        points = " ".join(point(x, y) for x, y in lines[p.asset_id])
         grade = "none" if p.worst_grade is None else str(p.worst_grade)
         label = p.gis_id or p.asset_id
         title = f"{label}: class {grade}" + (
@@ -116,24 +241,25 @@ def network_map_svg(pipes: Sequence[PipeRow], highlighted: set[str] | None = Non
             f"<title>{escape(title)}</title></polyline></a>"
         )
     for p in [] if dense else drawn:
-        coords = p.line_xy or ()
+        coords = lines[p.asset_id]
         for x, y in (coords[0], coords[-1]):
             cx, cy = point(x, y).split(",")
             parts.append(f'<circle class="node" cx="{cx}" cy="{cy}" r="3"/>')
     # A scale bar: a round length near a fifth of the map's width.
-    bar_m = 10 ** math.floor(math.log10(span / 5.0))
+    span_m = span * ground_per_unit
+    bar_m = 10 ** math.floor(math.log10(span_m / 5.0))
     for factor in (5, 2):
-        if bar_m * factor <= span / 4.0:
+        if bar_m * factor <= span_m / 4.0:
             bar_m *= factor
             break
-    bar_px = bar_m * scale
+    bar_px = bar_m / ground_per_unit * scale
     by = height + 2 * pad - 8
     parts.append(
         f'<g class="scale"><line x1="{pad}" y1="{_num(by)}" x2="{_num(pad + bar_px)}" '
         f'y2="{_num(by)}"/><text x="{pad}" y="{_num(by - 4)}">{_num(bar_m)} m</text></g>'
     )
     parts.append("</svg>")
-    return MapResult(Markup("".join(parts)), len(drawn), crs or None, left_out)
+    return MapResult(Markup("".join(parts)), len(drawn), crs or None, left_out, basemap)
 
 
 def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
