@@ -17,8 +17,10 @@ from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 from pipescan.storage.input.limits import InputLimits
+from pipescan.storage.input.network_layer import LayerLimits
 
 _LIMITS = InputLimits()
+_LAYER_LIMITS = LayerLimits()
 
 
 class Settings(BaseSettings):
@@ -116,6 +118,10 @@ class Settings(BaseSettings):
     line_max_bytes: int = Field(_LIMITS.line_max_bytes, gt=0, description="64 KiB")
     points_max_count: int = Field(_LIMITS.points_max_count, gt=0)
     metadata_max_bytes: int = Field(_LIMITS.metadata_max_bytes, gt=0, description="32 MiB")
+    # --- network layers (docs/security.md): what `network import` may read ---
+    layer_max_bytes: int = Field(_LAYER_LIMITS.layer_max_bytes, gt=0, description="2 GiB")
+    layer_max_features: int = Field(_LAYER_LIMITS.layer_max_features, gt=0)
+    layer_max_vertices: int = Field(_LAYER_LIMITS.layer_max_vertices, gt=0)
 
     @field_validator("database_url")
     @classmethod

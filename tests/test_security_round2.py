@@ -463,3 +463,129 @@ def test_the_next_run_stops_a_tagged_server_whose_owner_is_gone(tmp_path) -> Non
         for proc in (orphan, owned, untagged):
             proc.kill()
             proc.wait()
+
+
+# --- network import: caps on bytes, features and vertices; metres only -----------------------
+
+
+def _layer(tmp_path: Path, name: str = "net.gpkg", **kwargs) -> Path:
+    return test_gis.write_layer(
+        tmp_path / name, test_gis.network_lines(), test_gis.network_fields(), **kwargs
+    )
+
+
+def _refused(path: Path, match: str, field: str, **limits):
+    from pipescan.core.errors import LayerError
+    from pipescan.storage.input.network_layer import LayerLimits, read_network_layer
+
+    with pytest.raises(LayerError, match=match) as info:
+        read_network_layer(path, id_field="FACILITYID", limits=LayerLimits(**limits))
+    assert info.value.field == field and info.value.file == str(path)
+    assert "\n" not in str(info.value)
+    return info.value
+
+
+def test_a_geopackage_view_or_generated_geometry_is_refused_before_gdal_reads_it(
+    tmp_path,
+) -> None:
+    """An 86 KB GeoPackage whose layer is a view of zeroblobs took 3.9 GB."""
+    import sqlite3
+
+    view = _layer(tmp_path, "view.gpkg")
+    with sqlite3.connect(view) as conn:
+        conn.executescript(
+            'ALTER TABLE "pipes" RENAME TO "pipe_rows";'
+            'CREATE VIEW "pipes" AS SELECT fid, FACILITYID, zeroblob(400000000) AS geom '
+            'FROM "pipe_rows";'
+        )
+    _refused(view, "is a view, not a table", "layer")
+    generated = _layer(tmp_path, "generated.gpkg")
+    with sqlite3.connect(generated) as conn:
+        conn.executescript(
+            'ALTER TABLE "pipes" ADD COLUMN pad BLOB GENERATED ALWAYS AS (zeroblob(400000000)) '
+            "VIRTUAL;"
+        )
+    _refused(generated, "'pad' is generated", "pad")
+
+
+def test_layer_caps_each_name_their_setting(tmp_path) -> None:
+    import zipfile
+
+    import shapely
+
+    path = _layer(tmp_path)
+    err = _refused(path, "layer_max_features", "features", layer_max_features=1)
+    assert "PIPESCAN_LAYER_MAX_FEATURES" in str(err)
+    err = _refused(path, "layer_max_bytes", "size", layer_max_bytes=1000)
+    assert "PIPESCAN_LAYER_MAX_BYTES" in str(err)
+    long = tmp_path / "long.gpkg"
+    line = shapely.LineString([(test_gis.X0 + 0.01 * i, test_gis.Y0) for i in range(20_001)])
+    test_gis.write_layer(long, [], {"FACILITYID": ["SW-1"]}, geometries=[line])
+    err = _refused(long, "layer_max_vertices", "geometry")
+    assert "PIPESCAN_LAYER_MAX_VERTICES" in str(err)
+    # A zipped GeoPackage: its declared size, then what it unpacks to, against the cap.
+    packed = tmp_path / "net.zip"
+    with zipfile.ZipFile(packed, "w", zipfile.ZIP_DEFLATED) as zf:
+        zf.write(long, "long.gpkg")
+    _refused(packed, "the zip declares", "size", layer_max_bytes=long.stat().st_size - 1)
+    _refused(packed, "layer_max_vertices", "geometry")  # unpacked, then read as the file
+
+
+@pytest.mark.parametrize(
+    ("crs", "units"),
+    [("EPSG:4230", "geographic CRS"), ("EPSG:2227", "US survey foot"), ("EPSG:4326", "geographic")],
+)
+def test_a_layer_not_in_metres_is_refused(tmp_path, crs, units) -> None:
+    _refused(_layer(tmp_path, crs=crs), units, "crs")
+
+
+def test_a_layer_in_metres_passes(tmp_path) -> None:
+    from pipescan.storage.input.network_layer import read_network_layer
+
+    for crs in ("EPSG:25832", "EPSG:3857"):
+        layer = read_network_layer(
+            _layer(tmp_path, f"{crs[5:]}.gpkg", crs=crs), id_field="FACILITYID"
+        )
+        assert len(layer.pipes) == len(test_gis.network_lines())
+
+
+@pytest.mark.slow
+def test_a_layer_of_300000_pipes_imports(tmp_path) -> None:
+    """Past SQLite's limit on variables (250,000 on Debian's builds): "too many SQL
+    variables" before."""
+    import numpy as np
+
+    from pipescan.core.network import LayerPipe, NetworkLayer, PipeLine
+    from pipescan.storage.database import db
+    from pipescan.storage.database.network import import_network_layer
+
+    pipes = tuple(
+        LayerPipe(
+            f"P{i}", f"A{i}", None, None, PipeLine(np.array([[10.0 * i, 0], [10.0 * i + 5, 0]]))
+        )
+        for i in range(300_000)
+    )
+    engine = db.connect(f"sqlite:///{tmp_path / 'net.db'}")
+    try:
+        result = import_network_layer(engine, NetworkLayer(pipes, "EPSG:25832", "test"))
+    finally:
+        engine.dispose()
+    assert result.stored == 300_000
+
+
+def test_the_cli_refuses_a_layer_over_a_cap_in_one_line(tmp_path, monkeypatch) -> None:
+    from typer.testing import CliRunner
+
+    from pipescan.cli import app
+
+    monkeypatch.setenv("PIPESCAN_LAYER_MAX_FEATURES", "1")
+    path = _layer(tmp_path)
+    url = f"sqlite:///{tmp_path / 'net.db'}"
+    result = CliRunner().invoke(
+        app, ["network", "import", str(path), "--id-field", "FACILITYID", "--db", url]
+    )
+    assert result.exit_code == 2, result.output
+    [line] = result.output.strip().splitlines()
+    assert (
+        line.startswith("error:") and "net.gpkg" in line and "PIPESCAN_LAYER_MAX_FEATURES" in line
+    )

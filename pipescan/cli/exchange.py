@@ -14,6 +14,7 @@ from pipescan.cli._app import (
     DbOption,
     _db_url,
     _fail,
+    _settings,
     _WholeHelpGroup,
     app,
     export_app,
@@ -217,7 +218,7 @@ def network_import(
     """
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.network import import_network_layer
-    from pipescan.storage.input.network_layer import read_network_layer
+    from pipescan.storage.input.network_layer import LayerLimits, read_network_layer
 
     try:
         network = read_network_layer(
@@ -227,6 +228,7 @@ def network_import(
             from_field=from_node_field,
             to_field=to_node_field,
             layer=layer,
+            limits=LayerLimits.from_settings(_settings()),
         )
         engine = connect(_db_url(db))
         try:

@@ -77,12 +77,17 @@ def import_network_layer(engine: Engine, layer: NetworkLayer) -> NetworkImport:
             replaced += (
                 session.scalar(sa.select(sa.func.count()).where(NetworkPipe.gis_id.in_(chunk))) or 0
             )
+        mine = set(ids)
         for chunk in _chunks(list(refs)):
+            # The layer's own ids are left out here, not in SQL: a NOT IN of every id of a
+            # large layer passed SQLite's limit on variables.
             for gis_id, ref in session.execute(
                 sa.select(NetworkPipe.gis_id, NetworkPipe.asset_ref).where(
-                    NetworkPipe.asset_ref.in_(chunk), NetworkPipe.gis_id.not_in(ids)
+                    NetworkPipe.asset_ref.in_(chunk)
                 )
             ):
+                if gis_id in mine:
+                    continue
                 raise StorageError(
                     f"pipe {refs[ref]} of {layer.source} names asset {ref}, which pipe "
                     f"{gis_id} (imported before) already names",
@@ -110,7 +115,6 @@ def import_network_layer(engine: Engine, layer: NetworkLayer) -> NetworkImport:
         session.flush()
         assets = list(session.scalars(sa.select(Asset.asset_id).order_by(Asset.asset_id)))
         matches = _matches(session, assets)
-        mine = set(ids)
         matched = tuple(a for a in assets if a in matches and matches[a].gis_id in mine)
         if assets and not matched:
             sample_id = layer.pipes[0].asset_ref

@@ -9,13 +9,26 @@ the field and the feature:
 - every id is present, printable, at most 64 characters, and unique;
 - every geometry is one line (a LineString, or a MultiLineString of one part) of finite
   coordinates and non-zero length;
-- the layer has a CRS, and not a geographic one (lengths must be metres, not degrees).
+- the layer has a CRS, a projected one in metres (not degrees, not feet: lengths are
+  stored as metres), looked up in the PROJ database that pyogrio ships;
+- the layer stays within :class:`LayerLimits`: its bytes (on disk, declared in a zip, and
+  the geometries a GeoPackage table holds, counted by SQLite before GDAL reads a row), its
+  features and each line's vertices. A GeoPackage layer must be a plain table: a view or a
+  generated column makes its bytes from nothing. A zip is unpacked under the byte cap first,
+  into a private temporary folder, and checked the same way.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import re
+import shutil
+import sqlite3
+import tempfile
+import zipfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
@@ -24,13 +37,52 @@ import numpy as np
 from pipescan.core.errors import LayerError
 from pipescan.core.network import LayerPipe, NetworkLayer, PipeLine
 
-__all__ = ["MAX_COORDINATE", "MAX_ID_CHARS", "read_network_layer"]
+__all__ = ["MAX_COORDINATE", "MAX_ID_CHARS", "LayerLimits", "read_network_layer"]
 
 MAX_ID_CHARS = 64
 """Longest pipe id or node name (the limit on names in ``inspection.toml``)."""
 
 MAX_COORDINATE = 1.0e8
 """Largest coordinate accepted, in the CRS's units (as for node positions in the metadata)."""
+
+
+@dataclass(frozen=True)
+class LayerLimits:
+    """Caps on a network layer (each field is the setting of that name, ``PIPESCAN_<NAME>``).
+
+    Attributes
+    ----------
+    layer_max_bytes
+        Bytes of the layer: its file(s), what a zip declares it unpacks to, and the
+        geometries a GeoPackage table holds.
+    layer_max_features
+        Features (pipes) of the layer; a city's network has tens of thousands.
+    layer_max_vertices
+        Vertices of one pipe's line (a pipe from manhole to manhole has a handful).
+    """
+
+    layer_max_bytes: int = 2 << 30
+    layer_max_features: int = 1_000_000
+    layer_max_vertices: int = 10_000
+
+    def __post_init__(self) -> None:
+        for f in fields(self):
+            if not getattr(self, f.name) > 0:
+                raise ValueError(f"{f.name} must be positive, got {getattr(self, f.name)!r}")
+
+    @classmethod
+    def from_settings(cls, settings: Any) -> LayerLimits:
+        return cls(**{f.name: getattr(settings, f.name) for f in fields(cls)})
+
+
+def _over(cap: str, limits: LayerLimits, what: str, where: str, field: str) -> LayerError:
+    return LayerError(
+        f"{what}, over the limit of {getattr(limits, cap):,} ({cap})",
+        file=where,
+        field=field,
+        hint=f"if the layer is genuine, raise the limit: set PIPESCAN_{cap.upper()}",
+    )
+
 
 # Geographic CRSs (degrees) that pipe layers are most often found in by mistake; WKT of any
 # geographic CRS is recognised by its first keyword.
@@ -45,6 +97,7 @@ def read_network_layer(
     from_field: str | None = None,
     to_field: str | None = None,
     layer: str | None = None,
+    limits: LayerLimits | None = None,
 ) -> NetworkLayer:
     """Read and check a network's pipe layer.
 
@@ -62,6 +115,8 @@ def read_network_layer(
         match pipes to assets by their nodes and orient the lines. Given together or not at all.
     layer
         The layer's name, for a file with several layers.
+    limits
+        The caps on the layer's bytes, features and vertices (default :class:`LayerLimits`).
 
     Returns
     -------
@@ -73,11 +128,36 @@ def read_network_layer(
     LayerError
         Anything listed in the module's docstring.
     """
+    limits = limits or LayerLimits()
+    where = str(path)
+    with _unpacked(Path(path), where, limits) as local:
+        return _read(
+            local,
+            where,
+            limits,
+            id_field=id_field,
+            asset_field=asset_field,
+            from_field=from_field,
+            to_field=to_field,
+            layer=layer,
+        )
+
+
+def _read(
+    path: Path,
+    where: str,
+    limits: LayerLimits,
+    *,
+    id_field: str,
+    asset_field: str | None,
+    from_field: str | None,
+    to_field: str | None,
+    layer: str | None,
+) -> NetworkLayer:
     import pyogrio
     import shapely
     from pyogrio.errors import DataLayerError, DataSourceError
 
-    where = str(path)
     if (from_field is None) != (to_field is None):
         raise LayerError(
             "node fields are given as a pair",
@@ -94,7 +174,14 @@ def read_network_layer(
             file=where,
             hint="give a GeoPackage, Shapefile or GeoJSON file (and --layer for one of several)",
         ) from exc
-    source = f"{path.name}, layer {info.get('layer_name') or layer or path.stem}"
+    layer_name = str(info.get("layer_name") or layer or path.stem)
+    source = f"{Path(where).name}, layer {layer_name}"
+    declared = int(info.get("features", -1))
+    if declared > limits.layer_max_features:
+        what = f"the layer declares {declared:,} features"
+        raise _over("layer_max_features", limits, what, where, "features")
+    if _is_sqlite(path):
+        _check_geopackage(path, layer_name, where, limits)
     fields = [str(f) for f in info["fields"]]
     wanted = [f for f in (id_field, asset_field, from_field, to_field) if f is not None]
     for name in wanted:
@@ -113,15 +200,20 @@ def read_network_layer(
             field="crs",
             hint="assign the network's CRS in your GIS and export the layer again",
         )
-    if _is_geographic(crs):
+    if (units := _not_metres(str(crs))) is not None:
         raise LayerError(
-            f"the layer is in a geographic CRS ({_short(crs)}): its lengths would be degrees",
+            f"the layer's CRS ({_short(str(crs))}) is {units}: its lengths would not be metres",
             file=where,
             field="crs",
-            hint="reproject the layer to the network's projected CRS (metres) first",
+            hint="reproject the layer to the network's projected CRS in metres first",
         )
     columns = list(dict.fromkeys(wanted))
-    _, _, geometry, values = pyogrio.raw.read(path, layer=layer, columns=columns)
+    _, _, geometry, values = pyogrio.raw.read(
+        path, layer=layer, columns=columns, max_features=limits.layer_max_features + 1
+    )
+    if len(geometry) > limits.layer_max_features:
+        what = f"the layer has more than {limits.layer_max_features:,} features"
+        raise _over("layer_max_features", limits, what, where, "features")
     by_name = dict(zip(columns, values, strict=True))
 
     ids = [_text(v, i, id_field, where, required=True) for i, v in enumerate(by_name[id_field])]
@@ -154,7 +246,7 @@ def read_network_layer(
 
     pipes = []
     for i, wkb in enumerate(geometry):
-        line = _line(shapely, wkb, i, where, str(ids[i]))
+        line = _line(shapely, wkb, i, where, str(ids[i]), limits)
         pipes.append(
             LayerPipe(
                 gis_id=str(ids[i]),
@@ -198,11 +290,6 @@ def _first_line(exc: Exception) -> str:
 
 def _short(text: str, limit: int = 60) -> str:
     return text if len(text) <= limit else text[: limit - 3] + "..."
-
-
-def _is_geographic(crs: str) -> bool:
-    head = crs.strip().upper()
-    return head in _GEOGRAPHIC_CODES or head.startswith(("GEOGCS", "GEOGCRS", "GEODCRS"))
 
 
 def _text(value: Any, index: int, field: str | None, where: str, *, required: bool) -> str | None:
@@ -250,7 +337,9 @@ def _optional_texts(
     return [_text(v, i, field, where, required=False) for i, v in enumerate(values[field])]
 
 
-def _line(shapely: Any, wkb: Any, index: int, where: str, gis_id: str) -> PipeLine:
+def _line(
+    shapely: Any, wkb: Any, index: int, where: str, gis_id: str, limits: LayerLimits
+) -> PipeLine:
     def refuse(reason: str) -> LayerError:
         return LayerError(
             f"feature {index} ({gis_id}): {reason}",
@@ -261,12 +350,19 @@ def _line(shapely: Any, wkb: Any, index: int, where: str, gis_id: str) -> PipeLi
 
     if wkb is None:
         raise refuse("has no geometry")
+    # A vertex takes 16 bytes or more of WKB: a line's bytes bound its vertices before parsing.
+    if len(wkb) > 64 + 32 * limits.layer_max_vertices:
+        what = f"feature {index} ({gis_id}) holds {len(wkb):,} bytes of geometry"
+        raise _over("layer_max_vertices", limits, what, where, "geometry")
     geom = shapely.from_wkb(wkb)
     if geom.geom_type == "MultiLineString" and len(geom.geoms) == 1:
         geom = geom.geoms[0]
     if geom.geom_type != "LineString":
         parts = f" of {len(geom.geoms)} parts" if hasattr(geom, "geoms") else ""
         raise refuse(f"is a {geom.geom_type}{parts}, not one line")
+    if (vertices := int(shapely.get_num_coordinates(geom))) > limits.layer_max_vertices:
+        what = f"feature {index} ({gis_id}) has {vertices:,} vertices"
+        raise _over("layer_max_vertices", limits, what, where, "geometry")
     coords = np.asarray(shapely.get_coordinates(geom, include_z=geom.has_z), dtype=np.float64)
     if not np.isfinite(coords).all() or (np.abs(coords) > MAX_COORDINATE).any():
         raise refuse(f"has coordinates that are not finite or beyond {MAX_COORDINATE:g}")
@@ -284,3 +380,163 @@ def _looks_like_degrees(lines: Sequence[PipeLine]) -> bool:
         if np.linalg.norm(np.diff(xy, axis=0), axis=1).sum() >= 0.1:
             return False
     return True
+
+
+# --- bytes: a zip unpacked under the cap, a GeoPackage's table counted before GDAL reads it -----
+
+
+def _is_sqlite(path: Path) -> bool:
+    try:
+        with path.open("rb") as fh:
+            return fh.read(16) == b"SQLite format 3\0"
+    except OSError:
+        return False
+
+
+def _size(path: Path) -> int:
+    if path.is_dir():
+        return sum(p.stat().st_size for p in path.rglob("*") if p.is_file())
+    return path.stat().st_size
+
+
+@contextmanager
+def _unpacked(path: Path, where: str, limits: LayerLimits) -> Iterator[Path]:
+    """``path`` itself, its size checked; a zip unpacked (its declared sizes checked, then
+    streamed under the cap) into a private temporary folder, removed afterwards: the one
+    file it holds, or the folder (a Shapefile's parts)."""
+    try:
+        size = _size(path)
+    except OSError as exc:
+        raise LayerError(f"cannot read the layer: {exc}", file=where) from exc
+    if size > limits.layer_max_bytes:
+        raise _over("layer_max_bytes", limits, f"the layer is {size:,} bytes", where, "size")
+    if not (path.is_file() and zipfile.is_zipfile(path)):
+        yield path
+        return
+    folder = Path(tempfile.mkdtemp(prefix="pipescan-layer-"))
+    try:
+        with zipfile.ZipFile(path) as zf:
+            members = [m for m in zf.infolist() if not m.is_dir()]
+            declared = sum(m.file_size for m in members)
+            if declared > limits.layer_max_bytes:
+                what = f"the zip declares {declared:,} bytes unpacked"
+                raise _over("layer_max_bytes", limits, what, where, "size")
+            written = 0
+            for m in members:
+                name = Path(m.filename).name
+                if not name or name.startswith(".") or (folder / name).exists():
+                    continue  # folders flattened; hidden files and repeats left out
+                with zf.open(m) as src, (folder / name).open("xb") as dst:
+                    while block := src.read(1 << 20):
+                        written += len(block)
+                        if written > limits.layer_max_bytes:
+                            what = f"the zip unpacks to more than {written:,} bytes"
+                            raise _over("layer_max_bytes", limits, what, where, "size")
+                        dst.write(block)
+        files = list(folder.iterdir())
+        yield files[0] if len(files) == 1 else folder
+    except (zipfile.BadZipFile, OSError) as exc:
+        raise LayerError(f"cannot unpack the zip: {exc}", file=where) from exc
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def _check_geopackage(path: Path, layer: str, where: str, limits: LayerLimits) -> None:
+    """The layer's table must be a plain table of stored columns, its features and geometry
+    bytes within the caps: counted by SQLite (``length()`` does not read a blob) before GDAL
+    reads a row."""
+    try:
+        conn = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
+    except sqlite3.Error as exc:
+        raise LayerError(f"cannot read the GeoPackage: {exc}", file=where) from exc
+    try:
+        row = conn.execute(
+            "SELECT table_name, column_name FROM gpkg_geometry_columns WHERE table_name = ?",
+            (layer,),
+        ).fetchone()
+        if row is None:
+            return  # not a GeoPackage layer GDAL reads as a table: GDAL refuses or reads it
+        table, column = row
+        kinds = [k for (k,) in conn.execute("SELECT type FROM sqlite_master WHERE name = ?",
+                                            (table,))]  # fmt: skip
+        if kinds != ["table"]:
+            raise LayerError(
+                f"layer {layer!r} is a {kinds[0] if kinds else 'missing table'}, not a table",
+                file=where,
+                field="layer",
+                hint="export the layer as a table (a view can make its rows from nothing)",
+            )
+        quoted = '"' + table.replace('"', '""') + '"'
+        for info in conn.execute(f"PRAGMA table_xinfo({quoted})"):
+            if info[6]:
+                raise LayerError(
+                    f"layer {layer!r}'s column {info[1]!r} is generated, not stored",
+                    file=where,
+                    field=str(info[1]),
+                    hint="export the layer again as plain columns",
+                )
+        geom = '"' + column.replace('"', '""') + '"'
+        count, total = conn.execute(
+            f"SELECT count(*), coalesce(sum(length({geom})), 0) FROM {quoted}"
+        ).fetchone()
+    except sqlite3.Error as exc:
+        raise LayerError(f"cannot read the GeoPackage: {exc}", file=where) from exc
+    finally:
+        conn.close()
+    if count > limits.layer_max_features:
+        what = f"the layer has {count:,} features"
+        raise _over("layer_max_features", limits, what, where, "features")
+    if total > limits.layer_max_bytes:
+        what = f"the layer's geometries take {total:,} bytes"
+        raise _over("layer_max_bytes", limits, what, where, "geometry")
+
+
+# --- units of the CRS ---------------------------------------------------------------------------
+
+_WKT_UNIT = re.compile(r'(?:LENGTHUNIT|UNIT)\[\s*"([^"]+)"\s*,\s*([0-9.eE+-]+)', re.IGNORECASE)
+
+
+def _proj_db() -> Path | None:
+    import pyogrio
+
+    found = Path(pyogrio.__file__).parent / "proj_data" / "proj.db"
+    return found if found.is_file() else None
+
+
+def _not_metres(crs: str) -> str | None:
+    """What the CRS's units are when they are not metres (``"in degrees"``, ``"in US survey
+    foot"``), or None for a projected CRS in metres. An ``AUTH:CODE`` is looked up in the PROJ
+    database pyogrio ships; WKT is read for its kind and its last unit."""
+    text = crs.strip()
+    head = text.upper()
+    if head in _GEOGRAPHIC_CODES or head.startswith(("GEOGCS", "GEOGCRS", "GEODCRS")):
+        return "a geographic CRS (degrees)"
+    if head.startswith(("PROJCS", "PROJCRS")):
+        units = _WKT_UNIT.findall(text)
+        if not units:
+            return "of unknown units"
+        name, factor = units[-1]
+        return None if abs(float(factor) - 1.0) < 1e-9 else f"in {name}"
+    auth, _, code = text.partition(":")
+    db = _proj_db()
+    if not code or db is None:
+        return "of unknown units (neither WKT nor an AUTHORITY:CODE PROJ knows)"
+    conn = sqlite3.connect(f"file:{db}?mode=ro", uri=True)
+    try:
+        if conn.execute("SELECT 1 FROM geodetic_crs WHERE auth_name = ? AND code = ?",
+                        (auth, code)).fetchone():  # fmt: skip
+            return "a geographic CRS (degrees)"
+        units = conn.execute(
+            "SELECT u.name, u.conv_factor FROM projected_crs p "
+            "JOIN axis a ON a.coordinate_system_auth_name = p.coordinate_system_auth_name "
+            "AND a.coordinate_system_code = p.coordinate_system_code "
+            "JOIN unit_of_measure u ON u.auth_name = a.uom_auth_name AND u.code = a.uom_code "
+            "WHERE p.auth_name = ? AND p.code = ?",
+            (auth, code),
+        ).fetchall()
+    finally:
+        conn.close()
+    if not units:
+        return "not a projected CRS PROJ knows"
+    odd = [name for name, factor in units if abs(float(factor) - 1.0) > 1e-9]
+    return f"in {odd[0]}" if odd else None
