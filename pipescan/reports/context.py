@@ -493,6 +493,32 @@ def _stride_reason(reason: str) -> str:
     return "; ".join(part for part in reason.split("; ") if not part.startswith("bound by"))
 
 
+_MATCHING_WORDS = {
+    "gicp": "generalised ICP (GICP)",
+    "point_to_plane": "point-to-plane ICP",
+    "point_to_point": "point-to-point ICP",
+}
+
+
+def _matching_words(engine: str | None) -> str:
+    """``"small_gicp gicp"`` as ``"generalised ICP (GICP), by small_gicp"``."""
+    if not engine:
+        return NOT_RECORDED
+    library, _, method = engine.partition(" ")
+    words = _MATCHING_WORDS.get(method.strip())
+    return f"{words}, by {library}" if words else engine
+
+
+def _ordinal(n: int) -> str:
+    """``3`` as ``"3rd"``.
+
+    >>> [_ordinal(n) for n in (1, 2, 3, 4, 11, 12, 13, 21, 22)]
+    ['1st', '2nd', '3rd', '4th', '11th', '12th', '13th', '21st', '22nd']
+    """
+    last = {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{'th' if 11 <= n % 100 <= 13 else last}"
+
+
 def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     reg = inp.registration or {}
     engine = reg.get("engine")
@@ -509,12 +535,12 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
         more = f", and {fmt_int(closer)} more where the scan and the odometer disagreed"
         reason = _stride_reason(reg.get("frame_stride_reason", "set for the run"))
         used = (
-            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}: every {stride}"
+            f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}: every {_ordinal(stride)}"
             f"{more if closer else ''} ({reason})"
         )
     rows = [
         ("frames used", used),
-        ("scan matching", _text(engine)),
+        ("scan matching", _matching_words(engine)),
         (
             "points matched",
             f"{fmt_pct(fitness)} of each frame's points, on average, matched the frames before"
