@@ -388,6 +388,13 @@ def _print_summary(summary, replaced: bool = False) -> None:
     typer.echo(
         f"  {plural(summary.section_count, 'section')}, {summary.sections_ok} measured (status ok)"
     )
+    if summary.measured_inner_diameter_m is not None:
+        typer.echo(
+            f"  inner diameter measured {summary.measured_inner_diameter_m:.3f} m "
+            "(blockage is against the nominal diameter)"
+        )
+    if (summary.registration or {}).get("instrument"):
+        typer.echo(f"  instrument: {summary.registration['instrument']}")
     for status, n in sorted(summary.unmeasured_by_status.items()):
         typer.echo(f"    {n} unmeasured: {status}")
     if summary.max_blockage_chainage_m is not None:

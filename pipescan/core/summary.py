@@ -21,15 +21,21 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
+import numpy as np
+
 from pipescan.core.model import SectionMeasures
 
 __all__ = [
     "ADJACENT_TOL_M",
+    "DIAMETER_TOLERANCE_RATIO",
     "BlockagePeak",
     "BlockageSummary",
+    "InnerDiameter",
     "adjacent_runs",
     "blockage_summary",
+    "diameter_mismatch",
     "measured_blockage",
+    "measured_inner_diameter",
     "peak_blockage",
     "touches",
     "worst_grade",
@@ -193,4 +199,80 @@ def blockage_summary(sections: Sequence[SectionMeasures]) -> BlockageSummary:
         mean_blockage_ratio=math.fsum(values) / len(values) if values else None,
         peak_blockage_ratio=None if peak is None else peak.blockage_ratio,
         peak_chainage_m=None if peak is None else peak.chainage_start_m,
+    )
+
+
+DIAMETER_TOLERANCE_RATIO = 0.10
+"""How far the wall's measured inner diameter may be from the stated nominal one before the run
+stops. Real pipes differ from their nominal diameter by a few per cent (a DN 300 PVC sewer pipe
+is 285 mm inside, a concrete one 300 mm within ±1.5 %), and a deformed pipe's median
+diameter moves less than its ovality; a tenth is beyond both. Past it, blockage, which is
+the open area's share of the nominal area, would read the wrong pipe (a clean 0.80 m pipe
+stated as 1.00 m read 38 % blocked)."""
+
+_MIN_DIAMETER_COVERAGE = 0.9
+_MIN_DIAMETER_SECTIONS = 3
+
+
+@dataclass(frozen=True)
+class InnerDiameter:
+    """The wall's measured inner diameter: the median over sections of twice the median
+    radius of each section's contour, and how many sections it rests on."""
+
+    diameter_m: float
+    sections: int
+
+
+def measured_inner_diameter(sections: Sequence[SectionMeasures]) -> InnerDiameter | None:
+    """The pipe's inner diameter as its wall measures, or None with too few sections.
+
+    Each section whose contour is known and whose perimeter was seen (90 % of it) gives twice
+    its contour's median radius about the axis: a deposit or an obstacle takes a minority of
+    the perimeter and moves the median little, an oval keeps its mean radius. The median over
+    the sections is the figure. It does not depend on the nominal diameter.
+
+    Examples
+    --------
+    >>> from pipescan.core.model import SectionStatus
+    >>> t = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    >>> ring = 0.4 * np.column_stack((np.cos(t), np.sin(t)))
+    >>> s = [SectionMeasures(i / 10, i / 10 + 0.1, 0.5, SectionStatus.OK, 1000, 1.0, contour_m=ring)
+    ...      for i in range(5)]
+    >>> measured_inner_diameter(s)
+    InnerDiameter(diameter_m=0.8, sections=5)
+    """
+    diameters = []
+    for s in sections:
+        contour = s.contour_m
+        if contour is None or len(contour) < 8 or s.coverage_ratio < _MIN_DIAMETER_COVERAGE:
+            continue
+        radii = np.hypot(contour[:, 0], contour[:, 1])
+        diameters.append(2.0 * float(np.median(radii)))
+    if len(diameters) < _MIN_DIAMETER_SECTIONS:
+        return None
+    return InnerDiameter(round(float(np.median(diameters)), 4), len(diameters))
+
+
+def diameter_mismatch(
+    measured: InnerDiameter | None,
+    nominal_diameter_m: float,
+    tolerance_ratio: float = DIAMETER_TOLERANCE_RATIO,
+) -> str | None:
+    """Why the stated nominal diameter cannot be right, in one sentence, or None when the
+    wall agrees with it (within ``tolerance_ratio``) or was not measured.
+
+    >>> diameter_mismatch(InnerDiameter(0.8, 40), 1.0)
+    'the wall measures 0.800 m across (median of 40 sections), 20 % below the stated 1.000 m'
+    >>> diameter_mismatch(InnerDiameter(0.8, 40), 0.82) is None
+    True
+    """
+    if measured is None or not math.isfinite(nominal_diameter_m) or nominal_diameter_m <= 0:
+        return None
+    off = measured.diameter_m / nominal_diameter_m - 1.0
+    if abs(off) <= tolerance_ratio:
+        return None
+    return (
+        f"the wall measures {measured.diameter_m:.3f} m across (median of "
+        f"{measured.sections} sections), {100 * abs(off):.0f} % {'below' if off < 0 else 'above'} "
+        f"the stated {nominal_diameter_m:.3f} m"
     )

@@ -16,6 +16,7 @@ from prefect import flow
 from prefect.utilities.annotations import quote
 
 import pipescan
+from pipescan.core.errors import MetadataError
 from pipescan.core.grading import choose_grading, is_flagged
 from pipescan.core.instrument import instrument_summary, instrumented, partial_view_stride
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
@@ -30,7 +31,7 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows, windows_reached
-from pipescan.core.summary import peak_blockage
+from pipescan.core.summary import diameter_mismatch, measured_inner_diameter, peak_blockage
 from pipescan.core.water import explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
@@ -121,6 +122,8 @@ class InspectionSummary:
     inspection was summarised instead of processing it again (``reuse_stored``)."""
     flagged_defect_count: int = 0
     """How many of the defects are over the flagging threshold (``is_flagged``)."""
+    measured_inner_diameter_m: float | None = None
+    """The wall's inner diameter as measured (``core.summary.measured_inner_diameter``)."""
 
 
 def stored_params(params: InspectionParams, pipe_class: str, pipe_class_reason: str) -> dict:
@@ -365,6 +368,18 @@ def inspect_archive(
             explain_invert_shadows([s for f in window_futures for s in f.result()]),
             measure_params,
         )
+        # Blockage is a share of the nominal area: a nominal diameter the wall contradicts
+        # would grade the wrong pipe, so the run stops before anything is stored.
+        inner = measured_inner_diameter(sections)
+        mismatch = diameter_mismatch(inner, meta.nominal_diameter_m)
+        if mismatch is not None:
+            raise MetadataError(
+                mismatch,
+                archive=staged.name,
+                file="inspection.toml",
+                field="nominal_diameter_m",
+                hint="state the pipe's inner diameter in metres; nothing was stored",
+            )
         grading = grade(
             sections,
             params.threshold_table,
@@ -390,7 +405,7 @@ def inspect_archive(
             | instrument_summary(instrument)
             if trajectory is not None
             else {"engine": "none (registered cloud)", "frames": 0}
-        )
+        ) | {"measured_inner_diameter_m": inner.diameter_m if inner else None}
         scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
         inspection = InspectionToSave(
             meta=meta,
@@ -504,6 +519,7 @@ def _summarise(
         registration=registration,
         start_source=start_source,
         report_path=report_path,
+        measured_inner_diameter_m=registration.get("measured_inner_diameter_m"),
         wall_time_s=time.perf_counter() - started,
         reused=reused,
     )

@@ -1,0 +1,208 @@
+"""The instrument: a [sensor] profile, or what the scan itself shows, and the thresholds that
+follow from it (docs/instrument.md)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from pipescan.core.errors import MetadataError
+from pipescan.core.instrument import (
+    SENSOR_MODELS,
+    SMEAR_SPREAD_RATIO,
+    Instrument,
+    SensorProfile,
+    estimate_instrument,
+    instrumented,
+    nearest_range_m,
+    partial_view_stride,
+    view_coverage,
+    wall_noise_m,
+)
+from pipescan.core.measures import MeasureParams
+from pipescan.core.model import SectionMeasures, SectionStatus
+from pipescan.core.registration import RegistrationParams
+from pipescan.core.registration.metrics import trajectory_errors
+from pipescan.core.summary import diameter_mismatch, measured_inner_diameter
+from pipescan.simulator.scan import Effects, simulate_scan
+from pipescan.simulator.sweep import defect_scene, register_scan, scan_instrument
+from pipescan.storage.input.metadata import parse_inspection_toml
+
+_TOML = 'asset_id = "A-B"\ninspected_at = 2024-05-17T10:00:00Z\nnominal_diameter_m = 0.6\n'
+
+
+def _scene(travel_m: float = 1.5, coverage: float = 1.0, **effects):
+    base = dict(range_noise_sigma_m=0.005, range_noise_growth_per_m=0.0, imu=False)
+    scene = defect_scene(0.6, travel_m, effects=Effects(**(base | effects)))
+    return dataclasses.replace(scene, frame_coverage_ratio=coverage)
+
+
+# --------------------------------------------------------------------------- the profile
+
+
+def test_sensor_table_names_a_model_and_overrides_its_figures():
+    meta = parse_inspection_toml(_TOML + '[sensor]\nmodel = "Livox-HAP"\n', archive="a")
+    assert meta.sensor == SENSOR_MODELS["livox-hap"]
+    assert meta.sensor.min_range_m == 0.5
+    own = parse_inspection_toml(
+        _TOML + '[sensor]\nmodel = "livox-hap"\nmin_range_m = 0.3\n', archive="a"
+    ).sensor
+    assert own.min_range_m == 0.3 and own.fov_horizontal_deg == 120.0
+    assert "[sensor]" in own.source
+    custom = parse_inspection_toml(
+        _TOML + '[sensor]\npattern = "non_repetitive"\nrange_noise_m = 0.02\n', archive="a"
+    ).sensor
+    assert custom.model == "custom" and custom.pattern == "non_repetitive"
+    assert parse_inspection_toml(_TOML, archive="a").sensor is None
+
+
+@pytest.mark.parametrize(
+    ("table", "field", "words"),
+    [
+        ('model = "livox-happ"', "sensor.model", "did you mean 'livox-hap'"),
+        ('pattern = "rosette"', "sensor.pattern", "non_repetitive"),
+        ("min_range_m = 5\nmax_range_m = 1", "sensor", "below max_range_m"),
+        ("noise = 0.01", "sensor.noise", "Extra inputs"),
+        ("min_range_m = -1", "sensor.min_range_m", "greater than or equal"),
+    ],
+)
+def test_a_bad_sensor_table_names_its_field(table, field, words):
+    with pytest.raises(MetadataError) as info:
+        parse_inspection_toml(_TOML + "[sensor]\n" + table + "\n", archive="a.zip")
+    assert info.value.field == field
+    assert words in str(info.value)
+
+
+def test_registry_figures_are_consistent():
+    for name, profile in SENSOR_MODELS.items():
+        assert profile.model == name
+        assert profile.min_range_m is not None and profile.range_noise_m is not None
+        assert profile.source
+
+
+# --------------------------------------------------------------------------- estimates
+
+
+def test_nearest_range_ignores_returns_inside_the_blind_zone():
+    scan = simulate_scan(
+        _scene(spurious_return_ratio=0.02, spurious_range_ratio=(0.05, 1.0)), seed=3
+    )
+    frames = [scan.frame(i).points_sensor for i in (5, 40, 80)]
+    assert min(np.linalg.norm(f, axis=1).min() for f in frames) < 0.2  # dust is there
+    assert nearest_range_m(frames, max_range_m=5.0) == pytest.approx(0.5, abs=0.02)
+
+
+def test_wall_noise_follows_the_sensor_noise():
+    quiet, noisy = (
+        scan_instrument(simulate_scan(_scene(range_noise_sigma_m=s), seed=1)).wall_noise_m
+        for s in (0.002, 0.012)
+    )
+    assert quiet is not None and noisy is not None
+    assert 2.0 < noisy / quiet < 6.0  # six times the range noise; grazing incidence damps it
+    rng = np.random.default_rng(0)
+    a, x = rng.uniform(0, 2 * np.pi, 30_000), rng.uniform(0.5, 4, 30_000)
+    r = 0.3 + rng.normal(0, 0.01, 30_000)
+    tube = np.column_stack((x, r * np.cos(a), r * np.sin(a)))
+    assert wall_noise_m([tube], max_range_m=5.0) == pytest.approx(0.01, rel=0.15)
+
+
+def test_a_rosette_frame_covers_part_of_the_view():
+    full = scan_instrument(simulate_scan(_scene(), seed=1))
+    rosette = scan_instrument(simulate_scan(_scene(coverage=0.3), seed=1))
+    assert full.frame_view_share > 0.9 and full.map_seed_frames == 1
+    assert 0.2 < rosette.frame_view_share < 0.5
+    assert rosette.map_seed_frames > 2
+    assert partial_view_stride(full) is None
+    assert partial_view_stride(rosette).stride == 1
+
+
+def test_view_coverage_of_frames_that_each_see_everything_is_whole():
+    frame = np.column_stack((np.ones(1000), np.linspace(-1, 1, 1000), np.zeros(1000)))
+    assert view_coverage([frame, frame, frame]) == (1.0, 1)
+
+
+def test_a_profile_states_what_the_scan_need_not_estimate():
+    frames = [np.column_stack((np.linspace(0.5, 4, 2000), np.full(2000, 0.3), np.zeros(2000)))]
+    stated = estimate_instrument(
+        frames, frames, max_range_m=5.0, profile=SENSOR_MODELS["livox-hap"]
+    )
+    assert stated.min_range_m == 0.5 and stated.sources["min_range_m"] == "profile"
+    assert stated.sources["frame_view_share"] == "profile"
+    assert stated.model == "livox-hap"
+
+
+def test_instrumented_parameters():
+    reg, measure = instrumented(
+        RegistrationParams(),
+        MeasureParams(),
+        Instrument(min_range_m=0.5, wall_noise_m=0.02, map_seed_frames=7),
+    )
+    assert reg.min_range_m == 0.5 and reg.map_seed_frames == 7
+    assert measure.max_wall_spread_m == pytest.approx(SMEAR_SPREAD_RATIO * 0.02)
+    _, cloud = instrumented(RegistrationParams(), MeasureParams(), None)
+    assert cloud.max_wall_spread_m is None  # a registered cloud: no frames to disagree
+
+
+def test_sensor_profile_refuses_nonsense():
+    with pytest.raises(ValueError, match="pattern"):
+        SensorProfile(pattern="spiral")
+    with pytest.raises(ValueError, match="min_range_m"):
+        SensorProfile(min_range_m=float("nan"))
+
+
+# --------------------------------------------------------------------------- registration
+
+
+def test_returns_inside_the_blind_zone_do_not_make_frames_slide():
+    scan = simulate_scan(
+        _scene(2.0, spurious_return_ratio=0.02, spurious_range_ratio=(0.2, 1.0)), seed=4
+    )
+    params, _ = instrumented(RegistrationParams(), MeasureParams(), scan_instrument(scan))
+    assert params.min_range_m == pytest.approx(0.5, abs=0.02)
+    trajectory = register_scan(scan, params=params, frame_stride=1)
+    slid = sum(q.fault == "slide" for q in trajectory.quality)
+    assert slid <= 0.02 * len(trajectory.quality)
+
+
+def test_a_seeded_map_holds_a_rosette_better_across_the_axis():
+    scan = simulate_scan(_scene(1.5, coverage=0.3, vibration_deg=0.0), seed=2)
+    errors = {}
+    for seed in (1, scan_instrument(scan).map_seed_frames):
+        trajectory = register_scan(
+            scan, params=RegistrationParams(map_seed_frames=seed), frame_stride=1
+        )
+        truth = scan.T_world_sensor[list(trajectory.frame_indices)]
+        errors[seed] = trajectory_errors(trajectory.T_world_frame, truth).across_rms_m
+    one, seeded = errors.values()
+    # Seeding takes a third or more off (25-35 mm -> 9-23 mm over three draws); a rosette's
+    # frames are still held worse than full ones (1-2 mm): docs/instrument.md, open work.
+    assert seeded < 0.75 * one
+
+
+# --------------------------------------------------------------------------- the diameter
+
+
+def _ring_sections(radius_m: float, count: int = 6, coverage: float = 1.0):
+    t = np.linspace(0, 2 * np.pi, 360, endpoint=False)
+    ring = radius_m * np.column_stack((np.cos(t), np.sin(t)))
+    return [
+        SectionMeasures(i / 10, i / 10 + 0.1, 0.5, SectionStatus.OK, 1000, coverage, contour_m=ring)
+        for i in range(count)
+    ]
+
+
+def test_the_wall_contradicts_a_wrong_nominal_diameter():
+    inner = measured_inner_diameter(_ring_sections(0.4))
+    assert inner is not None and inner.diameter_m == pytest.approx(0.8)
+    assert diameter_mismatch(inner, 0.8) is None
+    assert diameter_mismatch(inner, 0.84) is None  # within a few per cent
+    assert "20 % below the stated 1.000 m" in diameter_mismatch(inner, 1.0)
+    assert "60 % above the stated 0.500 m" in diameter_mismatch(inner, 0.5)
+
+
+def test_no_diameter_from_unseen_walls():
+    assert measured_inner_diameter(_ring_sections(0.4, coverage=0.5)) is None
+    assert measured_inner_diameter(_ring_sections(0.4, count=2)) is None
+    assert diameter_mismatch(None, 1.0) is None
