@@ -118,6 +118,8 @@ def _stop_now(line: str) -> NoReturn:
 
     for server in prefect_servers_started_here():  # first: what it says comes before
         stop_orphaned_server(server)
+    if os.isatty(2):  # a progress bar hides the cursor while it draws: give it back
+        os.write(2, b"\x1b[?25h")
     os.write(2, line.encode())
     for stream in (sys.stdout, sys.stderr):
         with contextlib.suppress(Exception):
