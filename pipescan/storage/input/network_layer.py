@@ -350,8 +350,7 @@ def _line(
 
     if wkb is None:
         raise refuse("has no geometry")
-    # A vertex takes 16 bytes or more of WKB: a line's bytes bound its vertices before parsing.
-    if len(wkb) > 64 + 32 * limits.layer_max_vertices:
+    if len(wkb) > _wkb_max_bytes(limits):
         what = f"feature {index} ({gis_id}) holds {len(wkb):,} bytes of geometry"
         raise _over("layer_max_vertices", limits, what, where, "geometry")
     geom = shapely.from_wkb(wkb)
@@ -441,6 +440,12 @@ def _unpacked(path: Path, where: str, limits: LayerLimits) -> Iterator[Path]:
         shutil.rmtree(folder, ignore_errors=True)
 
 
+def _wkb_max_bytes(limits: LayerLimits) -> int:
+    """The most bytes a line within ``layer_max_vertices`` takes: a vertex is 16 to 32 bytes
+    of WKB (x y, up to x y z m), plus a header (a GeoPackage's may hold an envelope)."""
+    return 128 + 32 * limits.layer_max_vertices
+
+
 def _check_geopackage(path: Path, layer: str, where: str, limits: LayerLimits) -> None:
     """The layer's table must be a plain table of stored columns, its features and geometry
     bytes within the caps: counted by SQLite (``length()`` does not read a blob) before GDAL
@@ -476,8 +481,9 @@ def _check_geopackage(path: Path, layer: str, where: str, limits: LayerLimits) -
                     hint="export the layer again as plain columns",
                 )
         geom = '"' + column.replace('"', '""') + '"'
-        count, total = conn.execute(
-            f"SELECT count(*), coalesce(sum(length({geom})), 0) FROM {quoted}"
+        count, total, longest = conn.execute(
+            f"SELECT count(*), coalesce(sum(length({geom})), 0), coalesce(max(length({geom})), 0) "
+            f"FROM {quoted}"
         ).fetchone()
     except sqlite3.Error as exc:
         raise LayerError(f"cannot read the GeoPackage: {exc}", file=where) from exc
@@ -489,6 +495,9 @@ def _check_geopackage(path: Path, layer: str, where: str, limits: LayerLimits) -
     if total > limits.layer_max_bytes:
         what = f"the layer's geometries take {total:,} bytes"
         raise _over("layer_max_bytes", limits, what, where, "geometry")
+    if longest > _wkb_max_bytes(limits):
+        what = f"a feature holds {longest:,} bytes of geometry"
+        raise _over("layer_max_vertices", limits, what, where, "geometry")
 
 
 # --- units of the CRS ---------------------------------------------------------------------------
