@@ -6,7 +6,9 @@ that applies (docs/archive.md, "Where a registered cloud starts"):
 
 1. ``start_xyz`` from ``inspection.toml``: the sensor's first position, in the cloud's frame;
 2. each point's capture time (LAS GPS time, a time field of a PLY, PCD or E57): the end where
-   the earliest points lie, when time runs along the pipe;
+   the earliest points lie, when time runs along the pipe, moved back by how far ahead of the
+   sensor its first points lie (its minimum range, from ``[sensor]``:
+   :func:`sensor_start_offset`), with that as the start's uncertainty;
 3. the end nearer the cloud frame's origin, which is where SLAM puts its first pose.
 
 A frames archive starts where its first frame was taken (``first_frame``).
@@ -56,6 +58,44 @@ class CloudStart:
     start_m: np.ndarray
     travel_m: np.ndarray
     source: StartSource
+    uncertainty_m: float = 0.0
+    """How far the sensor's true start may be from ``start_m`` along the pipe (m)."""
+
+
+UNSTATED_MIN_RANGE_M = 1.0
+"""A cloud dated by its points' time, from a sensor whose minimum range is not stated: the
+largest blind zone of the forward-looking sensors pipescan knows (Livox Avia, 1 m). Its first
+points lie up to about this far ahead of where it started, so the start is within ± this."""
+
+_SENSOR_ECCENTRICITY_RATIO = 1.0 / 3.0
+"""How far off the axis a crawler's sensor may sit, as a share of the radius."""
+
+
+def sensor_start_offset(
+    min_range_m: float, radius_m: float, half_fov_deg: float
+) -> tuple[float, float]:
+    """How far ahead of a forward-looking sensor its nearest wall returns lie along the pipe,
+    and how well that is known: ``(offset_m, uncertainty_m)``.
+
+    A ray reaches the wall (radius ``R`` from a sensor on the axis) no nearer than the
+    sensor's minimum range ``r`` and no steeper than its half field of view ``α``: the
+    nearest return lies ``√(r² − R²)`` ahead when the ray at range ``r`` is within the field
+    of view, ``R / tan α`` otherwise. A sensor ``e`` off the axis sees one side nearer and one
+    further: the offset is the middle of the two, and half their difference, for ``e`` up to
+    a third of the radius, is its uncertainty.
+
+    >>> [round(v, 2) for v in sensor_start_offset(0.5, 0.3, 60.0)]
+    [0.38, 0.08]
+    """
+
+    def ahead(radius: float) -> float:
+        if min_range_m > radius and np.degrees(np.arcsin(radius / min_range_m)) <= half_fov_deg:
+            return float(np.sqrt(min_range_m**2 - radius**2))
+        return float(radius / np.tan(np.radians(min(half_fov_deg, 89.0))))
+
+    e = _SENSOR_ECCENTRICITY_RATIO * radius_m
+    near, far = ahead(radius_m + e), ahead(radius_m - e)
+    return (near + far) / 2.0, abs(far - near) / 2.0
 
 
 def cloud_start(
@@ -64,6 +104,7 @@ def cloud_start(
     *,
     time_s: np.ndarray | None = None,
     start_xyz: np.ndarray | None = None,
+    sensor_ahead_m: tuple[float, float] = (0.0, UNSTATED_MIN_RANGE_M),
 ) -> CloudStart:
     """Choose a registered cloud's start (see the module's rules).
 
@@ -77,6 +118,11 @@ def cloud_start(
         Each point's capture time.
     start_xyz : (3,) float, optional
         The sensor's first position, from ``inspection.toml``.
+    sensor_ahead_m : (float, float)
+        How far ahead of the sensor its first points lie, and how well that is known
+        (:func:`sensor_start_offset`; by default unknown, up to :data:`UNSTATED_MIN_RANGE_M`):
+        a start read from the points' time is moved back by it, and carries it as its
+        uncertainty.
 
     Returns
     -------
@@ -87,8 +133,8 @@ def cloud_start(
     >>> x = np.linspace(10.0, 0.0, 1000)
     >>> pts = np.column_stack((x, np.zeros(1000), np.zeros(1000)))
     >>> c = cloud_start(pts, np.array([1.0, 0, 0]), time_s=np.arange(1000.0))
-    >>> c.source, c.start_m.round(2).tolist(), c.travel_m.tolist()
-    ('point_time', [9.99, 0.0, 0.0], [-1.0, -0.0, -0.0])
+    >>> c.source, c.start_m.round(2).tolist(), c.travel_m.tolist(), c.uncertainty_m
+    ('point_time', [9.99, 0.0, 0.0], [-1.0, -0.0, -0.0], 1.0)
     >>> cloud_start(pts, np.array([1.0, 0, 0])).source
     'nearer_origin'
     """
@@ -114,8 +160,10 @@ def cloud_start(
         if len(early) and len(late):
             gap = float(np.median(late) - np.median(early))
             if abs(gap) >= MIN_TIME_SEPARATION_RATIO * (hi - lo):
-                start = end_lo if gap > 0 else end_hi
-                return CloudStart(start, (1.0 if gap > 0 else -1.0) * d, "point_time")
+                travel = (1.0 if gap > 0 else -1.0) * d
+                offset, uncertainty = sensor_ahead_m
+                start = (end_lo if gap > 0 else end_hi) - offset * travel
+                return CloudStart(start, travel, "point_time", uncertainty)
 
     if np.linalg.norm(end_lo) <= np.linalg.norm(end_hi):
         return CloudStart(end_lo, d, "nearer_origin")

@@ -22,6 +22,7 @@ from pipescan.core.instrument import instrument_summary, instrumented, partial_v
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.registration import (
     FrameStride,
+    RegistrationEvidence,
     RegistrationParams,
     chain_trajectories,
     plan_chunks,
@@ -299,7 +300,7 @@ def inspect_archive(
                 seen_from_m=params.max_section_range_m,
             )
             if trajectory is not None
-            else None
+            else RegistrationEvidence.uniform(fit.start_uncertainty_m)
         )
         bucket_root = run_dir / "buckets"
         # Frames are placed by chunk; a registered cloud by slices of its rows.
@@ -404,7 +405,11 @@ def inspect_archive(
             }
             | instrument_summary(instrument)
             if trajectory is not None
-            else {"engine": "none (registered cloud)", "frames": 0}
+            else {
+                "engine": "none (registered cloud)",
+                "frames": 0,
+                "chainage_uncertainty_m": fit.start_uncertainty_m,
+            }
         ) | {"measured_inner_diameter_m": inner.diameter_m if inner else None}
         scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
         inspection = InspectionToSave(

@@ -32,7 +32,7 @@ from pipescan.core.registration import (
     sample_frame_indices,
 )
 from pipescan.core.sections import ChainageWindow, measure_window
-from pipescan.core.start import cloud_start
+from pipescan.core.start import UNSTATED_MIN_RANGE_M, cloud_start, sensor_start_offset
 from pipescan.storage.input.pointfiles import StridedSample
 from pipescan.storage.scratch import (
     Bucketed,
@@ -57,6 +57,7 @@ class AxisFit:
     chainage_min_m: float
     chainage_max_m: float
     start_source: str = "first_frame"
+    start_uncertainty_m: float = 0.0
 
 
 @task(name="register-chunk", cache_policy=NO_CACHE)
@@ -226,8 +227,10 @@ def fit_pipe_axis(
                 axis_direction(points, diameter),
                 time_s=time_s,
                 start_xyz=None if meta.start_xyz is None else np.array(meta.start_xyz),
+                sensor_ahead_m=_sensor_ahead(meta),
             )
             start, travel, source = choice.start_m, choice.travel_m, choice.source
+            start_uncertainty = choice.uncertainty_m
         else:
             stride = max(1, len(trajectory.frame_indices) // sample_frames)
             indices = trajectory.frame_indices[::stride]
@@ -244,6 +247,7 @@ def fit_pipe_axis(
             points = np.concatenate(parts)
             positions = trajectory.positions_m()
             start, travel, source = positions[0], positions[-1] - positions[0], "first_frame"
+            start_uncertainty = 0.0
             first = meta.frames[trajectory.frame_indices[0]] if meta.frames else None
             if first is not None and first.gravity is not None:
                 up = -np.asarray(first.gravity, dtype=np.float64)
@@ -260,8 +264,29 @@ def fit_pipe_axis(
     chain = axis.chainage(points)
     lo, hi = np.percentile(chain, [0.05, 99.95])
     return AxisFit(
-        axis=axis, chainage_min_m=float(lo), chainage_max_m=float(hi), start_source=source
+        axis=axis,
+        chainage_min_m=float(lo),
+        chainage_max_m=float(hi),
+        start_source=source,
+        start_uncertainty_m=start_uncertainty,
     )
+
+
+def _sensor_ahead(meta) -> tuple[float, float]:
+    """How far ahead of the sensor a registered cloud's first points lie, and how well that is
+    known, from ``[sensor]`` (``pipescan.core.start.sensor_start_offset``): a forward-looking
+    sensor with a stated minimum range; otherwise unknown (``UNSTATED_MIN_RANGE_M``)."""
+    sensor = meta.sensor
+    fovs = [] if sensor is None else [sensor.fov_horizontal_deg, sensor.fov_vertical_deg]
+    if (
+        sensor is None
+        or sensor.min_range_m is None
+        or None in fovs
+        or max(fovs) >= 180.0
+        or not np.isfinite(meta.nominal_diameter_m)
+    ):
+        return 0.0, UNSTATED_MIN_RANGE_M
+    return sensor_start_offset(sensor.min_range_m, meta.nominal_diameter_m / 2.0, max(fovs) / 2.0)
 
 
 @task(name="bucket-points", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)

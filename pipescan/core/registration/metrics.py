@@ -292,6 +292,17 @@ class RegistrationEvidence:
     seen_from_m: float
     ahead: int = 1
 
+    @classmethod
+    def uniform(cls, uncertainty_m: float) -> RegistrationEvidence:
+        """The same chainage uncertainty everywhere, nothing weak: a registered cloud, whose
+        chainage is known as well as its start is (``CloudStart.uncertainty_m``).
+
+        >>> RegistrationEvidence.uniform(0.4).for_section(12.0, 12.1)
+        (0.4, False)
+        """
+        c = np.array([-np.inf])
+        return cls(c, np.array([uncertainty_m]), np.zeros(1, bool), np.zeros(1, bool), np.inf)
+
     def for_section(self, start_m: float, end_m: float) -> tuple[float, bool]:
         """(chainage uncertainty, weak) of the section ``[start_m, end_m)``."""
         c = self.frame_chainage_m
