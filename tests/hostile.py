@@ -787,6 +787,9 @@ CASES: tuple[Case, ...] = (
     Case("lying header", "MCAP record length 2^40", mcap_record_length, PointFileError, "declares 1,099,511,627,776 bytes"),
     Case("lying header", "PointCloud2 x, y, z at offset 0", bag_cloud({}, 1000), PointFileError, "fields x and y overlap"),
     Case("lying header", "PointCloud2 height 2^32-1", bag_cloud({"height": 2**32 - 1, "data": b"\0" * 48, "offsets": (0, 4, 8), "step": 12}, 4), PointFileError, "points_max_count"),
+    # round 2: values out of any plausible range
+    Case("value", "inspected_at of year 9999 with an offset", lambda w, s: str(_dir_archive(w, {"1.npy": _npy_bytes(frame())}, toml=TOML.replace(b"2024-05-17", b"9999-12-31T23:00:00-05:00"))), MetadataError, "not a plausible inspection date"),
+    Case("value", "inspected_at of year 1 with an offset", lambda w, s: str(_dir_archive(w, {"1.npy": _npy_bytes(frame())}, toml=TOML.replace(b"2024-05-17", b"0001-01-01T00:00:00+05:00"))), MetadataError, "not a plausible inspection date"),
     Case("text", "asset_id with a right-to-left override", _toml_with('asset_id = "MH1\\u202eFDP"'), MetadataError, "control or invisible"),
 )  # fmt: skip
 

@@ -59,7 +59,7 @@ def test_the_corpus_covers_every_class() -> None:
     classes = {case.cls for case in CASES}
     assert len(CASES) >= 40
     assert classes == {
-        "expansion", "lying header", "link", "name", "remote", "text", "fetch", "parse",
+        "expansion", "lying header", "link", "name", "remote", "text", "fetch", "parse", "value",
     }  # fmt: skip
 
 

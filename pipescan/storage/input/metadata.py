@@ -18,7 +18,7 @@ import math
 import re
 import tomllib
 from collections.abc import Sequence
-from datetime import date, datetime, time
+from datetime import UTC, date, datetime, time, timedelta
 from pathlib import Path, PurePosixPath
 from typing import Annotated, Any, Literal
 
@@ -39,6 +39,8 @@ from pipescan.core.model import FrameRef, InspectionMeta, RosTopics
 from pipescan.storage.input.tomlguard import TomlTooDeep, check_toml_depth
 
 INSPECTION_FILE = "inspection.toml"
+EARLIEST_INSPECTION = datetime(1900, 1, 1)
+"""The earliest ``inspected_at`` accepted (UTC); the latest is tomorrow."""
 
 MIN_DIAMETER_M = 0.05
 """Nominal diameters must be greater than this (50 mm: smaller is not a pipe you crawl)."""
@@ -282,6 +284,28 @@ class InspectionDocument(BaseModel):
                 pass
         raise PydanticCustomError(
             "not_iso_date", "{value} is not an ISO 8601 date or datetime", {"value": repr(value)}
+        )
+
+    @field_validator("inspected_at", mode="after")
+    @classmethod
+    def _plausible_date(cls, value: datetime) -> datetime:
+        # A year-9999 inspection would be every asset's latest, and year 1 with an offset
+        # overflowed when stored: only dates from 1900 to tomorrow are inspections.
+        now = datetime.now(UTC)
+        latest = now + timedelta(days=1)
+        if EARLIEST_INSPECTION.year <= value.year <= latest.year:
+            utc = value if value.tzinfo is None else value.astimezone(UTC).replace(tzinfo=None)
+            if EARLIEST_INSPECTION <= utc <= latest.replace(tzinfo=None):
+                return value
+        raise PydanticCustomError(
+            "implausible_date",
+            "{value} is not a plausible inspection date (from {low} to tomorrow, {high})",
+            {
+                "value": value.isoformat(),
+                "low": EARLIEST_INSPECTION.date().isoformat(),
+                "high": latest.date().isoformat(),
+                "hint": "give the date the pipe was scanned (ISO 8601, e.g. 2024-05-17)",
+            },
         )
 
     @field_validator("nominal_diameter_m")
@@ -608,6 +632,7 @@ def _metadata_error(exc: ValidationError, raw: dict[str, Any], fail: Any) -> Met
 
 _CUSTOM_ERROR_TYPES = {
     "control_characters",
+    "implausible_date",
     "diameter_in_mm",
     "implausible_diameter",
     "not_iso_date",
