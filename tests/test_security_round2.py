@@ -589,3 +589,35 @@ def test_the_cli_refuses_a_layer_over_a_cap_in_one_line(tmp_path, monkeypatch) -
     assert (
         line.startswith("error:") and "net.gpkg" in line and "PIPESCAN_LAYER_MAX_FEATURES" in line
     )
+
+
+# --- an in-memory database keeps nothing -------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "url", ["sqlite://", "sqlite:///:memory:", "sqlite:///file:x?mode=memory&uri=true"]
+)
+def test_an_in_memory_database_is_refused_for_a_run(url) -> None:
+    from pipescan.flows.database import refuse_memory_database
+    from pipescan.storage.database.db import StorageError
+
+    with pytest.raises(StorageError, match="in-memory SQLite database"):
+        refuse_memory_database(url)
+
+
+def test_inspect_refuses_an_in_memory_database_in_one_line(tmp_path) -> None:
+    """``--db sqlite://`` reported "stored inspection 1" and kept nothing."""
+    from typer.testing import CliRunner
+
+    from pipescan.cli import app
+    from tests.hostile import legit_dir
+
+    root = legit_dir(tmp_path, 1.0)
+    result = CliRunner().invoke(app, ["inspect", str(root), "--db", "sqlite://"])
+    assert result.exit_code == 2, result.output
+    errors = [line for line in result.output.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and "in-memory SQLite database" in errors[0], result.output
+    for file_db in ("sqlite:///rel.db", f"sqlite:///{tmp_path / 'abs.db'}"):
+        from pipescan.flows.database import refuse_memory_database
+
+        refuse_memory_database(file_db)

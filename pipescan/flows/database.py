@@ -102,8 +102,34 @@ def checked_database_url(settings: Settings | None = None) -> str:
         What is wrong with the database, in one line.
     """
     url = run_database_url(settings)
+    refuse_memory_database(url)
     check_database(url)
     return url
+
+
+def refuse_memory_database(url: str) -> None:
+    """Refuse an in-memory SQLite database (``sqlite://``, ``sqlite:///:memory:``, a
+    ``mode=memory`` URI) for a run: what it stores is gone when the process ends, and the run
+    would report an inspection that nothing keeps.
+
+    Raises
+    ------
+    StorageError
+        Naming the URL and what to give instead.
+    """
+    parsed = parse_database_url(url)
+    database = parsed.database or ""
+    memory = (
+        database in ("", ":memory:")
+        or "mode=memory" in database
+        or (str(parsed.query.get("mode", "")) == "memory")
+    )
+    if parsed.get_backend_name() == "sqlite" and memory:
+        raise StorageError(
+            f"database {url} is an in-memory SQLite database: what a run stores in it is gone "
+            "when the run ends",
+            hint="give a database file, e.g. --db inspections.db or sqlite:////data/pipescan.db",
+        )
 
 
 def migration_steps(before: str | None, after: str | None) -> list[str]:
