@@ -1069,7 +1069,8 @@ def _run_row(run: Any) -> dict[str, Any]:
     """A :class:`pipescan.flows.runs.NetworkRun` as the Runs page shows it."""
     took = ""
     if run.started is not None and run.finished is not None:
-        took = f"{(run.finished - run.started).total_seconds() / 60:.0f} min"
+        seconds = (run.finished - run.started).total_seconds()
+        took = f"{seconds:.0f} s" if seconds < 120 else f"{seconds / 60:.0f} min"
     return {
         "name": run.name,
         "state": run.state_name,
