@@ -621,3 +621,32 @@ def test_inspect_refuses_an_in_memory_database_in_one_line(tmp_path) -> None:
         from pipescan.flows.database import refuse_memory_database
 
         refuse_memory_database(file_db)
+
+
+# --- look-alike asset ids ------------------------------------------------------------------------
+
+
+def _meta(asset_id: str):
+    from pipescan.storage.input.metadata import parse_inspection_toml
+
+    text = f'asset_id = "{asset_id}"\ninspected_at = 2024-05-17\nnominal_diameter_m = 0.5\n'
+    return parse_inspection_toml(text, archive="run.zip")
+
+
+def test_asset_ids_are_nfkc_folded() -> None:
+    assert _meta("ＭＨ１-MH2").asset_id == "MH1-MH2"  # full-width: one asset with MH1-MH2
+    assert _meta("MH1-MH2").asset_id == "MH1-MH2"
+
+
+def test_a_lookalike_asset_id_is_kept_and_warned_of(caplog) -> None:
+    """Cyrillic "МН" against Latin "MH": different letters, so another asset, said so."""
+    import logging
+
+    from pipescan.storage.input.lookalike import skeleton
+
+    with caplog.at_level(logging.WARNING, logger="pipescan"):
+        meta = _meta("МН7-MH8")
+    assert meta.asset_id == "МН7-MH8"
+    [record] = [r for r in caplog.records if "another script" in r.getMessage()]
+    assert "Cyrillic Capital Letter Em" in record.getMessage() and "run.zip" in record.getMessage()
+    assert skeleton("МН7-MH8") == skeleton("MH7-MH8") != skeleton("MH7-MH9")

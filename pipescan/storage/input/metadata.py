@@ -14,9 +14,11 @@ from __future__ import annotations
 
 import dataclasses
 import difflib
+import logging
 import math
 import re
 import tomllib
+import unicodedata
 from collections.abc import Sequence
 from datetime import UTC, date, datetime, time, timedelta
 from pathlib import Path, PurePosixPath
@@ -36,6 +38,7 @@ from pydantic_core import PydanticCustomError
 from pipescan.core.errors import MetadataError
 from pipescan.core.instrument import SensorProfile
 from pipescan.core.model import FrameRef, InspectionMeta, RosTopics
+from pipescan.storage.input.lookalike import fold, lookalike_letters
 from pipescan.storage.input.tomlguard import TomlTooDeep, check_toml_depth
 
 INSPECTION_FILE = "inspection.toml"
@@ -94,8 +97,24 @@ def _printable(value: str) -> str:
     )
 
 
+def _folded(value: str) -> str:
+    """NFKC: full-width and other compatibility forms as plain letters and digits, so that
+    ``ＭＨ１`` and ``MH1`` are one asset (pipescan.storage.input.lookalike)."""
+    folded = fold(value)
+    if len(folded) > MAX_NAME_CHARS:
+        raise PydanticCustomError(
+            "string_too_long",
+            "is at most {max_length} characters (NFKC-folded), got {value}",
+            {"max_length": MAX_NAME_CHARS, "value": _short_repr(value)},
+        )
+    return folded
+
+
 NameText = Annotated[
-    str, StringConstraints(min_length=1, max_length=MAX_NAME_CHARS), AfterValidator(_printable)
+    str,
+    StringConstraints(min_length=1, max_length=MAX_NAME_CHARS),
+    AfterValidator(_printable),
+    AfterValidator(_folded),
 ]
 """An asset id, node name, material or shape: 1-64 printable characters."""
 
@@ -451,6 +470,7 @@ def parse_inspection_toml(text: str, *, archive: str) -> InspectionMeta:
         doc = InspectionDocument.model_validate(raw)
     except ValidationError as exc:
         raise _metadata_error(exc, raw, fail) from exc
+    _warn_lookalike(doc.asset_id, archive)
 
     if doc.nominal_diameter_m is None and doc.pipe_shape == "circular":
         raise fail(
@@ -607,6 +627,24 @@ def _check_frames(entries: Sequence[_FrameEntry], fail: Any) -> tuple[FrameRef, 
                 hint="list [[frames]] in capture order, and check the odometer values",
             )
     return tuple(frames)
+
+
+_WARNED: set[str] = set()
+
+
+def _warn_lookalike(asset_id: str, archive: str) -> None:
+    """Warn (once per id and process) of an asset id with letters of another script drawn like
+    Latin ones: it names another asset than the Latin id it looks like."""
+    letters = lookalike_letters(asset_id)
+    if not letters or asset_id in _WARNED:
+        return
+    _WARNED.add(asset_id)
+    names = (f"{ch} ({unicodedata.name(ch, '?').title()})" for ch in dict.fromkeys(letters))
+    shown = ", ".join(names)
+    logging.getLogger("pipescan").warning(
+        f"warning: {archive}: asset_id {asset_id!r} holds letters of another script drawn like "
+        f"Latin ones ({shown}); it is another asset than the Latin id it looks like"
+    )
 
 
 def _metadata_error(exc: ValidationError, raw: dict[str, Any], fail: Any) -> MetadataError:
