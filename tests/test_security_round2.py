@@ -650,3 +650,33 @@ def test_a_lookalike_asset_id_is_kept_and_warned_of(caplog) -> None:
     [record] = [r for r in caplog.records if "another script" in r.getMessage()]
     assert "Cyrillic Capital Letter Em" in record.getMessage() and "run.zip" in record.getMessage()
     assert skeleton("МН7-MH8") == skeleton("MH7-MH8") != skeleton("MH7-MH9")
+
+
+def test_the_trend_plot_does_not_write_through_a_planted_link_or_open_a_fifo(tmp_path) -> None:
+    from typer.testing import CliRunner
+
+    from pipescan.cli import app
+    from pipescan.storage.database.db import connect
+    from tests.test_trends import T0, YEAR, save, sections_from, survey
+
+    url = f"sqlite:///{tmp_path / 'trend.db'}"
+    engine = connect(url)
+    try:
+        for year in range(3):
+            save(engine, "P1", T0 + year * YEAR, sections_from(list(survey(year, 0.0))))
+    finally:
+        engine.dispose()
+    victim, before = _victim(tmp_path)
+    out = tmp_path / "share"
+    out.mkdir()
+    _plant(out, [".trend.png.part"], victim)
+    os.mkfifo(out / ".trend.svg.part")
+    with time_limit(60):
+        for name in ("trend.png", "trend.svg"):
+            result = CliRunner().invoke(
+                app, ["trend", "P1", "--plot", str(out / name), "--db", url]
+            )
+            assert result.exit_code == 0, result.output
+    assert victim.read_bytes() == before
+    assert (out / "trend.png").read_bytes().startswith(b"\x89PNG")
+    assert _left_parts(out) == [".trend.png.part", ".trend.svg.part"]  # only the plants
