@@ -92,3 +92,38 @@ def test_re_inspecting_says_it_replaced_the_stored_rows(
         assert '"replaced": true' in again and '"replaced": false' in first
     assert not Path(tmp_path / "new.db").exists()  # looking did not create it
     assert dataclasses.is_dataclass(InspectionSummary)
+
+
+def test_the_summary_names_unmeasured_sections_as_the_report_does(tmp_path):
+    from pipescan.core.model import SectionMeasures, SectionStatus
+    from pipescan.flows.inspect import InspectionSummary
+    from pipescan.storage.database import repository
+    from pipescan.storage.database.db import connect
+    from tests.test_db import NOMINAL_AREA_M2, item, make_meta, make_sections
+
+    scatter = SectionMeasures(
+        0.5, 0.6, NOMINAL_AREA_M2, SectionStatus.TOO_FEW_POINTS, point_count=27_043,
+        coverage_ratio=0.99,
+    )  # fmt: skip
+    url = f"sqlite:///{tmp_path / 'p.db'}"
+    engine = connect(url)
+    try:
+        iid = repository.save_inspection(
+            engine, item(meta=make_meta(), sections=[*make_sections(5), scatter])
+        )
+    finally:
+        engine.dispose()
+    summary = InspectionSummary(
+        inspection_id=iid, asset_id="MH1042-MH1043", inspected_at="x", archive="a",
+        frame_count=1, point_count=1, scanned_length_m=0.6, section_count=6, sections_ok=4,
+        defect_count=0, max_blockage_ratio=None, max_blockage_chainage_m=None,
+        unmeasured_by_status={"too_few_points": 2}, registration={}, start_source=None,
+        report_path=None, wall_time_s=1.0,
+    )  # fmt: skip
+    assert scan._unmeasured_lines(url, summary) == [
+        "    1 not measured (too few points)",
+        "    1 not measured (uncertain: wall scatter)",
+    ]
+    # Without the stored sections: the stored names, in words.
+    gone = f"sqlite:///{tmp_path / 'gone' / 'p.db'}"
+    assert scan._unmeasured_lines(gone, summary) == ["    2 not measured (too few points)"]

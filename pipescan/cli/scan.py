@@ -364,7 +364,41 @@ def _stored_inspection_ids(db_url: str) -> set[int]:
         engine.dispose()
 
 
-def _print_summary(summary, replaced: bool = False) -> None:
+def _raw_unmeasured_lines(summary) -> list[str]:
+    return [
+        f"    {n} not measured ({status.replace('_', ' ')})"
+        for status, n in sorted(summary.unmeasured_by_status.items())
+    ]
+
+
+def _unmeasured_lines(db_url: str, summary) -> list[str]:
+    """The unmeasured sections by the report's words for their status ("uncertain: wall
+    scatter", not "too_few_points" on thousands of points), read back from the stored
+    sections; the stored status names if they cannot be read."""
+    raw = _raw_unmeasured_lines(summary)
+    if not summary.unmeasured_by_status:
+        return []
+    try:
+        from collections import Counter
+
+        from pipescan.reports.context import MeasureLimits, status_words
+        from pipescan.storage.database.db import connect
+        from pipescan.storage.database.repository import get_inspection, get_sections
+
+        engine = connect(db_url)
+        try:
+            record = get_inspection(engine, summary.inspection_id)
+            sections = get_sections(engine, summary.inspection_id)
+        finally:
+            engine.dispose()
+        limits = MeasureLimits.of((record.params or {}).get("measure"))
+        counts = Counter(status_words(s, limits)[0] for s in sections if not s.is_ok)
+    except Exception:  # the summary is said anyway: the stored names
+        return raw
+    return [f"    {n} not measured ({label})" for label, n in sorted(counts.items())]
+
+
+def _print_summary(summary, replaced: bool = False, unmeasured: list[str] | None = None) -> None:
     pct = lambda r: "not measured" if r is None else f"{100 * r:.1f} %"  # noqa: E731
     typer.echo(
         f"inspection {summary.inspection_id}: asset {summary.asset_id}, {summary.inspected_at}"
@@ -385,9 +419,7 @@ def _print_summary(summary, replaced: bool = False) -> None:
     typer.echo(
         f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
     )
-    typer.echo(
-        f"  {plural(summary.section_count, 'section')}, {summary.sections_ok} measured (status ok)"
-    )
+    typer.echo(f"  {plural(summary.section_count, 'section')}, {summary.sections_ok} measured")
     if summary.measured_inner_diameter_m is not None:
         typer.echo(
             f"  inner diameter measured {summary.measured_inner_diameter_m:.3f} m "
@@ -395,8 +427,8 @@ def _print_summary(summary, replaced: bool = False) -> None:
         )
     if (summary.registration or {}).get("instrument"):
         typer.echo(f"  instrument: {summary.registration['instrument']}")
-    for status, n in sorted(summary.unmeasured_by_status.items()):
-        typer.echo(f"    {n} unmeasured: {status}")
+    for line in unmeasured if unmeasured is not None else _raw_unmeasured_lines(summary):
+        typer.echo(line)
     if summary.max_blockage_chainage_m is not None:
         typer.echo(
             f"  worst blockage {pct(summary.max_blockage_ratio)} "
@@ -501,7 +533,7 @@ def inspect(
             json.dumps(dataclasses.asdict(summary) | {"replaced": replaced}, indent=2, default=str)
         )
     else:
-        _print_summary(summary, replaced)
+        _print_summary(summary, replaced, _unmeasured_lines(db_url, summary))
 
 
 @app.command()
@@ -547,7 +579,9 @@ def demo(
         log.info("3/3 report written")
     except PipescanError as exc:
         _fail(exc)
-    _print_summary(summary, summary.inspection_id in stored_before)
+    _print_summary(
+        summary, summary.inspection_id in stored_before, _unmeasured_lines(db_url, summary)
+    )
     typer.echo(f"\ndemo finished in {time.perf_counter() - started:.0f} s")
     typer.echo(f"PDF report: {pdf.resolve()}")
     typer.echo(f"database:   {db_url}")
