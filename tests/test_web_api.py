@@ -497,6 +497,7 @@ def test_serve_starts_on_loopback_and_answers(network_db: Path) -> None:
         process.terminate()
         _, err = process.communicate(timeout=30)
     assert f"http://127.0.0.1:{port}/ (this machine only; read-only)" in err
+    assert f"read the network: {len(PIPES)} pipes in" in err  # before it listened
 
 
 def _utm_forward(lat_deg: float, lon_deg: float, zone: int) -> tuple[float, float]:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import hmac
+import logging
 import math
 import re
 import tempfile
@@ -25,6 +26,7 @@ from pathlib import Path
 from typing import Annotated, Any
 from urllib.parse import urlencode, urlsplit
 
+import anyio
 import numpy as np
 import sqlalchemy as sa
 from fastapi import FastAPI, HTTPException, Query, Request
@@ -74,6 +76,8 @@ from pipescan.web.figures import (
 )
 
 __all__ = ["TOKEN_COOKIE", "WebConfig", "create_app"]
+
+_log = logging.getLogger("pipescan.web")
 
 HERE = Path(__file__).parent
 TOKEN_COOKIE = "pipescan_token"
@@ -419,9 +423,9 @@ class _Network:
     in the background when the database changes (its :func:`web_queries.database_version`).
 
     Reading a large network takes seconds (the worst class of every latest inspection is an
-    aggregate over its sections); a request never waits for it, except while the very first
-    read since the start runs. Until a new read is done, requests get the previous one: the
-    page may be one read behind a save, for as long as a read takes.
+    aggregate over its sections). The app reads it before it starts listening, so a request
+    never waits for a read. Until a new read is done, requests get the previous one: the page
+    may be one read behind a save, for as long as a read takes.
     """
 
     def __init__(self, engine: sa.Engine) -> None:
@@ -430,9 +434,7 @@ class _Network:
         self._held: tuple[Any, list[web_queries.PipeRow]] | None = None
         self._building = False
         self._first = threading.Event()
-
-    def warm(self) -> None:
-        self._refresh(web_queries.database_version(self._engine))
+        self._error: BaseException | None = None
 
     def rows(self) -> list[web_queries.PipeRow]:
         self._refresh(web_queries.database_version(self._engine))
@@ -441,7 +443,7 @@ class _Network:
         with self._lock:
             held = self._held
         if held is None:
-            raise StorageError("the network could not be read from the database (see the log)")
+            raise StorageError(f"the network could not be read from the database: {self._error}")
         return held[1]
 
     def _refresh(self, version: Any) -> None:
@@ -456,6 +458,9 @@ class _Network:
             rows = web_queries.network_pipes(self._engine)
             with self._lock:
                 self._held = (version, rows)
+        except Exception as exc:
+            self._error = exc
+            _log.exception("reading the network failed")
         finally:
             with self._lock:
                 self._building = False
@@ -491,9 +496,12 @@ def create_app(config: WebConfig) -> FastAPI:
 
     @contextlib.asynccontextmanager
     async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
-        network.warm()  # read the network now, not on the first visitor's request
         # The report's loader imports Prefect (seconds): not on the first inspection's request.
         threading.Thread(target=_import_report_loader, daemon=True).start()
+        # The network is read before the server listens, so that no request waits for a read.
+        started = time.perf_counter()
+        rows = await anyio.to_thread.run_sync(network.rows)
+        _log.info("read the network: %d pipes in %.1f s", len(rows), time.perf_counter() - started)
         yield
         engine.dispose()
 
