@@ -420,6 +420,8 @@ def _print_summary(summary, replaced: bool = False, unmeasured: list[str] | None
         f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
     )
     typer.echo(f"  {plural(summary.section_count, 'section')}, {summary.sections_ok} measured")
+    for line in unmeasured if unmeasured is not None else _raw_unmeasured_lines(summary):
+        typer.echo(line)  # under the sections' line they break down
     if summary.measured_inner_diameter_m is not None:
         typer.echo(
             f"  inner diameter measured {summary.measured_inner_diameter_m:.3f} m "
@@ -427,8 +429,6 @@ def _print_summary(summary, replaced: bool = False, unmeasured: list[str] | None
         )
     if (summary.registration or {}).get("instrument"):
         typer.echo(f"  instrument: {summary.registration['instrument']}")
-    for line in unmeasured if unmeasured is not None else _raw_unmeasured_lines(summary):
-        typer.echo(line)
     if summary.max_blockage_chainage_m is not None:
         typer.echo(
             f"  worst blockage {pct(summary.max_blockage_ratio)} "
