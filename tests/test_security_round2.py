@@ -642,7 +642,7 @@ def test_a_lookalike_asset_id_is_kept_and_warned_of(caplog) -> None:
     """Cyrillic "МН" against Latin "MH": different letters, so another asset, said so."""
     import logging
 
-    from pipescan.storage.input.lookalike import skeleton
+    from pipescan.storage.lookalike import skeleton
 
     with caplog.at_level(logging.WARNING, logger="pipescan"):
         meta = _meta("МН7-MH8")
@@ -680,3 +680,23 @@ def test_the_trend_plot_does_not_write_through_a_planted_link_or_open_a_fifo(tmp
     assert victim.read_bytes() == before
     assert (out / "trend.png").read_bytes().startswith(b"\x89PNG")
     assert _left_parts(out) == [".trend.png.part", ".trend.svg.part"]  # only the plants
+
+
+def test_a_new_asset_that_looks_like_a_stored_one_is_warned_of(tmp_path, caplog) -> None:
+    import logging
+
+    from pipescan.storage.database.db import connect
+    from tests.test_trends import T0, YEAR, save, sections_from, survey
+
+    engine = connect(f"sqlite:///{tmp_path / 'twins.db'}")
+    sections = sections_from(list(survey(0, 0.0)))
+    try:
+        save(engine, "MH1-MH2", T0, sections)
+        with caplog.at_level(logging.WARNING, logger="pipescan"):
+            save(engine, "MH1-MH2", T0 + YEAR, sections)  # the same asset: no warning
+            assert not [r for r in caplog.records if "looks like" in r.getMessage()]
+            save(engine, "МН1-MH2", T0 + YEAR, sections)  # Cyrillic М and Н
+    finally:
+        engine.dispose()
+    [record] = [r for r in caplog.records if "looks like" in r.getMessage()]
+    assert "'МН1-MH2' looks like stored asset 'MH1-MH2'" in record.getMessage()

@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import hashlib
 import json
+import logging
 import math
 import operator
 from collections.abc import Iterable, Mapping, Sequence
@@ -38,6 +39,7 @@ from pipescan.storage.database.models import (
     Section,
     utc_now,
 )
+from pipescan.storage.lookalike import skeleton
 
 __all__ = [
     "AssetRecord",
@@ -460,8 +462,26 @@ def _position(xyz: Sequence[float] | None) -> list[float] | None:
     return None if xyz is None else [float(v) for v in xyz]
 
 
+def _warn_of_twins(session: Session, asset_ids: Sequence[str]) -> None:
+    """Warn of a new asset whose id looks like a stored one's (Cyrillic "МН1" against Latin
+    "MH1"): different characters, so another asset, which is most likely a typing slip."""
+    stored = set(session.scalars(sa.select(Asset.asset_id).where(Asset.asset_id.in_(asset_ids))))
+    fresh = [a for a in asset_ids if a not in stored]
+    if not fresh:
+        return
+    looks = {skeleton(a): a for a in session.scalars(sa.select(Asset.asset_id))}
+    for asset_id in fresh:
+        twin = looks.get(skeleton(asset_id))
+        if twin is not None and twin != asset_id:
+            logging.getLogger("pipescan").warning(
+                f"warning: new asset {asset_id!r} looks like stored asset {twin!r} but is "
+                "spelt with other letters; it is stored as another asset"
+            )
+
+
 def _upsert_assets(session: Session, metas: Iterable[InspectionMeta]) -> None:
     rows = _asset_values(metas)
+    _warn_of_twins(session, [r["asset_id"] for r in rows])
     dialect = session.get_bind().dialect.name
     if dialect in ("sqlite", "postgresql"):
         insert = sqlite.insert if dialect == "sqlite" else postgresql.insert

@@ -38,8 +38,8 @@ from pydantic_core import PydanticCustomError
 from pipescan.core.errors import MetadataError
 from pipescan.core.instrument import SensorProfile
 from pipescan.core.model import FrameRef, InspectionMeta, RosTopics
-from pipescan.storage.input.lookalike import fold, lookalike_letters
 from pipescan.storage.input.tomlguard import TomlTooDeep, check_toml_depth
+from pipescan.storage.lookalike import fold, lookalike_letters
 
 INSPECTION_FILE = "inspection.toml"
 EARLIEST_INSPECTION = datetime(1900, 1, 1)
@@ -99,7 +99,7 @@ def _printable(value: str) -> str:
 
 def _folded(value: str) -> str:
     """NFKC: full-width and other compatibility forms as plain letters and digits, so that
-    ``ＭＨ１`` and ``MH1`` are one asset (pipescan.storage.input.lookalike)."""
+    ``ＭＨ１`` and ``MH1`` are one asset (pipescan.storage.lookalike)."""
     folded = fold(value)
     if len(folded) > MAX_NAME_CHARS:
         raise PydanticCustomError(

@@ -5,7 +5,8 @@ ids that differ only in compatibility forms are one asset. Letters of another sc
 drawn like Latin ones (Cyrillic ``МН`` against Latin ``MH``) are different characters and stay
 so: :func:`lookalike_letters` finds them, so that the reader can warn that the id names another
 asset than the one it looks like, and :func:`skeleton` maps an id to the Latin id it looks
-like, to find such a twin among stored ids.
+like, to find such a twin among stored ids. It sits beside ``input`` and ``database``, which
+both use it and stay apart.
 """
 
 from __future__ import annotations
