@@ -405,3 +405,68 @@ def _logs(server: PrefectServer, run_id: str) -> list[str]:
         if any("network run over" in m for m in messages) or time.monotonic() > deadline:
             return messages
         time.sleep(1)
+
+
+def test_a_run_that_ends_failed_sends_a_notification(server, tmp_path):
+    """``deploy --notify TYPE/NAME``: the server sends a notification through that block when a
+    run of the deployment ends Failed (as one that left archives unstored does), with the
+    run's message."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, HTTPServer
+
+    from prefect.blocks.notifications import CustomWebhookNotificationBlock
+
+    received: list[dict] = []
+
+    class Receiver(BaseHTTPRequestHandler):
+        def do_POST(self):
+            received.append(json.loads(self.rfile.read(int(self.headers["Content-Length"]))))
+            self.send_response(204)
+            self.end_headers()
+
+        def log_message(self, *args):
+            pass
+
+    httpd = HTTPServer(("127.0.0.1", 0), Receiver)
+    threading.Thread(target=httpd.serve_forever, daemon=True).start()
+    (tmp_path / "store").mkdir()
+    db = f"sqlite:///{tmp_path / 'n.db'}"
+    upgrade(db)
+    try:
+        with _on(server):
+            CustomWebhookNotificationBlock(
+                name="pipescan-alerts",
+                url=f"http://127.0.0.1:{httpd.server_port}/hook",
+                json_data={"subject": "{{subject}}", "body": "{{body}}"},
+                allow_private_urls=True,
+            ).save("pipescan-alerts", overwrite=True)
+        result = _deploy(
+            server, tmp_path, "--store", "store", "--cron", "0 2 * * *", "--name", "notified",
+            "--notify", "custom-webhook/pipescan-alerts", db=db,
+        )  # fmt: skip
+        assert result.exit_code == 0, result.output[-3000:]
+        assert "pipescan: notify when a run of inspect-network/notified fails" in result.stdout
+        bad = _deploy(
+            server, tmp_path, "--store", "store", "--cron", "0 2 * * *", "--name", "notified",
+            "--notify", "custom-webhook/nope", db=db,
+        )  # fmt: skip
+        assert bad.exit_code == 2 and "no notification block 'custom-webhook/nope'" in bad.output
+
+        run_id = server.run_deployment("inspect-network/notified")
+        message = "2 of 4 archives not stored: missing after 15 min of retries: MH1-MH2 (...)"
+        server.call(
+            "POST",
+            f"/flow_runs/{run_id}/set_state",
+            {"state": {"type": "FAILED", "message": message}, "force": True},
+        )
+        deadline = time.monotonic() + 90
+        while not received and time.monotonic() < deadline:
+            time.sleep(1)
+    finally:
+        httpd.shutdown()
+    [note] = received
+    assert (
+        note["subject"].startswith("pipescan: run ")
+        and "inspect-network/notified" in note["subject"]
+    )
+    assert message in note["body"] and "pipescan runs" in note["body"]

@@ -175,6 +175,13 @@ def deploy(
     dask: DaskOption = None,
     concurrency: ConcurrencyOption = None,
     paused: Annotated[bool, typer.Option(help="Create the schedule paused.")] = False,
+    notify: Annotated[
+        str | None,
+        typer.Option(
+            help="A Prefect notification block, TYPE/NAME (e.g. custom-webhook/pipescan-alerts): "
+            "a run that ends Failed (archives missing or failed) sends a notification."
+        ),
+    ] = None,
 ) -> None:
     """Create (or update) a Prefect deployment that runs inspect-network on a schedule, with the
     automations that recover its runs after a crash (docs/operations.md).
@@ -216,6 +223,7 @@ def deploy(
             timezone=timezone,
             parameters=parameters,
             paused=paused,
+            notify=notify,
         )
     except (PipescanError, ValueError, OSError) as exc:
         _fail(exc)

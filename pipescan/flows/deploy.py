@@ -302,6 +302,72 @@ def recovery_automations(deployment_id: str, deployment_name: str) -> list:
     return [silent, retry, cancelling]
 
 
+def notify_automation(deployment_id: str, deployment_name: str, block_document_id: str):
+    """The automation that sends a notification (through a Prefect notification block: a
+    webhook, Slack, Teams, e-mail...) when a run of the deployment ends Failed, which a run does
+    when it leaves an archive unstored (:mod:`pipescan.flows.network`) or cannot start."""
+    from prefect.automations import Automation
+    from prefect.events.actions import SendNotification
+    from prefect.events.schemas.automations import EventTrigger, Posture
+
+    return Automation(
+        name=f"pipescan: notify when a run of {deployment_name} fails",
+        description=f"A run of {deployment_name} that ends Failed (archives missing or failed, "
+        "or no start) sends a notification.",
+        trigger=EventTrigger(
+            match={"prefect.resource.id": "prefect.flow-run.*"},
+            match_related={
+                "prefect.resource.id": f"prefect.deployment.{deployment_id}",
+                "prefect.resource.role": "deployment",
+            },
+            expect={"prefect.flow-run.Failed"},
+            for_each={"prefect.resource.id"},
+            posture=Posture.Reactive,
+            threshold=1,
+        ),
+        actions=[
+            SendNotification(
+                block_document_id=block_document_id,
+                subject=f"pipescan: run {{{{ flow_run.name }}}} of {deployment_name} failed",
+                body="Run {{ flow_run.name }} of "
+                + deployment_name
+                + " ended Failed: {{ flow_run.state.message }}\n\n"
+                "See `pipescan runs` and the run's log; archives left missing are taken first "
+                "by the next run (docs/operations.md, section 6).",
+            )
+        ],
+    )
+
+
+def notification_block_id(reference: str) -> str:
+    """The id of a notification block named ``<type slug>/<name>``, e.g.
+    ``custom-webhook/pipescan-alerts`` or ``slack-webhook/ops``.
+
+    Raises
+    ------
+    DeploymentError
+        Not ``type/name``, or no such block.
+    """
+    from prefect.client.orchestration import get_client
+    from prefect.exceptions import ObjectNotFound
+
+    slug, sep, name = reference.partition("/")
+    if not sep or not slug or not name:
+        raise DeploymentError(
+            f"--notify {reference!r} is not a block's type and name",
+            hint="give it as TYPE/NAME, e.g. custom-webhook/pipescan-alerts (prefect block ls)",
+        )
+    with get_client(sync_client=True) as client:
+        try:
+            block = client.read_block_document_by_name(name, block_type_slug=slug)
+        except ObjectNotFound as exc:
+            raise DeploymentError(
+                f"no notification block {reference!r} on the Prefect server",
+                hint="create it first (prefect block ls lists the blocks; docs/operations.md)",
+            ) from exc
+    return str(block.id)
+
+
 def ensure_automations(automations: list) -> list[str]:
     """Create each automation, or update the one of the same name; their names."""
     from prefect.automations import Automation
@@ -328,6 +394,7 @@ def deploy_network_inspection(
     timezone: str = "UTC",
     parameters: dict[str, Any] | None = None,
     paused: bool = False,
+    notify: str | None = None,
 ) -> DeploymentInfo:
     """Create or update the deployment that runs ``inspect-network`` over ``store`` on ``cron``,
     and its recovery automations.
@@ -346,6 +413,9 @@ def deploy_network_inspection(
         give them.
     paused
         Create the schedule paused.
+    notify
+        A notification block, ``<type slug>/<name>``: a run that ends Failed sends a
+        notification through it (:func:`notify_automation`).
 
     Raises
     ------
@@ -386,7 +456,12 @@ def deploy_network_inspection(
         )
         deployment_id = str(deployment.apply(work_pool_name=work_pool))
         full_name = f"{inspect_network.name}/{name}"
-        automations = ensure_automations(recovery_automations(deployment_id, full_name))
+        wanted = recovery_automations(deployment_id, full_name)
+        if notify:
+            wanted.append(
+                notify_automation(deployment_id, full_name, notification_block_id(notify))
+            )
+        automations = ensure_automations(wanted)
     except (PrefectException, httpx.HTTPError) as exc:
         raise DeploymentError(
             f"the Prefect server at {api_url} refused the deployment: {exc}",

@@ -122,6 +122,8 @@ class ArchiveOutcome:
     cause: str | None = None
     attempts: int = 1
     same_as: str | None = None
+    subflow_run_id: str | None = None
+    """The failed attempt's sub-flow run."""
 
     @property
     def stored(self) -> bool:
@@ -495,13 +497,8 @@ def inspect_one_archive(
         summary = state.result()
     except (Exception, Abort) as exc:  # Abort: Prefect took the sub-flow for crashed
         outcome = failed_outcome(archive, label, exc, time.perf_counter() - started)
-        if outcome.cause == TRANSIENT and state is not None:
-            # Its task runs would otherwise stay Pending for good (seen with a concurrency
-            # slot refused after a Prefect server outage); the retry is a new sub-flow run.
-            close_task_runs_of(
-                str(state.state_details.flow_run_id),
-                f"its sub-flow failed for a transient cause, tried again: {outcome.error}",
-            )
+        if state is not None:
+            outcome = replace(outcome, subflow_run_id=str(state.state_details.flow_run_id))
         return outcome
     return ArchiveOutcome.from_summary(archive, label, summary, time.perf_counter() - started)
 
@@ -728,6 +725,7 @@ def _run_archives(
     first_failed: dict[str, float] = {}
     outcomes: dict[str, ArchiveOutcome] = {}
     pending: dict = {}
+    left_open: list[str] = []  # sub-flow runs of transient failures
     while queue or pending:
         now = time.monotonic()
         for due, archive in [q for q in queue if q[0] <= now]:
@@ -752,6 +750,8 @@ def _run_archives(
         except (Exception, Abort) as exc:  # the task itself did not finish (its API calls)
             outcome = failed_outcome(archive, labels[archive], exc, 0.0, attempts[archive])
         if outcome.status == "failed" and outcome.cause == TRANSIENT:
+            if outcome.subflow_run_id:
+                left_open.append(outcome.subflow_run_id)
             first = first_failed.setdefault(archive, started)
             delay = backoff_delay(RETRY_FIRST_DELAY_S, RETRY_MAX_DELAY_S, attempts[archive])
             if started + delay - first <= retry_window_s:
@@ -762,6 +762,13 @@ def _run_archives(
         outcomes[archive] = outcome
         line = progress_line(len(outcomes), total, outcome)
         _progress(run_log, line, failed=not outcome.stored)
+    # A sub-flow that failed for a transient cause can leave a task run Pending for good (seen:
+    # a concurrency slot refused after a Prefect server outage). Closed now, not when it failed:
+    # task-run states reach Prefect's database through its event pipeline, later.
+    for subflow_run_id in left_open:
+        close_task_runs_of(
+            subflow_run_id, "its sub-flow failed for a transient cause; the archive was tried again"
+        )
     return outcomes
 
 
