@@ -135,6 +135,11 @@ CLI_CASES = [
         "frame symlinked to a file outside",
         "asset_id with an ESC sequence",
         "zip member name of 300 bytes",
+        "E57 XML with an external DTD (http)",
+        "ROS 1 bag, bz2 chunk of 50 M points",
+        "MCAP record length 2^40",
+        "inspection.toml: arrays nested 200,000 deep",
+        "inspected_at of year 9999 with an offset",
     )
 ]
 
@@ -148,7 +153,7 @@ def prefect():
 
 
 @pytest.mark.e2e
-@pytest.mark.slow  # ~30 s: a Prefect API for five runs through the CLI
+@pytest.mark.slow  # ~30 s: a Prefect API for ten runs through the CLI
 def test_the_cli_refuses_hostile_inputs_in_one_line(prefect, tmp_path, monkeypatch) -> None:
     from typer.testing import CliRunner
 
@@ -156,7 +161,7 @@ def test_the_cli_refuses_hostile_inputs_in_one_line(prefect, tmp_path, monkeypat
     from pipescan.storage.database.db import connect
     from pipescan.storage.database.repository import list_inspections
 
-    assert len(CLI_CASES) == 5
+    assert len(CLI_CASES) == 10
     monkeypatch.setenv("PIPESCAN_WORK_DIR", str(tmp_path / "work"))
     db = f"sqlite:///{tmp_path / 'pipescan.db'}"
     runner = CliRunner()
