@@ -236,7 +236,10 @@ def _first_look(archive: str, settings) -> None:
         log.info(f"unpacking {archive} ({local.stat().st_size / 1e6:,.0f} MB) to check it")
     look = first_look(archive, settings)
     if look is None:
-        log.info(f"archive {archive}: a remote archive, copied and checked when the run starts")
+        from pipescan.storage.input.urls import without_secrets
+
+        shown = without_secrets(archive)  # said before the URL's secrets are refused
+        log.info(f"archive {shown}: a remote archive, copied and checked when the run starts")
         return
     log.info(look.found)
     if look.checked:
