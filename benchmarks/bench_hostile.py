@@ -230,7 +230,9 @@ def run_case(
         given = build(where, scale)
         before = fingerprint(where)
         work = Path(tmp) / "work"
-        env = dict(os.environ, PYTHONPATH=str(code))
+        child_tmp = Path(tmp) / "tmpdir"  # the child's $TMPDIR: what it leaves there is counted
+        child_tmp.mkdir()
+        env = dict(os.environ, PYTHONPATH=str(code), TMPDIR=str(child_tmp))
         args = [sys.executable, "-c", child, given, str(work), json.dumps(limits), str(cap)]
         started = time.perf_counter()
         try:
@@ -257,6 +259,7 @@ def run_case(
         result["left_files"] = sum(1 for p in left if p.is_file())
         result["left_bytes"] = sum(p.stat().st_size for p in left if p.is_file())
         result["input_unchanged"] = fingerprint(where) == before
+        result["left_tmp"] = sum(1 for p in child_tmp.rglob("*") if not p.is_dir())
         shutil.rmtree(work, ignore_errors=True)
         return result
 
@@ -268,6 +271,7 @@ def _met(row: dict) -> bool:
         and row["peak_mib"] < 1024
         and row["seconds"] < 60
         and row["left_files"] == 0
+        and row.get("left_tmp", 0) == 0
         and row["input_unchanged"]
     )
 
@@ -295,14 +299,17 @@ def main() -> None:
         rows.append({"class": cls, "input": name, "peak_mib": peak, **result})
         print(
             f"{cls:13} {name[:52]:52} {peak:8.1f} MiB {result['seconds']:7.2f} s  "
-            f"left {result['left_files']} files  "
+            f"left {result['left_files']} files {result['left_tmp']} tmp  "
             f"{'unchanged' if result['input_unchanged'] else 'CHANGED'}  {result['outcome'][:90]}",
             flush=True,
         )
     genuine = [r["peak_mib"] for r in rows if r["class"] == "genuine"]
     over = [r for r in rows if r["class"] != "genuine" and not _met(r)]
-    print(f"\n{len(rows) - len(over)} of {len(rows)} inputs within the targets (refused in one "
-          "line, peak < 1 GiB, < 60 s, nothing left, input unchanged)")  # fmt: skip
+    print(
+        f"\n{len(rows) - len(over)} of {len(rows)} inputs within the targets (refused in one "
+        "line, peak < 1 GiB, < 60 s, nothing left in the work folder or $TMPDIR, input "
+        "unchanged)"
+    )
     for r in over:
         print(f"  NOT MET: {r['input']}: {r['outcome'][:100]}")
     crafted = [r for r in rows if r["class"] != "genuine"]
