@@ -700,3 +700,31 @@ def test_a_new_asset_that_looks_like_a_stored_one_is_warned_of(tmp_path, caplog)
         engine.dispose()
     [record] = [r for r in caplog.records if "looks like" in r.getMessage()]
     assert "'МН1-MH2' looks like stored asset 'MH1-MH2'" in record.getMessage()
+
+
+def test_genuine_compressed_bags_are_read_under_the_caps(tmp_path) -> None:
+    """The bounds refuse bombs, not bags: a bz2 ROS 1 bag, a zstd MCAP and a file-compressed
+    ROS 2 bag of a few real frames open and read, and the scratch is gone afterwards."""
+    from pipescan.storage.input.bagguard import scratch_root
+    from tests.hostile import frame, ros1_bag, ros2_bag
+
+    data = frame(5000).astype("<f4").tobytes()
+    kwargs = {"offsets": (0, 4, 8), "step": 12, "data": data}
+    builds = {
+        "bz2": lambda w: ros1_bag(w, "bz2", kwargs, 5000),
+        "mcap-zstd": lambda w: ros2_bag(w, "mcap", "storage", kwargs, 5000),
+        "file-zstd": lambda w: ros2_bag(w, "sqlite3", "file", kwargs, 5000),
+    }
+    for name, build in builds.items():
+        root = build(tmp_path / name)
+        with open_archive(root) as arc:
+            summary = validate_archive(arc)
+        assert summary.point_count == 5000, name
+    left = list(scratch_root().iterdir()) if scratch_root().is_dir() else []
+    mine = [
+        p
+        for p in left
+        if (p / ".pipescan-bag").is_file()
+        and (p / ".pipescan-bag").read_text().split()[0] == str(os.getpid())
+    ]
+    assert mine == [], "the scratch of a closed bag was left"
