@@ -382,6 +382,7 @@ def test_a_token_guards_every_request(network_db: Path) -> None:
     with TestClient(app) as c:
         assert c.get("/api/pipes").status_code == 401
         assert c.get("/", params={"token": "wrong" * 5}).status_code == 401
+        assert c.get("/", params={"token": "é" * 24}).status_code == 401  # not a crash
         bearer = c.get("/api/pipes", headers={"Authorization": f"Bearer {token}"})
         assert bearer.status_code == 200
         first = c.get("/", params={"token": token, "q": "MH1"}, follow_redirects=False)

@@ -482,6 +482,8 @@ def create_app(config: WebConfig) -> FastAPI:
         The database cannot be opened read-only, or is not at the schema revision this
         pipescan needs (run ``pipescan db upgrade`` first).
     """
+    if config.tile_url:
+        check_tile_url(config.tile_url)
     read_only = web_queries.read_only_url(config.database_url)
     try:
         engine = connect(read_only)
@@ -518,7 +520,6 @@ def create_app(config: WebConfig) -> FastAPI:
     app.state.engine = engine
     csp = _CSP
     if config.tile_url:
-        check_tile_url(config.tile_url)
         tiles = _origin(config.tile_url)
         csp = _CSP.replace("img-src 'self' data:", f"img-src 'self' data: {tiles}")
     templates = Jinja2Templates(directory=str(HERE / "templates"))
@@ -551,7 +552,7 @@ def create_app(config: WebConfig) -> FastAPI:
         started = time.perf_counter()
         if config.token is not None and request.url.path != "/favicon.ico":
             given = request.query_params.get("token")
-            if given is not None and hmac.compare_digest(given, config.token):
+            if given is not None and hmac.compare_digest(given.encode(), config.token.encode()):
                 # Once, from a link: the token moves into a cookie and out of the address.
                 query = urlencode([(k, v) for k, v in request.query_params.items() if k != "token"])
                 target = request.url.path + (f"?{query}" if query else "")
