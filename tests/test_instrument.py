@@ -240,3 +240,66 @@ def test_a_noisy_registered_shaft_is_measured_not_smeared():
     assert inner is not None and inner.diameter_m == pytest.approx(1.0, rel=0.015)
     for s in ok:
         assert abs(s.blockage_ratio) <= s.blockage_uncertainty_ratio + 0.005
+
+
+# --------------------------------------------------------------------------- water
+
+
+def _wet(start: float, depth: float, from_surface: bool = False) -> SectionMeasures:
+    return SectionMeasures(
+        start,
+        round(start + 0.1, 1),
+        np.pi * 0.3**2,
+        SectionStatus.INVERT_UNDER_WATER,
+        5000,
+        0.8,
+        water_depth_ratio=depth,
+        water_from_surface=from_surface,
+    )
+
+
+def test_water_without_a_surface_return_needs_a_level_run():
+    from pipescan.core.water import LEVEL_RUN_SECTIONS, confirm_surfaceless_water
+
+    level = [_wet(round(0.1 * i, 1), 0.1) for i in range(LEVEL_RUN_SECTIONS)]
+    kept = confirm_surfaceless_water(level)
+    assert all(s.status == SectionStatus.INVERT_UNDER_WATER for s in kept)
+    short = confirm_surfaceless_water(level[:-1])
+    assert all(
+        s.status == SectionStatus.LOW_COVERAGE and s.water_depth_ratio is None for s in short
+    )
+    # Not level: the wall stops 6 cm higher in every other section (a 0.6 m pipe).
+    uneven = [_wet(round(0.1 * i, 1), 0.1 + 0.1 * (i % 2)) for i in range(8)]
+    assert all(s.status == SectionStatus.LOW_COVERAGE for s in confirm_surfaceless_water(uneven))
+    # Water read from its surface's returns stands on its own.
+    alone = confirm_surfaceless_water([_wet(0.0, 0.1, from_surface=True)])
+    assert alone[0].status == SectionStatus.INVERT_UNDER_WATER
+
+
+def test_water_whose_surface_returns_nothing_is_read_with_its_depth():
+    from pipescan.simulator.sensors import WaterLevel
+    from pipescan.simulator.sweep import measure_cloud_scan, smooth_scene
+
+    scene = dataclasses.replace(
+        smooth_scene(0.6, 3.0, effects=Effects(imu=False)),
+        water=WaterLevel(0.1, surface_return_ratio=0.0),
+    )
+    sections = measure_cloud_scan(simulate_scan(scene, seed=1))
+    wet = [s for s in sections if s.status == SectionStatus.INVERT_UNDER_WATER]
+    assert len(wet) >= len(sections) / 2
+    assert np.median([s.water_depth_ratio for s in wet]) == pytest.approx(0.1, abs=0.01)
+    dry = measure_cloud_scan(simulate_scan(smooth_scene(0.6, 3.0), seed=1))
+    assert not any(s.status == SectionStatus.INVERT_UNDER_WATER for s in dry)
+
+
+def test_the_instrument_sweep_draws_sensors_as_well_as_effects():
+    from pipescan.simulator.sweep import INSTRUMENT_MODELS, instrument_draws
+
+    draws = instrument_draws(32)
+    assert len(draws) >= 30
+    assert {d.name.split()[0] for d in draws} == set(INSTRUMENT_MODELS)
+    assert any(d.scenario.frame_coverage_ratio < 0.3 for d in draws)
+    assert any(d.scenario.effects.spurious_range_ratio for d in draws)
+    assert any(not d.scenario.effects.imu for d in draws)
+    assert any(d.scenario.water is not None for d in draws)
+    assert instrument_draws(4)[3].name == draws[3].name  # a draw does not change with count

@@ -429,7 +429,11 @@ def measure_section(
         if status == SectionStatus.OK:
             status = SectionStatus.NO_CONTOUR
         return SectionMeasures(
-            status=status, coverage_ratio=coverage, water_depth_ratio=water_depth, **base
+            status=status,
+            coverage_ratio=coverage,
+            water_depth_ratio=water_depth,
+            water_from_surface=None if water is None else water.from_surface,
+            **base,
         )
     polygon, radii, open_area = contour.polygon_m, contour.radii_m, contour.area_m2
     # Beside an overhanging obstacle's edge, free space that no ray reached counts as blocked
@@ -547,6 +551,7 @@ def measure_section(
         else _finite(diameter_u / nominal_diameter_m),
         deposit_height_uncertainty_ratio=deposit_u,
         water_depth_ratio=water_depth,
+        water_from_surface=None if water is None else water.from_surface,
         contour_m=polygon,
         **base,
     )

@@ -143,6 +143,9 @@ class SectionMeasures:
     contour_m: np.ndarray | None = field(default=None, compare=False, repr=False)
     chainage_uncertainty_m: float | None = None
     wall_spread_m: float | None = field(default=None, compare=False)
+    water_from_surface: bool | None = field(default=None, compare=False)
+    """Whether the water depth was read from returns on its surface (else from where the wall
+    stops, confirmed along the pipe: ``core.water.confirm_surfaceless_water``; not stored)."""
     wall_behind_deg: float | None = field(default=None, compare=False)
 
     @property

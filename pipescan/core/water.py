@@ -43,7 +43,8 @@ class WaterLevel:
         The angle bins under water (unseen wall, or a sparse chord), to be left out of the
         contour.
     from_surface : bool
-        The level was read from points on the surface (else from where the wall stops).
+        The level was read from points on the surface (else from where the wall stops: water
+        only once the sections along the pipe agree, :func:`confirm_surfaceless_water`).
     """
 
     level_m: float
@@ -152,10 +153,17 @@ def detect_water(
         & (np.abs(raw[:, 1] - edge_level) <= tolerance)
     )
     surface_y = raw[on_chord, 1]
-    if len(surface_y) < MIN_SURFACE_POINTS or len(surface_y) > typical / 3.0 * len(run):
-        # Too few to be a surface, or as dense as a wall: a deposit's top seen along part of
-        # the section (its shadow), not water.
+    if len(surface_y) > typical / 3.0 * len(run):
+        # As dense as a wall: a deposit's top seen along part of the section (its shadow).
         return None
+    if len(surface_y) < MIN_SURFACE_POINTS:
+        # No surface seen: water whose surface returns nothing, or a view that stops short of
+        # the invert. One section cannot tell; the sections along the pipe can
+        # (:func:`confirm_surfaceless_water`).
+        depth = (edge_level + wall_radius_m) / nominal_diameter_m
+        if depth <= 0:
+            return None
+        return WaterLevel(level_m=edge_level, depth_ratio=depth, bins=run, from_surface=False)
     # Then only the points close to their median: stray returns in the window do not count.
     level = float(np.median(surface_y))
     surface_y = surface_y[np.abs(surface_y - level) <= max(3.0 * sigma_m, 0.02)]
@@ -227,6 +235,75 @@ def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionM
         for k in wet:
             depth = ordered[k].water_depth_ratio
             if depth is not None and any(h >= depth - SHADOW_LEVEL_MARGIN_RATIO for h in beside):
+                out[k] = dataclasses.replace(
+                    ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
+                )
+        i = j
+    return out
+
+
+LEVEL_RUN_SECTIONS = 5
+"""Water whose surface returns nothing is read only where at least this many touching sections
+(half a metre) show the invert unseen under a level chord at one height: water stands over
+metres, level; a view that stops short of the invert, or the shadow of something on it,
+changes height from section to section or lasts a few decimetres."""
+
+LEVEL_TOLERANCE_M = 0.02
+"""The heights where the wall stops, along such a run, agree within this: 3σ of a noisy
+sensor's wall, and a 1 % gradient over the run."""
+
+
+def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[SectionMeasures]:
+    """Keep water read without a surface return only where the pipe confirms it.
+
+    A section whose invert is unseen under a level chord with no return on it is water
+    (``invert_under_water``, its depth where the wall stops) when it lies among
+    :data:`LEVEL_RUN_SECTIONS` touching water sections whose levels agree within
+    :data:`LEVEL_TOLERANCE_M`; otherwise it is ``low_coverage`` without a depth. Water read
+    from its surface's returns is kept as it is.
+
+    Parameters
+    ----------
+    sections
+        One scan's sections, in any order.
+
+    Returns
+    -------
+    list of SectionMeasures
+        In chainage order.
+    """
+    ordered = sorted(sections, key=lambda s: s.chainage_start_m)
+    out = list(ordered)
+
+    def wet(k: int) -> bool:
+        return ordered[k].status == SectionStatus.INVERT_UNDER_WATER
+
+    def level_m(k: int) -> float:
+        s = ordered[k]
+        return (s.water_depth_ratio or 0.0) * math.sqrt(4.0 * s.nominal_area_m2 / math.pi)
+
+    i = 0
+    while i < len(ordered):
+        if not wet(i):
+            i += 1
+            continue
+        j = i + 1
+        while (
+            j < len(ordered)
+            and wet(j)
+            and abs(ordered[j].chainage_start_m - ordered[j - 1].chainage_end_m) < 1e-6
+        ):
+            j += 1
+        levels = np.array([level_m(k) for k in range(i, j)])
+        # Each section needs LEVEL_RUN_SECTIONS touching ones around it, itself among them,
+        # whose levels agree (a long run may follow a gentle change of level).
+        confirmed = np.zeros(j - i, dtype=bool)
+        for a in range(0, j - i - LEVEL_RUN_SECTIONS + 1):
+            window = levels[a : a + LEVEL_RUN_SECTIONS]
+            if window.max() - window.min() <= LEVEL_TOLERANCE_M:
+                confirmed[a : a + LEVEL_RUN_SECTIONS] = True
+        for k in range(i, j):
+            if not confirmed[k - i] and ordered[k].water_from_surface is False:
                 out[k] = dataclasses.replace(
                     ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
                 )

@@ -33,7 +33,7 @@ from pipescan.core.registration import (
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.sections import plan_windows, windows_reached
 from pipescan.core.summary import diameter_mismatch, measured_inner_diameter, peak_blockage
-from pipescan.core.water import explain_invert_shadows
+from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
 from pipescan.flows.runners import engine_processes, engine_threads, limit_library_threads
@@ -366,7 +366,9 @@ def inspect_archive(
         # taken back, and an object's edge is withheld where the object was seen where other
         # frames saw bare wall (both take sections on both sides of a window's edge).
         sections = withhold_smeared_object_edges(
-            explain_invert_shadows([s for f in window_futures for s in f.result()]),
+            confirm_surfaceless_water(
+                explain_invert_shadows([s for f in window_futures for s in f.result()])
+            ),
             measure_params,
         )
         # Blockage is a share of the nominal area: a nominal diameter the wall contradicts

@@ -745,10 +745,15 @@ def measure_scan(
     max_section_range_m: float = 5.0,
     params: RegistrationParams | None = None,
     frame_stride: int | None = None,
+    instrument: bool = True,
 ):
     """The inspect flow's stages on a simulated scan, in memory and without Prefect: the
     scan's instrument (:func:`scan_instrument`) applied to the parameters, registration in
-    chunks (chained), the axis, each section's registration evidence, and the sections. For tests and studies of a scan small enough to hold in memory (the flow
+    chunks (chained), the axis, each section's registration evidence, and the sections.
+    ``instrument`` False leaves the scan's instrument out (the parameters as given, water
+    only from its surface's returns): pipescan as it measured before it read its instrument,
+    for the sweep's "before". For tests and studies of a scan small enough to hold in memory
+    (the flow
     buckets points on disk instead). ``params``: the ``RegistrationParams`` to register with
     (the defaults when None). ``frame_stride``: every k-th frame is used (and the last), as
     the flow does; None chooses it as the flow does (``choose_frame_stride``).
@@ -760,18 +765,19 @@ def measure_scan(
     from pipescan.core.axis import fit_axis
     from pipescan.core.instrument import instrumented
     from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
+    from pipescan.core.model import SectionStatus
     from pipescan.core.registration import (
         RegistrationParams,
         iter_registered_points,
         registration_evidence,
     )
     from pipescan.core.sections import measure_window, plan_windows
-    from pipescan.core.water import explain_invert_shadows
+    from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows
 
     params = params or RegistrationParams()
-    params, measure = instrumented(
-        params, MeasureParams(), scan_instrument(scan, max_section_range_m)
-    )
+    measure = MeasureParams()
+    if instrument:
+        params, measure = instrumented(params, measure, scan_instrument(scan, max_section_range_m))
     trajectory, frames = _register_in_memory(
         scan, chunk_frames, max_section_range_m, params, frame_stride
     )
@@ -780,7 +786,12 @@ def measure_scan(
     )
     points = np.concatenate(list(iter_registered_points(cropped, trajectory)))
     positions = trajectory.positions_m()
-    axis = fit_axis(points, start_m=positions[0], travel_m=positions[-1] - positions[0])
+    axis = fit_axis(
+        points,
+        start_m=positions[0],
+        travel_m=positions[-1] - positions[0],
+        nominal_diameter_m=scan.scenario.nominal_diameter_m,
+    )
     evidence = registration_evidence(
         trajectory, axis.chainage(positions), seen_from_m=max_section_range_m
     )
@@ -796,4 +807,140 @@ def measure_scan(
             params=measure,
             evidence=evidence,
         )
-    return trajectory, withhold_smeared_object_edges(explain_invert_shadows(sections), measure)
+    sections = explain_invert_shadows(sections)
+    if instrument:
+        sections = confirm_surfaceless_water(sections)
+    else:  # as before the instrument: water is read only from its surface's returns
+        sections = [
+            dataclasses.replace(s, status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None)
+            if s.water_from_surface is False
+            else s
+            for s in sections
+        ]
+    return trajectory, withhold_smeared_object_edges(sections, measure)
+
+
+# --------------------------------------------------------------------------- instruments
+
+INSTRUMENT_MODELS: tuple[str, ...] = ("hap", "rosette-avia", "rosette-wide", "ring")
+"""The simulated instruments of :func:`instrument_draws`:
+
+- ``hap``: pipescan's own forward-looking pattern (Livox HAP-like: 120°×25°, 452k points/s,
+  every frame covering the field of view, 0.5 m blind zone);
+- ``rosette-avia``: a non-repetitive pattern over 70°×77° (Livox Avia-like), 240k points/s,
+  one frame covering 20-50 % of the field of view, 1 m blind zone;
+- ``rosette-wide``: a non-repetitive pattern over 120°×50° (a forward-looking cut of a Livox
+  Mid-360's), 200k points/s, 20-50 % a frame, 0.1 m blind zone;
+- ``ring``: a 2D profiler across the pipe, 120 points a turn at 7.5 Hz, no blind zone,
+  delivered as a registered cloud (placed with the true poses, as the archive writer does:
+  :func:`measure_cloud_scan`).
+"""
+
+
+def _instrument_scene(model: str, rng: np.random.Generator, name: str) -> Scenario:
+    """One draw's scene: the defect scene in a 0.3-0.8 m pipe, 4-7 m long, seen by ``model``
+    with effects drawn from issue 12's ranges, range noise 2-20 mm, early returns inside the
+    blind zone on half the draws, no IMU on a third, and water whose surface returns nothing
+    on a fifth."""
+    d = float(rng.choice(LAYOUT_DIAMETERS_M))
+    effects = random_effects(rng)
+    effects = dataclasses.replace(
+        effects,
+        range_noise_sigma_m=float(rng.uniform(0.002, 0.02)),
+        spurious_range_ratio=(0.2, 1.0) if rng.random() < 0.5 else None,
+        imu=bool(effects.imu and rng.random() >= 1.0 / 3.0),
+    )
+    water = None
+    if rng.random() < 0.2:
+        from pipescan.simulator.sensors import WaterLevel
+
+        water = WaterLevel(float(rng.uniform(0.05, 0.12)), surface_return_ratio=0.0)
+    travel = float(rng.uniform(4.0, 7.0))
+    scene = defect_scene(d, travel, effects=effects, name=name)
+    overrides: dict[str, object] = {"water": water}
+    if model == "rosette-avia":
+        overrides |= {
+            "fov_horizontal_deg": 70.4, "fov_vertical_deg": 77.2, "points_per_s": 240_000.0,
+            "blind_zone_m": 1.0, "frame_coverage_ratio": float(rng.uniform(0.2, 0.5)),
+        }  # fmt: skip
+    elif model == "rosette-wide":
+        overrides |= {
+            "fov_vertical_deg": 50.0, "points_per_s": 200_000.0, "blind_zone_m": 0.1,
+            "frame_coverage_ratio": float(rng.uniform(0.2, 0.5)),
+        }  # fmt: skip
+    elif model == "ring":
+        from pipescan.simulator.sensors import RingProfiler
+
+        overrides |= {
+            "sensor": RingProfiler(points_per_revolution=120, tilt_deg=float(rng.uniform(0, 5))),
+            "frame_rate_hz": 7.5, "points_per_s": 900.0, "speed_m_s": 0.3, "blind_zone_m": 0.05,
+            "mount_pitch_deg": 0.0, "end_wall_beyond_travel_m": 0.5, "deformations": (),
+        }  # fmt: skip
+    for _ in range(20):
+        try:
+            return dataclasses.replace(scene, **overrides)
+        except ValueError:  # water over the sensor, a field of view too wide for its swing
+            overrides["water"] = None
+            overrides["fov_vertical_deg"] = min(
+                float(overrides.get("fov_vertical_deg", scene.fov_vertical_deg)), 60.0
+            )
+    raise RuntimeError(f"no valid {model} scene")  # pragma: no cover
+
+
+def instrument_draws(count: int = 32, seed: int = 5000) -> list[Draw]:
+    """A sweep over instruments as well as effects: each draw a sensor model of
+    :data:`INSTRUMENT_MODELS` (cycling through them) and a scene and effects of its own
+    (:func:`_instrument_scene`). Each draw has its own random stream (``seed + j``), so a
+    draw does not change with ``count``; its scan seed is ``seed + j`` too."""
+    draws = []
+    for j in range(count):
+        model = INSTRUMENT_MODELS[j % len(INSTRUMENT_MODELS)]
+        rng = np.random.default_rng(seed + j)
+        scene = _instrument_scene(model, rng, f"{model}{j}")
+        e = scene.effects
+        parts = [
+            f"{scene.nominal_diameter_m} m", f"{scene.travel_m:.1f} m",
+            f"noise {1000 * e.range_noise_sigma_m:.0f} mm",
+            f"early {100 * e.spurious_return_ratio:.1f} %"
+            + (" in the blind zone too" if e.spurious_range_ratio else ""),
+            "IMU" if e.imu else "no IMU",
+        ]  # fmt: skip
+        if scene.frame_coverage_ratio < 1:
+            parts.append(f"{100 * scene.frame_coverage_ratio:.0f} % a frame")
+        if scene.water is not None:
+            parts.append(f"water {100 * scene.water.depth_ratio:.0f} % without return")
+        draws.append(Draw(f"{model} {j}: " + ", ".join(parts), "instrument", scene, seed + j))
+    return draws
+
+
+def measure_cloud_scan(scan, *, max_section_range_m: float = 5.0):
+    """A scan delivered as a registered cloud (a profiler's, a terrestrial scanner's: what
+    ``write_simulated_archive`` writes for them): every frame placed with its true pose, the
+    axis, and the sections measured as the inspect flow measures a cloud (no frame-smear
+    test; water read without a surface confirmed along the pipe). Returns the sections."""
+    from pipescan.core.axis import fit_axis
+    from pipescan.core.instrument import instrumented
+    from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
+    from pipescan.core.registration import RegistrationParams
+    from pipescan.core.sections import measure_window, plan_windows
+    from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows
+
+    _, measure = instrumented(RegistrationParams(), MeasureParams(), None)
+    points = scan.points_true_poses(max_range_m=max_section_range_m)
+    s = scan.scenario
+    # The pipe frame: the scan starts at its origin and runs along +x, as the truth's chainage.
+    axis = fit_axis(
+        points,
+        start_m=np.zeros(3),
+        travel_m=np.array([1.0, 0.0, 0.0]),
+        nominal_diameter_m=s.nominal_diameter_m,
+    )
+    chain = axis.chainage(points)
+    sections = []
+    for w in plan_windows(max(0.0, float(chain.min())), float(chain.max()), step_m=0.1):
+        inside = (chain >= w.start_m) & (chain < w.end_m)
+        sections += measure_window(
+            points[inside], axis, w, nominal_diameter_m=s.nominal_diameter_m, params=measure
+        )
+    sections = confirm_surfaceless_water(explain_invert_shadows(sections))
+    return withhold_smeared_object_edges(sections, measure)

@@ -1,0 +1,210 @@
+"""The accuracy sweep over instruments: each draw a sensor model and its effects, inspected in
+memory as the inspect flow does it (the scan's own instrument estimated and applied, every
+frame where one frame covers only part of the view), and scored against the simulator's truth.
+
+    python benchmarks/bench_instruments.py                 # 32 draws, two at a time
+    python benchmarks/bench_instruments.py --count 8 --only rosette
+    python benchmarks/bench_instruments.py --before        # without the scan's instrument
+
+Each row is one draw (``pipescan.simulator.sweep.instrument_draws``): the instrument estimated
+from the scan, the fully seen sections away from defect edges and the share of them measured
+(``ok``), their mean and largest |error| against the truth at the same chainage, the ok
+sections off by more than 2 pp anywhere within their chainage ± ("dishonest"), the true
+defects over 5 % that a measured section found (a measured section within the defect's span,
+widened by its ±, reading at least half the defect's true peak), the frames flagged as
+slides, the chainage ± at the end against what the odometer's stated error and the slips
+caught allow, and the water read where water returned nothing. The last lines compare every
+row with issue 50's targets.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from concurrent.futures import ProcessPoolExecutor
+
+os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+
+import numpy as np
+
+TARGET_OK_SHARE = 0.90
+TARGET_MEAN_PP, TARGET_MAX_PP = 0.3, 1.0
+TARGET_SLIDES = 0.02
+
+HEADER = (
+    "| draw | instrument (estimated) | fully seen, away from edges | ok | mean pp | max pp | "
+    "dishonest | defects > 5 % found | slides | ± end (allowed) m | water read (depth err pp) "
+    "| s |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
+)
+
+
+def _defects_found(scan, truth, sections) -> tuple[int, int]:
+    """True defects over 5 % (deposits, obstacles, deformations) and how many a measured
+    section found (see the module's notes)."""
+    s = scan.scenario
+    spans = [(d.start_m, d.end_m) for d in (*s.deposits, *s.obstacles, *s.deformations)]
+    found = total = 0
+    for a, b in spans:
+        lo = round(a, 1)
+        starts = np.arange(lo, b, 0.1)
+        peak = float(np.nanmax(truth.section(starts))) if len(starts) else 0.0
+        if not peak > 0.05:
+            continue
+        total += 1
+        for sec in sections:
+            u = float(sec.chainage_uncertainty_m or 0.0)
+            inside = sec.chainage_end_m + u > a and sec.chainage_start_m - u < b
+            if inside and sec.is_ok and (sec.blockage_ratio or 0.0) >= peak / 2:
+                found += 1
+                break
+    return found, total
+
+
+def run_draw(name: str, count: int, seed: int, before: bool = False) -> dict:
+    """One draw, inspected in memory and scored."""
+    from pipescan.simulator.scan import simulate_scan
+    from pipescan.simulator.sweep import (
+        DISHONEST_PP,
+        FLAT_PP,
+        TrueBlockage,
+        _closest_error,
+        instrument_draws,
+        measure_cloud_scan,
+        measure_scan,
+        scan_instrument,
+    )
+
+    draw = next(d for d in instrument_draws(count, seed) if d.name == name)
+    started = time.perf_counter()
+    scan = simulate_scan(draw.scenario, draw.seed)
+    if scan.scenario.sensor is not None:  # a profiler's scan arrives as a registered cloud
+        instrument, trajectory = None, None
+        sections = measure_cloud_scan(scan)
+    else:
+        instrument = scan_instrument(scan)
+        trajectory, sections = measure_scan(scan, instrument=not before)
+    truth = TrueBlockage(scan)
+    by_start = {round(sec.chainage_start_m, 3): sec for sec in sections}
+    seen = [
+        t
+        for t in truth.sections.values()
+        if t.coverage_ratio >= 0.999
+        and truth.variation(round(t.chainage_start_m, 3), 0.1) * 100 <= FLAT_PP
+    ]
+    errors, ok_seen = [], 0
+    for t in seen:
+        sec = by_start.get(round(t.chainage_start_m, 3))
+        if sec is None or not sec.is_ok or sec.blockage_ratio is None:
+            continue
+        ok_seen += 1
+        errors.append(
+            abs(
+                sec.blockage_ratio
+                - float(truth.section(np.array([round(t.chainage_start_m, 3)]))[0])
+            )
+            * 100
+        )
+    dishonest = 0
+    for sec in sections:
+        if sec.is_ok and sec.blockage_ratio is not None:
+            closest = _closest_error(sec, truth)[1]
+            dishonest += closest is not None and closest * 100 > DISHONEST_PP
+    found, defects = _defects_found(scan, truth, sections)
+    slides, u_end, allowed = 0.0, 0.0, 0.0
+    if trajectory is not None:
+        slides = sum(q.fault == "slide" for q in trajectory.quality) / len(trajectory.quality)
+        u_end = trajectory.quality[-1].chainage_uncertainty_m
+        travel = float(scan.odometer_m[-1])
+        allowed = 0.03 * travel + sum(trajectory.odometer_slips_m) + trajectory.stated_slip_m
+    water_true = scan.scenario.water.depth_ratio if scan.scenario.water is not None else None
+    wet = [sec.water_depth_ratio for sec in sections if sec.status.value == "invert_under_water"]
+    water = "-"
+    if water_true is not None or wet:
+        err = np.median(np.abs(np.array(wet) - (water_true or 0.0))) * 100 if wet else float("nan")
+        water = f"{len(wet)} ({err:.1f})"
+    e = np.array(errors) if errors else np.array([np.nan])
+    return {
+        "name": name,
+        "instrument": "registered cloud (true poses)"
+        if instrument is None
+        else instrument.describe().replace("sensor unknown; ", ""),
+        "seen": len(seen),
+        "ok": ok_seen,
+        "mean_pp": float(np.mean(e)),
+        "max_pp": float(np.max(e)),
+        "dishonest": int(dishonest),
+        "found": found,
+        "defects": defects,
+        "slides": slides,
+        "u_end": u_end,
+        "allowed": allowed,
+        "water": water,
+        "seconds": time.perf_counter() - started,
+    }
+
+
+def row(r: dict) -> str:
+    share = r["ok"] / r["seen"] if r["seen"] else float("nan")
+    return (
+        f"| {r['name']} | {r['instrument']} | {r['seen']} | {r['ok']} ({100 * share:.0f} %) | "
+        f"{r['mean_pp']:.2f} | {r['max_pp']:.2f} | {r['dishonest']} | "
+        f"{r['found']} of {r['defects']} | {100 * r['slides']:.1f} % | "
+        f"{r['u_end']:.2f} ({r['allowed']:.2f}) | {r['water']} | {r['seconds']:.0f} |"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawTextHelpFormatter
+    )
+    parser.add_argument("--count", type=int, default=32, help="draws (cycling over the models)")
+    parser.add_argument("--seed", type=int, default=5000)
+    parser.add_argument("--only", nargs="+", help="draws whose name holds one of these")
+    parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument(
+        "--before",
+        action="store_true",
+        help="leave the scan's instrument out: pipescan as it measured before it read it",
+    )
+    args = parser.parse_args()
+    from pipescan.simulator.sweep import instrument_draws
+
+    names = [d.name for d in instrument_draws(args.count, args.seed)]
+    if args.only:
+        names = [n for n in names if any(o in n for o in args.only)]
+    print(f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
+    print(HEADER, flush=True)
+    results = []
+    with ProcessPoolExecutor(args.workers) as pool:
+        n = len(names)
+        for r in pool.map(run_draw, names, [args.count] * n, [args.seed] * n, [args.before] * n):
+            results.append(r)
+            print(row(r), flush=True)
+    print()
+    misses = {
+        f"ok under {TARGET_OK_SHARE:.0%} of fully seen": [
+            r["name"] for r in results if r["seen"] and r["ok"] / r["seen"] < TARGET_OK_SHARE
+        ],
+        f"mean over {TARGET_MEAN_PP} pp": [
+            r["name"] for r in results if r["mean_pp"] > TARGET_MEAN_PP
+        ],
+        f"max over {TARGET_MAX_PP} pp": [r["name"] for r in results if r["max_pp"] > TARGET_MAX_PP],
+        "dishonest ok sections": [r["name"] for r in results if r["dishonest"]],
+        "defects over 5 % missed": [r["name"] for r in results if r["found"] < r["defects"]],
+        f"slides over {TARGET_SLIDES:.0%}": [
+            r["name"] for r in results if r["slides"] > TARGET_SLIDES
+        ],
+        "± at the end over the allowed": [r["name"] for r in results if r["u_end"] > r["allowed"]],
+    }
+    for target, names_missed in misses.items():
+        verdict = (
+            "met"
+            if not names_missed
+            else f"NOT MET on {len(names_missed)}: " + "; ".join(names_missed)
+        )
+        print(f"- {target}: {verdict}")
+
+
+if __name__ == "__main__":
+    main()
