@@ -210,6 +210,15 @@ def test_defects_and_inspections(client: TestClient) -> None:
     listed = client.get("/api/inspections", params={"asset_id": "MH1-MH2"}).json()["items"]
     assert [i["inspected_at"] for i in listed] == sorted(i["inspected_at"] for i in listed)
     assert client.get("/api/inspections/999999").status_code == 404
+    for path in (  # ids and offsets beyond the database's integers, chainages that are no number
+        "/api/inspections/99999999999999999999",
+        "/inspections/99999999999999999999",
+        "/inspections/99999999999999999999/download/pdf",
+        "/api/inspections?offset=99999999999999999999",
+        "/api/pipes/MH1-MH2/trend?chainage_m=nan",
+        "/pipes/MH1-MH2?at=inf",
+    ):
+        assert client.get(path).status_code == 422, path
     assert client.get("/api/pipes/NOPE").status_code == 404
     assert client.get("/api/pipes/NOPE/trend").status_code == 404
 

@@ -30,6 +30,7 @@ import anyio
 import numpy as np
 import sqlalchemy as sa
 from fastapi import FastAPI, HTTPException, Query, Request
+from fastapi import Path as FastPath
 from fastapi.responses import HTMLResponse, JSONResponse, RedirectResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi.templating import Jinja2Templates
@@ -81,6 +82,8 @@ _log = logging.getLogger("pipescan.web")
 
 HERE = Path(__file__).parent
 TOKEN_COOKIE = "pipescan_token"
+InspectionId = Annotated[int, FastPath(ge=1, le=2**31 - 1, description="An inspection's id")]
+"""An inspection id as a request gives it: within the database's integer column."""
 PAGE_ROWS = 50
 """Rows of the network table per page."""
 RUNS_SHOWN = 20
@@ -789,7 +792,7 @@ def create_app(config: WebConfig) -> FastAPI:
         return templates.TemplateResponse(request, "pipe.html", context)
 
     @app.get("/inspections/{inspection_id}", response_class=HTMLResponse, include_in_schema=False)
-    def inspection_page(request: Request, inspection_id: int) -> Response:
+    def inspection_page(request: Request, inspection_id: InspectionId) -> Response:
         started = time.perf_counter()
         context = cache.get(
             ("inspection", inspection_id, version()),
@@ -808,7 +811,7 @@ def create_app(config: WebConfig) -> FastAPI:
         return templates.TemplateResponse(request, "inspection.html", context)
 
     @app.get("/inspections/{inspection_id}/download/{kind}", include_in_schema=False)
-    def download(inspection_id: int, kind: DownloadKind) -> Response:
+    def download(inspection_id: InspectionId, kind: DownloadKind) -> Response:
         record = get_inspection(engine, inspection_id)
         media_type = DOWNLOADS[kind][1]
         name = f"{_safe_name(record.asset_id)}_{record.inspected_at.date().isoformat()}"
@@ -917,7 +920,7 @@ def create_app(config: WebConfig) -> FastAPI:
         ] = "",
         sort: SortKey = SortKey.asset,
         order: Annotated[str, Query(pattern="^(asc|desc)$")] = "asc",
-        offset: Annotated[int, Query(ge=0)] = 0,
+        offset: Annotated[int, Query(ge=0, le=2**31 - 1)] = 0,
         limit: Annotated[int, Query(ge=1, le=web_queries.MAX_PAGE_SIZE)] = 100,
     ) -> PipePage:
         """Each pipe with its latest inspection's figures and its line, paginated."""
@@ -942,7 +945,8 @@ def create_app(config: WebConfig) -> FastAPI:
     def api_trend(
         asset_id: str,
         chainage_m: Annotated[
-            float | None, Query(description="Only this chainage (the reference survey's), m")
+            float | None,
+            Query(ge=-1e6, le=1e6, description="Only this chainage (the reference survey's), m"),
         ] = None,
     ) -> TrendOut:
         """Blockage by aligned chainage across the pipe's inspections, with the change per
@@ -991,7 +995,7 @@ def create_app(config: WebConfig) -> FastAPI:
     @app.get("/api/inspections", response_model=InspectionPage, summary="Inspections")
     def api_inspections(
         asset_id: Annotated[str | None, Query(max_length=200)] = None,
-        offset: Annotated[int, Query(ge=0)] = 0,
+        offset: Annotated[int, Query(ge=0, le=2**31 - 1)] = 0,
         limit: Annotated[int, Query(ge=1, le=web_queries.MAX_PAGE_SIZE)] = 100,
     ) -> InspectionPage:
         """Stored inspections (of one asset, or all) by asset, date and id, paginated."""
@@ -1003,7 +1007,7 @@ def create_app(config: WebConfig) -> FastAPI:
     @app.get(
         "/api/inspections/{inspection_id}", response_model=InspectionOut, summary="One inspection"
     )
-    def api_inspection(inspection_id: int) -> InspectionOut:
+    def api_inspection(inspection_id: InspectionId) -> InspectionOut:
         return _inspection_out(get_inspection(engine, inspection_id))
 
     @app.get(
@@ -1012,8 +1016,8 @@ def create_app(config: WebConfig) -> FastAPI:
         summary="An inspection's sections",
     )
     def api_sections(
-        inspection_id: int,
-        offset: Annotated[int, Query(ge=0)] = 0,
+        inspection_id: InspectionId,
+        offset: Annotated[int, Query(ge=0, le=2**31 - 1)] = 0,
         limit: Annotated[int, Query(ge=1, le=web_queries.MAX_PAGE_SIZE)] = 500,
     ) -> SectionPage:
         """Sections by chainage, without contours, `limit` at a time; figures of a section
@@ -1052,7 +1056,7 @@ def create_app(config: WebConfig) -> FastAPI:
         response_model=list[DefectOut],
         summary="An inspection's defects",
     )
-    def api_defects(inspection_id: int) -> list[DefectOut]:
+    def api_defects(inspection_id: InspectionId) -> list[DefectOut]:
         get_inspection(engine, inspection_id)
         return [
             DefectOut(
