@@ -5,6 +5,7 @@ frame where one frame covers only part of the view), and scored against the simu
     python benchmarks/bench_instruments.py                 # 32 draws, two at a time
     python benchmarks/bench_instruments.py --count 8 --only rosette
     python benchmarks/bench_instruments.py --before        # without the scan's instrument
+    python benchmarks/bench_instruments.py --findings      # issue 50's three findings
 
 Each row is one draw (``pipescan.simulator.sweep.instrument_draws``): the instrument estimated
 from the scan, the fully seen sections away from defect edges and the share of them measured
@@ -144,6 +145,64 @@ def run_draw(name: str, count: int, seed: int, before: bool = False) -> dict:
     }
 
 
+FINDINGS = {
+    "early returns 0.5 % at 20-100 % of the range, every frame": (0.005, 1.0, 1),
+    "rosette, 30 % of the view a frame, the run's own stride": (0.0, 0.3, None),
+    "rosette, 30 % of the view a frame, every frame": (0.0, 0.3, 1),
+}
+"""Issue 50's three findings on pipescan's simulator: an 8 m, 0.6 m pipe with the paper's
+defects, 5 mm range noise, no IMU: (early return share, share of the view a frame, stride)."""
+
+
+def run_finding(name: str, before: bool) -> str:
+    """One finding, before or with the instrument: its row."""
+    import dataclasses
+
+    from pipescan.simulator.scan import Effects, simulate_scan
+    from pipescan.simulator.sweep import (
+        TrueBlockage,
+        defect_scene,
+        measure_scan,
+        score_sections,
+    )
+
+    early, coverage, stride = FINDINGS[name]
+    effects = Effects(
+        range_noise_sigma_m=0.005,
+        range_noise_growth_per_m=0.0,
+        imu=False,
+        spurious_return_ratio=early,
+        spurious_range_ratio=(0.2, 1.0) if early else None,
+    )
+    scene = dataclasses.replace(
+        defect_scene(0.6, 8.0, effects=effects), frame_coverage_ratio=coverage
+    )
+    scan = simulate_scan(scene, 1)
+    started = time.perf_counter()
+    trajectory, sections = measure_scan(scan, frame_stride=stride, instrument=not before)
+    score = score_sections(sections, TrueBlockage(scan))
+    slid = sum(q.fault == "slide" for q in trajectory.quality)
+    used = len(trajectory.frame_indices)
+    return (
+        f"| {name} | {'before' if before else 'now'} | {used} of {len(scan)} | {slid} | "
+        f"{score.ok} | {score.mean_pp:.2f} | {score.max_pp:.2f} | {score.dishonest} "
+        f"({score.worst_pp:.1f}) | {trajectory.quality[-1].chainage_uncertainty_m:.2f} | "
+        f"{time.perf_counter() - started:.0f} |"
+    )
+
+
+def findings(workers: int) -> None:
+    print(
+        "| finding | version | frames read | slid | ok | mean pp | max pp | dishonest (worst pp) "
+        "| ± end m | s |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        flush=True,
+    )
+    jobs = [(name, before) for name in FINDINGS for before in (True, False)]
+    with ProcessPoolExecutor(workers) as pool:
+        for line in pool.map(run_finding, *zip(*jobs, strict=True)):
+            print(line, flush=True)
+
+
 def row(r: dict) -> str:
     share = r["ok"] / r["seen"] if r["seen"] else float("nan")
     return (
@@ -167,7 +226,16 @@ def main() -> None:
         action="store_true",
         help="leave the scan's instrument out: pipescan as it measured before it read it",
     )
+    parser.add_argument(
+        "--findings",
+        action="store_true",
+        help="issue 50's three findings (early returns, a rosette with and without the stride), "
+        "before and with the instrument",
+    )
     args = parser.parse_args()
+    if args.findings:
+        findings(args.workers)
+        return
     from pipescan.simulator.sweep import instrument_draws
 
     names = [d.name for d in instrument_draws(args.count, args.seed)]
