@@ -36,6 +36,8 @@ _SECTION = struct.Struct("<B7sQQQ")  # id, reserved, logical length, data and in
 _COMPRESSED_VECTOR_SECTION = 1
 _READ_BLOCK = 1 << 20
 _DEFAULT_INTEGER = (-(2**63), 2**63 - 1)
+_SECTION_KINDS = ("CompressedVector", "Blob")
+_MAX_KEPT_NODES = 100_000  # elements inside point prototypes: a scan has a few dozen fields
 _DECLARED_HINT = (
     "the file was not written by an E57 exporter: export it again from the scan software"
 )
@@ -54,8 +56,10 @@ class _Node:
     name: str
     type: str
     attrs: dict[str, str]
-    children: list[_Node] = field(default_factory=list)
+    children: list[_Node] = field(default_factory=list)  # kept inside a section's element only
     path: str = ""
+    seen: dict[str, int] = field(default_factory=dict)  # children by name, for their paths
+    keep: bool = False  # a section's element (CompressedVector, Blob) or inside one
 
 
 @dataclass(frozen=True)
@@ -134,6 +138,8 @@ class _Parser:
         self.parser = p
         self.stack: list[_Node] = []
         self.root: _Node | None = None
+        self.sections: list[_Node] = []
+        self.kept = 0
 
     def _doctype(self, name, *args) -> None:
         raise _Refused(
@@ -164,21 +170,31 @@ class _Parser:
                 )
         local = name.rsplit(" ", 1)[-1].rsplit(":", 1)[-1]
         parent = self.stack[-1] if self.stack else None
+        kind = attrs.get("type", "")
         if parent is None:
-            path = ""
-        else:
-            same = sum(1 for c in parent.children if c.name == local)
-            path = f"{parent.path}/{local}" + (f"[{same}]" if local == "vectorChild" else "")
-            path = path.replace("//", "/")
-        node = _Node(local, attrs.get("type", ""), dict(attrs), path=path)
-        if parent is not None:
-            parent.children.append(node)
-        else:
+            node = _Node(local, kind, {}, path="")
             self.root = node
+        else:
+            same = parent.seen.get(local, 0)
+            parent.seen[local] = same + 1
+            path = f"{parent.path}/{local}" + (f"[{same}]" if local == "vectorChild" else "")
+            keep = parent.keep or kind in _SECTION_KINDS
+            # Only a section's element and what is inside it are kept (for its records' bits):
+            # memory stays with the depth, whatever the XML's length.
+            node = _Node(local, kind, dict(attrs) if keep else {}, path=path, keep=keep)
+            if keep:
+                self.kept += 1
+                if self.kept > _MAX_KEPT_NODES:
+                    raise _Refused(f"the XML's point prototypes hold over {_MAX_KEPT_NODES:,} "
+                                   "elements")  # fmt: skip
+                if parent.keep:
+                    parent.children.append(node)
         self.stack.append(node)
 
     def _end(self, name: str) -> None:
-        self.stack.pop()
+        node = self.stack.pop()
+        if node.type in _SECTION_KINDS:
+            self.sections.append(node)
 
     def feed(self, data: bytes, final: bool) -> None:
         try:
@@ -188,14 +204,9 @@ class _Parser:
                            f"{exc.lineno})") from None  # fmt: skip
 
 
-def _sections(root: _Node) -> list[Section]:
+def _sections(nodes: list[_Node]) -> list[Section]:
     found: list[Section] = []
-    walk = [root]
-    while walk:
-        node = walk.pop()
-        walk.extend(reversed(node.children))
-        if node.type not in ("CompressedVector", "Blob"):
-            continue
+    for node in nodes:
         try:
             offset = int(node.attrs["fileOffset"])
             if node.type == "CompressedVector":
@@ -290,7 +301,7 @@ def check_layout(path: Path, where: Where) -> None:
             parser.feed(b"", final=True)
             if parser.root is None:
                 raise _Refused("the XML has no root element")
-            _check_sections(fh, _sections(parser.root), size)
+            _check_sections(fh, _sections(parser.sections), size)
     except _Refused as exc:
         if exc.declared:
             raise where.error(exc.reason, field=exc.field, hint=_DECLARED_HINT) from None
