@@ -83,8 +83,8 @@ SIGNIFICANT_CHANGE_RATIO = 0.02
 2 percentage points over the years the surveys span.
 
 A measured section's blockage is within 1 pp of the truth in the accuracy sweeps (largest
-error 0.94 pp over six seeds, README), so two surveys of an unchanged pipe can read it up to
-2 pp apart whatever their errors. The repeatability sweep (``python
+error 0.94 pp over six seeds, docs/how-it-works.md), so two surveys of an unchanged pipe can
+read it up to 2 pp apart whatever their errors. The repeatability sweep (``python
 benchmarks/bench_repeatability.py``: five surveys of one unchanged pipe, sensor and crawler
 effects drawn at random around realistic values) stays inside that, but for one fault: one
 section read up to 1.5 pp apart (95 % of pairs within 0.6 pp), the peak blockage up to 0.07 pp
