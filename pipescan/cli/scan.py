@@ -223,6 +223,17 @@ def _checked_settings(contour: str | None, registration: str | None):
     return settings
 
 
+def _refuse_secret_early(archive: str) -> None:
+    """Refuse an archive URL holding a secret before anything is said or started (the check
+    itself, with Prefect's import, only when fsspec's reading of the URL finds one)."""
+    from pipescan.storage.input.urls import url_secret
+
+    if url_secret(archive) is not None:
+        from pipescan.flows.network import refuse_password_in_url
+
+        refuse_password_in_url(archive, "archive")
+
+
 def _first_look(archive: str, settings) -> None:
     """Open a local archive, check its metadata, layout and first and last point files, and
     say what it holds: the run's first lines, before Prefect starts (a bad archive fails here
@@ -517,6 +528,7 @@ def inspect(
 
             output_format(report, option="--report", what="report", formats=("pdf",), bare="pdf")
             check_report_path(report)
+        _refuse_secret_early(archive)  # before any line names the archive
         _first_look(archive, settings)  # the first lines: before the checks that load scipy
         checked = _checked_settings(contour, registration)
         _say_prefect_starts()  # the next import is Prefect's
