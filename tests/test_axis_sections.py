@@ -92,12 +92,14 @@ def test_sections_measure_deposit_span_at_the_right_chainage():
     cloud = pipe_cloud(length_m=4.0, deposit=(1.5, 2.5, 0.1), rng=rng)
     prof = _blockage_profile(cloud, np.eye(4), np.array([0, 0, 1.0]))
     expected = segment_area_ratio(0.1, R)
-    for c, s in prof.items():
-        if 1.6 <= c < 2.4:
-            assert s.status.value == "ok"
-            assert s.blockage_ratio == pytest.approx(expected, abs=0.005)
-        elif 0.2 <= c < 1.4 or 2.6 <= c < 3.8:
-            assert s.blockage_ratio == pytest.approx(0.0, abs=0.005)
+    on_deposit = [s for c, s in prof.items() if 1.6 <= c < 2.4]
+    clear = [s for c, s in prof.items() if 0.2 <= c < 1.4 or 2.6 <= c < 3.8]
+    assert len(on_deposit) == 8 and len(clear) == 24, sorted(prof)
+    for s in on_deposit:
+        assert s.status.value == "ok"
+        assert s.blockage_ratio == pytest.approx(expected, abs=0.005)
+    for s in clear:
+        assert s.blockage_ratio == pytest.approx(0.0, abs=0.005)
 
 
 @settings(max_examples=3, deadline=None)
@@ -108,9 +110,10 @@ def test_blockage_invariant_under_rigid_motion_and_shuffle(seed):
     base = _blockage_profile(cloud, np.eye(4), np.array([0, 0, 1.0]))
     T = random_rigid(rng)
     moved = _blockage_profile(cloud[rng.permutation(len(cloud))], T, T[:3, 2])
-    for c in base:
-        if 0.3 <= c < 3.7 and base[c].is_ok:
-            assert moved[c].blockage_ratio == pytest.approx(base[c].blockage_ratio, abs=0.004)
+    compared = [c for c in base if 0.3 <= c < 3.7 and base[c].is_ok]
+    assert len(compared) >= 20, compared  # of the 34 sections in range, most are ok
+    for c in compared:
+        assert moved[c].blockage_ratio == pytest.approx(base[c].blockage_ratio, abs=0.004)
 
 
 def _profile(cloud, axis):

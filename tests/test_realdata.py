@@ -19,6 +19,7 @@ from pipescan.core.grading import grade_sections, load_table, merge_defects
 from pipescan.core.model import SectionStatus
 from pipescan.core.sections import measure_window, plan_windows
 from pipescan.storage.input.pointfiles import read_points
+from tests.conftest import _in_ci
 
 # The shared data sit beside the repository (CI); PIPESCAN_REALDATA_DIR points elsewhere (a
 # worktree whose parent has no shared/).
@@ -34,7 +35,10 @@ LABEL_BLOCKAGE = 2  # the file's fourth column: a segmentation model's label (PR
 def scan():
     path = REAL / "real_459_full.txt"
     if not path.exists():
-        pytest.skip(f"the real scan is not at {path} (set PIPESCAN_REALDATA_DIR)")
+        message = f"the real scan is not at {path} (set PIPESCAN_REALDATA_DIR)"
+        if _in_ci():
+            pytest.fail(f"{message} (CI is set: CI has ../shared/realdata)", pytrace=False)
+        pytest.skip(message)
     points = read_points(path, kind="cloud")  # x y z label: the label column is ignored
     return points, fit_axis(points), np.loadtxt(path)[:, 3]
 

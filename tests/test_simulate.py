@@ -392,9 +392,10 @@ def test_paper_blockage_spans_table_1(paper_sections):
 
 
 def test_no_defect_in_the_first_metres(paper_sections):
-    for s in paper_sections:
-        if s.chainage_end_m <= 1.3:
-            assert abs(s.blockage_ratio) < 1e-9
+    first = [s for s in paper_sections if s.chainage_end_m <= 1.3]
+    assert len(first) == 13
+    for s in first:
+        assert abs(s.blockage_ratio) < 1e-9
 
 
 def test_shadow_behind_the_obstacle(paper_sections):
