@@ -18,7 +18,7 @@ from typer.testing import CliRunner
 
 from pipescan.cli import app
 from pipescan.core.errors import GeometryError
-from pipescan.flows.network import format_network_summary, inspect_network
+from pipescan.flows.network import NetworkIncomplete, format_network_summary, inspect_network
 from pipescan.settings import use_settings
 from pipescan.simulator.archive import read_ground_truth
 from pipescan.storage.database.db import StorageError, connect, upgrade
@@ -107,7 +107,9 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
     # An archive not stored: the run is not green, its message names it.
     assert first_state.is_failed(), first_state
     assert "MH99-BAD" in first_state.message and "own content" in first_state.message
-    first = first_state.result(raise_on_failure=False).summary
+    incomplete = first_state.result(raise_on_failure=False)
+    assert isinstance(incomplete, NetworkIncomplete), (first_state, incomplete)
+    first = incomplete.summary
 
     assert first.counts == _counts(inspected=2, failed=1)
     [failed] = first.failures
@@ -151,7 +153,9 @@ def test_a_bad_archive_fails_alone_and_a_rerun_reuses_what_is_stored(
 
     monkeypatch.setattr("pipescan.tasks.reporting.render_network_report", broken)
     second_state = inspect_network(**run, return_state=True)
-    second = second_state.result(raise_on_failure=False).summary
+    incomplete = second_state.result(raise_on_failure=False)
+    assert isinstance(incomplete, NetworkIncomplete), (second_state, incomplete)
+    second = incomplete.summary
     assert second.counts == _counts(reused=2, failed=1)
     assert [o.label for o in second.outcomes] == ["MH0-MH1", "MH1-MH2", "MH99-BAD"]
     assert [o.inspection_id for o in second.outcomes[:2]] == ids
