@@ -82,11 +82,10 @@ def engine_processes(enabled: bool = True, runner: TaskRunner | None = None) -> 
 def engine_threads() -> int:
     """Threads a native engine may use within one task of the running flow.
 
-    small_gicp holds the GIL for the whole of each call (two threads registering one chunk
-    each took as long as one thread registering both, measured on this project's 2-core
-    machine), so on a thread pool two chunks never register at the same time: each call
-    then uses as many threads as the pool has workers, at most the machine's cores. Under a
-    process pool or Dask every task has its own interpreter and core: 1.
+    small_gicp holds the GIL for the whole of each call, so on a thread pool two chunks never
+    register at the same time: each call then uses as many threads as the pool has workers,
+    at most the machine's cores (docs/throughput.md, *The design*). Under a process pool or
+    Dask every task has its own interpreter and core: 1.
     """
     return max(1, _thread_workers())
 
@@ -99,10 +98,8 @@ def limit_library_threads(threads: int) -> None:
 
     pipescan keeps the cores busy itself (task workers, the engine pool). The libraries would
     otherwise split large products and loops over every core and keep their threads spinning
-    after them, on cores that other work needs. Placing a 262,144-point block on a straight
-    axis took 23.5 ms of CPU with OpenBLAS's two threads and 7.4 ms with one (11.9 and 7.5 ms
-    of wall time); registering a frame in memory 22.5-25.8 ms with OpenMP's two and 21.6-24.3
-    ms with one. The results are the same to the bit (docs/throughput.md, *Library threads*).
+    after them, on cores that other work needs: one thread costs less CPU for the same result
+    to the bit (the figures: docs/throughput.md, *Library threads*).
     """
     from threadpoolctl import threadpool_limits
 

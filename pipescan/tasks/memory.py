@@ -3,11 +3,10 @@
 glibc's allocator serves a freed block of up to 32 MB again from its heap instead of
 returning it (its mmap threshold rises to the largest block freed so far). The section tasks
 allocate and free arrays of every size up to that, and the holes they leave in the heap stay
-resident: a 30 m run ended holding 741 MB, and its peak was 1.14× a 10 m run's. Trimming
-after each bucketing and measuring task took that to 1.02× (``docs/throughput.md``,
-*Memory*; most of the growth up to 100 m was something else, placing whole chunks at once).
-``malloc_trim`` gives the free pages of every arena back: about 11 ms with 330 MB of holes,
-0.1 ms with none; it changes no figure.
+resident, so the peak would grow with the pipe. Trimming after each bucketing and measuring
+task keeps it flat (``docs/throughput.md``, *The design*, **Memory**; the measurements:
+``docs/history/code-comments.md``). ``malloc_trim`` gives the free pages of every arena
+back, in milliseconds, and changes no figure.
 """
 
 from __future__ import annotations
