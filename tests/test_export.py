@@ -15,7 +15,8 @@ import pytest
 import sqlalchemy as sa
 
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures, SectionStatus
-from pipescan.storage.database import db, export, repository
+from pipescan.exports import tables as export
+from pipescan.storage.database import db, repository
 from pipescan.storage.database.models import Section
 
 DOCUMENTED_COLUMNS = (

@@ -31,8 +31,8 @@ from pipescan.core.network import (
     length_note,
     orient,
 )
+from pipescan.exports.gis import GisError, export_gis
 from pipescan.storage.database import db, repository
-from pipescan.storage.database.gis import GisError, export_gis
 from pipescan.storage.database.network import (
     asset_geometries,
     gis_ids,
@@ -618,7 +618,7 @@ def test_cli_network_import_and_export(network, tmp_path: Path) -> None:
 def test_isybau_names_an_imported_pipe_by_its_gis_id(network, tmp_path: Path) -> None:
     from datetime import date
 
-    from pipescan.storage.database.isybau import IsybauHeader, export_isybau, validation_errors
+    from pipescan.exports.isybau import IsybauHeader, export_isybau, validation_errors
 
     engine, _ = network
     out = tmp_path / "sw2.xml"

@@ -18,8 +18,8 @@ from typer.testing import CliRunner
 
 from pipescan.cli import app
 from pipescan.core.model import Defect, InspectionMeta, SectionMeasures, SectionStatus
-from pipescan.storage.database import db, isybau, repository
-from pipescan.storage.database.isybau import (
+from pipescan.exports import isybau
+from pipescan.exports.isybau import (
     EMITTED_CODES,
     END_CODE,
     NAMESPACE,
@@ -30,6 +30,7 @@ from pipescan.storage.database.isybau import (
     build_isybau,
     validation_errors,
 )
+from pipescan.storage.database import db, repository
 
 SAMPLE = Path(__file__).parent / "data" / "isybau-sample-zustandsdaten-en13508-2.xml.gz"
 NS = {"i": NAMESPACE}

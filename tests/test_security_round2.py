@@ -289,7 +289,7 @@ def test_an_interrupted_atomic_write_leaves_nothing(tmp_path) -> None:
 
 
 def test_csv_export_does_not_write_through_a_planted_link(tmp_path) -> None:
-    from pipescan.cli.data import _write_atomically
+    from pipescan.cli.export import _write_atomically
 
     victim, before = _victim(tmp_path)
     out = tmp_path / "share"
@@ -312,8 +312,8 @@ def gis_db(tmp_path):
 def test_gis_and_isybau_exports_do_not_write_through_planted_links(gis_db, tmp_path) -> None:
     from datetime import date
 
-    from pipescan.storage.database.gis import export_gis
-    from pipescan.storage.database.isybau import IsybauHeader, export_isybau
+    from pipescan.exports.gis import export_gis
+    from pipescan.exports.isybau import IsybauHeader, export_isybau
 
     engine, _ = gis_db
     victim, before = _victim(tmp_path)

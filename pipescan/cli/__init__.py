@@ -6,7 +6,7 @@ registers its commands on the shared ``app`` when imported.
 """
 
 from pipescan.cli import scan  # noqa: I001  (scan commands list first in --help)
-from pipescan.cli import data, exchange, network, reports, serve, trends
+from pipescan.cli import data, exchange, export, network, reports, serve, trends
 from pipescan.cli._app import app
 
-__all__ = ["app", "data", "exchange", "network", "reports", "scan", "serve", "trends"]
+__all__ = ["app", "data", "exchange", "export", "network", "reports", "scan", "serve", "trends"]

@@ -1,8 +1,8 @@
-"""Commands over stored results: ``export``, ``assets``, ``inspections``, ``db``."""
+"""Commands over the database: ``assets``, ``inspections``, ``db`` (the exports are in
+:mod:`pipescan.cli.export`)."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -16,9 +16,8 @@ from pipescan.cli._app import (
     _stored_db_url,
     app,
     db_app,
-    export_app,
 )
-from pipescan.core.errors import OptionError, PipescanError
+from pipescan.core.errors import PipescanError
 from pipescan.core.sanitize import escape_control, strip_credentials
 from pipescan.core.wording import plural
 
@@ -28,91 +27,6 @@ FormatOption = Annotated[ExportFormat, typer.Option("--format", help="Output for
 OutputOption = Annotated[
     Path | None, typer.Option("-o", "--output", help="File (default, or -: stdout).")
 ]
-
-
-@export_app.command("sections")
-def export_sections(
-    asset: AssetOption = None,
-    inspection: InspectionOption = None,
-    fmt: FormatOption = ExportFormat.csv,
-    output: OutputOption = None,
-    db: DbOption = None,
-) -> None:
-    """One row per section, with the column names of docs/measures.md."""
-    from pipescan.storage.database import export
-
-    fn = export.export_sections_csv if fmt == ExportFormat.csv else export.export_sections_jsonl
-    _export(fn, asset, inspection, output, db)
-
-
-@export_app.command("defects")
-def export_defects(
-    asset: AssetOption = None,
-    inspection: InspectionOption = None,
-    fmt: FormatOption = ExportFormat.csv,
-    output: OutputOption = None,
-    db: DbOption = None,
-) -> None:
-    """One row per merged defect."""
-    from pipescan.storage.database import export
-
-    fn = export.export_defects_csv if fmt == ExportFormat.csv else export.export_defects_jsonl
-    _export(fn, asset, inspection, output, db)
-
-
-def _export(fn, asset, inspection, output, db) -> None:
-    from pipescan.storage.database.db import connect
-
-    if output == Path("-"):  # the usual name for stdout, not a file called "-"
-        output = None
-    try:
-        engine = connect(_stored_db_url(db))
-        try:
-            _check_selection(engine, asset, inspection)
-            if output is None:
-                n = fn(engine, sys.stdout, asset_id=asset, inspection_id=inspection)
-            else:
-                n = _write_atomically(
-                    output, lambda fh: fn(engine, fh, asset_id=asset, inspection_id=inspection)
-                )
-        finally:
-            engine.dispose()
-    except PipescanError as exc:
-        _fail(exc)
-    if output is not None:
-        typer.echo(f"wrote {plural(n, 'row')} to {output}", err=True)
-    elif n == 0:
-        typer.echo("no rows: the database holds no inspections yet", err=True)
-
-
-def _check_selection(engine, asset: str | None, inspection: int | None) -> None:
-    """An unknown inspection or asset is an error, not an empty export."""
-    from pipescan.storage.database.repository import get_inspection, require_asset
-
-    if inspection is not None:
-        record = get_inspection(engine, inspection)
-        if asset is not None and record.asset_id != asset:
-            raise OptionError(
-                f"inspection {inspection} is of asset {record.asset_id!r}, not {asset!r}",
-                hint="give one of --asset and --inspection, or both of one inspection",
-            )
-    elif asset is not None:
-        require_asset(engine, asset)
-
-
-def _write_atomically(output: Path, write) -> int:
-    """Write through a temporary file beside ``output`` (its folder created), renamed into
-    place at the end: an interrupted export leaves no half-written file under the name."""
-    from pipescan.storage.atomic import atomic_file
-
-    try:
-        output.parent.mkdir(parents=True, exist_ok=True)
-        # A new file of a random name (O_EXCL, no link followed), renamed onto ``output``.
-        with atomic_file(output, "w", newline="", encoding="utf-8") as fh:
-            n = write(fh)
-    except OSError as exc:
-        raise OptionError(f"cannot write {output}: {exc.strerror or exc}") from exc
-    return n
 
 
 @app.command()

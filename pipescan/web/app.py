@@ -1306,7 +1306,7 @@ def _generate(
 
         return render_pdf(load_report_input(url, inspection_id), folder / "report.pdf").read_bytes()
     if kind in (DownloadKind.csv, DownloadKind.jsonl):
-        from pipescan.storage.database.export import export_sections_csv, export_sections_jsonl
+        from pipescan.exports.tables import export_sections_csv, export_sections_jsonl
 
         write = export_sections_csv if kind is DownloadKind.csv else export_sections_jsonl
         target = folder / "sections"
@@ -1314,7 +1314,7 @@ def _generate(
             write(engine, out, inspection_id=inspection_id)
         return target.read_bytes()
     if kind is DownloadKind.xml:
-        from pipescan.storage.database.isybau import IsybauHeader, created_today, export_isybau
+        from pipescan.exports.isybau import IsybauHeader, created_today, export_isybau
 
         target = folder / "isybau.xml"
         export_isybau(
@@ -1324,7 +1324,7 @@ def _generate(
             inspection_id=inspection_id,
         )
         return target.read_bytes()
-    from pipescan.storage.database.gis import export_gis
+    from pipescan.exports.gis import export_gis
 
     target = folder / "pipe.gpkg"
     export_gis(engine, target, fmt="gpkg", inspection_id=inspection_id, with_sections=True)
