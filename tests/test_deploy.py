@@ -350,6 +350,7 @@ def test_a_worker_runs_the_deployment_with_its_own_settings_and_no_secret_reache
     try:
         done = _wait(server, server.run_deployment("inspect-network/worked"))
         assert done["state_type"] == "COMPLETED", (done, worker.log()[-3000:])
+        assert any("[1/1] MH0-MH1 inspected in" in m for m in _logs(server, done["id"]))
         # Forcing a full re-run: the documented parameter, through Prefect's own CLI.
         forced = subprocess.run(
             [PREFECT, "deployment", "run", "inspect-network/worked", "--param",
@@ -364,7 +365,9 @@ def test_a_worker_runs_the_deployment_with_its_own_settings_and_no_secret_reache
         worker.stop()
     engine = connect(postgres_url)
     try:
-        [stored] = list_inspections(engine)
+        rows = list_inspections(engine)
+        assert len(rows) == 1, [(r.id, r.asset_id, r.archive_uri, r.inspected_at) for r in rows]
+        [stored] = rows
     finally:
         engine.dispose()
     assert stored.asset_id == asset_id(0)
