@@ -16,6 +16,7 @@ from typing import Any, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pipescan.core.grading import DEFAULT_TABLE, FlagRule
 from pipescan.storage.input.limits import InputLimits
 from pipescan.storage.input.network_layer import LayerLimits
 
@@ -78,12 +79,12 @@ class Settings(BaseSettings):
         "process of a run; pipescan runs its own work in parallel, and more only spin on the "
         "same cores (docs/throughput.md)",
     )
-    threshold_table: str = "vsa-2023"
+    threshold_table: str = DEFAULT_TABLE
     pipe_class: Literal["auto", "rigid", "flexible"] = Field(
         "auto", description="BAA deformation rule: from the archive's material, or set for a run"
     )
-    blockage_threshold_ratio: float = Field(0.10, ge=0, le=1)
-    flag_grade: int = Field(2, ge=0, le=4)
+    blockage_threshold_ratio: float = Field(FlagRule.blockage_threshold_ratio, ge=0, le=1)
+    flag_grade: int = Field(FlagRule.flag_grade, ge=0, le=4)
     dask_address: str | None = Field(
         None, description="Dask scheduler (tcp://host:8786) that runs the tasks; none: local pool"
     )

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, replace
 from importlib import resources
 from itertools import pairwise
@@ -50,6 +50,7 @@ from pipescan.core.summary import peak_blockage
 __all__ = [
     "DEFAULT_TABLE",
     "GRADEABLE_MEASURES",
+    "FlagRule",
     "GradeRule",
     "GradingChoice",
     "ThresholdTable",
@@ -70,6 +71,40 @@ __all__ = [
 PipeClass = Literal["rigid", "flexible"]
 
 DEFAULT_TABLE = "vsa-2023"
+
+
+@dataclass(frozen=True)
+class FlagRule:
+    """The report's threshold: a section or defect is flagged at ``blockage_threshold_ratio``
+    blockage or more, or at condition class ``flag_grade`` or worse (:func:`flag_section`,
+    :func:`is_flagged`). The one place its defaults are written.
+
+    >>> FlagRule.from_params({"flag_grade": 1}).kwargs()
+    {'blockage_threshold_ratio': 0.1, 'flag_grade': 1}
+    """
+
+    blockage_threshold_ratio: float = 0.10
+    flag_grade: int = 2
+
+    @classmethod
+    def from_params(cls, params: Mapping[str, Any]) -> FlagRule:
+        """The rule an inspection was stored with (its parameters), the defaults where a
+        parameter is missing."""
+        return cls(
+            blockage_threshold_ratio=params.get(
+                "blockage_threshold_ratio", cls.blockage_threshold_ratio
+            ),
+            flag_grade=params.get("flag_grade", cls.flag_grade),
+        )
+
+    def kwargs(self) -> dict[str, Any]:
+        """As the keyword arguments of :func:`flag_section` and :func:`is_flagged`."""
+        return {
+            "blockage_threshold_ratio": self.blockage_threshold_ratio,
+            "flag_grade": self.flag_grade,
+        }
+
+
 #: The SectionMeasures columns a rule may grade. All are ratios (fractions).
 GRADEABLE_MEASURES = frozenset(
     {"deformation_ratio", "deposit_height_ratio", "blockage_ratio", "ovality_ratio"}
@@ -570,7 +605,10 @@ def grade_sections(
 
 
 def flag_section(
-    s: SectionMeasures, *, blockage_threshold_ratio: float = 0.10, flag_grade: int = 2
+    s: SectionMeasures,
+    *,
+    blockage_threshold_ratio: float = FlagRule.blockage_threshold_ratio,
+    flag_grade: int = FlagRule.flag_grade,
 ) -> bool:
     """Whether a section is over the report's threshold.
 
@@ -596,7 +634,10 @@ def flag_section(
 
 
 def is_flagged(
-    defect: Defect, *, blockage_threshold_ratio: float = 0.10, flag_grade: int = 2
+    defect: Defect,
+    *,
+    blockage_threshold_ratio: float = FlagRule.blockage_threshold_ratio,
+    flag_grade: int = FlagRule.flag_grade,
 ) -> bool:
     """Whether a defect is over the report's threshold: its class is ``flag_grade`` or worse,
     or its peak blockage is at or above ``blockage_threshold_ratio``."""
@@ -656,8 +697,8 @@ def merge_defects(
     sections: Sequence[SectionMeasures],
     table: ThresholdTable,
     *,
-    blockage_threshold_ratio: float = 0.10,
-    flag_grade: int = 2,
+    blockage_threshold_ratio: float = FlagRule.blockage_threshold_ratio,
+    flag_grade: int = FlagRule.flag_grade,
     pipe_class: PipeClass = "rigid",
     codings: Sequence[SectionCoding | None] | None = None,
     params: CodingParams = CodingParams(),
@@ -711,7 +752,7 @@ def merge_defects(
         raise ValueError(f"{len(codings)} codings for {len(sections)} sections")
     order = sorted(range(len(sections)), key=lambda i: sections[i].chainage_start_m)
     ordered = [sections[i] for i in order]
-    flags = {"blockage_threshold_ratio": blockage_threshold_ratio, "flag_grade": flag_grade}
+    flags = FlagRule(blockage_threshold_ratio, flag_grade).kwargs()
     coded: list[SectionCoding | None] = []
     for i in order:
         s, c = sections[i], codings[i]

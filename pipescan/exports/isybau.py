@@ -39,6 +39,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from pipescan.core.errors import PipescanError
+from pipescan.core.grading import DEFAULT_TABLE
 from pipescan.core.model import Defect
 from pipescan.core.summary import worst_grade
 from pipescan.storage.atomic import atomic_file
@@ -284,7 +285,7 @@ def _describe(inspection: IsybauInspection) -> _Pipe:
         )
     pipe.remarks.append(
         f"Condition classes are pipescan's (0 worst, 4 best) under the threshold table "
-        f"{record.threshold_table or 'vsa-2023'}, not an ISYBAU assessment; characterisations "
+        f"{record.threshold_table or DEFAULT_TABLE}, not an ISYBAU assessment; characterisations "
         "are left out: a LiDAR scan measures shape, not material"
     )
 

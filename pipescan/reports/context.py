@@ -16,6 +16,7 @@ from datetime import datetime
 from typing import Any, TypeGuard
 
 from pipescan.core.grading import (
+    FlagRule,
     ThresholdTable,
     flag_section,
     is_flagged,
@@ -912,10 +913,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
     defects = sorted(inp.defects, key=lambda d: d.chainage_start_m)
     # Every coded defect is listed; those over the report's threshold are flagged, and only
     # they are shaded on the chart and marked in the section tables.
-    flags = {
-        "blockage_threshold_ratio": inp.blockage_threshold_ratio,
-        "flag_grade": inp.flag_grade,
-    }
+    flags = FlagRule(inp.blockage_threshold_ratio, inp.flag_grade).kwargs()
     flagged = [d for d in defects if is_flagged(d, **flags)]
     limits = MeasureLimits.of(inp.measure_limits)
 

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
+from pipescan.core.grading import FlagRule
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import (
@@ -113,8 +114,8 @@ class NetworkInput:
     pipes: Sequence[PipeInspection]
     generated_at: datetime
     software_version: str
-    blockage_threshold_ratio: float = 0.10
-    flag_grade: int = 2
+    blockage_threshold_ratio: float = FlagRule.blockage_threshold_ratio
+    flag_grade: int = FlagRule.flag_grade
     threshold_tables: Sequence[TableCitation] = ()
     since: datetime | None = None
     title: str = "Network condition summary"

@@ -18,7 +18,7 @@ import numpy as np
 import shapely
 from shapely.geometry import Point, box
 
-from pipescan.core.grading import grade_sections, load_table, merge_defects
+from pipescan.core.grading import DEFAULT_TABLE, grade_sections, load_table, merge_defects
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.reports.context import EarlierInspection, ReportInput, TableCitation
 
@@ -213,7 +213,7 @@ def sample_input(
     asset_id, diameter_m, seed
         The asset, its nominal diameter and the noise seed.
     """
-    table = load_table("vsa-2023")
+    table = load_table(DEFAULT_TABLE)
     sections = grade_sections(
         sample_sections(
             length_m, diameter_m=diameter_m, features=features, unmeasured=unmeasured, seed=seed

@@ -10,7 +10,7 @@ from prefect import task
 from prefect.cache_policies import NO_CACHE
 
 import pipescan
-from pipescan.core.grading import load_table, worst_defect
+from pipescan.core.grading import DEFAULT_TABLE, FlagRule, load_table, worst_defect
 from pipescan.core.wording import plural
 from pipescan.reports.context import (
     EarlierInspection,
@@ -79,7 +79,8 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
     finally:
         engine.dispose()
     params = rec.params or {}
-    table_name = rec.threshold_table or params.get("threshold_table", "vsa-2023")
+    flag_rule = FlagRule.from_params(params)
+    table_name = rec.threshold_table or params.get("threshold_table", DEFAULT_TABLE)
     return ReportInput(
         asset_id=rec.asset_id,
         upstream_node=rec.upstream_node,
@@ -92,7 +93,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         archive_uri=rec.archive_uri,
         software_version=rec.software_version,
         threshold_table=_citation(table_name),
-        blockage_threshold_ratio=params.get("blockage_threshold_ratio", 0.10),
+        blockage_threshold_ratio=flag_rule.blockage_threshold_ratio,
         point_count=rec.point_count,
         frame_count=rec.frame_count,
         scanned_length_m=rec.scanned_length_m,
@@ -100,7 +101,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         sections=sections,
         defects=defects,
         generated_at=datetime.now(UTC),
-        flag_grade=params.get("flag_grade", 2),
+        flag_grade=flag_rule.flag_grade,
         pipe_class=params.get("pipe_class", "rigid"),
         pipe_class_reason=params.get("pipe_class_reason", "set for the run"),
         gis_id=placement.gis_id,
@@ -168,14 +169,14 @@ def load_network_input(
                 length_note=placed[r.asset_id].length_note,
             )
         )
-    first = records[0].params if records else {}
-    table_names = sorted({r.threshold_table or "vsa-2023" for r in records})
+    network_rule = FlagRule.from_params((records[0].params or {}) if records else {})
+    table_names = sorted({r.threshold_table or DEFAULT_TABLE for r in records})
     return NetworkInput(
         pipes=pipes,
         generated_at=datetime.now(UTC),
         software_version=pipescan.__version__,
-        blockage_threshold_ratio=first.get("blockage_threshold_ratio", 0.10),
-        flag_grade=first.get("flag_grade", 2),
+        blockage_threshold_ratio=network_rule.blockage_threshold_ratio,
+        flag_grade=network_rule.flag_grade,
         threshold_tables=[_citation(name) for name in table_names],
         since=since,
         failed=list(failed),
