@@ -259,11 +259,11 @@ def network_report_figures(engine: sa.Engine, url: str, label: str) -> None:
     defect counts, and all of it as the report task gathers it (``load_network_input``)."""
     from pipescan.tasks.reporting import load_network_input
 
-    latest = queries.network_inspections(engine)
+    latest = queries.list_network_inspections(engine)
     ids = [r.id for r in latest]
     history = queries.earlier_scans(engine, ids)
     steps = (
-        ("latest inspection of each asset", lambda: queries.network_inspections(engine)),
+        ("latest inspection of each asset", lambda: queries.list_network_inspections(engine)),
         ("earlier scans of each (history)", lambda: queries.earlier_scans(engine, ids)),
         ("their sections, no contours", lambda: queries.section_profiles(engine, ids)),
         ("defect counts", lambda: queries.defect_counts(engine, ids)),
@@ -279,7 +279,7 @@ def network_report_figures(engine: sa.Engine, url: str, label: str) -> None:
         median, best = timed(fn, 3)
         print(f"    {title}: median {median:,.0f} ms, best {best:,.0f} ms")
     one = ids[len(ids) // 2]
-    median, best = timed(lambda: queries.earlier_inspections(engine, one, limit=4), 20)
+    median, best = timed(lambda: queries.list_earlier_inspections(engine, one, limit=4), 20)
     print(
         f"{label} one inspection report's history (earlier scans, 4): median {median:.1f} ms,"
         f" best {best:.1f} ms"

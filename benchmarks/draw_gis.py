@@ -83,11 +83,11 @@ def simulate(store: Path) -> None:
 
 def reaches(db_url: str) -> dict[str, float]:
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.queries import network_inspections, section_profiles
+    from pipescan.storage.database.queries import list_network_inspections, section_profiles
 
     engine = connect(db_url)
     try:
-        records = network_inspections(engine)
+        records = list_network_inspections(engine)
         profiles = section_profiles(engine, [r.id for r in records])
     finally:
         engine.dispose()

@@ -530,7 +530,7 @@ def test_defects_and_frame_quality_round_trip(engine: sa.Engine) -> None:
     inspection_id = save(engine)
     # Ordered by start chainage.
     assert repository.get_defects(engine, inspection_id) == [DEFECTS[1], DEFECTS[0]]
-    assert repository.get_frame_quality(engine, inspection_id) == FRAME_QUALITY
+    assert repository.list_frame_quality(engine, inspection_id) == FRAME_QUALITY
 
 
 def test_params_hash_is_canonical() -> None:
@@ -579,9 +579,9 @@ def test_other_params_or_archive_add_an_inspection(engine: sa.Engine) -> None:
     assert count_rows(engine, "sections") == 15
     assert count_rows(engine, "assets") == 1
     # Same inspection date: the last saved is the latest.
-    assert repository.latest_inspection_id(engine) == third
-    assert repository.latest_inspection_id(engine, "MH1042-MH1043") == third
-    assert repository.latest_inspection_id(engine, "other") is None
+    assert repository.find_latest_inspection_id(engine) == third
+    assert repository.find_latest_inspection_id(engine, "MH1042-MH1043") == third
+    assert repository.find_latest_inspection_id(engine, "other") is None
 
 
 def test_a_failure_after_the_sections_leaves_the_previous_save(
@@ -761,12 +761,12 @@ def test_section_trend(engine: sa.Engine) -> None:
                 sections=[*make_sections()[:2], blocked],
             )
         )
-    trend = repository.get_section_trend(engine, "MH1042-MH1043", 0.25)
+    trend = repository.list_section_trend(engine, "MH1042-MH1043", 0.25)
     assert [p.inspected_at for p in trend] == dates
     assert [p.inspection_id for p in trend] == ids[::-1]
     assert [p.section.chainage_start_m for p in trend] == [0.2] * 3
     assert [p.section.blockage_ratio for p in trend] == pytest.approx([0.0, 0.1, 0.2])
-    assert repository.get_section_trend(engine, "MH1042-MH1043", 0.3) == []
+    assert repository.list_section_trend(engine, "MH1042-MH1043", 0.3) == []
 
 
 def test_missing_inspection_is_named(engine: sa.Engine) -> None:
@@ -774,7 +774,7 @@ def test_missing_inspection_is_named(engine: sa.Engine) -> None:
         repository.get_inspection,
         repository.get_sections,
         repository.get_defects,
-        repository.get_frame_quality,
+        repository.list_frame_quality,
     ):
         with pytest.raises(db.StorageError, match="no inspection with id 4242"):
             get(engine, 4242)

@@ -578,7 +578,7 @@ def test_reports_name_pipes_by_gis_id_and_note_lengths(network) -> None:
     rows = {r["asset_id"]: r for r in ctx["by_grade"]}
     assert rows["MH1-MH2"]["pipe"] == "SW-1" and rows["MH1-MH2"]["asset_note"] == "asset MH1-MH2"
     assert [n["pipe"] for n in ctx["length_notes"]] == ["SW-2"]
-    inspection_id = repository.latest_inspection_id(engine, "MH2-MH3")
+    inspection_id = repository.find_latest_inspection_id(engine, "MH2-MH3")
     report = load_report_input(url, inspection_id)
     assert report.gis_id == "SW-2" and "-10.0 %" in report.length_note
     assert placements(engine, {"MH1-MH2": 10.0})["MH1-MH2"].length_note is None

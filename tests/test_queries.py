@@ -16,9 +16,9 @@ import sqlalchemy as sa
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage.database import db, repository
 from pipescan.storage.database.queries import (
-    earlier_inspections,
     earlier_scans,
-    network_inspections,
+    list_earlier_inspections,
+    list_network_inspections,
     previous_inspections,
     scans_statement,
 )
@@ -94,7 +94,7 @@ def test_latest_per_asset_and_earlier_scans_follow_their_rules(
     by_asset: dict[str, list[repository.InspectionRecord]] = {}
     for r in stored:
         by_asset.setdefault(r.asset_id, []).append(r)
-    latest = network_inspections(engine)
+    latest = list_network_inspections(engine)
     assert [r.id for r in latest] == [max(rs, key=_order).id for _, rs in sorted(by_asset.items())]
     assert latest == [r for r in stored if r.id in {x.id for x in latest}]  # whole records
 
@@ -112,9 +112,11 @@ def test_latest_per_asset_and_earlier_scans_follow_their_rules(
         r.id: reference_earlier(stored, r)[0] for r in latest if reference_earlier(stored, r)
     }
     one = stored[len(stored) // 2]
-    assert [e.id for e in earlier_inspections(engine, one.id)] == reference_earlier(stored, one)
+    assert [e.id for e in list_earlier_inspections(engine, one.id)] == reference_earlier(
+        stored, one
+    )
     with pytest.raises(db.StorageError, match="no inspection with id 99999"):
-        earlier_inspections(engine, 99999)
+        list_earlier_inspections(engine, 99999)
 
 
 def test_one_row_per_scan_for_trends(
@@ -136,9 +138,9 @@ def test_network_selection_filters(
     engine: sa.Engine, stored: list[repository.InspectionRecord]
 ) -> None:
     since = T0 + timedelta(days=300)
-    assert all(r.inspected_at >= since for r in network_inspections(engine, since=since))
+    assert all(r.inspected_at >= since for r in list_network_inspections(engine, since=since))
     chosen = [stored[0].id, stored[-1].id]
-    picked = network_inspections(engine, inspection_ids=chosen)
+    picked = list_network_inspections(engine, inspection_ids=chosen)
     assert {r.id for r in picked} <= set(chosen) and picked
     with pytest.raises(db.StorageError, match="no inspection with id 99999"):
-        network_inspections(engine, inspection_ids=[stored[0].id, 99999])
+        list_network_inspections(engine, inspection_ids=[stored[0].id, 99999])

@@ -278,7 +278,7 @@ def test_trend_at_a_chainage_matches_the_stored_sections(
     cell = result.cell_at(12.03)
     assert result.chainage_start_m[cell] == pytest.approx(12.0)
     # Survey 0 stored the pipe's 12.0-12.1 m at 12.3 m (error +0.3 m).
-    stored = repository.get_section_trend(engine, "P1", 12.35)
+    stored = repository.list_section_trend(engine, "P1", 12.35)
     assert stored[0].section.blockage_ratio == pytest.approx(result.blockage_ratio[0, cell])
     with pytest.raises(db.StorageError, match="outside asset P1's inspected length"):
         result.cell_at(99.0)

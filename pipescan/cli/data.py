@@ -72,13 +72,13 @@ def inspections(
     """List stored inspections: measured sections of all, peak blockage, status, archive."""
     from pipescan.cli.exchange import gis_names, pipe_label
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.repository import list_inspections, require_asset
+    from pipescan.storage.database.repository import get_asset, list_inspections
 
     try:
         engine = connect(_stored_db_url(db))
         try:
             if asset is not None:
-                require_asset(engine, asset)
+                get_asset(engine, asset)
             rows = list_inspections(engine, asset_id=asset)
             names = gis_names(engine, sorted({r.asset_id for r in rows}))
         finally:

@@ -100,7 +100,7 @@ def _export(fn, asset, inspection, output, db) -> None:
 
 def _check_selection(engine, asset: str | None, inspection: int | None) -> None:
     """An unknown inspection or asset is an error, not an empty export."""
-    from pipescan.storage.database.repository import get_inspection, require_asset
+    from pipescan.storage.database.repository import get_asset, get_inspection
 
     if inspection is not None:
         record = get_inspection(engine, inspection)
@@ -110,7 +110,7 @@ def _check_selection(engine, asset: str | None, inspection: int | None) -> None:
                 hint="give one of --asset and --inspection, or both of one inspection",
             )
     elif asset is not None:
-        require_asset(engine, asset)
+        get_asset(engine, asset)
 
 
 def _write_atomically(output: Path, write) -> int:

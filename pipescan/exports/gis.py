@@ -45,7 +45,7 @@ from pipescan.storage.database.queries import (
     defect_counts,
     earlier_scans,
     latest_per_asset_statement,
-    network_inspections,
+    list_network_inspections,
     section_profiles,
 )
 from pipescan.storage.database.repository import (
@@ -113,7 +113,7 @@ def select_inspections(
         latest = latest_per_asset_statement(Inspection.asset_id == asset_id)
         with session_scope(engine) as session:
             return inspection_records(session, record_statement(latest))
-    return network_inspections(engine)
+    return list_network_inspections(engine)
 
 
 # --------------------------------------------------------------------------------------------

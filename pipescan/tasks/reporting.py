@@ -32,9 +32,9 @@ from pipescan.storage.database.network import placements
 from pipescan.storage.database.queries import (
     defect_counts,
     defects_by_inspection,
-    earlier_inspections,
     earlier_scans,
-    network_inspections,
+    list_earlier_inspections,
+    list_network_inspections,
     section_profiles,
 )
 from pipescan.storage.database.repository import get_defects, get_inspection, get_sections
@@ -70,7 +70,7 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
         rec = get_inspection(engine, inspection_id)
         sections = get_sections(engine, inspection_id)
         defects = get_defects(engine, inspection_id)
-        earlier = earlier_inspections(engine, inspection_id, limit=TREND_HISTORY)
+        earlier = list_earlier_inspections(engine, inspection_id, limit=TREND_HISTORY)
         ids = [e.id for e in earlier]
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
@@ -132,7 +132,7 @@ def load_network_input(
     archives that ``failed``."""
     engine = connect(database_url)
     try:
-        records = network_inspections(engine, since=since, inspection_ids=inspection_ids)
+        records = list_network_inspections(engine, since=since, inspection_ids=inspection_ids)
         ids = [r.id for r in records]
         history = earlier_scans(engine, ids)
         profiles = section_profiles(engine, ids)

@@ -33,9 +33,9 @@ from pipescan.storage.database.models import DefectRow, Inspection, Section
 from pipescan.storage.database.repository import (
     InspectionRecord,
     defect_from_row,
+    get_inspection_row,
     inspection_records,
     record_statement,
-    require_inspection,
     section_from_row,
 )
 
@@ -43,11 +43,11 @@ __all__ = [
     "ScanRecord",
     "defect_counts",
     "defects_by_inspection",
-    "earlier_inspections",
     "earlier_scans",
     "earlier_scans_statement",
     "latest_per_asset_statement",
-    "network_inspections",
+    "list_earlier_inspections",
+    "list_network_inspections",
     "previous_inspections",
     "scans_statement",
     "section_profiles",
@@ -190,7 +190,7 @@ def earlier_scans(
     return found
 
 
-def earlier_inspections(
+def list_earlier_inspections(
     engine: Engine, inspection_id: int, *, limit: int | None = None
 ) -> list[ScanRecord]:
     """The earlier scans of the same asset as this inspection, most recent first (see the
@@ -202,7 +202,7 @@ def earlier_inspections(
         If there is no inspection with that id.
     """
     with session_scope(engine) as session:
-        require_inspection(session, inspection_id)
+        get_inspection_row(session, inspection_id)
     return earlier_scans(engine, [inspection_id], limit=limit)[inspection_id]
 
 
@@ -336,7 +336,7 @@ def defects_by_inspection(engine: Engine, inspection_ids: Sequence[int]) -> dict
     return out
 
 
-def network_inspections(
+def list_network_inspections(
     engine: Engine,
     *,
     since: datetime | None = None,

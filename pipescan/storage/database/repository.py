@@ -4,6 +4,9 @@ Every function opens and closes its own session and returns core dataclasses
 (``pipescan.core.model``) or the small frozen records defined here; ORM objects never leave a
 session. Writes are idempotent: saving the same archive with the same processing parameters
 again replaces the earlier inspection, so a retried or re-run task is safe.
+
+A reader's verb says what it does when nothing is stored: ``get_`` raises
+:class:`StorageError`, ``find_`` returns None, ``list_`` returns a list (maybe empty).
 """
 
 from __future__ import annotations
@@ -15,11 +18,11 @@ import json
 import logging
 import math
 import operator
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, date, datetime
 from pathlib import PurePath
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import sqlalchemy as sa
@@ -49,20 +52,20 @@ __all__ = [
     "canonical_params_json",
     "defect_from_row",
     "find_inspection",
+    "find_latest_inspection_id",
+    "get_asset",
     "get_defects",
-    "get_frame_quality",
     "get_inspection",
-    "get_section_trend",
     "get_sections",
     "inspection_records",
-    "latest_inspection_id",
     "list_assets",
+    "list_frame_quality",
     "list_inspections",
+    "list_section_trend",
     "m_to_mm",
     "mm_to_m",
     "params_hash",
     "record_statement",
-    "require_asset",
     "save_inspection",
     "save_inspections",
 ]
@@ -918,37 +921,51 @@ def _no_inspection(inspection_id: int) -> StorageError:
     )
 
 
-def require_inspection(session: Session, inspection_id: int) -> None:
-    """Raise the one "no inspection with id" error when the inspection is not stored."""
-    if session.get(Inspection, inspection_id) is None:
+def get_inspection_row(session: Session, inspection_id: int) -> Inspection:
+    """The stored inspection's row, in a session the caller holds.
+
+    Raises
+    ------
+    StorageError
+        The one "no inspection with id" error, when the inspection is not stored.
+    """
+    row = session.get(Inspection, inspection_id)
+    if row is None:
         raise _no_inspection(inspection_id)
+    return row
 
 
-def require_asset(engine: Engine, asset_id: str) -> None:
-    """Check that an asset is stored.
+def get_asset(engine: Engine, asset_id: str) -> AssetRecord:
+    """One stored asset, with its number of inspections and latest inspection date.
 
     Raises
     ------
     StorageError
         If there is no asset with that id.
     """
-    with session_scope(engine) as session:
-        if session.get(Asset, asset_id) is None:
-            raise StorageError(
-                f"no asset {asset_id!r} in the database",
-                field="asset_id",
-                hint="list the stored assets with `pipescan assets`",
-            )
+    found = _asset_records(engine, Asset.asset_id == asset_id)
+    if not found:
+        raise StorageError(
+            f"no asset {asset_id!r} in the database",
+            field="asset_id",
+            hint="list the stored assets with `pipescan assets`",
+        )
+    return found[0]
 
 
 def list_assets(engine: Engine) -> list[AssetRecord]:
     """Every asset, by asset id, with its number of inspections and latest inspection date."""
+    return _asset_records(engine)
+
+
+def _asset_records(engine: Engine, *where: Any) -> list[AssetRecord]:
     statement = (
         sa.select(
             Asset,
             sa.func.count(Inspection.id),
             sa.func.max(Inspection.inspected_at),
         )
+        .where(*where)
         .outerjoin(Inspection, Inspection.asset_id == Asset.asset_id)
         .group_by(Asset.asset_id)
         .order_by(Asset.asset_id)
@@ -1021,14 +1038,9 @@ def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:
     StorageError
         If there is no inspection with that id.
     """
-    statement = (
-        sa.select(Section)
-        .where(Section.inspection_id == inspection_id)
-        .order_by(Section.chainage_start_mm)
+    return _inspection_rows(
+        engine, inspection_id, Section, section_from_row, Section.chainage_start_mm
     )
-    with session_scope(engine) as session:
-        require_inspection(session, inspection_id)
-        return [section_from_row(row) for row in session.scalars(statement)]
 
 
 def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
@@ -1039,14 +1051,32 @@ def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
     StorageError
         If there is no inspection with that id.
     """
-    statement = (
-        sa.select(DefectRow)
-        .where(DefectRow.inspection_id == inspection_id)
-        .order_by(DefectRow.chainage_start_m, DefectRow.id)
+    return _inspection_rows(
+        engine, inspection_id, DefectRow, defect_from_row, DefectRow.chainage_start_m, DefectRow.id
     )
+
+
+_Row = TypeVar("_Row")
+
+
+def _inspection_rows(
+    engine: Engine,
+    inspection_id: int,
+    model: type[Section] | type[DefectRow] | type[FrameQualityRow],
+    convert: Callable[[Any], _Row],
+    *order_by: Any,
+) -> list[_Row]:
+    """One inspection's rows of ``model``, in ``order_by`` order, each ``convert``-ed.
+
+    Raises
+    ------
+    StorageError
+        If there is no inspection with that id.
+    """
+    statement = sa.select(model).where(model.inspection_id == inspection_id).order_by(*order_by)
     with session_scope(engine) as session:
-        require_inspection(session, inspection_id)
-        return [defect_from_row(row) for row in session.scalars(statement)]
+        get_inspection_row(session, inspection_id)
+        return [convert(row) for row in session.scalars(statement)]
 
 
 def defect_from_row(row: DefectRow) -> Defect:
@@ -1066,7 +1096,7 @@ def defect_from_row(row: DefectRow) -> Defect:
     )
 
 
-def get_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
+def list_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
     """An inspection's per-frame registration quality by frame index.
 
     Raises
@@ -1074,25 +1104,18 @@ def get_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
     StorageError
         If there is no inspection with that id.
     """
-    statement = (
-        sa.select(FrameQualityRow)
-        .where(FrameQualityRow.inspection_id == inspection_id)
-        .order_by(FrameQualityRow.frame_index)
+    return _inspection_rows(
+        engine, inspection_id, FrameQualityRow, _frame_quality_from_row, FrameQualityRow.frame_index
     )
-    with session_scope(engine) as session:
-        require_inspection(session, inspection_id)
-        return [
-            FrameQuality(
-                index=row.frame_index,
-                fitness=row.fitness,
-                rmse_m=row.rmse_m,
-                degenerate=row.degenerate,
-            )
-            for row in session.scalars(statement)
-        ]
 
 
-def latest_inspection_id(engine: Engine, asset_id: str | None = None) -> int | None:
+def _frame_quality_from_row(row: FrameQualityRow) -> FrameQuality:
+    return FrameQuality(
+        index=row.frame_index, fitness=row.fitness, rmse_m=row.rmse_m, degenerate=row.degenerate
+    )
+
+
+def find_latest_inspection_id(engine: Engine, asset_id: str | None = None) -> int | None:
     """The id of the most recent inspection (by ``inspected_at``, then the last saved), of
     one asset or of all; None if there is none."""
     statement = sa.select(Inspection.id).order_by(
@@ -1104,7 +1127,7 @@ def latest_inspection_id(engine: Engine, asset_id: str | None = None) -> int | N
         return session.scalars(statement.limit(1)).first()
 
 
-def get_section_trend(engine: Engine, asset_id: str, chainage_m: float) -> list[TrendPoint]:
+def list_section_trend(engine: Engine, asset_id: str, chainage_m: float) -> list[TrendPoint]:
     """How the section at one chainage of an asset changed across its inspections.
 
     Parameters
