@@ -515,7 +515,7 @@ def _ellipse_coef(inverse: np.ndarray) -> np.ndarray:
 # --- displaced arcs ---------------------------------------------------------------------------
 
 
-def _runs(mask: np.ndarray) -> list[np.ndarray]:
+def _circular_runs(mask: np.ndarray) -> list[np.ndarray]:
     """Circular runs of True in ``mask``, each as an array of bin indices in order."""
     return unseen_runs(~np.asarray(mask, dtype=bool))
 
@@ -525,7 +525,7 @@ def _close_gaps(mask: np.ndarray, gap_bins: int) -> np.ndarray:
     if gap_bins <= 0 or mask.all() or not mask.any():
         return mask
     out = mask.copy()
-    for run in _runs(~mask):
+    for run in _circular_runs(~mask):
         if len(run) <= gap_bins:
             out[run] = True
     return out
@@ -842,7 +842,7 @@ def code_section(
     displaced = _close_gaps(wall_r - radii > threshold, round(p.gap_deg * bins / 360.0))
     tol_m = max(p.chord_tol_ratio * nominal_diameter_m, 2.5 * wall.noise_m)
     reference = wall_r.copy()  # the surface each remaining arc stands off: wall or fill
-    for arc in _runs(displaced):
+    for arc in _circular_runs(displaced):
         if not _covers_invert(arc, bins):
             continue
         chord = _find_chord(radii, angles, wall_r, arc, threshold, tol_m, p)
@@ -883,7 +883,7 @@ def code_section(
     # tapering edge is seen whole (an even band has square edges; a thin chord tapers).
     disp = _smooth3(reference - radii)
     rest = _close_gaps(disp > threshold, round(p.gap_deg * bins / 360.0))
-    runs = _runs(rest)
+    runs = _circular_runs(rest)
     fade = max(2.0 * wall.noise_m, p.fade_ratio * threshold)
     taken = rest.copy()
     for k, arc in enumerate(runs):
@@ -1080,7 +1080,7 @@ class FeatureRun:
             return None, None
         if mask.all():
             return 0.0, 0.0
-        longest = max(_runs(mask), key=len)
+        longest = max(_circular_runs(mask), key=len)
         return _arc_ends(longest, bins)
 
 

@@ -48,7 +48,9 @@ def _finite(value: float | None) -> bool:
     return value is not None and math.isfinite(value)
 
 
-def _runs(sections: Sequence[SectionMeasures], keep: Sequence[bool]) -> list[tuple[float, float]]:
+def _chainage_spans(
+    sections: Sequence[SectionMeasures], keep: Sequence[bool]
+) -> list[tuple[float, float]]:
     """(start, end) chainage spans of touching sections for which ``keep`` is true."""
     return [
         (sections[run.start].chainage_start_m, sections[run.stop - 1].chainage_end_m)
@@ -119,7 +121,7 @@ def blockage_chart_svg(
     """
     ordered = sorted(sections, key=lambda s: s.chainage_start_m)
     measured = [s.is_ok and _finite(s.blockage_ratio) for s in ordered]
-    unmeasured_runs = _runs(ordered, [not s.is_ok for s in ordered])
+    unmeasured_runs = _chainage_spans(ordered, [not s.is_ok for s in ordered])
     x_min_m = min((s.chainage_start_m for s in ordered), default=0.0)
     x_max_m = max((s.chainage_end_m for s in ordered), default=1.0)
     threshold_pct = blockage_threshold_ratio * 100.0

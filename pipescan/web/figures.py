@@ -262,21 +262,14 @@ def network_map_svg(
     return MapResult(Markup("".join(parts)), len(drawn), crs or None, left_out, basemap)
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """(start, stop) index runs where ``mask`` is true."""
-    runs = []
-    k = 0
-    n = mask.size
-    while k < n:
-        if mask[k]:
-            j = k
-            while j < n and mask[j]:
-                j += 1
-            runs.append((k, j))
-            k = j
-        else:
-            k += 1
-    return runs
+def _index_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """(start, stop) index runs where ``mask`` is true, in order.
+
+    >>> _index_runs(np.array([True, True, False, True]))
+    [(0, 2), (3, 4)]
+    """
+    edges = np.flatnonzero(np.diff(np.concatenate(([0], np.asarray(mask, np.int8), [0]))))
+    return [(int(a), int(b)) for a, b in zip(edges[::2], edges[1::2], strict=True)]
 
 
 def profiles_svg(trend: AssetTrend, *, selected_cell: int | None, href_at: str) -> Markup:
@@ -344,7 +337,7 @@ def profiles_svg(trend: AssetTrend, *, selected_cell: int | None, href_at: str) 
     for i in range(n):
         colour = SURVEY_COLOURS[(n - 1 - i) % len(SURVEY_COLOURS)]
         values = trend.blockage_ratio[i]
-        for a, b in _runs(np.isfinite(values)):
+        for a, b in _index_runs(np.isfinite(values)):
             pts = " ".join(
                 f"{_num(x(float(trend.chainage_start_m[c]) + trend.step_m / 2))},"
                 f"{_num(y(100.0 * float(values[c])))}"
@@ -363,13 +356,13 @@ def profiles_svg(trend: AssetTrend, *, selected_cell: int | None, href_at: str) 
         status = trend.section_status[i]
         has_section = np.array([s is not None for s in status])
         measured = np.isfinite(values)
-        for a, b in _runs(measured):
+        for a, b in _index_runs(measured):
             parts.append(
                 f'<rect x="{_num(x(start + a * trend.step_m))}" y="{_num(ly)}" '
                 f'width="{_num(x(start + b * trend.step_m) - x(start + a * trend.step_m))}" '
                 f'height="{lane_h}" fill="{colour}"/>'
             )
-        for a, b in _runs(has_section & ~measured):
+        for a, b in _index_runs(has_section & ~measured):
             x_a, x_b = x(start + a * trend.step_m), x(start + b * trend.step_m)
             parts.append(
                 f'<rect class="unmeasured" x="{_num(x_a)}" y="{_num(ly)}" '
@@ -382,7 +375,7 @@ def profiles_svg(trend: AssetTrend, *, selected_cell: int | None, href_at: str) 
         )
     # Stretches that no inspection measured, hatched across the plot.
     none_measured = np.isfinite(trend.blockage_ratio).sum(axis=0) == 0
-    for a, b in _runs(none_measured):
+    for a, b in _index_runs(none_measured):
         x_a, x_b = x(start + a * trend.step_m), x(start + b * trend.step_m)
         parts.append(
             f'<rect class="unmeasured" x="{_num(x_a)}" y="{top}" '
