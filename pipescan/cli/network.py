@@ -55,11 +55,17 @@ def inspect_network_command(
         typer.Option(min=1, help="Threads per archive for its chunk and window tasks (default 2)."),
     ] = None,
     reports: Annotated[
-        Path | None, typer.Option(help="Also write each inspection's PDF report into this folder.")
+        Path | None,
+        typer.Option(
+            help="Write each inspection's PDF report, and the network report, into this folder."
+        ),
     ] = None,
     network_report: Annotated[
         Path | None,
-        typer.Option(help="Where to write the network report (default in reports/)."),
+        typer.Option(
+            help="Where to write the network report (default: network-<date>-<run>.pdf in the "
+            "--reports folder, else in PIPESCAN_REPORTS_DIR, reports/)."
+        ),
     ] = None,
     no_network_report: Annotated[
         bool, typer.Option("--no-network-report", help="Do not write the network report.")

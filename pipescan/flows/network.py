@@ -558,10 +558,12 @@ def inspect_network(
     params
         None: from the settings, as ``pipescan inspect`` does.
     reports_dir
-        If given, each inspection's PDF report is written there as ``<archive>.pdf``.
+        If given, each inspection's PDF report is written there as ``<archive>.pdf``, and the
+        network report too (unless ``network_report_path`` names another place).
     network_report_path, write_network_report
         Where to write the network report when this pipescan can render one; default
-        ``<PIPESCAN_REPORTS_DIR>/network-<date>-<run name>.pdf``, so that each run keeps its own.
+        ``<reports_dir or PIPESCAN_REPORTS_DIR>/network-<date>-<run name>.pdf``, so that each
+        run keeps its own.
     reuse_stored
         Skip (and summarise) archives already stored with the same content and parameters;
         False processes every archive again (each inspection is still stored once).
