@@ -90,7 +90,7 @@ def refuse_unencoded_password(url: str) -> None:
         )
 
 
-def parse_database_url(url: str) -> URL:
+def parse_database_url(url: str | URL) -> URL:
     """``url`` parsed (SQLAlchemy's ``make_url``).
 
     Raises
@@ -99,6 +99,8 @@ def parse_database_url(url: str) -> URL:
         It cannot be parsed (also a port that is not a number), or its password holds an
         unencoded ``@`` (:func:`refuse_unencoded_password`), in one line.
     """
+    if isinstance(url, URL):
+        return url
     refuse_unencoded_password(url)
     try:
         return make_url(url)
