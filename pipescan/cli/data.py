@@ -3,14 +3,12 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Annotated
 
 import typer
 
 from pipescan.cli._app import (
     DbOption,
-    ExportFormat,
     _db_url,
     _fail,
     _stored_db_url,
@@ -22,11 +20,6 @@ from pipescan.core.sanitize import escape_control, strip_credentials
 from pipescan.core.wording import plural
 
 AssetOption = Annotated[str | None, typer.Option(help="Only this asset.")]
-InspectionOption = Annotated[int | None, typer.Option(help="Only this inspection id.")]
-FormatOption = Annotated[ExportFormat, typer.Option("--format", help="Output format.")]
-OutputOption = Annotated[
-    Path | None, typer.Option("-o", "--output", help="File (default, or -: stdout).")
-]
 
 
 @app.command()

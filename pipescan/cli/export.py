@@ -43,34 +43,28 @@ PipeOption = Annotated[
 OneInspectionOption = Annotated[int | None, typer.Option(help="The inspection id.")]
 
 
-@export_app.command("sections")
-def export_sections(
-    asset: AssetOption = None,
-    inspection: InspectionOption = None,
-    fmt: FormatOption = ExportFormat.csv,
-    output: OutputOption = None,
-    db: DbOption = None,
-) -> None:
-    """One row per section, with the column names of docs/measures.md."""
-    from pipescan.exports import tables
+def _table_command(rows: str, doc: str) -> None:
+    """Register ``export <rows>``: one table of the stored results, CSV or JSON Lines
+    (:func:`pipescan.exports.tables.export_sections_csv` and its siblings)."""
 
-    fn = tables.export_sections_csv if fmt == ExportFormat.csv else tables.export_sections_jsonl
-    _export(fn, asset, inspection, output, db)
+    def command(
+        asset: AssetOption = None,
+        inspection: InspectionOption = None,
+        fmt: FormatOption = ExportFormat.csv,
+        output: OutputOption = None,
+        db: DbOption = None,
+    ) -> None:
+        from pipescan.exports import tables
+
+        _export(getattr(tables, f"export_{rows}_{fmt.value}"), asset, inspection, output, db)
+
+    command.__doc__ = doc
+    command.__name__ = f"export_{rows}"
+    export_app.command(rows)(command)
 
 
-@export_app.command("defects")
-def export_defects(
-    asset: AssetOption = None,
-    inspection: InspectionOption = None,
-    fmt: FormatOption = ExportFormat.csv,
-    output: OutputOption = None,
-    db: DbOption = None,
-) -> None:
-    """One row per merged defect."""
-    from pipescan.exports import tables
-
-    fn = tables.export_defects_csv if fmt == ExportFormat.csv else tables.export_defects_jsonl
-    _export(fn, asset, inspection, output, db)
+_table_command("sections", "One row per section, with the column names of docs/measures.md.")
+_table_command("defects", "One row per merged defect.")
 
 
 def _export(fn, asset, inspection, output, db) -> None:
