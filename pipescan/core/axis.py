@@ -19,6 +19,7 @@ import numpy as np
 from scipy.interpolate import make_smoothing_spline
 
 from pipescan.core.errors import GeometryError
+from pipescan.core.uncertainty import MAD_TO_SIGMA
 
 
 @dataclass(frozen=True)
@@ -425,7 +426,7 @@ def fit_circle_robust(
         near = np.abs(resid) < inlier_m
         if near.sum() < 10:
             break
-        sigma = 1.4826 * np.median(np.abs(resid[near]))
+        sigma = MAD_TO_SIGMA * np.median(np.abs(resid[near]))  # about the circle: 0
         new = np.abs(resid) <= max(3.0 * sigma, inlier_m / 2.0)
         if new.sum() < 10:
             break

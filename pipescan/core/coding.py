@@ -46,7 +46,7 @@ import numpy as np
 from pipescan.core.contour.base import angle_bins, polar_coordinates
 from pipescan.core.model import SectionMeasures
 from pipescan.core.summary import touches
-from pipescan.core.uncertainty import unseen_runs
+from pipescan.core.uncertainty import MAD_TO_SIGMA, unseen_runs
 
 __all__ = [
     "BAA",
@@ -476,7 +476,7 @@ def _robust_wall(
             coef[: len(sol)] = sol
             residual = radii - _design(angles, 2) @ coef
         mad = float(np.median(np.abs(residual[inliers] - np.median(residual[inliers]))))
-        noise = max(1.4826 * mad, 1e-4)
+        noise = max(MAD_TO_SIGMA * mad, 1e-4)
         band = max(p.noise_factor * noise, floor_m)
         new = (residual > -band) & (residual < max(band, 3.0 * floor_m))
         if np.array_equal(new, inliers):

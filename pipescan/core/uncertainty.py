@@ -41,6 +41,10 @@ Z95 = 1.959963984540054
 MEDIAN_EFFICIENCY = math.sqrt(math.pi / 2.0)
 """Standard error of a median over that of a mean, for normal scatter."""
 
+MAD_TO_SIGMA = 1.4826
+"""σ of normal scatter over its median absolute deviation (1 / Φ⁻¹(3/4)): a robust σ is
+``MAD_TO_SIGMA * median(|r - median(r)|)``."""
+
 
 def coverage_factor(seen_bins: int) -> float:
     """The 95 % coverage factor for a standard error estimated from the section itself:
@@ -129,7 +133,7 @@ def residual_sigma_m(
 
     A sensor's noise grows towards grazing incidence and with range, so the wall's scatter
     differs round the section: each bin gets the median absolute residual of the points in
-    the ``window_bins`` bins around it, times 1.4826.
+    the ``window_bins`` bins around it, times :data:`MAD_TO_SIGMA`.
 
     Parameters
     ----------
@@ -157,7 +161,7 @@ def residual_sigma_m(
     # about (1 - 1.2 / n) of σ / 1.4826 (simulated, n = 4 ... 16).
     per_bin = np.bincount(which, minlength=bins)
     n = float(np.median(per_bin[per_bin > 0]))
-    scale = 1.4826 / (1.0 - 1.2 / max(n, 3.0))
+    scale = MAD_TO_SIGMA / (1.0 - 1.2 / max(n, 3.0))
     # Every residual counts in the windows of the ``window_bins`` bins around its own. List
     # each once per window, in ascending order of residual, then sort stably by window: each
     # window's residuals come out sorted, and its median is read at its middle.
