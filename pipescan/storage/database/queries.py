@@ -26,6 +26,7 @@ from typing import Any
 
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
+from sqlalchemy.orm import Session
 
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.storage.database.db import StorageError, session_scope
@@ -178,15 +179,19 @@ def earlier_scans(
     dict
         Inspection id to its pipe's earlier scans, newest first.
     """
-    found: dict[int, list[ScanRecord]] = {i: [] for i in inspection_ids}
     if not inspection_ids:
-        return found
-    fields = [f.name for f in dataclasses.fields(ScanRecord)]
+        return {}
     with session_scope(engine) as session:
-        for row in session.connection().execute(
-            earlier_scans_statement(inspection_ids, limit=limit)
-        ):
-            found[row.of_id].append(ScanRecord(*(getattr(row, f) for f in fields)))
+        return _earlier_scans(session, inspection_ids, limit)
+
+
+def _earlier_scans(
+    session: Session, inspection_ids: Sequence[int], limit: int | None
+) -> dict[int, list[ScanRecord]]:
+    found: dict[int, list[ScanRecord]] = {i: [] for i in inspection_ids}
+    fields = [f.name for f in dataclasses.fields(ScanRecord)]
+    for row in session.connection().execute(earlier_scans_statement(inspection_ids, limit=limit)):
+        found[row.of_id].append(ScanRecord(*(getattr(row, f) for f in fields)))
     return found
 
 
@@ -201,9 +206,9 @@ def list_earlier_inspections(
     StorageError
         If there is no inspection with that id.
     """
-    with session_scope(engine) as session:
+    with session_scope(engine) as session:  # one session for the check and the read
         get_inspection_row(session, inspection_id)
-    return earlier_scans(engine, [inspection_id], limit=limit)[inspection_id]
+        return _earlier_scans(session, [inspection_id], limit)[inspection_id]
 
 
 def previous_inspections(
