@@ -470,3 +470,24 @@ def test_a_sub_flow_that_failed_for_a_transient_cause_leaves_no_task_run_pending
         assert close_task_runs_of(str(run.id), "slot refused, tried again") == 1
         state = client.read_task_run(left.id).state
     assert (state.type.value, state.message) == ("CRASHED", "slot refused, tried again")
+
+
+def test_the_cli_waits_for_its_database_when_told(prefect, tmp_path, fast_retries, monkeypatch):
+    FakeSubflow(monkeypatch, {})
+    monkeypatch.setattr(network, "DATABASE_FIRST_DELAY_S", 0.2)
+    real_check = network.checked_database_url
+    blip = Countdown(2, _db_error("connection refused", None))
+
+    def flaky_check(settings=None):
+        blip()
+        return real_check(settings)
+
+    monkeypatch.setattr(network, "checked_database_url", flaky_check)
+    store = _store(tmp_path / "store", ["a1"])
+    args = ["inspect-network", store, "--no-network-report"]
+    refused = CliRunner().invoke(app, args)  # a person at the terminal: no wait
+    assert refused.exit_code == 2 and "connection refused" in refused.output
+    blip.times = 2
+    waited = CliRunner().invoke(app, [*args, "--wait-for-database", "10"])
+    assert waited.exit_code == 0, waited.output
+    assert "1 inspected" in waited.stdout and blip.times == 0

@@ -67,6 +67,16 @@ def inspect_network_command(
             "--reports folder, else in PIPESCAN_REPORTS_DIR, reports/)."
         ),
     ] = None,
+    database_wait_s: Annotated[
+        float,
+        typer.Option(
+            "--wait-for-database",
+            min=0,
+            metavar="SECONDS",
+            help="While the database does not answer at the start, try again (5, 10, 20, 40, "
+            "60 s apart) for up to this long, as a scheduled run does for 300 s; for cron.",
+        ),
+    ] = 0,
     no_network_report: Annotated[
         bool, typer.Option("--no-network-report", help="Do not write the network report.")
     ] = False,
@@ -94,14 +104,14 @@ def inspect_network_command(
     1 when an archive was not stored, 2 when the run could not start.
     """
     from pipescan.cli.scan import _inspection_params
-    from pipescan.flows.database import checked_database_url
     from pipescan.flows.network import (
         NetworkIncomplete,
         format_network_summary,
         inspect_network,
         refuse_password_in_url,
+        wait_for_database,
     )
-    from pipescan.settings import use_settings
+    from pipescan.settings import get_settings, use_settings
 
     _keep_failed_runs_off_the_console()
     try:
@@ -111,7 +121,7 @@ def inspect_network_command(
         # it, password and all, with the run). Checked here too, before a temporary Prefect
         # server is started for the run: a bad database is an error in a second or two.
         with use_settings(database_url=db):
-            checked_database_url()
+            wait_for_database(get_settings(), database_wait_s, logging.getLogger("pipescan"))
             summary = inspect_network(
                 store=store,
                 params=params,
@@ -122,6 +132,7 @@ def inspect_network_command(
                 network_report_path=str(network_report) if network_report else None,
                 write_network_report=not no_network_report,
                 reuse_stored=not force,
+                startup_wait_s=database_wait_s,
             )
     except NetworkIncomplete as exc:  # archives not stored: the summary says which, exit 1
         if exc.summary is None:

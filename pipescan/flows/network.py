@@ -801,12 +801,14 @@ def wait_for_database(settings, wait_s: float, run_log) -> str:
                         hint=exc.hint,
                     ) from exc
                 raise
-            _progress(
-                run_log,
+            line = (
                 f"the database does not answer, trying again in {delay:.0f} s (for up to "
-                f"{wait_s:.0f} s in all): {exc}",
-                failed=True,
+                f"{wait_s:.0f} s in all): {exc}"
             )
+            if run_log is log:  # the command line's check, before any run
+                log.warning(line)
+            else:
+                _progress(run_log, line, failed=True)
             time.sleep(delay)
 
 
