@@ -125,12 +125,13 @@ SENSOR_MODELS: dict[str, SensorProfile] = {
 """Published figures of sensors used on pipe crawlers and in shafts (``[sensor] model``)."""
 
 
-SMEAR_SPREAD_RATIO = 2.0
+SMEAR_SPREAD_RATIO = 1.5
 """A section's wall is smeared when its points spread across it by more than this many times
 the scan's single-frame wall noise. Frames that agree spread the wall by the noise of one
-frame; frames whose offsets spread evenly over ``d`` add ``d²/12`` to its square, so twice
-the noise is reached at ``d = 6σ`` (a few millimetres on a quiet sensor, centimetres on a
-noisy one, which measures the blockage no worse: a section's ± grows with the noise)."""
+frame; frames whose offsets spread evenly over ``d`` add ``d²/12`` to its square, so 1.5
+times the noise is reached at ``d ≈ 3.9σ`` (a few millimetres on a quiet sensor, centimetres
+on a noisy one, whose ± grows with its noise anyway). Measured: frames that agree read at
+most 1.43 times (docs/instrument.md)."""
 
 SMEAR_SPREAD_FLOOR_M = 0.002
 """The least wall spread called smeared, whatever the noise: below it the spread is the
@@ -413,15 +414,16 @@ def instrumented(
     registration: RegistrationParams, measure: MeasureParams, instrument: Instrument | None
 ) -> tuple[RegistrationParams, MeasureParams]:
     """The registration and measure parameters for a scan made with ``instrument``: its
-    minimum range, its map seed, and its smear limit (twice its wall noise). ``None`` (a
+    minimum range, its map seed, and its smear limit (:data:`SMEAR_SPREAD_RATIO` times its
+    wall noise). ``None`` (a
     registered cloud): no smear test, the registration parameters as given.
 
     >>> from pipescan.core.measures import MeasureParams
     >>> from pipescan.core.registration import RegistrationParams
     >>> reg, mp = instrumented(RegistrationParams(), MeasureParams(),
     ...                        Instrument(min_range_m=0.5, wall_noise_m=0.01))
-    >>> reg.min_range_m, mp.max_wall_spread_m
-    (0.5, 0.02)
+    >>> reg.min_range_m, round(mp.max_wall_spread_m, 3)
+    (0.5, 0.015)
     """
     if instrument is None:
         return registration, dataclasses.replace(measure, max_wall_spread_m=None)

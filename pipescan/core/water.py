@@ -249,8 +249,9 @@ metres, level; a view that stops short of the invert, or the shadow of something
 changes height from section to section or lasts a few decimetres."""
 
 LEVEL_TOLERANCE_M = 0.02
-"""The heights where the wall stops, along such a run, agree within this: 3σ of a noisy
-sensor's wall, and a 1 % gradient over the run."""
+"""The heights where the wall stops, along such a run, agree within this, or within three
+times the wall's spread where that is more: 3σ of where the wall's lowest points lie, and a
+1 % gradient over the run."""
 
 
 def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[SectionMeasures]:
@@ -259,7 +260,8 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
     A section whose invert is unseen under a level chord with no return on it is water
     (``invert_under_water``, its depth where the wall stops) when it lies among
     :data:`LEVEL_RUN_SECTIONS` touching water sections whose levels agree within
-    :data:`LEVEL_TOLERANCE_M`; otherwise it is ``low_coverage`` without a depth. Water read
+    :data:`LEVEL_TOLERANCE_M` (or three times the run's median wall spread, where more);
+    otherwise it is ``low_coverage`` without a depth. Water read
     from its surface's returns is kept as it is.
 
     Parameters
@@ -295,12 +297,14 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
         ):
             j += 1
         levels = np.array([level_m(k) for k in range(i, j)])
+        spreads = [ordered[k].wall_spread_m or 0.0 for k in range(i, j)]
+        tolerance = max(LEVEL_TOLERANCE_M, 3.0 * float(np.median(spreads)))
         # Each section needs LEVEL_RUN_SECTIONS touching ones around it, itself among them,
         # whose levels agree (a long run may follow a gentle change of level).
         confirmed = np.zeros(j - i, dtype=bool)
         for a in range(0, j - i - LEVEL_RUN_SECTIONS + 1):
             window = levels[a : a + LEVEL_RUN_SECTIONS]
-            if window.max() - window.min() <= LEVEL_TOLERANCE_M:
+            if window.max() - window.min() <= tolerance:
                 confirmed[a : a + LEVEL_RUN_SECTIONS] = True
         for k in range(i, j):
             if not confirmed[k - i] and ordered[k].water_from_surface is False:
