@@ -11,8 +11,8 @@ Each row is one draw (``pipescan.simulator.sweep.instrument_draws``): the instru
 from the scan, the fully seen sections away from defect edges and the share of them measured
 (``ok``), their mean and largest |error| against the truth at the same chainage, the ok
 sections off by more than 2 pp anywhere within their chainage ± ("dishonest"), the true
-defects over 5 % that a measured section found (a measured section within the defect's span,
-widened by its ±, reading at least half the defect's true peak), the frames flagged as
+defects over 5 % that the run coded (a defect as the report lists it, overlapping the true
+span widened by the sections' chainage ±), the frames flagged as
 slides, the chainage ± at the end against what the odometer's stated error and the slips
 caught allow, and the water read where water returned nothing. The last lines compare every
 row with issue 50's targets.
@@ -41,24 +41,25 @@ HEADER = (
 
 
 def _defects_found(scan, truth, sections) -> tuple[int, int]:
-    """True defects over 5 % (deposits, obstacles, deformations) and how many a measured
-    section found (see the module's notes)."""
+    """True defects over 5 % (deposits, obstacles, deformations) and how many the run coded:
+    a coded defect (``code_sections``, ``merge_defects``: what the report lists) overlapping
+    the true span, widened by the sections' chainage ±."""
+    from pipescan.core.coding import code_sections
+    from pipescan.core.grading import DEFAULT_TABLE, grade_sections, load_table, merge_defects
+
+    table = load_table(DEFAULT_TABLE)
+    codings = code_sections(sections)
+    graded = grade_sections(sections, table, codings=codings)
+    coded = merge_defects(graded, table, codings=codings)
+    u = max((float(sec.chainage_uncertainty_m or 0.0) for sec in sections), default=0.0)
     s = scan.scenario
-    spans = [(d.start_m, d.end_m) for d in (*s.deposits, *s.obstacles, *s.deformations)]
     found = total = 0
-    for a, b in spans:
-        lo = round(a, 1)
-        starts = np.arange(lo, b, 0.1)
-        peak = float(np.nanmax(truth.section(starts))) if len(starts) else 0.0
-        if not peak > 0.05:
+    for a, b in [(d.start_m, d.end_m) for d in (*s.deposits, *s.obstacles, *s.deformations)]:
+        starts = np.arange(round(a, 1), b, 0.1)
+        if not len(starts) or not float(np.nanmax(truth.section(starts))) > 0.05:
             continue
         total += 1
-        for sec in sections:
-            u = float(sec.chainage_uncertainty_m or 0.0)
-            inside = sec.chainage_end_m + u > a and sec.chainage_start_m - u < b
-            if inside and sec.is_ok and (sec.blockage_ratio or 0.0) >= peak / 2:
-                found += 1
-                break
+        found += any(d.chainage_end_m + u > a and d.chainage_start_m - u < b for d in coded)
     return found, total
 
 
