@@ -16,7 +16,7 @@ from typing import Any, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
-from pipescan.core.grading import DEFAULT_TABLE, FlagRule
+from pipescan.core.flags import DEFAULT_TABLE, FlagRule
 from pipescan.storage.input.limits import InputLimits
 from pipescan.storage.input.network_layer import LayerLimits
 

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, replace
 from importlib import resources
 from itertools import pairwise
@@ -43,6 +43,7 @@ from pipescan.core.coding import (
     feature_runs,
 )
 from pipescan.core.errors import GradingError
+from pipescan.core.flags import DEFAULT_TABLE, FlagRule
 from pipescan.core.measures import DEPOSIT_TOP_HALF_WIDTH_RAD
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import peak_blockage
@@ -69,41 +70,6 @@ __all__ = [
 ]
 
 PipeClass = Literal["rigid", "flexible"]
-
-DEFAULT_TABLE = "vsa-2023"
-
-
-@dataclass(frozen=True)
-class FlagRule:
-    """The report's threshold: a section or defect is flagged at ``blockage_threshold_ratio``
-    blockage or more, or at condition class ``flag_grade`` or worse (:func:`flag_section`,
-    :func:`is_flagged`). The one place its defaults are written.
-
-    >>> FlagRule.from_params({"flag_grade": 1}).kwargs()
-    {'blockage_threshold_ratio': 0.1, 'flag_grade': 1}
-    """
-
-    blockage_threshold_ratio: float = 0.10
-    flag_grade: int = 2
-
-    @classmethod
-    def from_params(cls, params: Mapping[str, Any]) -> FlagRule:
-        """The rule an inspection was stored with (its parameters), the defaults where a
-        parameter is missing."""
-        return cls(
-            blockage_threshold_ratio=params.get(
-                "blockage_threshold_ratio", cls.blockage_threshold_ratio
-            ),
-            flag_grade=params.get("flag_grade", cls.flag_grade),
-        )
-
-    def kwargs(self) -> dict[str, Any]:
-        """As the keyword arguments of :func:`flag_section` and :func:`is_flagged`."""
-        return {
-            "blockage_threshold_ratio": self.blockage_threshold_ratio,
-            "flag_grade": self.flag_grade,
-        }
-
 
 #: The SectionMeasures columns a rule may grade. All are ratios (fractions).
 GRADEABLE_MEASURES = frozenset(
