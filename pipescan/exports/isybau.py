@@ -39,7 +39,7 @@ import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
 from pipescan.core.errors import PipescanError
-from pipescan.core.grading import DEFAULT_TABLE
+from pipescan.core.flags import DEFAULT_TABLE
 from pipescan.core.model import Defect
 from pipescan.core.summary import worst_grade
 from pipescan.storage.atomic import atomic_file

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from datetime import datetime
 from typing import Any
 
-from pipescan.core.grading import FlagRule
+from pipescan.core.flags import FlagRule
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.summary import peak_blockage, worst_grade
 from pipescan.core.trends import (
