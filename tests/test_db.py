@@ -746,6 +746,10 @@ def test_assets_and_their_upsert(engine: sa.Engine) -> None:
     assert mh.last_inspected_at == later
     assert (mh.upstream_node, mh.downstream_node, mh.material) == ("MH1042", "MH1043", "PVC")
     assert [r.asset_id for r in repository.list_inspections(engine, "A0-A1")] == ["A0-A1"]
+    assert repository.get_asset(engine, "MH1042-MH1043") == mh
+    with pytest.raises(db.StorageError, match="no asset 'NONE'"):
+        repository.get_asset(engine, "NONE")
+    assert repository.find_latest_inspection_id(engine, "NONE") is None
 
 
 def test_section_trend(engine: sa.Engine) -> None:
