@@ -16,6 +16,7 @@ from threadpoolctl import threadpool_info, threadpool_limits
 from typer.testing import CliRunner
 
 from pipescan.cli import app
+from pipescan.core.instrument import CONSECUTIVE_FRAMES
 from pipescan.core.registration import (
     RegistrationParams,
     plan_chunks,
@@ -99,8 +100,8 @@ def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
     """Registration decodes each frame it uses once (the frame two chunks share: once per
     chunk), and no other; the axis and the sections read what it kept, never the archive. In
     the flow, chunks register in the engine pool's processes: the flow's own process decodes
-    only the few frames the stride is chosen from. The same chunks registered here count what
-    registration decodes."""
+    only the few frames the instrument and the stride are read from (survey_scan). The same
+    chunks registered here count what registration decodes."""
     summary, _, _ = inspected
     assert summary.frame_count > 100
     stride = summary.registration["frame_stride"]
@@ -108,7 +109,10 @@ def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
     meta_files = [
         f.file for f in read_inspection_toml(archive / "inspection.toml", archive="arc").frames
     ]
-    sampled = {meta_files[i] for i in sample_frame_indices(summary.frame_count)}
+    n = summary.frame_count
+    middle = max(0, min(n - CONSECUTIVE_FRAMES, n // 2 - CONSECUTIVE_FRAMES // 2))
+    looked = set(sample_frame_indices(n)) | set(range(middle, min(n, middle + CONSECUTIVE_FRAMES)))
+    sampled = {meta_files[i] for i in looked}
     assert set(_decoded) == sampled, "the flow's own process decoded other frames"
     assert set(_decoded.values()) == {1}
     staged = stage_archive.fn(str(archive), create_run_dir(tmp_path / "work"))

@@ -246,11 +246,12 @@ def test_a_noisy_registered_shaft_is_measured_not_smeared():
 
 
 def _wet(start: float, depth: float, from_surface: bool = False) -> SectionMeasures:
+    # A surfaceless candidate is measured low_coverage with its level (measure_section).
     return SectionMeasures(
         start,
         round(start + 0.1, 1),
         np.pi * 0.3**2,
-        SectionStatus.INVERT_UNDER_WATER,
+        SectionStatus.INVERT_UNDER_WATER if from_surface else SectionStatus.LOW_COVERAGE,
         5000,
         0.8,
         water_depth_ratio=depth,

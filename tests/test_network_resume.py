@@ -118,7 +118,9 @@ def test_a_killed_network_run_resumes_without_redoing_finished_archives(tmp_path
     assert summary["counts"] == {
         "inspected": ARCHIVES - len(before),
         "reused": len(before),
+        "duplicate": 0,
         "failed": 0,
+        "missing": 0,
     }
     after = _stored(db_path)
     assert sorted(after) == [asset_id(i) for i in range(ARCHIVES)]

@@ -409,7 +409,12 @@ def measure_section(
     coverage = profile.coverage_ratio
 
     status = SectionStatus.OK
-    if water is not None:
+    if water is not None and not water.from_surface:
+        # Water with no return from its surface: one section cannot tell it from a view that
+        # stops short of the invert. Low coverage, until the sections along the pipe agree
+        # on its level (``core.water.confirm_surfaceless_water``).
+        status = SectionStatus.LOW_COVERAGE
+    elif water is not None:
         status = SectionStatus.INVERT_UNDER_WATER
     elif coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
         status = SectionStatus.LOW_COVERAGE

@@ -255,14 +255,16 @@ times the wall's spread where that is more: 3σ of where the wall's lowest point
 
 
 def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[SectionMeasures]:
-    """Keep water read without a surface return only where the pipe confirms it.
+    """Read water where its surface returned nothing, once the pipe confirms it.
 
-    A section whose invert is unseen under a level chord with no return on it is water
-    (``invert_under_water``, its depth where the wall stops) when it lies among
-    :data:`LEVEL_RUN_SECTIONS` touching water sections whose levels agree within
+    A section whose invert is unseen under a level chord with no return on it is measured as
+    ``low_coverage`` with the level as a candidate (``water_depth_ratio``, with
+    ``water_from_surface`` False): one section cannot tell water from a view that stops short
+    of the invert. It becomes water (``invert_under_water``, that depth) when it lies among
+    :data:`LEVEL_RUN_SECTIONS` touching candidates or water sections whose levels agree within
     :data:`LEVEL_TOLERANCE_M` (or three times the run's median wall spread, where more);
-    otherwise it is ``low_coverage`` without a depth. Water read
-    from its surface's returns is kept as it is.
+    otherwise it stays ``low_coverage`` and its candidate depth is dropped. Water read from
+    its surface's returns is kept as it is.
 
     Parameters
     ----------
@@ -277,8 +279,12 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
     ordered = sorted(sections, key=lambda s: s.chainage_start_m)
     out = list(ordered)
 
+    def candidate(k: int) -> bool:
+        s = ordered[k]
+        return s.water_from_surface is False and s.water_depth_ratio is not None
+
     def wet(k: int) -> bool:
-        return ordered[k].status == SectionStatus.INVERT_UNDER_WATER
+        return ordered[k].status == SectionStatus.INVERT_UNDER_WATER or candidate(k)
 
     def level_m(k: int) -> float:
         s = ordered[k]
@@ -307,9 +313,11 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
             if window.max() - window.min() <= tolerance:
                 confirmed[a : a + LEVEL_RUN_SECTIONS] = True
         for k in range(i, j):
-            if not confirmed[k - i] and ordered[k].water_from_surface is False:
-                out[k] = dataclasses.replace(
-                    ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
-                )
+            if not candidate(k):
+                continue
+            if confirmed[k - i]:
+                out[k] = dataclasses.replace(ordered[k], status=SectionStatus.INVERT_UNDER_WATER)
+            else:
+                out[k] = dataclasses.replace(ordered[k], water_depth_ratio=None)
         i = j
     return out

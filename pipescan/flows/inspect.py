@@ -18,7 +18,7 @@ from prefect.utilities.annotations import quote
 import pipescan
 from pipescan.core.errors import MetadataError
 from pipescan.core.grading import choose_grading, is_flagged
-from pipescan.core.instrument import instrument_summary, instrumented, partial_view_stride
+from pipescan.core.instrument import instrument_summary, instrumented
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.registration import (
     FrameStride,
@@ -43,12 +43,11 @@ from pipescan.storage.scratch import FrameStore, remove_workspace
 from pipescan.tasks import enginepool
 from pipescan.tasks.inspection import (
     bucket_points,
-    choose_stride,
-    estimate_scan_instrument,
     fit_pipe_axis,
     grade,
     measure_sections,
     register_chunk,
+    survey_scan,
 )
 from pipescan.tasks.network import (
     find_stored_inspection,
@@ -225,20 +224,14 @@ def inspect_archive(
         # The sensor's blind zone, noise and pattern, from inspection.toml's [sensor] or the
         # scan: figures of the run, not of the stored parameters (the same archive and
         # parameters give the same instrument, so the stored hash still keys re-runs).
-        instrument = (
-            estimate_scan_instrument(quote(staged), max_range_m=params.max_section_range_m)
+        survey = (
+            survey_scan(quote(staged), frame_stride=params.frame_stride, **params.stride_bounds())
             if staged.frame_count
             else None
         )
+        instrument = survey.instrument if survey else None
+        stride = survey.stride if survey else FrameStride(1, "a registered cloud")
         reg_params, measure_params = instrumented(params.registration, params.measure, instrument)
-        stride = (
-            FrameStride(params.frame_stride, "set for the run")
-            if params.frame_stride
-            else FrameStride(1, "a registered cloud")
-            if not staged.frame_count
-            else partial_view_stride(instrument)
-            or choose_stride(quote(staged), **params.stride_bounds())
-        )
         chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
         # Each frame is decoded once: registration keeps what the sections need here.
         frame_store = FrameStore(run_dir / "frames")
@@ -366,8 +359,8 @@ def inspect_archive(
         # taken back, and an object's edge is withheld where the object was seen where other
         # frames saw bare wall (both take sections on both sides of a window's edge).
         sections = withhold_smeared_object_edges(
-            confirm_surfaceless_water(
-                explain_invert_shadows([s for f in window_futures for s in f.result()])
+            explain_invert_shadows(
+                confirm_surfaceless_water([s for f in window_futures for s in f.result()])
             ),
             measure_params,
         )

@@ -765,7 +765,6 @@ def measure_scan(
     from pipescan.core.axis import fit_axis
     from pipescan.core.instrument import instrumented
     from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
-    from pipescan.core.model import SectionStatus
     from pipescan.core.registration import (
         RegistrationParams,
         iter_registered_points,
@@ -807,16 +806,14 @@ def measure_scan(
             params=measure,
             evidence=evidence,
         )
-    sections = explain_invert_shadows(sections)
     if instrument:
         sections = confirm_surfaceless_water(sections)
     else:  # as before the instrument: water is read only from its surface's returns
         sections = [
-            dataclasses.replace(s, status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None)
-            if s.water_from_surface is False
-            else s
+            dataclasses.replace(s, water_depth_ratio=None) if s.water_from_surface is False else s
             for s in sections
         ]
+    sections = explain_invert_shadows(sections)
     return trajectory, withhold_smeared_object_edges(sections, measure)
 
 
@@ -942,5 +939,5 @@ def measure_cloud_scan(scan, *, max_section_range_m: float = 5.0):
         sections += measure_window(
             points[inside], axis, w, nominal_diameter_m=s.nominal_diameter_m, params=measure
         )
-    sections = confirm_surfaceless_water(explain_invert_shadows(sections))
+    sections = explain_invert_shadows(confirm_surfaceless_water(sections))
     return withhold_smeared_object_edges(sections, measure)

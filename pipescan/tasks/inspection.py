@@ -18,7 +18,12 @@ from prefect.cache_policies import NO_CACHE
 from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
 from pipescan.core.coding import code_sections
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
-from pipescan.core.instrument import CONSECUTIVE_FRAMES, Instrument, estimate_instrument
+from pipescan.core.instrument import (
+    CONSECUTIVE_FRAMES,
+    Instrument,
+    estimate_instrument,
+    partial_view_stride,
+)
 from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.registration import (
@@ -90,49 +95,59 @@ def register_chunk(
     return trajectory
 
 
-@task(name="choose-frame-stride", cache_policy=NO_CACHE)
-def choose_stride(
+@dataclass(frozen=True)
+class ScanSurvey:
+    """What a first look at a scan's frames decides: its instrument and the frames to read."""
+
+    instrument: Instrument
+    stride: FrameStride
+
+
+@task(name="survey-scan", cache_policy=NO_CACHE)
+def survey_scan(
     staged: StagedArchive,
     *,
     max_range_m: float,
     step_m: float,
     section_points: int,
     keyframe_distance_m: float,
-) -> FrameStride:
-    """Which frames the run reads and registers (:func:`~pipescan.core.registration.
-    choose_frame_stride`), from a few frames spread over the run and the odometer."""
-    meta = staged.meta
-    with staged.reopen() as arc:
-        sample = [pts for _, pts in arc.iter_frames(sample_frame_indices(staged.frame_count))]
-    choice = choose_frame_stride(
-        sample,
-        [f.odometer_m for f in meta.frames] if meta.frames else None,
-        max_range_m=max_range_m,
-        step_m=step_m,
-        section_points=section_points,
-        keyframe_distance_m=keyframe_distance_m,
-    )
-    log.info(choice.describe(staged.frame_count))
-    return choice
-
-
-@task(name="estimate-instrument", cache_policy=NO_CACHE)
-def estimate_scan_instrument(staged: StagedArchive, *, max_range_m: float) -> Instrument:
-    """What the scan's instrument delivers (:func:`~pipescan.core.instrument.
-    estimate_instrument`): ``inspection.toml``'s ``[sensor]`` where it says, and a few frames
-    spread over the run and a run of consecutive ones from its middle otherwise."""
-    n = staged.frame_count
+    frame_stride: int | None = None,
+) -> ScanSurvey:
+    """The scan's instrument (:func:`~pipescan.core.instrument.estimate_instrument`:
+    ``inspection.toml``'s ``[sensor]`` where it says, the frames otherwise) and which frames
+    the run reads and registers (``frame_stride`` when set; every frame when one frame covers
+    part of the view; else :func:`~pipescan.core.registration.choose_frame_stride`), from a
+    few frames spread over the run and a run of consecutive ones from its middle, each
+    decoded once."""
+    meta, n = staged.meta, staged.frame_count
+    sample_at = sample_frame_indices(n)
     middle = max(0, min(n - CONSECUTIVE_FRAMES, n // 2 - CONSECUTIVE_FRAMES // 2))
+    run_at = list(range(middle, min(n, middle + CONSECUTIVE_FRAMES)))
     with staged.reopen() as arc:
-        sample = [pts for _, pts in arc.iter_frames(sample_frame_indices(n))]
-        run = [
-            pts for _, pts in arc.iter_frames(range(middle, min(n, middle + CONSECUTIVE_FRAMES)))
-        ]
+        read = dict(arc.iter_frames(sorted(set(sample_at) | set(run_at))))
+    sample = [read[i] for i in sample_at]
     instrument = estimate_instrument(
-        sample, run, max_range_m=max_range_m, profile=staged.meta.sensor
+        sample, [read[i] for i in run_at], max_range_m=max_range_m, profile=meta.sensor
     )
     log.info(instrument.describe())
-    return instrument
+    if frame_stride:
+        stride = FrameStride(frame_stride, "set for the run")
+    else:
+        stride = partial_view_stride(instrument) or choose_frame_stride(
+            sample,
+            [f.odometer_m for f in meta.frames] if meta.frames else None,
+            max_range_m=max_range_m,
+            step_m=step_m,
+            section_points=section_points,
+            keyframe_distance_m=keyframe_distance_m,
+        )
+    log.info(stride.describe(n))
+    return ScanSurvey(instrument, stride)
+
+
+def choose_stride(staged: StagedArchive, **bounds: float) -> FrameStride:
+    """Which frames the run reads and registers, as :func:`survey_scan` chooses them."""
+    return survey_scan.fn(staged, **bounds).stride
 
 
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
