@@ -304,3 +304,13 @@ def test_the_instrument_sweep_draws_sensors_as_well_as_effects():
     assert any(not d.scenario.effects.imu for d in draws)
     assert any(d.scenario.water is not None for d in draws)
     assert instrument_draws(4)[3].name == draws[3].name  # a draw does not change with count
+
+
+def test_the_report_cover_names_the_measured_inner_diameter():
+    from types import SimpleNamespace
+
+    from pipescan.reports.context import _measured_diameter
+
+    stored = SimpleNamespace(registration={"measured_inner_diameter_m": 0.7996})
+    assert _measured_diameter(stored) == "0.800 m (the wall's median)"
+    assert _measured_diameter(SimpleNamespace(registration={})) is None  # stored before it was

@@ -603,6 +603,15 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     return rows
 
 
+def _measured_diameter(inp) -> str | None:
+    """The wall's inner diameter as the run measured it (``core.summary.
+    measured_inner_diameter``, stored with the registration summary); None before it was."""
+    measured = (inp.registration or {}).get("measured_inner_diameter_m")
+    if not _finite(measured):
+        return None
+    return f"{measured:.3f} m (the wall's median)"
+
+
 def _trust_rows(
     inp: ReportInput, sections: Sequence[SectionMeasures], limits: MeasureLimits
 ) -> list[tuple[str, str]]:
@@ -939,6 +948,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
             if _finite(nominal)
             else NOT_RECORDED
         ),
+        "measured_diameter": _measured_diameter(inp),
         "material": _text(inp.material),
         "pipe_shape": _text(inp.pipe_shape),
         "pipe_class": inp.pipe_class,
