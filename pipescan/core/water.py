@@ -17,6 +17,7 @@ import numpy as np
 
 from pipescan.core.contour.base import polar_coordinates
 from pipescan.core.model import SectionMeasures, SectionStatus
+from pipescan.core.summary import adjacent_runs
 from pipescan.core.uncertainty import unseen_runs
 
 MIN_SURFACE_POINTS = 3
@@ -290,20 +291,10 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
         s = ordered[k]
         return (s.water_depth_ratio or 0.0) * math.sqrt(4.0 * s.nominal_area_m2 / math.pi)
 
-    i = 0
-    while i < len(ordered):
-        if not wet(i):
-            i += 1
-            continue
-        j = i + 1
-        while (
-            j < len(ordered)
-            and wet(j)
-            and abs(ordered[j].chainage_start_m - ordered[j - 1].chainage_end_m) < 1e-6
-        ):
-            j += 1
-        levels = np.array([level_m(k) for k in range(i, j)])
-        spreads = [ordered[k].wall_spread_m or 0.0 for k in range(i, j)]
+    for run in adjacent_runs(ordered, [wet(k) for k in range(len(ordered))]):
+        i, j = run.start, run.stop
+        levels = np.array([level_m(k) for k in run])
+        spreads = [ordered[k].wall_spread_m or 0.0 for k in run]
         tolerance = max(LEVEL_TOLERANCE_M, 3.0 * float(np.median(spreads)))
         # Each section needs LEVEL_RUN_SECTIONS touching ones around it, itself among them,
         # whose levels agree (a long run may follow a gentle change of level).
@@ -312,12 +303,11 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
             window = levels[a : a + LEVEL_RUN_SECTIONS]
             if window.max() - window.min() <= tolerance:
                 confirmed[a : a + LEVEL_RUN_SECTIONS] = True
-        for k in range(i, j):
+        for k in run:
             if not candidate(k):
                 continue
             if confirmed[k - i]:
                 out[k] = dataclasses.replace(ordered[k], status=SectionStatus.INVERT_UNDER_WATER)
             else:
                 out[k] = dataclasses.replace(ordered[k], water_depth_ratio=None)
-        i = j
     return out
