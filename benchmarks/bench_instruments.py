@@ -64,7 +64,18 @@ def _defects_found(scan, truth, sections) -> tuple[int, int]:
 
 
 def run_draw(name: str, count: int, seed: int, before: bool = False) -> dict:
-    """One draw, inspected in memory and scored."""
+    """One draw, inspected in memory and scored; a run that stops with an error (as the
+    inspection would, with one line and nothing stored) is a row that says so."""
+    from pipescan.core.errors import PipescanError
+
+    started = time.perf_counter()
+    try:
+        return _run_draw(name, count, seed, before)
+    except PipescanError as exc:
+        return {"name": name, "error": str(exc), "seconds": time.perf_counter() - started}
+
+
+def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
     from pipescan.simulator.scan import simulate_scan
     from pipescan.simulator.sweep import (
         DISHONEST_PP,
@@ -205,6 +216,10 @@ def findings(workers: int) -> None:
 
 
 def row(r: dict) -> str:
+    if "error" in r:
+        return (
+            f"| {r['name']} | stopped: {r['error'][:120]} |" + " |" * 10 + f" {r['seconds']:.0f} |"
+        )
     share = r["ok"] / r["seen"] if r["seen"] else float("nan")
     return (
         f"| {r['name']} | {r['instrument']} | {r['seen']} | {r['ok']} ({100 * share:.0f} %) | "
@@ -251,6 +266,12 @@ def main() -> None:
             results.append(r)
             print(row(r), flush=True)
     print()
+    failed = [r["name"] for r in results if "error" in r]
+    results = [r for r in results if "error" not in r]
+    if failed:
+        print(
+            f"- runs that stopped with an error (no figures): {len(failed)}: " + "; ".join(failed)
+        )
     misses = {
         f"ok under {TARGET_OK_SHARE:.0%} of fully seen": [
             r["name"] for r in results if r["seen"] and r["ok"] / r["seen"] < TARGET_OK_SHARE
