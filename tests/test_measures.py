@@ -12,6 +12,7 @@ from hypothesis import strategies as st
 
 from pipescan.core.contour import (
     CONTOUR_METHODS,
+    CONTOUR_PARAMS,
     DEFAULT_CONTOUR_METHOD,
     check_contour_method,
     contour_method,
@@ -161,7 +162,9 @@ def test_every_registered_method_returns_the_one_result_type(method):
     rng = np.random.default_rng(12)
     pts = ring_section(20_000, noise_m=0.001, rng=rng)
     profile = polar_profile(pts, bins=180)
-    result = contour_method(method)(pts, profile, MeasureParams(method=method))
+    own = CONTOUR_PARAMS.get(method)  # each method gets only its own parameters
+    params = None if own is None else getattr(MeasureParams(method=method), own)
+    result = contour_method(method)(pts, profile, params)
     assert isinstance(result, ContourResult)
     assert result.radii_m.shape == profile.angles_rad.shape
     assert np.nanmedian(result.radii_m) == pytest.approx(R, abs=0.005)

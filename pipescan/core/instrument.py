@@ -29,68 +29,12 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from pipescan.core.model import SCAN_PATTERNS as SCAN_PATTERNS
+from pipescan.core.model import SensorProfile
+
 if TYPE_CHECKING:
     from pipescan.core.measures import MeasureParams
     from pipescan.core.registration import FrameStride, RegistrationParams
-
-SCAN_PATTERNS = ("repetitive", "non_repetitive", "profiler", "static")
-"""``repetitive``: every frame covers the field of view (spinning or image-like scanners);
-``non_repetitive``: a rosette that fills it over several frames (Livox Avia, Mid series);
-``profiler``: a 2D LiDAR spinning across the pipe, one ring a frame; ``static``: a
-terrestrial scanner, one station a frame."""
-
-
-@dataclass(frozen=True)
-class SensorProfile:
-    """What a sensor's maker states, or what the user states for it.
-
-    Attributes
-    ----------
-    model : str
-        A name in :data:`SENSOR_MODELS`, or the user's own (``custom``).
-    min_range_m : float, optional
-        Nearest range the sensor measures (its blind zone).
-    max_range_m : float, optional
-    fov_horizontal_deg, fov_vertical_deg : float, optional
-    pattern : str, optional
-        One of :data:`SCAN_PATTERNS`.
-    points_per_s : float, optional
-    range_noise_m : float, optional
-        1σ range noise as published (along the ray, at the maker's test range and target).
-    source : str
-        Where the figures come from.
-    """
-
-    model: str = "custom"
-    min_range_m: float | None = None
-    max_range_m: float | None = None
-    fov_horizontal_deg: float | None = None
-    fov_vertical_deg: float | None = None
-    pattern: str | None = None
-    points_per_s: float | None = None
-    range_noise_m: float | None = None
-    source: str = "inspection.toml"
-
-    def __post_init__(self) -> None:
-        if self.pattern is not None and self.pattern not in SCAN_PATTERNS:
-            raise ValueError(
-                f"pattern {self.pattern!r} is unknown; use one of {', '.join(SCAN_PATTERNS)}"
-            )
-        for name in ("min_range_m", "max_range_m", "range_noise_m", "points_per_s"):
-            value = getattr(self, name)
-            if value is not None and not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        for name in ("fov_horizontal_deg", "fov_vertical_deg"):
-            value = getattr(self, name)
-            if value is not None and not 0 < value <= 360:
-                raise ValueError(f"{name} must be in (0, 360], got {value!r}")
-        if (
-            self.min_range_m is not None
-            and self.max_range_m is not None
-            and not self.min_range_m < self.max_range_m
-        ):
-            raise ValueError("min_range_m must be below max_range_m")
-
 
 SENSOR_MODELS: dict[str, SensorProfile] = {
     "livox-hap": SensorProfile(

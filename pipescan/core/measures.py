@@ -16,7 +16,12 @@ import numpy as np
 from scipy.ndimage import median_filter
 
 from pipescan.core.coding import CodingParams, WallFeature, arcs_meet, code_contour
-from pipescan.core.contour import DEFAULT_CONTOUR_METHOD, check_contour_method, contour_method
+from pipescan.core.contour import (
+    CONTOUR_PARAMS,
+    DEFAULT_CONTOUR_METHOD,
+    check_contour_method,
+    contour_method,
+)
 from pipescan.core.contour.base import (
     angle_bins,
     not_veil,
@@ -428,7 +433,10 @@ def measure_section(
         water_depth = 0.0
 
     try:
-        contour = contour_method(params.method)(pts, profile, params)
+        own = CONTOUR_PARAMS.get(params.method)
+        contour = contour_method(params.method)(
+            pts, profile, None if own is None else getattr(params, own)
+        )
     except GeometryError:
         # Too little of the perimeter seen is the first reason, where it applies.
         if status == SectionStatus.OK:

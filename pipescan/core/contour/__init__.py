@@ -27,7 +27,7 @@ pipescan.core.errors.OptionError: unknown contour method 'polr' (use one of: pol
 from __future__ import annotations
 
 import importlib
-from typing import TYPE_CHECKING, Protocol
+from typing import TYPE_CHECKING, Any, Protocol
 
 from pipescan.core.errors import OptionError
 
@@ -36,10 +36,10 @@ if TYPE_CHECKING:
 
     from pipescan.core.contour.base import ContourResult
     from pipescan.core.contour.polar import PolarProfile
-    from pipescan.core.measures import MeasureParams
 
 __all__ = [
     "CONTOUR_METHODS",
+    "CONTOUR_PARAMS",
     "DEFAULT_CONTOUR_METHOD",
     "ContourMethod",
     "check_contour_method",
@@ -52,6 +52,8 @@ CONTOUR_METHODS: dict[str, str] = {
     "grid": "pipescan.core.contour.grid",
 }
 DEFAULT_CONTOUR_METHOD = "polar"
+#: The field of ``MeasureParams`` that holds each method's own parameters (none for polar).
+CONTOUR_PARAMS: dict[str, str] = {"grid": "grid"}
 
 
 class ContourMethod(Protocol):
@@ -67,8 +69,9 @@ class ContourMethod(Protocol):
     profile : PolarProfile
         The section's profile by angle, from which its coverage was judged; the result's
         ``radii_m`` are at ``profile.angles_rad``.
-    params : MeasureParams
-        The run's measuring parameters; a method reads its own (e.g. ``params.grid``).
+    params : object or None
+        The method's own parameters, and only those (``GridParams`` for ``grid``; ``polar``
+        has none): the measuring code hands each method what :data:`CONTOUR_PARAMS` names.
 
     Returns
     -------
@@ -80,9 +83,7 @@ class ContourMethod(Protocol):
         When the method cannot trace a closed inner contour.
     """
 
-    def __call__(
-        self, points: np.ndarray, profile: PolarProfile, params: MeasureParams
-    ) -> ContourResult: ...
+    def __call__(self, points: np.ndarray, profile: PolarProfile, params: Any) -> ContourResult: ...
 
 
 def check_contour_method(name: str) -> str:

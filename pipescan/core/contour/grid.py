@@ -19,7 +19,6 @@ from pipescan.core.errors import GeometryError
 
 if TYPE_CHECKING:
     from pipescan.core.contour.polar import PolarProfile
-    from pipescan.core.measures import MeasureParams
 
 
 @dataclass(frozen=True)
@@ -282,16 +281,16 @@ def grid_contour(points_2d: np.ndarray, params: GridParams = GridParams()) -> Gr
     return GridContour(polygon=polygon, boundary_points=edge, cell_size_m=cell)
 
 
-def contour(points: np.ndarray, profile: PolarProfile, params: MeasureParams) -> ContourResult:
-    """The grid method on a section's points, with ``params.grid``; radii at the profile's
-    angles.
+def contour(points: np.ndarray, profile: PolarProfile, params: GridParams) -> ContourResult:
+    """The grid method on a section's points, with its own ``params``; radii at the
+    profile's angles.
 
     Raises
     ------
     GeometryError
         When the method finds no closed inner contour (see :func:`grid_contour`).
     """
-    polygon = grid_contour(points[:, :2], params.grid).polygon
+    polygon = grid_contour(points[:, :2], params).polygon
     return ContourResult(
         polygon_m=polygon,
         area_m2=polygon_area(polygon),

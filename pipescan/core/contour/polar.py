@@ -13,15 +13,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from pipescan.core.contour.base import ContourResult, angle_bins, polar_coordinates
 from pipescan.core.errors import GeometryError
-
-if TYPE_CHECKING:
-    from pipescan.core.measures import MeasureParams
 
 
 @dataclass(frozen=True)
@@ -580,10 +576,11 @@ def _near_layer_length(
     return np.where(two, near_n, n)
 
 
-def contour(points: np.ndarray, profile: PolarProfile, params: MeasureParams) -> ContourResult:
+def contour(points: np.ndarray, profile: PolarProfile, params: None = None) -> ContourResult:
     """The polar method: the section profile's own contour (see :class:`PolarProfile`).
 
-    ``points`` and ``params`` are not needed beyond the profile, which was built from them.
+    ``points`` are not needed beyond the profile, which was built from them; the method has
+    no parameters of its own.
     """
     return ContourResult(
         polygon_m=profile.polygon(), area_m2=profile.area_m2(), radii_m=profile.filled_radii()
