@@ -314,3 +314,16 @@ def test_the_report_cover_names_the_measured_inner_diameter():
     stored = SimpleNamespace(registration={"measured_inner_diameter_m": 0.7996})
     assert _measured_diameter(stored) == "0.800 m (the wall's median)"
     assert _measured_diameter(SimpleNamespace(registration={})) is None  # stored before it was
+
+
+def test_a_partial_view_scan_gives_no_figure_until_its_registration_is_trusted():
+    from pipescan.core.instrument import registration_trusted
+    from pipescan.simulator.sweep import measure_scan
+
+    assert registration_trusted(scan_instrument(simulate_scan(_scene(1.5), seed=1)))
+    assert registration_trusted(None)  # a registered cloud: placed by whoever registered it
+    scan = simulate_scan(_scene(1.5, coverage=0.3), seed=1)
+    assert not registration_trusted(scan_instrument(scan))
+    _, sections = measure_scan(scan)
+    assert sections and not any(s.is_ok for s in sections)
+    assert any(s.status == SectionStatus.WEAK_REGISTRATION for s in sections)

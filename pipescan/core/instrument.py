@@ -411,3 +411,17 @@ def instrument_summary(instrument: Instrument | None) -> dict:
         "instrument_sources": dict(instrument.sources),
         "instrument": instrument.describe(),
     }
+
+
+def registration_trusted(instrument: Instrument | None) -> bool:
+    """Whether frames registered from this instrument may carry figures.
+
+    Not where one frame covers only part of the view (a map seeded by several frames): on
+    the sweep over instruments, such scans registered consistently but wrongly. Their
+    sections agreed with each other (no smear) and read 2-4 pp off the truth, which the same
+    scans placed with their true poses measured within 0.3 pp
+    (docs/instrument.md, *Open work*). Their sections are ``weak_registration``: no figure,
+    rather than a wrong one, until registration of a partial view is right. A registered
+    cloud (None) is placed by whoever registered it.
+    """
+    return instrument is None or instrument.map_seed_frames <= 1

@@ -18,7 +18,7 @@ from prefect.utilities.annotations import quote
 import pipescan
 from pipescan.core.errors import MetadataError
 from pipescan.core.grading import choose_grading, is_flagged
-from pipescan.core.instrument import instrument_summary, instrumented
+from pipescan.core.instrument import instrument_summary, instrumented, registration_trusted
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.registration import (
     FrameStride,
@@ -295,6 +295,13 @@ def inspect_archive(
             if trajectory is not None
             else RegistrationEvidence.uniform(fit.start_uncertainty_m)
         )
+        if not registration_trusted(instrument):
+            log.warning(
+                "one frame covers only part of the view: registration of such a scan is not "
+                "yet trusted for figures, and every section is weak_registration "
+                "(docs/instrument.md)"
+            )
+            evidence = replace(evidence, untrusted=True)
         bucket_root = run_dir / "buckets"
         # Frames are placed by chunk; a registered cloud by slices of its rows.
         rows = frame_store.cloud_rows() if trajectory is None else 0

@@ -88,7 +88,8 @@ STATUS_EXPLANATIONS: dict[str, str] = {
     SectionStatus.WEAK_REGISTRATION: (
         "most frames that saw the section slid along the pipe (registered travel disagreed "
         "with the odometer beyond its error), or one had neither odometer nor geometry along "
-        "the pipe"
+        "the pipe, or the sensor covers only part of its view in one frame, whose "
+        "registration is not yet trusted for figures"
     ),
     SectionStatus.SMEARED_WALL: (
         "the frames that saw the section disagree: the wall's points spread around the "

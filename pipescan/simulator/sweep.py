@@ -794,6 +794,8 @@ def measure_scan(
     evidence = registration_evidence(
         trajectory, axis.chainage(positions), seen_from_m=max_section_range_m
     )
+    if instrument and params.map_seed_frames > 1:  # as the flow: registration_trusted
+        evidence = dataclasses.replace(evidence, untrusted=True)
     chain = axis.chainage(points)
     sections = []
     for w in plan_windows(max(0.0, float(chain.min())), float(chain.max()), step_m=0.1):

@@ -269,7 +269,7 @@ class RegistrationEvidence:
     registration is weak when one of them had no odometer and no geometry along the axis
     (its place is extrapolated), or when most of them slid along the axis (a fault the
     odometer caught: such frames are left out of the sections, and the few left may not show
-    the section whole).
+    the section whole), or when registration as a whole is ``untrusted``.
 
     Attributes
     ----------
@@ -291,6 +291,9 @@ class RegistrationEvidence:
     slid: np.ndarray
     seen_from_m: float
     ahead: int = 1
+    untrusted: bool = False
+    """Registration as a whole is not trusted for figures: every section is weak
+    (:func:`pipescan.core.instrument.registration_trusted`)."""
 
     @classmethod
     def uniform(cls, uncertainty_m: float) -> RegistrationEvidence:
@@ -306,6 +309,8 @@ class RegistrationEvidence:
     def for_section(self, start_m: float, end_m: float) -> tuple[float, bool]:
         """(chainage uncertainty, weak) of the section ``[start_m, end_m)``."""
         c = self.frame_chainage_m
+        if self.untrusted:
+            return float(self.uncertainty_m.max()) if len(c) else 0.0, True
         if self.ahead >= 0:
             seen = (c >= start_m - self.seen_from_m) & (c <= end_m)
         else:
