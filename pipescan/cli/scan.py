@@ -68,6 +68,15 @@ def simulate(
             "negative: cleaned).",
         ),
     ] = 0.0,
+    frame_coverage: Annotated[
+        float | None,
+        typer.Option(
+            min=0.05,
+            max=1.0,
+            help="Share of the field of view one frame covers: below 1, a non-repetitive "
+            "(rosette) pattern, as Livox's Avia and Mid series have (docs/instrument.md).",
+        ),
+    ] = None,
     water_depth: Annotated[
         float | None,
         typer.Option(help="Water in the invert, as a share of the diameter (e.g. 0.1)."),
@@ -106,6 +115,8 @@ def simulate(
             overrides["effects"] = _effects(effect or [], ideal, get_scenario(scenario.value))
         if water_depth is not None:
             overrides["water"] = WaterLevel(depth_ratio=water_depth)
+        if frame_coverage is not None:
+            overrides["frame_coverage_ratio"] = frame_coverage
         scene = get_scenario(scenario.value, **overrides)
         if inspected_at is not None:
             scene = grow_deposits(scene, deposit_growth, _parse_datetime(inspected_at))

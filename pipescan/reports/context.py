@@ -163,7 +163,7 @@ def status_words(s: SectionMeasures, limits: MeasureLimits) -> tuple[str, str]:
             f"to be known within ±{limits.uncertainty} points (the section has enough points)"
         )
     if s.status == SectionStatus.WEAK_REGISTRATION:
-        return "uncertain: frames slid", STATUS_EXPLANATIONS[s.status]
+        return "uncertain: registration", STATUS_EXPLANATIONS[s.status]
     if s.status == SectionStatus.SMEARED_WALL:
         return "uncertain: frames disagree", STATUS_EXPLANATIONS[s.status]
     return STATUS_LABELS.get(s.status, str(s.status)), STATUS_EXPLANATIONS.get(s.status, "")
