@@ -175,7 +175,8 @@ def _effects(assignments: list[str], ideal: bool, scenario=None):
                 if raw.strip().lower() not in ("true", "false", "1", "0", "yes", "no"):
                     raise ValueError
                 values[name] = raw.strip().lower() in ("true", "1", "yes")
-            elif isinstance(default, tuple):
+            elif isinstance(default, tuple) or name == "spurious_range_ratio":
+                # Pairs (slip_duration_s; spurious_range_ratio, None by default).
                 values[name] = tuple(float(v) for v in raw.split(","))
             else:
                 values[name] = float(raw)
