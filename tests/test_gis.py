@@ -437,7 +437,13 @@ def network(tmp_path: Path):
     """A SQLite database with two pipes on an imported layer, one inspected twice."""
     url = f"sqlite:///{tmp_path / 'gis.db'}"
     engine = db.connect(url)
-    save(engine, meta("MH1-MH2", "MH1", "MH2"), 10.0, defects=[deposit(6.5, 7.5)])
+    save(
+        engine,
+        meta("MH1-MH2", "MH1", "MH2"),
+        10.0,
+        defects=[deposit(6.5, 7.5)],
+        registration={"measured_inner_diameter_m": 0.4912},
+    )
     save(
         engine,
         meta("MH2-MH3", "MH3", "MH2", inspected_at=datetime(2023, 3, 1, tzinfo=UTC)),
@@ -472,12 +478,16 @@ def test_geopackage_round_trip(network, tmp_path: Path) -> None:
     assert info["crs"] == CRS
     assert list(pipes) == [
         "asset_id", "gis_id", "inspection_id", "inspected_at", "inspection_count",
-        "condition_class", "peak_blockage_ratio", "peak_chainage_m", "growth_per_year_ratio",
+        "condition_class", "peak_blockage_ratio", "peak_chainage_m",
+        "measured_inner_diameter_m", "growth_per_year_ratio",
         "defect_count", "scan_end_chainage_m", "gis_length_m", "length_difference_ratio",
         "length_note", "geometry_source", "oriented_by",
     ]  # fmt: skip
     by_asset = {a: i for i, a in enumerate(pipes["asset_id"])}
     first, second = by_asset["MH1-MH2"], by_asset["MH2-MH3"]
+    # The wall's measured inner diameter, where the run measured it (none before it did).
+    assert pipes["measured_inner_diameter_m"][first] == pytest.approx(0.4912)
+    assert np.isnan(pipes["measured_inner_diameter_m"][second])
     assert pipes["gis_id"][first] == "SW-1" and pipes["gis_id"][second] == "SW-2"
     assert pipes["condition_class"][first] == 1  # the graded section at 6.5 m
     assert pipes["inspection_count"][second] == 2

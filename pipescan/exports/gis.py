@@ -152,6 +152,7 @@ _PIPE_FIELDS = {
     "condition_class": "int",
     "peak_blockage_ratio": "float",
     "peak_chainage_m": "float",
+    "measured_inner_diameter_m": "float",
     "growth_per_year_ratio": "float",
     "defect_count": "int",
     "scan_end_chainage_m": "float",
@@ -255,6 +256,10 @@ def _features(
                 condition_class=worst_grade(profile),
                 peak_blockage_ratio=peak_ratio,
                 peak_chainage_m=None if peak is None else peak.chainage_start_m,
+                # The wall's inner diameter as the run measured it (docs/instrument.md).
+                measured_inner_diameter_m=(record.registration or {}).get(
+                    "measured_inner_diameter_m"
+                ),
                 growth_per_year_ratio=growth,
                 defect_count=counts[record.id],
                 scan_end_chainage_m=reach,
