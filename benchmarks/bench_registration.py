@@ -475,10 +475,10 @@ def bench_parallel(args) -> None:
             rows["2 engine processes (the flow)"] = (wall, _cpu_s() - cpu)
             # The flow as it runs by default: every k-th frame, k chosen from the scan.
             from pipescan.flows.inspect import InspectionParams
-            from pipescan.tasks.inspection import choose_stride
+            from pipescan.tasks.inspection import survey_scan
 
             cpu, wall = _cpu_s(), time.perf_counter()
-            stride = choose_stride.fn(staged, **InspectionParams().stride_bounds())
+            stride = survey_scan.fn(staged, **InspectionParams().stride_bounds()).stride
             strided_chunks = plan_chunks(n, (n // stride.stride + 1) // 2 + 1, stride.stride)
             strided = list(
                 pool.map(
@@ -570,9 +570,10 @@ def _flow_sections(archive: Path, work: Path):
 def _registered(archive: Path, params: RegistrationParams):
     """The flow's registration, chunk by chunk in one thread, on the frames the flow uses
     (its stride chosen as the flow chooses it): trajectory and seconds (choosing included)."""
+    from pipescan.core.instrument import instrumented
     from pipescan.flows.inspect import InspectionParams
     from pipescan.storage.input.archive import open_archive
-    from pipescan.tasks.inspection import StagedArchive, choose_stride, register_chunk
+    from pipescan.tasks.inspection import StagedArchive, register_chunk, survey_scan
 
     with open_archive(archive) as arc:
         staged = StagedArchive(
@@ -580,9 +581,12 @@ def _registered(archive: Path, params: RegistrationParams):
         )
     flow = InspectionParams()
     started = time.perf_counter()
-    stride = choose_stride.fn(
+    survey = survey_scan.fn(
         staged, **dataclasses.replace(flow, registration=params).stride_bounds()
-    ).stride
+    )
+    # As the flow registers: with the scan's instrument (its blind zone, its map seed).
+    params = instrumented(params, flow.measure, survey.instrument)[0]
+    stride = survey.stride.stride
     chunks = plan_chunks(staged.frame_count, flow.chunk_frames, stride)
     parts = [register_chunk.fn(staged, a, b, params, stride=stride) for a, b in chunks]
     return chain_trajectories(parts), time.perf_counter() - started

@@ -20,9 +20,9 @@ from pipescan.core.wording import plural
 
 DIAMETER_SCALE_FACTOR = 1.8
 """How far the points' width across the pipe may differ from ``nominal_diameter_m`` (a
-factor, either way) before the look refuses the archive. Measured on the simulator's
-scenarios and the real S3DSS scan, the width is 0.99-1.05 times the diameter; a radius given
-for the diameter is 2 times off, points in feet 3.3, in inches 39, in centimetres 100."""
+factor, either way) before the look refuses the archive: below the nearest mistake of unit or
+quantity, a radius given for the diameter (2 times off; feet 3.3, inches 39, centimetres 100),
+and well above a right diameter's scatter (docs/usage.md, *Mistakes are found first*)."""
 
 _SAMPLE_POINTS = 200_000
 

@@ -31,6 +31,7 @@ import numpy as np
 
 from pipescan.core.model import SCAN_PATTERNS as SCAN_PATTERNS
 from pipescan.core.model import SensorProfile
+from pipescan.core.registration.preprocess import crop_range
 
 if TYPE_CHECKING:
     from pipescan.core.measures import MeasureParams
@@ -95,15 +96,30 @@ SEED_SEEN_TWICE_SHARE = 0.9
 two of them saw (what a keyframe keeps) to reach this share of what the run's frames see:
 then a frame finds most of its field of view in the map."""
 FULL_VIEW_SHARE = 2.0 / 3.0
-"""A frame that covers at least this share of the view is registered as it comes: each frame
-then overlaps what the map's one-frame start saw over most of its own view. (On the
-simulator, frames covering 60 % were held within 1.4 mm across the axis, RMS, as full ones
-are; frames covering 30 %, 35 mm.) A repetitive pattern reads 86-98 %, rims excluded."""
+"""A frame that covers at least this share of the view is registered as it comes: it then
+overlaps a one-frame map over most of its own view (measurements: docs/instrument.md)."""
 _VIEW_MIN_FRAMES_RATIO = 0.1
 """A direction belongs to the view when at least this share of the consecutive frames hit it
 (a rosette covering a fifth of its view a frame hits each direction in about a fifth)."""
 CONSECUTIVE_FRAMES = 30
 """Consecutive frames a run reads to tell how much of the view one frame covers."""
+
+
+def consecutive_frame_indices(frame_count: int) -> list[int]:
+    """The :data:`CONSECUTIVE_FRAMES` frames from the middle of a run of ``frame_count``
+    (all of them in a shorter run) that tell how much of the view one frame covers.
+
+    >>> consecutive_frame_indices(100)[:2], len(consecutive_frame_indices(100))
+    ([35, 36], 30)
+    >>> consecutive_frame_indices(4)
+    [0, 1, 2, 3]
+    """
+    middle = max(
+        0, min(frame_count - CONSECUTIVE_FRAMES, frame_count // 2 - CONSECUTIVE_FRAMES // 2)
+    )
+    return list(range(middle, min(frame_count, middle + CONSECUTIVE_FRAMES)))
+
+
 _MIN_RANGE_DENSITY_RATIO = 0.2
 _MIN_RANGE_RUN_BINS = 5
 """The nearest range actually seen: the first of five 1 cm range bins in a row that each hold
@@ -140,6 +156,11 @@ class Instrument:
     sources: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
+    def partial_view(self) -> bool:
+        """One frame covers only part of the view: the map is seeded by several frames."""
+        return self.map_seed_frames > 1
+
+    @property
     def max_wall_spread_m(self) -> float | None:
         """The smear limit for this scan (None when its noise is not known)."""
         if self.wall_noise_m is None:
@@ -156,7 +177,7 @@ class Instrument:
             f"one frame sees {100 * self.frame_view_share:.0f} % of the view "
             f"({self.sources.get('frame_view_share', '?')})",
         ]
-        if self.map_seed_frames > 1:
+        if self.partial_view:
             parts.append(f"map seeded by {self.map_seed_frames} frames")
         return "; ".join(parts)
 
@@ -330,11 +351,7 @@ def estimate_instrument(
         min_range, sources["min_range_m"] = (seen, "estimated") if seen else (0.0, "default")
 
     def beyond_min_range(frames: Sequence[np.ndarray]) -> list[np.ndarray]:
-        out = []
-        for f in frames:
-            pts = np.asarray(f, dtype=np.float64)
-            out.append(pts[np.einsum("ij,ij->i", pts, pts) >= min_range**2])
-        return out
+        return [crop_range(f, math.inf, min_range) for f in frames]
 
     noise = wall_noise_m(beyond_min_range(sample_frames), max_range_m=max_range_m)
     sources["wall_noise_m"] = "estimated" if noise is not None else "default"
@@ -359,8 +376,8 @@ def instrumented(
 ) -> tuple[RegistrationParams, MeasureParams]:
     """The registration and measure parameters for a scan made with ``instrument``: its
     minimum range, its map seed, and its smear limit (:data:`SMEAR_SPREAD_RATIO` times its
-    wall noise). ``None`` (a
-    registered cloud): no smear test, the registration parameters as given.
+    wall noise). ``None`` (a registered cloud): no smear test, the registration parameters as
+    given.
 
     >>> from pipescan.core.measures import MeasureParams
     >>> from pipescan.core.registration import RegistrationParams
@@ -388,7 +405,7 @@ def partial_view_stride(instrument: Instrument | None) -> FrameStride | None:
     ``choose_frame_stride``)."""
     from pipescan.core.registration.stride import FrameStride
 
-    if instrument is None or instrument.map_seed_frames <= 1:
+    if instrument is None or not instrument.partial_view:
         return None
     return FrameStride(
         1,
@@ -424,4 +441,4 @@ def registration_trusted(instrument: Instrument | None) -> bool:
     rather than a wrong one, until registration of a partial view is right. A registered
     cloud (None) is placed by whoever registered it.
     """
-    return instrument is None or instrument.map_seed_frames <= 1
+    return instrument is None or not instrument.partial_view

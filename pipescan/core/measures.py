@@ -104,7 +104,8 @@ class MeasureParams:
         pooled over the wall's angle bins) is ``smeared_wall``: the frames that saw it
         disagree. Frames that agree spread the wall by the noise one frame shows across it,
         so a run sets this from the scan's own single-frame wall noise
-        (:attr:`pipescan.core.instrument.Instrument.max_wall_spread_m`: twice the noise).
+        (:attr:`pipescan.core.instrument.Instrument.max_wall_spread_m`:
+        ``SMEAR_SPREAD_RATIO`` times the noise).
         The default, 8 mm, stands only where the noise is not known. None: no smear test
         (a registered cloud: with no frames to tell apart, its spread is its noise, which
         the uncertainty carries).

@@ -17,9 +17,12 @@ A frames archive starts where its first frame was taken (``first_frame``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from pipescan.core.model import SensorProfile
 
 StartSource = Literal["first_frame", "start_xyz", "point_time", "nearer_origin"]
 
@@ -168,3 +171,28 @@ def cloud_start(
     if np.linalg.norm(end_lo) <= np.linalg.norm(end_hi):
         return CloudStart(end_lo, d, "nearer_origin")
     return CloudStart(end_hi, -d, "nearer_origin")
+
+
+def sensor_ahead_m(sensor: SensorProfile | None, nominal_diameter_m: float) -> tuple[float, float]:
+    """How far ahead of the sensor a registered cloud's first points lie, and how well that
+    is known (:func:`sensor_start_offset`), for the ``[sensor]`` profile: a forward-looking
+    sensor (field of view under 180° both ways) with a stated minimum range. Otherwise
+    unknown: ``(0, UNSTATED_MIN_RANGE_M)``.
+
+    >>> from pipescan.core.model import SensorProfile
+    >>> hap = SensorProfile(min_range_m=0.5, fov_horizontal_deg=120.0, fov_vertical_deg=25.0)
+    >>> [round(v, 2) for v in sensor_ahead_m(hap, 0.6)]
+    [0.38, 0.08]
+    >>> sensor_ahead_m(None, 0.6)
+    (0.0, 1.0)
+    """
+    fovs = [] if sensor is None else [sensor.fov_horizontal_deg, sensor.fov_vertical_deg]
+    if (
+        sensor is None
+        or sensor.min_range_m is None
+        or None in fovs
+        or max(fovs) >= 180.0
+        or not np.isfinite(nominal_diameter_m)
+    ):
+        return 0.0, UNSTATED_MIN_RANGE_M
+    return sensor_start_offset(sensor.min_range_m, nominal_diameter_m / 2.0, max(fovs) / 2.0)

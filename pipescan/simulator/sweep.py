@@ -687,15 +687,14 @@ def register_scan(
 def scan_instrument(scan, max_section_range_m: float = 5.0):
     """The instrument of a simulated scan as the inspect flow estimates it (a few frames
     spread over the run, and a run of consecutive ones from its middle), with no profile."""
-    from pipescan.core.instrument import CONSECUTIVE_FRAMES, estimate_instrument
+    from pipescan.core.instrument import consecutive_frame_indices, estimate_instrument
     from pipescan.core.registration import sample_frame_indices
 
     n = len(scan)
-    middle = max(0, min(n - CONSECUTIVE_FRAMES, n // 2 - CONSECUTIVE_FRAMES // 2))
+    sample_at, run_at = sample_frame_indices(n), consecutive_frame_indices(n)
+    read = {i: scan.frame(i).points_sensor for i in set(sample_at) | set(run_at)}
     return estimate_instrument(
-        [scan.frame(i).points_sensor for i in sample_frame_indices(n)],
-        [scan.frame(i).points_sensor for i in range(middle, min(n, middle + CONSECUTIVE_FRAMES))],
-        max_range_m=max_section_range_m,
+        [read[i] for i in sample_at], [read[i] for i in run_at], max_range_m=max_section_range_m
     )
 
 
@@ -714,8 +713,6 @@ def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_s
     )
 
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
-    if frame_stride is None and params.map_seed_frames > 1:
-        frame_stride = 1  # a partial view: every frame (partial_view_stride)
     if frame_stride is None:
         frame_stride = choose_frame_stride(
             [frames[i][1] for i in sample_frame_indices(len(frames))],
@@ -753,17 +750,17 @@ def measure_scan(
     ``instrument`` False leaves the scan's instrument out (the parameters as given, water
     only from its surface's returns): pipescan as it measured before it read its instrument,
     for the sweep's "before". For tests and studies of a scan small enough to hold in memory
-    (the flow
-    buckets points on disk instead). ``params``: the ``RegistrationParams`` to register with
-    (the defaults when None). ``frame_stride``: every k-th frame is used (and the last), as
-    the flow does; None chooses it as the flow does (``choose_frame_stride``).
+    (the flow buckets points on disk instead). ``params``: the ``RegistrationParams`` to
+    register with (the defaults when None). ``frame_stride``: every k-th frame is used (and
+    the last), as the flow does; None chooses it as the flow does (every frame for a partial
+    view, else ``choose_frame_stride``).
 
     Returns
     -------
     trajectory, sections
     """
     from pipescan.core.axis import fit_axis
-    from pipescan.core.instrument import instrumented
+    from pipescan.core.instrument import instrumented, partial_view_stride, registration_trusted
     from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
     from pipescan.core.registration import (
         RegistrationParams,
@@ -775,8 +772,12 @@ def measure_scan(
 
     params = params or RegistrationParams()
     measure = MeasureParams()
-    if instrument:
-        params, measure = instrumented(params, measure, scan_instrument(scan, max_section_range_m))
+    scan_has = scan_instrument(scan, max_section_range_m) if instrument else None
+    if scan_has is not None:
+        params, measure = instrumented(params, measure, scan_has)
+        every = partial_view_stride(scan_has)
+        if frame_stride is None and every is not None:
+            frame_stride = every.stride
     trajectory, frames = _register_in_memory(
         scan, chunk_frames, max_section_range_m, params, frame_stride
     )
@@ -794,7 +795,7 @@ def measure_scan(
     evidence = registration_evidence(
         trajectory, axis.chainage(positions), seen_from_m=max_section_range_m
     )
-    if instrument and params.map_seed_frames > 1:  # as the flow: registration_trusted
+    if scan_has is not None and not registration_trusted(scan_has):  # as the flow does
         evidence = dataclasses.replace(evidence, untrusted=True)
     chain = axis.chainage(points)
     sections = []

@@ -19,8 +19,8 @@ from pipescan.core.axis import PipeAxis, axis_direction, fit_axis
 from pipescan.core.coding import code_sections
 from pipescan.core.grading import choose_grading, grade_sections, load_table, merge_defects
 from pipescan.core.instrument import (
-    CONSECUTIVE_FRAMES,
     Instrument,
+    consecutive_frame_indices,
     estimate_instrument,
     partial_view_stride,
 )
@@ -37,7 +37,7 @@ from pipescan.core.registration import (
     sample_frame_indices,
 )
 from pipescan.core.sections import ChainageWindow, measure_window
-from pipescan.core.start import UNSTATED_MIN_RANGE_M, cloud_start, sensor_start_offset
+from pipescan.core.start import cloud_start, sensor_ahead_m
 from pipescan.storage.input.pointfiles import StridedSample
 from pipescan.storage.scratch import (
     Bucketed,
@@ -120,9 +120,7 @@ def survey_scan(
     few frames spread over the run and a run of consecutive ones from its middle, each
     decoded once."""
     meta, n = staged.meta, staged.frame_count
-    sample_at = sample_frame_indices(n)
-    middle = max(0, min(n - CONSECUTIVE_FRAMES, n // 2 - CONSECUTIVE_FRAMES // 2))
-    run_at = list(range(middle, min(n, middle + CONSECUTIVE_FRAMES)))
+    sample_at, run_at = sample_frame_indices(n), consecutive_frame_indices(n)
     with staged.reopen() as arc:
         read = dict(arc.iter_frames(sorted(set(sample_at) | set(run_at))))
     sample = [read[i] for i in sample_at]
@@ -143,11 +141,6 @@ def survey_scan(
         )
     log.info(stride.describe(n))
     return ScanSurvey(instrument, stride)
-
-
-def choose_stride(staged: StagedArchive, **bounds: float) -> FrameStride:
-    """Which frames the run reads and registers, as :func:`survey_scan` chooses them."""
-    return survey_scan.fn(staged, **bounds).stride
 
 
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
@@ -242,7 +235,7 @@ def fit_pipe_axis(
                 axis_direction(points, diameter),
                 time_s=time_s,
                 start_xyz=None if meta.start_xyz is None else np.array(meta.start_xyz),
-                sensor_ahead_m=_sensor_ahead(meta),
+                sensor_ahead_m=sensor_ahead_m(meta.sensor, diameter),
             )
             start, travel, source = choice.start_m, choice.travel_m, choice.source
             start_uncertainty = choice.uncertainty_m
@@ -285,23 +278,6 @@ def fit_pipe_axis(
         start_source=source,
         start_uncertainty_m=start_uncertainty,
     )
-
-
-def _sensor_ahead(meta) -> tuple[float, float]:
-    """How far ahead of the sensor a registered cloud's first points lie, and how well that is
-    known, from ``[sensor]`` (``pipescan.core.start.sensor_start_offset``): a forward-looking
-    sensor with a stated minimum range; otherwise unknown (``UNSTATED_MIN_RANGE_M``)."""
-    sensor = meta.sensor
-    fovs = [] if sensor is None else [sensor.fov_horizontal_deg, sensor.fov_vertical_deg]
-    if (
-        sensor is None
-        or sensor.min_range_m is None
-        or None in fovs
-        or max(fovs) >= 180.0
-        or not np.isfinite(meta.nominal_diameter_m)
-    ):
-        return 0.0, UNSTATED_MIN_RANGE_M
-    return sensor_start_offset(sensor.min_range_m, meta.nominal_diameter_m / 2.0, max(fovs) / 2.0)
 
 
 @task(name="bucket-points", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)

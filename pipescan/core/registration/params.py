@@ -106,9 +106,8 @@ class RegistrationParams:
         of its own, instead of grouped over ``keyframe_distance_m``. 1 for a sensor whose
         every frame covers its field of view. A non-repetitive (rosette) pattern covers a part
         of it in one frame, and ICP against a map of one such frame has only the parts both
-        saw to hold on to: on the simulator, frames covering 30 % of the field of view ended
-        35 mm off across the axis (RMS) against a one-frame map.
-        :func:`~pipescan.core.instrument.map_seed_frames` chooses it from what the scan's own
+        saw to hold on to (measured: ``docs/instrument.md``).
+        :func:`~pipescan.core.instrument.view_coverage` chooses it from what the scan's own
         consecutive frames cover.
     num_threads : int
         Threads the engine may use for one frame. 1 by default: parallelism comes from

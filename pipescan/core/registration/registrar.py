@@ -222,13 +222,18 @@ class FrameRegistrar:
         of one frame to be held by it, and each frame added widens what the next one finds.
         A one-frame keyframe drops its isolated points (``seen_twice``)."""
         self._seed.append(transform(T, pts))
-        self._map.add_keyframe(self._seed[-1:], T[:3, 0])
+        self._pending = self._seed[-1:]
+        self._close_keyframe(T)
+        if not self._seeding():
+            self._seed = []
+
+    def _close_keyframe(self, T: np.ndarray) -> None:
+        """Group the frames since the last keyframe into one keyframe, at pose ``T``."""
+        self._map.add_keyframe(self._pending, T[:3, 0])
         self._pending = []
         self._last_key_position = T[:3, 3].copy()
         self._key_positions = [*self._key_positions, T[:3, 3].copy()][-self.params.map_keyframes :]
         self._axis_world = self._map.axis
-        if not self._seeding():
-            self._seed = []
 
     def _add_to_map(self, T: np.ndarray, pts: np.ndarray, quality: FrameQuality) -> None:
         p = self.params
@@ -245,12 +250,7 @@ class FrameRegistrar:
             self._key_positions = [T[:3, 3].copy()]
             return
         if np.linalg.norm(T[:3, 3] - self._last_key_position) >= p.keyframe_distance_m:
-            # Group the frames since the last keyframe into one keyframe.
-            self._map.add_keyframe(self._pending, T[:3, 0])
-            self._pending = []
-            self._last_key_position = T[:3, 3].copy()
-            self._key_positions = [*self._key_positions, T[:3, 3].copy()][-p.map_keyframes :]
-            self._axis_world = self._map.axis
+            self._close_keyframe(T)
 
     def _register(
         self, pts: np.ndarray, pred: np.ndarray, index: int, step_bound: float
