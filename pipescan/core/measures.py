@@ -23,7 +23,9 @@ from pipescan.core.contour import (
     contour_method,
 )
 from pipescan.core.contour.base import (
+    ContourResult,
     angle_bins,
+    angle_from_invert_rad,
     not_veil,
     polar_coordinates,
     remove_stray_points,
@@ -34,13 +36,14 @@ from pipescan.core.errors import GeometryError
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.summary import touches
 from pipescan.core.uncertainty import (
+    MAD_TO_SIGMA,
     area_uncertainty,
     diameter_uncertainty_m,
     height_uncertainty_m,
     residual_sigma_m,
     smear_bias_m2,
 )
-from pipescan.core.water import detect_water
+from pipescan.core.water import WaterLevel, detect_water
 
 _BIN_CHOICES = (360, 180, 120, 90, 72)
 # Coarser bins for sparse sections (a ring profiler's few hundred points): at least
@@ -223,7 +226,7 @@ def _deposit_height_ratio(
     median radius within ±5° of straight down (``DEPOSIT_TOP_HALF_WIDTH_RAD``).
     """
     wall = _wall_bins(profile_radii_m, seen, nominal_diameter_m, wall_tolerance_ratio)
-    down = np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * np.pi)))) <= DEPOSIT_TOP_HALF_WIDTH_RAD
+    down = angle_from_invert_rad(angles_rad) <= DEPOSIT_TOP_HALF_WIDTH_RAD
     bottom = down & seen
     if not bottom.any() or wall.sum() < 3:
         return None
@@ -239,7 +242,7 @@ def wall_spread_m(
     *,
     polar: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> float | None:
-    """Robust spread (1.4826 × MAD, metres) of the points of the wall's bins around their
+    """Robust spread (``MAD_TO_SIGMA`` × MAD, metres) of the points of the wall's bins around their
     bin's radius: the sensor's noise where the frames agree, more where they do not. None
     without wall bins. ``polar``: the points' angles and radii, when the caller has them
     (``contour.base.polar_coordinates``)."""
@@ -250,7 +253,7 @@ def wall_spread_m(
     if on_wall.sum() < 10:
         return None
     residual = rad[on_wall] - profile.radii_m[b[on_wall]]
-    return float(1.4826 * np.median(np.abs(residual - np.median(residual))))
+    return float(MAD_TO_SIGMA * np.median(np.abs(residual - np.median(residual))))
 
 
 def measure_section(
@@ -266,6 +269,11 @@ def measure_section(
     registration_weak: bool = False,
 ) -> SectionMeasures:
     """Measure one section from its projected points.
+
+    The stages, in order: clean (``_clean``), profile (``_profile``, ``_wall_noise``), water
+    (``_water``), contour (``_contour``), figures (``_figures``) and uncertainty
+    (``_uncertainty``); :func:`_status` alone decides the status, from what they found.
+    (Over 80 lines for its reference docstring only: the body is one call per stage.)
 
     Parameters
     ----------
@@ -292,10 +300,9 @@ def measure_section(
     -------
     SectionMeasures
         ``status`` is ``ok`` only when enough of the perimeter was seen with enough points,
-        by frames that were registered and agree (the wall is not smeared). The first
-        reason that applies is given: coverage and points, then registration, then smear.
-        Figures that could be computed are kept for diagnostics even when the status is not
-        ok; figures that could not are None.
+        by frames that were registered and agree; else the first reason that applies
+        (:func:`_status`). Figures that could be computed are kept for diagnostics even
+        when the status is not ok; figures that could not are None.
 
     Examples
     --------
@@ -306,8 +313,8 @@ def measure_section(
     >>> m.status.value, round(m.blockage_ratio, 3)
     ('ok', 0.0)
     """
-    nominal_area = math.pi * nominal_diameter_m**2 / 4.0
     raw = np.asarray(points_2d, dtype=np.float64)
+    nominal_area = math.pi * nominal_diameter_m**2 / 4.0
     base: dict[str, Any] = dict(
         chainage_start_m=float(chainage_start_m),
         chainage_end_m=float(chainage_end_m),
@@ -316,258 +323,451 @@ def measure_section(
         chainage_uncertainty_m=chainage_uncertainty_m,
     )
     if len(raw) == 0:
-        return SectionMeasures(status=SectionStatus.OUTSIDE_SCAN, coverage_ratio=0.0, **base)
+        return SectionMeasures(status=_status(_Evidence(0), params), coverage_ratio=0.0, **base)
+    length_m = chainage_end_m - chainage_start_m
+    clean = _clean(raw, nominal_diameter_m, length_m, params)
+    profile = _profile(clean, length_m)
+    found = _Evidence(len(raw), len(clean.points), bool(profile.seen.any()))
+    if found.points_kept < params.min_points or not found.seen_any:
+        status = _status(found, params)
+        return SectionMeasures(status=status, coverage_ratio=profile.coverage_ratio, **base)
+    noise = _wall_noise(clean, profile, length_m)
+    water, profile, water_depth = _water(clean, noise, nominal_diameter_m, has_invert, params)
+    from_surface = None if water is None else water.from_surface
+    base.update(coverage_ratio=profile.coverage_ratio, water_depth_ratio=water_depth)
+    base.update(water_from_surface=from_surface)
+    found = found.profiled(profile, water, registration_weak)
+    contour = _contour(clean, profile, params)
+    if contour is None:
+        found = dataclasses.replace(found, contour_found=False)
+        return SectionMeasures(status=_status(found, params), **base)
+    figures = _figures(clean, profile, contour, water, nominal_diameter_m, has_invert, params)
+    u = _uncertainty(clean, profile, noise, contour, figures, nominal_diameter_m, params)
+    return SectionMeasures(
+        status=_status(found.measured(figures, u), params),
+        contour_m=contour.polygon_m,
+        open_area_m2=figures.open_area_m2,
+        blockage_ratio=1.0 - figures.open_area_m2 / nominal_area,
+        **figures.measures(),
+        **u.measures(),
+        **base,
+    )
+
+
+@dataclass(frozen=True)
+class _Evidence:
+    """What a section's status is decided on. A stage that was not reached leaves its fields
+    at their defaults, which no rule after it reads."""
+
+    points_given: int
+    points_kept: int = 0
+    seen_any: bool = False
+    water: WaterLevel | None = None
+    coverage_ratio: float = 0.0
+    max_gap_deg: float = 360.0
+    registration_weak: bool = False
+    contour_found: bool = True
+    blockage_uncertainty_ratio: float | None = None
+    blockage_uncertainty_but_smear_ratio: float = 0.0
+    unseen_first: bool = False
+    wall_spread_m: float | None = None
+    wall_behind_deg: float | None = None
+
+    def profiled(
+        self, profile: PolarProfile, water: WaterLevel | None, registration_weak: bool
+    ) -> _Evidence:
+        """With what the profile (water's bins left out) and registration show."""
+        return dataclasses.replace(
+            self,
+            water=water,
+            coverage_ratio=profile.coverage_ratio,
+            max_gap_deg=profile.max_gap_deg,
+            registration_weak=registration_weak,
+        )
+
+    def measured(self, figures: _Figures, u: _Uncertainty) -> _Evidence:
+        """With what the figures and their uncertainties show."""
+        return dataclasses.replace(
+            self,
+            blockage_uncertainty_ratio=u.blockage_ratio,
+            blockage_uncertainty_but_smear_ratio=u.blockage_but_smear_ratio,
+            unseen_first=u.unseen_first,
+            wall_spread_m=figures.wall_spread_m,
+            wall_behind_deg=figures.wall_behind_deg,
+        )
+
+
+def _status(found: _Evidence, params: MeasureParams) -> SectionStatus:
+    """The one place a section's status is decided: the first rule that applies, in the
+    order of docs/measures.md ("Status"): points, coverage and water, registration, the
+    contour, the uncertainty's bound, then the smear."""
+    max_u = params.max_uncertainty_ratio
+    if found.points_given == 0:
+        return SectionStatus.OUTSIDE_SCAN
+    if found.points_kept < params.min_points:
+        return SectionStatus.TOO_FEW_POINTS
+    if not found.seen_any:
+        return SectionStatus.LOW_COVERAGE
+    if found.water is not None and not found.water.from_surface:
+        # Water with no return from its surface: one section cannot tell it from a view that
+        # stops short of the invert. Low coverage, until the sections along the pipe agree
+        # on its level (``core.water.confirm_surfaceless_water``).
+        return SectionStatus.LOW_COVERAGE
+    if found.water is not None:
+        return SectionStatus.INVERT_UNDER_WATER
+    if found.coverage_ratio < params.min_coverage_ratio or found.max_gap_deg > params.max_gap_deg:
+        return SectionStatus.LOW_COVERAGE
+    if found.registration_weak:
+        return SectionStatus.WEAK_REGISTRATION
+    if not found.contour_found:
+        return SectionStatus.NO_CONTOUR
+    u = found.blockage_uncertainty_ratio
+    if u is not None and u > max_u:
+        if found.blockage_uncertainty_but_smear_ratio > max_u:
+            return (
+                SectionStatus.LOW_COVERAGE if found.unseen_first else SectionStatus.TOO_FEW_POINTS
+            )
+        return SectionStatus.SMEARED_WALL  # known well enough, but for the smear
+    # Frames that disagree smear the wall; frames that disagree along the pipe about where an
+    # object is show it in front of a wall that other frames saw bare, across its width.
+    spread, max_spread = found.wall_spread_m, params.max_wall_spread_m
+    if spread is not None and max_spread is not None and spread > max_spread:
+        return SectionStatus.SMEARED_WALL
+    behind = found.wall_behind_deg
+    if behind is not None and behind > params.max_wall_behind_deg:
+        return SectionStatus.SMEARED_WALL
+    return SectionStatus.OK
+
+
+@dataclass(frozen=True)
+class _CleanSection:
+    """A section's points ready to profile (stage 1, :func:`_clean`).
+
+    ``used`` is the thinned cloud before stray points were removed (water's surface returns
+    are read from it); ``points`` what is left, with its polar coordinates. The angle layout
+    (``bins``, the sub-slice vote) is chosen from how many points are left.
+    """
+
+    used: np.ndarray
+    points: np.ndarray
+    angle_rad: np.ndarray
+    radius_m: np.ndarray
+    sparse: bool
+    bins: int
+    slices: int
+    min_slices: int
+    min_bin_share: float
+
+    @property
+    def polar(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.angle_rad, self.radius_m
+
+
+def _clean(
+    raw: np.ndarray, nominal_diameter_m: float, length_m: float, params: MeasureParams
+) -> _CleanSection:
+    """Stage 1: thin the section, remove stray points, choose the angle layout, and (in a
+    dense section) remove the veil behind edges."""
     # Points arrive frame after frame, so evenly spaced picks thin every frame alike. (Not a
     # whole-number stride: a section just over the limit would lose half its points.)
-    raw_used = raw
+    used = raw
     if len(raw) > params.max_points:
-        raw_used = raw[np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64)]
-    length_m = chainage_end_m - chainage_start_m
-    sparse = len(raw_used) < 16 * _BIN_CHOICES[-1]
-    stray_radius_m = params.stray_radius_m
-    if sparse:
-        # Few points on the wall: widen the neighbourhood so that a wall point still has
-        # neighbours to count (the wall's perimeter is about π times the diameter).
-        d_m = nominal_diameter_m
-        if not math.isfinite(d_m):
-            d_m = 2.0 * float(np.median(np.hypot(raw_used[:, 0], raw_used[:, 1])))
-        per_m = len(raw_used) / (math.pi * d_m)
-        stray_radius_m = max(stray_radius_m, _STRAY_EXPECTED_NEIGHBOURS / (3.0 * per_m))
+        used = raw[np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64)]
+    sparse = len(used) < 16 * _BIN_CHOICES[-1]
     pts = remove_stray_points(
-        raw_used,
-        radius_m=stray_radius_m,
+        used,
+        radius_m=_stray_radius_m(used, nominal_diameter_m, sparse, params),
         min_neighbours=params.stray_min_neighbours,
         relative_density=params.stray_relative_density,
     )
     # Every step below reads the points' angles and radii: they are computed once per section.
-    point_angle, point_radius = polar_coordinates(pts)
+    angle, radius = polar_coordinates(pts)
     if sparse:
         bins = choose_sparse_bins(len(pts))
-        slices, min_slices = _choose_slices(pts, point_angle, bins, length_m)
+        slices, min_slices = _choose_slices(pts, angle, bins, length_m)
         min_bin_share = 0.25 if slices == 1 else 0.0
     else:
         bins, slices, min_slices, min_bin_share = choose_bins(len(pts)), 4, 3, 0.0
     if not sparse and len(pts):
         # Rays that graze an edge leave a veil of mixed returns behind it; over many frames it
         # fills the shadow, and would count as seen wall and as blockage.
-        kept = not_veil(
-            point_angle, point_radius, bins, relative_density=params.veil_relative_density
-        )
-        pts, point_angle, point_radius = pts[kept], point_angle[kept], point_radius[kept]
-    profile: PolarProfile = polar_profile(
-        pts,
-        bins=bins,
-        slices=slices,
-        min_slices=min_slices,
-        section_length_m=length_m,
-        min_bin_share=min_bin_share,
-        polar=(point_angle, point_radius),
-    )
-    if len(pts) < params.min_points:
-        return SectionMeasures(
-            status=SectionStatus.TOO_FEW_POINTS, coverage_ratio=profile.coverage_ratio, **base
-        )
-    if not profile.seen.any():
-        return SectionMeasures(status=SectionStatus.LOW_COVERAGE, coverage_ratio=0.0, **base)
+        kept = not_veil(angle, radius, bins, relative_density=params.veil_relative_density)
+        pts, angle, radius = pts[kept], angle[kept], radius[kept]
+    return _CleanSection(used, pts, angle, radius, sparse, bins, slices, min_slices, min_bin_share)
 
-    point_bin = angle_bins(point_angle, bins)
-    sigma_bins = residual_sigma_m(point_radius, point_bin, profile.radii_m)
+
+def _stray_radius_m(
+    used: np.ndarray, nominal_diameter_m: float, sparse: bool, params: MeasureParams
+) -> float:
+    """The stray-point neighbourhood: ``params.stray_radius_m``, widened on a sparse wall so
+    that a wall point still has neighbours to count (its perimeter is about π diameters)."""
+    if not sparse:
+        return params.stray_radius_m
+    d_m = nominal_diameter_m
+    if not math.isfinite(d_m):
+        d_m = 2.0 * float(np.median(np.hypot(used[:, 0], used[:, 1])))
+    per_m = len(used) / (math.pi * d_m)
+    return max(params.stray_radius_m, _STRAY_EXPECTED_NEIGHBOURS / (3.0 * per_m))
+
+
+def _profile(
+    clean: _CleanSection, length_m: float, *, layer_gap_m: float | None = None
+) -> PolarProfile:
+    """Stage 2: the radius per angle bin (``polar_profile``) in the section's layout."""
+    gap = {} if layer_gap_m is None else {"layer_gap_m": layer_gap_m}
+    return polar_profile(
+        clean.points,
+        bins=clean.bins,
+        slices=clean.slices,
+        min_slices=clean.min_slices,
+        section_length_m=length_m,
+        min_bin_share=clean.min_bin_share,
+        polar=clean.polar,
+        **gap,
+    )
+
+
+@dataclass(frozen=True)
+class _WallNoise:
+    """A section's profile with the wall's scatter (stage 2, :func:`_wall_noise`)."""
+
+    profile: PolarProfile
+    sigma_bins_m: np.ndarray
+    """(B,) the scatter of each bin's points around its radius, metres (1σ)."""
+    sigma_m: float
+    """The median of ``sigma_bins_m``."""
+    wall_radius_m: float
+    """The median radius of the seen bins, before water's bins are left out."""
+
+
+def _wall_noise(clean: _CleanSection, profile: PolarProfile, length_m: float) -> _WallNoise:
+    """The wall's scatter per bin. A noisy sparse wall's own scatter would split a bin into
+    two layers (and open pockets that are not there), so such a section is profiled again
+    with two layers further apart than ``_LAYER_GAP_SIGMAS`` times the scatter."""
+    point_bin = angle_bins(clean.angle_rad, clean.bins)
+    sigma_bins = residual_sigma_m(clean.radius_m, point_bin, profile.radii_m)
     sigma_m = float(np.median(sigma_bins))
-    if sparse and _LAYER_GAP_SIGMAS * sigma_m > profile.layer_gap_m:
-        # A noisy wall's own scatter would split a bin into two layers (and open pockets
-        # that are not there): two layers must lie further apart than the scatter.
-        profile = polar_profile(
-            pts,
-            bins=bins,
-            slices=slices,
-            min_slices=min_slices,
-            section_length_m=length_m,
-            min_bin_share=min_bin_share,
-            layer_gap_m=_LAYER_GAP_SIGMAS * sigma_m,
-            polar=(point_angle, point_radius),
-        )
-        sigma_bins = residual_sigma_m(point_radius, point_bin, profile.radii_m)
+    if clean.sparse and _LAYER_GAP_SIGMAS * sigma_m > profile.layer_gap_m:
+        profile = _profile(clean, length_m, layer_gap_m=_LAYER_GAP_SIGMAS * sigma_m)
+        sigma_bins = residual_sigma_m(clean.radius_m, point_bin, profile.radii_m)
         sigma_m = float(np.median(sigma_bins))
     wall_radius_m = float(np.median(profile.radii_m[profile.seen]))
-    water = None
+    return _WallNoise(profile, sigma_bins, sigma_m, wall_radius_m)
+
+
+def _invert_bins(angles_rad: np.ndarray) -> np.ndarray:
+    """(B,) bool: the bins within 5° of straight down (or the one bin there, when wider)."""
+    return angle_from_invert_rad(angles_rad) <= max(
+        DEPOSIT_TOP_HALF_WIDTH_RAD, np.pi / len(angles_rad)
+    )
+
+
+def _water(
+    clean: _CleanSection,
+    noise: _WallNoise,
+    nominal_diameter_m: float,
+    has_invert: bool,
+    params: MeasureParams,
+) -> tuple[WaterLevel | None, PolarProfile, float | None]:
+    """Stage 3: water over the invert (``detect_water``), the profile without the bins under
+    it, and the water's depth ratio (0.0 where the invert was seen dry, None where it is not
+    known)."""
+    profile, water = noise.profile, None
     if has_invert and math.isfinite(nominal_diameter_m):
         water = detect_water(
-            pts,
+            clean.points,
             profile.angles_rad,
             profile.seen,
             profile.counts,
             profile.radii_m,
-            wall_radius_m,
+            noise.wall_radius_m,
             nominal_diameter_m,
-            sigma_m,
+            noise.sigma_m,
             min_coverage_ratio=params.min_coverage_ratio,
             max_gap_deg=params.max_gap_deg,
-            surface_points=raw_used,
+            surface_points=clean.used,
         )
-    if water is not None:
-        # The wall under water was not seen; a sparse line on the surface is not a contour.
-        radii = profile.radii_m.copy()
-        radii[water.bins] = np.nan
-        far = None if profile.far_radii_m is None else profile.far_radii_m.copy()
-        if far is not None:
-            far[water.bins] = np.nan
-        profile = dataclasses.replace(profile, radii_m=radii, far_radii_m=far)
-    coverage = profile.coverage_ratio
+    if water is None:
+        dry = has_invert and bool(profile.seen[_invert_bins(profile.angles_rad)].all())
+        return None, profile, 0.0 if dry else None
+    # The wall under water was not seen; a sparse line on the surface is not a contour.
+    radii = profile.radii_m.copy()
+    radii[water.bins] = np.nan
+    far = None if profile.far_radii_m is None else profile.far_radii_m.copy()
+    if far is not None:
+        far[water.bins] = np.nan
+    profile = dataclasses.replace(profile, radii_m=radii, far_radii_m=far)
+    return water, profile, water.depth_ratio
 
-    status = SectionStatus.OK
-    if water is not None and not water.from_surface:
-        # Water with no return from its surface: one section cannot tell it from a view that
-        # stops short of the invert. Low coverage, until the sections along the pipe agree
-        # on its level (``core.water.confirm_surfaceless_water``).
-        status = SectionStatus.LOW_COVERAGE
-    elif water is not None:
-        status = SectionStatus.INVERT_UNDER_WATER
-    elif coverage < params.min_coverage_ratio or profile.max_gap_deg > params.max_gap_deg:
-        status = SectionStatus.LOW_COVERAGE
-    elif registration_weak:
-        status = SectionStatus.WEAK_REGISTRATION
-    down = np.abs(np.angle(np.exp(1j * (profile.angles_rad - 1.5 * np.pi)))) <= max(
-        np.radians(5.0), np.pi / bins
-    )
-    water_depth = water.depth_ratio if water is not None else None
-    if has_invert and water is None and profile.seen[down].all():
-        water_depth = 0.0
 
+def _contour(
+    clean: _CleanSection, profile: PolarProfile, params: MeasureParams
+) -> ContourResult | None:
+    """Stage 4: the contour by the run's method, with only that method's parameters; None
+    when the method finds no closed contour."""
+    own = CONTOUR_PARAMS.get(params.method)
     try:
-        own = CONTOUR_PARAMS.get(params.method)
-        contour = contour_method(params.method)(
-            pts, profile, None if own is None else getattr(params, own)
+        return contour_method(params.method)(
+            clean.points, profile, None if own is None else getattr(params, own)
         )
     except GeometryError:
-        # Too little of the perimeter seen is the first reason, where it applies.
-        if status == SectionStatus.OK:
-            status = SectionStatus.NO_CONTOUR
-        return SectionMeasures(
-            status=status,
-            coverage_ratio=coverage,
-            water_depth_ratio=water_depth,
-            water_from_surface=None if water is None else water.from_surface,
-            **base,
+        return None
+
+
+@dataclass(frozen=True)
+class _Figures:
+    """A section's figures (stage 5, :func:`_figures`)."""
+
+    open_area_m2: float
+    hidden_half_m2: float
+    radii_smooth_m: np.ndarray
+    wall_seen: np.ndarray
+    """(B,) bool: seen bins above any deposit's top, which the wall's diameters are read on."""
+    deposit_height_ratio: float | None
+    ovality_ratio: float | None
+    deformation_ratio: float | None
+    wall_spread_m: float | None
+    wall_behind_deg: float | None
+
+    def measures(self) -> dict[str, float | None]:
+        """The ``SectionMeasures`` fields these figures fill, but the open area."""
+        return dict(
+            wall_spread_m=self.wall_spread_m,
+            wall_behind_deg=self.wall_behind_deg,
+            ovality_ratio=self.ovality_ratio,
+            deformation_ratio=self.deformation_ratio,
+            deposit_height_ratio=self.deposit_height_ratio,
         )
-    polygon, radii, open_area = contour.polygon_m, contour.radii_m, contour.area_m2
+
+
+def _figures(
+    clean: _CleanSection,
+    profile: PolarProfile,
+    contour: ContourResult,
+    water: WaterLevel | None,
+    nominal_diameter_m: float,
+    has_invert: bool,
+    params: MeasureParams,
+) -> _Figures:
+    """Stage 5: open area, deposit height, ovality, deformation and the smear's two signs."""
+    d_m, tolerance = nominal_diameter_m, params.wall_tolerance_ratio
     # Beside an overhanging obstacle's edge, free space that no ray reached counts as blocked
     # in the contour; the obstacle's side decides how much of it is free. The figure is the
     # middle of the two ends (the side along the line of sight: none free; at right angles to
-    # the obstacle's face: all of it), and the ± spans both (``hidden`` part below).
+    # the obstacle's face: all of it), and the ± spans both (``hidden_m2``).
     hidden_half = 0.5 * profile.hidden_area_m2()
-    open_area += hidden_half
-
+    open_area = contour.area_m2 + hidden_half
     # A 5-bin running median keeps single noisy bins from setting D_min or D_max.
-    radii_smooth = median_filter(radii, size=5, mode="wrap")
+    radii_smooth = median_filter(contour.radii_m, size=5, mode="wrap")
     deposit = None
     if has_invert and water is None:
         deposit = _deposit_height_ratio(
-            radii_smooth,
-            profile.seen,
-            profile.angles_rad,
-            nominal_diameter_m,
-            params.wall_tolerance_ratio,
+            radii_smooth, profile.seen, profile.angles_rad, d_m, tolerance
         )
     # The deposit's flat top meets the wall at a shallow angle, so bins just above the wall
     # tolerance can still be fill: leave everything at or below the fill's top out of the
     # wall's diameters.
     wall_seen = profile.seen.copy()
-    if deposit is not None and deposit * nominal_diameter_m > _DEPOSIT_FLOOR_M:
-        y_top = -nominal_diameter_m / 2.0 + deposit * nominal_diameter_m
+    if deposit is not None and deposit * d_m > _DEPOSIT_FLOOR_M:
+        y_top = -d_m / 2.0 + deposit * d_m
         y = radii_smooth * np.sin(profile.angles_rad)
         wall_seen &= y > y_top + _DEPOSIT_FLOOR_M
-    ovality, deformation = _diameter_measures(
-        radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
+    ovality, deformation = _diameter_measures(radii_smooth, wall_seen, d_m, tolerance)
+    # Only a dense section can show frames that disagree: a sparse one (a ring profiler's)
+    # sees each bin once, so its spread is the range noise, which the uncertainty carries.
+    spread = behind = None
+    if not clean.sparse:
+        wall = _wall_bins(profile.radii_m, wall_seen, d_m, tolerance)
+        spread = wall_spread_m(clean.points, profile, wall, polar=clean.polar)
+        behind = profile.wall_behind_deg()
+    return _Figures(
+        open_area,
+        hidden_half,
+        radii_smooth,
+        wall_seen,
+        deposit,
+        ovality,
+        deformation,
+        spread,
+        behind,
     )
 
-    wall = _wall_bins(radii_smooth, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio)
+
+@dataclass(frozen=True)
+class _Uncertainty:
+    """A section's uncertainties, 95 % (stage 6, :func:`_uncertainty`)."""
+
+    blockage_ratio: float | None
+    blockage_but_smear_ratio: float
+    """The blockage's, without the smear's part."""
+    unseen_first: bool
+    """The unseen arcs (and the free space hidden beside an obstacle) make most of it."""
+    ovality_ratio: float | None
+    deformation_ratio: float | None
+    deposit_height_ratio: float | None
+
+    def measures(self) -> dict[str, float | None]:
+        """The ``SectionMeasures`` fields these uncertainties fill."""
+        return dict(
+            blockage_uncertainty_ratio=self.blockage_ratio,
+            ovality_uncertainty_ratio=self.ovality_ratio,
+            deformation_uncertainty_ratio=self.deformation_ratio,
+            deposit_height_uncertainty_ratio=self.deposit_height_ratio,
+        )
+
+
+def _uncertainty(
+    clean: _CleanSection,
+    profile: PolarProfile,
+    noise: _WallNoise,
+    contour: ContourResult,
+    figures: _Figures,
+    nominal_diameter_m: float,
+    params: MeasureParams,
+) -> _Uncertainty:
+    """Stage 6: the figures' uncertainties (``core.uncertainty``)."""
+    nominal_area = math.pi * nominal_diameter_m**2 / 4.0
+    sigma_m, wall_radius_m = noise.sigma_m, noise.wall_radius_m
+    wall = _wall_bins(
+        figures.radii_smooth_m, figures.wall_seen, nominal_diameter_m, params.wall_tolerance_ratio
+    )
     area_u = area_uncertainty(
-        radii,
+        contour.radii_m,
         profile.seen,
         profile.counts,
-        sigma_bins,
+        noise.sigma_bins_m,
         wall_radius_m,
         slice_radii_m=profile.slice_radii_m,
     )
-    if not sparse:
+    if not clean.sparse:
         # Frames that disagree read more open; a sparse section sees each bin once, so its
         # scatter is the range noise, which the noise part carries.
-        smear = smear_bias_m2(open_area, sigma_bins[wall], wall_radius_m)
+        smear = smear_bias_m2(figures.open_area_m2, noise.sigma_bins_m[wall], wall_radius_m)
         area_u = dataclasses.replace(area_u, smear_m2=smear)
-    area_u = dataclasses.replace(area_u, hidden_m2=hidden_half)
-    blockage_u = _finite(area_u.total_m2 / nominal_area)
-    if (
-        status == SectionStatus.OK
-        and blockage_u is not None
-        and blockage_u > params.max_uncertainty_ratio
-    ):
-        if (area_u.total_m2 - area_u.smear_m2) / nominal_area > params.max_uncertainty_ratio:
-            unseen = area_u.unseen_m2 + area_u.hidden_m2
-            unseen_first = unseen >= area_u.noise_m2 + area_u.resolution_m2
-            status = SectionStatus.LOW_COVERAGE if unseen_first else SectionStatus.TOO_FEW_POINTS
-        else:
-            status = SectionStatus.SMEARED_WALL  # known well enough, but for the smear
-    # Frames that disagree smear the wall. Only a dense section can show it: a sparse one
-    # (a ring profiler's) sees each bin once, so its spread is the range noise, which the
-    # uncertainty above already carries.
-    spread = None
-    if not sparse:
-        spread = wall_spread_m(
-            pts,
-            profile,
-            _wall_bins(profile.radii_m, wall_seen, nominal_diameter_m, params.wall_tolerance_ratio),
-            polar=(point_angle, point_radius),
-        )
-    if (
-        status == SectionStatus.OK
-        and spread is not None
-        and params.max_wall_spread_m is not None
-        and spread > params.max_wall_spread_m
-    ):
-        status = SectionStatus.SMEARED_WALL
-    # Frames that disagree along the pipe about where an object is show it in front of a wall
-    # that other frames saw bare, across the object's whole width.
-    wall_behind = None if sparse else profile.wall_behind_deg()
-    if (
-        status == SectionStatus.OK
-        and wall_behind is not None
-        and wall_behind > params.max_wall_behind_deg
-    ):
-        status = SectionStatus.SMEARED_WALL
+    area_u = dataclasses.replace(area_u, hidden_m2=figures.hidden_half_m2)
     per_bin = float(np.median(profile.counts[profile.seen]))
-    pairs = int((wall[: bins // 2] & wall[bins // 2 :]).sum())
-    diameter_u = diameter_uncertainty_m(sigma_m, per_bin, pairs)
+    half = clean.bins // 2
+    diameter_u = diameter_uncertainty_m(sigma_m, per_bin, int((wall[:half] & wall[half:]).sum()))
     deposit_u = None
-    if deposit is not None:
-        low = down & profile.seen
-        deposit_u = _finite(
-            height_uncertainty_m(
-                sigma_m, float(profile.counts[low].sum()), float(profile.counts[wall].sum())
-            )
-            / nominal_diameter_m
+    if figures.deposit_height_ratio is not None:
+        low = _invert_bins(profile.angles_rad) & profile.seen
+        height_u = height_uncertainty_m(
+            sigma_m, float(profile.counts[low].sum()), float(profile.counts[wall].sum())
         )
-    return SectionMeasures(
-        status=status,
-        wall_spread_m=spread,
-        wall_behind_deg=wall_behind,
-        coverage_ratio=coverage,
-        open_area_m2=open_area,
-        blockage_ratio=1.0 - open_area / nominal_area,
-        ovality_ratio=ovality,
-        deformation_ratio=deformation,
-        deposit_height_ratio=deposit,
-        blockage_uncertainty_ratio=blockage_u,
-        ovality_uncertainty_ratio=None
-        if ovality is None
+        deposit_u = _finite(height_u / nominal_diameter_m)
+    return _Uncertainty(
+        blockage_ratio=_finite(area_u.total_m2 / nominal_area),
+        blockage_but_smear_ratio=(area_u.total_m2 - area_u.smear_m2) / nominal_area,
+        unseen_first=(
+            area_u.unseen_m2 + area_u.hidden_m2 >= area_u.noise_m2 + area_u.resolution_m2
+        ),
+        ovality_ratio=None
+        if figures.ovality_ratio is None
         else _finite(diameter_u / (2.0 * wall_radius_m)),
-        deformation_uncertainty_ratio=None
-        if deformation is None
+        deformation_ratio=None
+        if figures.deformation_ratio is None
         else _finite(diameter_u / nominal_diameter_m),
-        deposit_height_uncertainty_ratio=deposit_u,
-        water_depth_ratio=water_depth,
-        water_from_surface=None if water is None else water.from_surface,
-        contour_m=polygon,
-        **base,
+        deposit_height_ratio=deposit_u,
     )
 
 

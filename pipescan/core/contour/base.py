@@ -8,10 +8,23 @@ frame.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy import ndimage
+
+INVERT_ANGLE_RAD = 1.5 * math.pi
+"""The section-plane angle of the invert: straight down, 6 o'clock."""
+
+
+def angle_from_invert_rad(angles_rad: np.ndarray | float) -> np.ndarray:
+    """The absolute angle (radians, in [0, π]) between section-plane angles and the invert.
+
+    >>> [round(float(angle_from_invert_rad(math.radians(a))), 4) for a in (270, 90, 300)]
+    [0.0, 3.1416, 0.5236]
+    """
+    return np.abs(np.angle(np.exp(1j * (np.asarray(angles_rad) - INVERT_ANGLE_RAD))))
 
 
 @dataclass(frozen=True)
