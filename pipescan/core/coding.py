@@ -43,7 +43,7 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from pipescan.core.contour.base import angle_bins, polar_coordinates
+from pipescan.core.contour.base import INVERT_ANGLE_RAD, angle_bins, polar_coordinates
 from pipescan.core.model import SectionMeasures
 from pipescan.core.summary import touches
 from pipescan.core.uncertainty import MAD_TO_SIGMA, unseen_runs
@@ -86,7 +86,6 @@ CODE_FAMILIES: dict[str, str] = {
 """Every code the coder gives, with the family's name in words."""
 
 _TWO_PI = 2.0 * math.pi
-_INVERT_RAD = 1.5 * math.pi
 _EDGE_TOL_DEG = 10.0  # a contour within this of the ray from the centre is an occluding edge
 
 
@@ -645,7 +644,7 @@ def _find_chord(
 
 
 def _covers_invert(idx: np.ndarray, bins: int) -> bool:
-    invert_bin = int(_INVERT_RAD * bins / _TWO_PI)
+    invert_bin = int(INVERT_ANGLE_RAD * bins / _TWO_PI)
     return bool(np.isin(invert_bin, idx) or np.isin(invert_bin - 1, idx))
 
 

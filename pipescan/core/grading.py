@@ -42,6 +42,7 @@ from pipescan.core.coding import (
     code_sections,
     feature_runs,
 )
+from pipescan.core.contour.base import INVERT_ANGLE_RAD
 from pipescan.core.errors import GradingError
 from pipescan.core.flags import DEFAULT_TABLE, FlagRule
 from pipescan.core.measures import DEPOSIT_TOP_HALF_WIDTH_RAD
@@ -375,8 +376,8 @@ def _over_the_invert(feature: WallFeature, coding: SectionCoding | None) -> bool
     (``measures.DEPOSIT_TOP_HALF_WIDTH_RAD`` either side of straight down)."""
     if coding is None:
         return False
-    half = DEPOSIT_TOP_HALF_WIDTH_RAD
-    window = WallFeature("", 1.5 * math.pi - half, 1.5 * math.pi + half, 0.0, 0.0, "the invert")
+    invert, half = INVERT_ANGLE_RAD, DEPOSIT_TOP_HALF_WIDTH_RAD
+    window = WallFeature("", invert - half, invert + half, 0.0, 0.0, "the invert")
     return any(
         g is not feature and g.arc_from_rad is not None and arcs_meet(g, window, 0.0)
         for g in coding.features

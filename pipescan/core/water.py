@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipescan.core.contour.base import polar_coordinates
+from pipescan.core.contour.base import angle_from_invert_rad, polar_coordinates
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.summary import adjacent_runs
 from pipescan.core.uncertainty import unseen_runs
@@ -102,7 +102,7 @@ def detect_water(
     """
     bins = len(angles_rad)
     dtheta = 2.0 * math.pi / bins
-    down = int(np.argmin(np.abs(np.angle(np.exp(1j * (angles_rad - 1.5 * math.pi))))))
+    down = int(np.argmin(angle_from_invert_rad(angles_rad)))
     typical = float(np.median(counts[seen])) if seen.any() else 0.0
     # Water leaves the invert unseen, or holding only a sparse line of points: very few, or
     # few and well inside the wall (not a flattened invert, which a dense scan sees sparsely).
