@@ -52,6 +52,7 @@ from typing import TypeVar
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pipescan.core.coding import clock_angle_rad
 from pipescan.core.model import FrameRef, InspectionMeta
 from pipescan.simulator.sensors import RingProfiler, StaticScanner, WaterLevel
 
@@ -161,25 +162,14 @@ class BoxObstacle:
     z_max_m: float
 
 
-def clock_angle_rad(hours: float | np.ndarray) -> float | np.ndarray:
-    """Pipe-frame angle ``atan2(z, y)`` (radians, in [0, 2π)) of a clock position in hours.
-
-    12 is the crown and 3 the right-hand side of someone looking downstream (pipe-frame
-    ``-y``); clockwise in that view is increasing angle.
-
-    >>> [round(math.degrees(float(clock_angle_rad(h)))) for h in (12, 3, 6, 9)]
-    [90, 180, 270, 0]
-    """
-    return np.mod(np.radians(90.0 + 30.0 * np.asarray(hours, dtype=np.float64)), 2.0 * np.pi)
-
-
 @dataclass(frozen=True)
 class WallBand:
     """Attached deposits (encrustation, grease): a layer of ``thickness_m`` on the wall.
 
     It covers ``[start_m, end_m]`` along the axis and the arc running clockwise from
     ``clock_from_h`` to ``clock_to_h`` (clock positions in hours looking downstream, 12 at the
-    crown, 3 on the right; see :func:`clock_angle_rad`). Its inner face is the cylinder of
+    crown, 3 on the right; see :func:`pipescan.core.coding.clock_angle_rad`, which gives the
+    pipe-frame angle ``atan2(z, y)``). Its inner face is the cylinder of
     radius ``r - thickness_m`` (the nominal radius less the thickness), its ends are planes
     across the axis and its sides radial planes, so it stands off the wall with square edges.
     Where a deformation brings the wall inside that face, the band is not there.
@@ -194,8 +184,8 @@ class WallBand:
     @property
     def arc_rad(self) -> tuple[float, float]:
         """Its pipe-frame angles ``(first, last)``, radians; ``last > first`` (may pass 2π)."""
-        first = float(clock_angle_rad(self.clock_from_h))
-        last = float(clock_angle_rad(self.clock_to_h))
+        first = clock_angle_rad(self.clock_from_h)
+        last = clock_angle_rad(self.clock_to_h)
         return first, last if last > first else last + 2.0 * np.pi
 
     def covers(self, angle_rad: np.ndarray) -> np.ndarray:
