@@ -31,6 +31,7 @@ from pipescan.storage.database.repository import (
     get_sections,
 )
 from pipescan.storage.input.metadata import INSPECTION_FILE
+from pipescan.storage.input.urls import is_local, url_filesystem
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 ARCHIVE_SUFFIXES = (".tar.gz", ".tgz", ".zip", ".tar")
@@ -87,17 +88,7 @@ def find_archives(store: str) -> list[str]:
         The store does not exist, is not a directory, or holds no archive. A failed listing
         (network, credentials) is raised as the ``OSError`` it is, so that it can be retried.
     """
-    import fsspec
-    from fsspec.implementations.local import LocalFileSystem
-
-    try:
-        fs, root = fsspec.core.url_to_fs(store)
-    except (ValueError, ImportError) as exc:
-        raise StoreError(
-            f"cannot open the store: {exc}",
-            archive=store,
-            hint="install the fsspec backend for this protocol (e.g. s3fs for s3://)",
-        ) from exc
+    fs, root = url_filesystem(store, store, error=StoreError, what="the store")
     root = root.rstrip("/") or root
     if not fs.exists(root):
         raise StoreError("the store does not exist", archive=store, hint="check the path or URL")
@@ -131,7 +122,7 @@ def find_archives(store: str) -> list[str]:
             archive=store,
             hint="a store holds folders with an inspection.toml, or .zip/.tar/.tar.gz files",
         )
-    if isinstance(fs, LocalFileSystem):
+    if is_local(fs):
         return found
     return [fs.unstrip_protocol(p) for p in found]
 

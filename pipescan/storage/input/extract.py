@@ -33,6 +33,7 @@ from pipescan.storage.input.limits import (
     archive_limit_error,
     format_bytes,
 )
+from pipescan.storage.input.urls import is_local, unopened_url_error, url_filesystem
 
 COPY_CHUNK_BYTES = 1 << 20
 UNSAFE_HINT = (
@@ -48,20 +49,13 @@ def local_path(uri: str | Path, name: str) -> Path | None:
     """The local path of ``uri``, or None when it is a remote fsspec URL."""
     if isinstance(uri, Path) or "://" not in uri:
         return Path(uri)
-    import fsspec
-    from fsspec.implementations.local import LocalFileSystem
-
     try:
-        fs, path = fsspec.core.url_to_fs(uri)
-    except (ValueError, ImportError) as exc:
-        raise ArchiveError(
-            f"cannot open the URL: {exc}",
-            archive=name,
-            hint="check the protocol, and install its fsspec backend (e.g. s3fs for s3://)",
-        ) from exc
+        fs, path = url_filesystem(uri, name)
+    except ArchiveError:
+        raise
     except Exception as exc:  # a backend that connects on creation (ftp://, sftp://)
         raise _fetch_error(exc, name) from exc
-    return Path(path) if isinstance(fs, LocalFileSystem) else None
+    return Path(path) if is_local(fs) else None
 
 
 def make_tempdir(workdir: Path | None) -> Path:
@@ -92,11 +86,9 @@ def fetch(uri: str, dest: Path, name: str, budget: Budget) -> Path:
     The copy counts against ``budget``: a remote folder's files as members, a remote file's
     bytes against the archive's total (an archive never packs to more than it expands to).
     """
-    import fsspec
-
     dest.mkdir(parents=True)
     try:
-        fs, path = fsspec.core.url_to_fs(uri)
+        fs, path = url_filesystem(uri, name)
         if not fs.exists(path):
             raise ArchiveError("the archive does not exist", archive=name, hint="check the URL")
         if fs.isdir(path):
@@ -115,11 +107,7 @@ def fetch(uri: str, dest: Path, name: str, budget: Budget) -> Path:
     except (ArchiveError, ScratchSpaceError):
         raise
     except (ValueError, ImportError) as exc:
-        raise ArchiveError(
-            f"cannot open the URL: {exc}",
-            archive=name,
-            hint="check the protocol, and install its fsspec backend (e.g. s3fs for s3://)",
-        ) from exc
+        raise unopened_url_error(exc, name) from exc
     except Exception as exc:  # whatever the backend raises: typed, named, and its cause kept
         raise _fetch_error(exc, name) from exc
 

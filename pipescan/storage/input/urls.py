@@ -1,4 +1,5 @@
-"""Secrets in the URLs pipescan is given, read by fsspec's own grammar.
+"""The URLs pipescan is given, read by fsspec's own grammar: opening one
+(:func:`url_filesystem`, :func:`is_local`) and the secrets it may hold.
 
 fsspec splits a URL into links at ``::`` (``simplecache::s3://bucket/x.zip``), and each link
 into its protocol and the rest at the first ``://`` (:func:`fsspec.core.split_protocol`); a
@@ -11,13 +12,62 @@ host, which fails on an unbalanced ``[`` and would let the secret through.
 
 from __future__ import annotations
 
-__all__ = ["url_secret", "without_secrets"]
+from typing import Any
+
+from pipescan.core.errors import ArchiveError, PipescanError
+
+__all__ = ["is_local", "unopened_url_error", "url_filesystem", "url_secret", "without_secrets"]
+
+BACKEND_HINT = "check the protocol, and install its fsspec backend (e.g. s3fs for s3://)"
 
 _AUTHORITY_ENDS = "/?#"
 LOGIN_PROTOCOLS = frozenset({"ftp", "sftp", "ssh", "smb"})
 """Protocols whose fsspec backends read a login name from a user-only authority
 (``ftp://user@host``): a user name without a password passes for these. For every other
 protocol a user-only authority is a token (``https://TOKEN@host``) and is refused."""
+
+
+def unopened_url_error(
+    exc: BaseException,
+    archive: str,
+    *,
+    error: type[PipescanError] = ArchiveError,
+    what: str = "the URL",
+) -> PipescanError:
+    """The error for a URL fsspec cannot open (an unknown protocol, a backend not installed):
+    ``error`` naming ``archive``, with the hint to install the backend."""
+    return error(f"cannot open {what}: {exc}", archive=archive, hint=BACKEND_HINT)
+
+
+def url_filesystem(
+    location: str,
+    archive: str,
+    *,
+    error: type[PipescanError] = ArchiveError,
+    what: str = "the URL",
+) -> tuple[Any, str]:
+    """fsspec's file system and path for ``location``, a local path or a URL.
+
+    Raises
+    ------
+    PipescanError
+        ``error`` (:func:`unopened_url_error`) when the protocol is unknown or its backend is
+        not installed. Whatever a backend raises when it connects on creation (``ftp://``,
+        ``sftp://``) is the caller's to type.
+    """
+    import fsspec
+
+    try:
+        return fsspec.core.url_to_fs(location)
+    except (ValueError, ImportError) as exc:
+        raise unopened_url_error(exc, archive, error=error, what=what) from exc
+
+
+def is_local(fs: Any) -> bool:
+    """Whether an fsspec file system is the local disk."""
+    from fsspec.implementations.local import LocalFileSystem
+
+    return isinstance(fs, LocalFileSystem)
 
 
 def _links(location: str) -> list[str]:
