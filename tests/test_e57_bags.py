@@ -15,8 +15,8 @@ from pipescan.core.errors import PointFileError
 from pipescan.simulator.archive import write_simulated_archive
 from pipescan.simulator.scan import get_scenario, simulate_scan
 from pipescan.storage.input.archive import open_archive, validate_archive
-from pipescan.storage.input.bags import write_bag
 from pipescan.storage.input.readers import e57
+from pipescan.storage.input.readers.bags import write_bag
 
 TOML = 'asset_id = "A-1"\ninspected_at = 2025-01-02\nnominal_diameter_m = 0.5\n'
 

@@ -98,7 +98,7 @@ def test_e57_scans_sharing_a_section_are_refused_naming_the_scan(tmp_path) -> No
 _HOLD_SCRATCH = """
 import sys, time
 from pathlib import Path
-from pipescan.storage.input.bagguard import install
+from pipescan.storage.input.readers.bagguard import install
 install()
 from rosbags.rosbag2 import Reader
 with Reader(Path(sys.argv[1])):
@@ -113,7 +113,7 @@ def test_a_file_compressed_bag_is_decompressed_into_marked_scratch_swept_after_a
     """A ROS 2 bag folder with ``compression_mode: file`` is decompressed into a run directory
     pipescan marks (not a bare ``$TMPDIR`` folder); killed with ``kill -9`` while it is open, the
     next bag read removes it."""
-    from pipescan.storage.input.bagguard import SCRATCH_MARKER, sweep_scratch
+    from pipescan.storage.input.readers.bagguard import SCRATCH_MARKER, sweep_scratch
     from tests.hostile import ros2_bag
 
     root = ros2_bag(tmp_path, "sqlite3", "file", {"offsets": (0, 4, 8), "step": 12}, 10)
@@ -705,7 +705,7 @@ def test_a_new_asset_that_looks_like_a_stored_one_is_warned_of(tmp_path, caplog)
 def test_genuine_compressed_bags_are_read_under_the_caps(tmp_path) -> None:
     """The bounds refuse bombs, not bags: a bz2 ROS 1 bag, a zstd MCAP and a file-compressed
     ROS 2 bag of a few real frames open and read, and the scratch is gone afterwards."""
-    from pipescan.storage.input.bagguard import scratch_root
+    from pipescan.storage.input.readers.bagguard import scratch_root
     from tests.hostile import frame, ros1_bag, ros2_bag
 
     data = frame(5000).astype("<f4").tobytes()

@@ -266,7 +266,7 @@ def write_simulated_bag(
     ``path`` ending ``.bag`` is a ROS 1 bag; ``.db3`` or ``.mcap`` a ROS 2 bag folder named
     without the suffix, holding that storage.
     """
-    from pipescan.storage.input.bags import write_bag
+    from pipescan.storage.input.readers.bags import write_bag
 
     t0_ns = 1_700_000_000 * 10**9
 

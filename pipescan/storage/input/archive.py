@@ -38,7 +38,6 @@ from pipescan.core.errors import (
     MetadataError,
 )
 from pipescan.core.model import FrameRef, InspectionMeta
-from pipescan.storage.input.bags import BagIndex, index_bag, is_bag, iter_bag_frames
 from pipescan.storage.input.extract import (
     COPY_CHUNK_BYTES,
     Budget,
@@ -64,6 +63,7 @@ from pipescan.storage.input.pointfiles import (
     read_point_time,
     read_points,
 )
+from pipescan.storage.input.readers.bags import BagIndex, index_bag, is_bag, iter_bag_frames
 from pipescan.storage.input.urls import without_secrets
 
 FRAMES_DIR = "frames"

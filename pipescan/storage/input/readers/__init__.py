@@ -11,8 +11,18 @@ chunk at a time: a registered cloud of any size is then read with one chunk in m
 picks the reader by suffix and adds the checks common to every format (no points, NaN,
 millimetres); an unknown suffix is refused, never read as text.
 
-Adding a format (E57, a ROS bag...) is one new module here and one line in
-:data:`FORMATS`; docs/security.md says what its ``check`` must guarantee.
+Adding a format is one new module here and one line in :data:`FORMATS`; docs/security.md
+says what its ``check`` must guarantee.
+
+What is here:
+
+- ``ascii``, ``e57`` (with ``_e57file``, its layout check), ``las``, ``npy``, ``pcd``,
+  ``ply``: the point formats in :data:`FORMATS`; ``_common`` holds what they share
+  (:class:`Where`, the errors naming the file).
+- ``bags``: ROS bags (``.bag``, ``.db3``, ``.mcap``, ROS 2 bag folders). A bag is not a point
+  file but a whole scan's frames, so it is not in :data:`FORMATS`:
+  :mod:`pipescan.storage.input.archive` opens it as an archive's content.
+  ``bagguard`` bounds what ``rosbags`` may decompress or read for a bag.
 """
 
 from __future__ import annotations
