@@ -111,6 +111,12 @@ class Settings(BaseSettings):
     smtp_allow_plaintext_login: bool = Field(
         False, description="send the SMTP password without TLS (smtp_security = none)"
     )
+    smtp_alert_to: str | None = Field(
+        None,
+        description="comma-separated addresses e-mailed when a network run ends Failed "
+        "(archives missing or failed, or no start); unset: no e-mail alert "
+        "(docs/operations.md)",
+    )
     # --- input limits (docs/security.md): what one archive and its point files may cost ---
     archive_max_bytes: int = Field(_LIMITS.archive_max_bytes, gt=0, description="64 GiB")
     member_max_bytes: int = Field(_LIMITS.member_max_bytes, gt=0, description="32 GiB")

@@ -44,6 +44,7 @@ from pipescan.core.sanitize import strip_credentials, strip_credentials_in_text
 from pipescan.core.wording import plural
 from pipescan.flows.database import checked_database_url, in_deployment
 from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_archive
+from pipescan.flows.notification import RUN_HOOKS
 from pipescan.flows.recovery import (
     close_earlier_attempts,
     close_task_runs_of,
@@ -519,7 +520,8 @@ def failed_outcome(
     )
 
 
-@flow(name="inspect-network")
+# The hooks e-mail a failed run and follow a deployment's run's last heartbeat.
+@flow(name="inspect-network", **RUN_HOOKS)
 def inspect_network(
     store: str,
     params: InspectionParams | None = None,

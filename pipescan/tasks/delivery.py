@@ -52,7 +52,9 @@ __all__ = [
     "load_recipients",
     "report_file_name",
     "safe_name",
+    "send_email",
     "send_report_email",
+    "text_message",
     "write_to_location",
 ]
 
@@ -273,15 +275,20 @@ def send_report_email(
     DeliveryError
         No recipients, or the server refused or could not be reached.
     """
-    if not recipients:
-        raise DeliveryError("no recipients to e-mail the report to")
-    if smtp.logs_in and smtp.security == "none" and not smtp.allow_plaintext_login:
-        raise DeliveryError(
-            f"refusing to send the SMTP password to {smtp.host}:{smtp.port} without TLS",
-            field="PIPESCAN_SMTP_SECURITY",
-            hint="set PIPESCAN_SMTP_SECURITY=starttls (port 587) or ssl (port 465); only on a "
-            "trusted network, PIPESCAN_SMTP_ALLOW_PLAINTEXT_LOGIN=true",
-        )
+    message = text_message(smtp, recipients, subject=subject, body=body)
+    message.add_attachment(
+        Path(pdf_path).read_bytes(),
+        maintype="application",
+        subtype="pdf",
+        filename=Path(pdf_path).name,
+    )
+    send_email(message, recipients, smtp)
+
+
+def text_message(
+    smtp: SmtpConfig, recipients: Sequence[str], *, subject: str, body: str
+) -> EmailMessage:
+    """A plain-text message from ``smtp.sender`` to ``recipients``."""
     # The SMTP policy folds long headers (a subject with an asset id) the modern way and
     # ends lines with CRLF, as servers expect.
     message = EmailMessage(policy=email.policy.SMTP)
@@ -290,12 +297,28 @@ def send_report_email(
     message["Subject"] = subject
     message["Message-ID"] = make_msgid(domain=smtp.sender.rsplit("@", 1)[-1])
     message.set_content(body)
-    message.add_attachment(
-        Path(pdf_path).read_bytes(),
-        maintype="application",
-        subtype="pdf",
-        filename=Path(pdf_path).name,
-    )
+    return message
+
+
+def send_email(message: EmailMessage, recipients: Sequence[str], smtp: SmtpConfig) -> None:
+    """Send ``message`` to ``recipients`` through the SMTP server (TLS and login as
+    ``smtp`` says).
+
+    Raises
+    ------
+    DeliveryError
+        No recipients, a password that would cross the network in clear, or the server
+        refused or could not be reached.
+    """
+    if not recipients:
+        raise DeliveryError("no recipients to e-mail")
+    if smtp.logs_in and smtp.security == "none" and not smtp.allow_plaintext_login:
+        raise DeliveryError(
+            f"refusing to send the SMTP password to {smtp.host}:{smtp.port} without TLS",
+            field="PIPESCAN_SMTP_SECURITY",
+            hint="set PIPESCAN_SMTP_SECURITY=starttls (port 587) or ssl (port 465); only on a "
+            "trusted network, PIPESCAN_SMTP_ALLOW_PLAINTEXT_LOGIN=true",
+        )
     where = f"SMTP server {smtp.host}:{smtp.port}"
     try:
         client: smtplib.SMTP
@@ -314,7 +337,7 @@ def send_report_email(
             refused = client.send_message(message, to_addrs=list(recipients))
     except (smtplib.SMTPException, OSError) as exc:
         raise DeliveryError(
-            f"could not e-mail the report through the {where}: {exc}",
+            f"could not e-mail through the {where}: {exc}",
             hint="check PIPESCAN_SMTP_HOST, PIPESCAN_SMTP_PORT and PIPESCAN_SMTP_SECURITY",
         ) from exc
     if refused:
