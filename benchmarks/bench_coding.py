@@ -163,7 +163,7 @@ def estimated(args: argparse.Namespace) -> None:
     from pipescan.flows.inspect import InspectionParams, inspect_archive
     from pipescan.simulator.archive import write_simulated_archive
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.repository import get_defects, get_sections
+    from pipescan.storage.database.repository import list_defects, list_sections
 
     names = args.scenes or [
         "deposit, 0.25 m ramps",
@@ -190,8 +190,8 @@ def estimated(args: argparse.Namespace) -> None:
                     work_dir=f"{tmp}/w",
                 )
             engine = connect(db)
-            defects = get_defects(engine, summary.inspection_id)
-            sections = get_sections(engine, summary.inspection_id)
+            defects = list_defects(engine, summary.inspection_id)
+            sections = list_sections(engine, summary.inspection_id)
             engine.dispose()
             choice = choose_grading(draw.scenario.material)
             truths = true_features(draw.scenario)

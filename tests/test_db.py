@@ -289,7 +289,7 @@ def test_upgrade_downgrade_upgrade_with_data(engine: sa.Engine) -> None:
     db.upgrade(engine, "head")
     assert db.current_revision(engine) == db.head_revision()
     second = save(engine)
-    assert repository.get_sections(engine, second) == make_sections()
+    assert repository.list_sections(engine, second) == make_sections()
     # Ids are never reused: the sqlite_sequence restarts only with the table.
     assert second >= first
     if engine.dialect.name == "sqlite":
@@ -378,7 +378,7 @@ def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> Non
     ]
     sections[-1] = dataclasses.replace(sections[-1], chainage_uncertainty_m=None)
     inspection_id = save(engine, sections=sections)
-    stored = repository.get_sections(engine, inspection_id)
+    stored = repository.list_sections(engine, inspection_id)
     assert [s.chainage_uncertainty_m for s in stored] == [0.0, 0.01, 0.02, 0.03, None]
     # Down to the revision before it: the column goes, the sections stay; up again: it is
     # back, unknown (NULL).
@@ -387,7 +387,7 @@ def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> Non
     assert "chainage_uncertainty_m" not in columns
     assert count_rows(engine, "sections") == 5
     db.upgrade(engine)
-    again = repository.get_sections(engine, inspection_id)
+    again = repository.list_sections(engine, inspection_id)
     assert [s.chainage_uncertainty_m for s in again] == [None] * 5
     assert [s.blockage_ratio for s in again] == [s.blockage_ratio for s in stored]
 
@@ -401,13 +401,13 @@ def test_defect_clock_positions_migration_with_data(engine: sa.Engine) -> None:
     assert {"clock_from_h", "clock_to_h", "characterisation"}.isdisjoint(columns)
     assert count_rows(engine, "defects") == 2
     db.upgrade(engine)
-    before = repository.get_defects(engine, first)
+    before = repository.list_defects(engine, first)
     assert [(d.code, d.clock_from_h, d.clock_to_h, d.characterisation) for d in before] == [
         ("BAA", None, None, None),
         ("BBC", None, None, None),
     ]
     again = save(engine, content_hash="sha256:again")
-    assert repository.get_defects(engine, again) == [DEFECTS[1], DEFECTS[0]]
+    assert repository.list_defects(engine, again) == [DEFECTS[1], DEFECTS[0]]
 
 
 def test_unknown_revision_raises_storage_error(engine: sa.Engine) -> None:
@@ -468,7 +468,7 @@ def test_session_scope_rolls_back_on_error(engine: sa.Engine) -> None:
 def test_sections_round_trip(engine: sa.Engine) -> None:
     inspection_id = save(engine)
     expected = make_sections()
-    stored = repository.get_sections(engine, inspection_id)
+    stored = repository.list_sections(engine, inspection_id)
     # Dataclass equality compares every field but the contour.
     assert stored == expected
     unmeasured = stored[-1]
@@ -491,7 +491,7 @@ def test_chainages_are_keyed_to_the_millimetre(engine: sa.Engine) -> None:
     # Accumulated float error (0.1 * 3 != 0.3) does not survive: keys are whole millimetres.
     section = replace(make_sections(1)[0], chainage_start_m=0.1 * 3, chainage_end_m=0.1 * 4)
     assert section.chainage_start_m != 0.3
-    stored = repository.get_sections(engine, save(engine, sections=[section]))[0]
+    stored = repository.list_sections(engine, save(engine, sections=[section]))[0]
     assert (stored.chainage_start_m, stored.chainage_end_m) == (0.3, 0.4)
     with engine.connect() as connection:
         keys = connection.exec_driver_sql("SELECT chainage_start_mm, chainage_end_mm FROM sections")
@@ -529,7 +529,7 @@ def test_inspection_record(engine: sa.Engine) -> None:
 def test_defects_and_frame_quality_round_trip(engine: sa.Engine) -> None:
     inspection_id = save(engine)
     # Ordered by start chainage.
-    assert repository.get_defects(engine, inspection_id) == [DEFECTS[1], DEFECTS[0]]
+    assert repository.list_defects(engine, inspection_id) == [DEFECTS[1], DEFECTS[0]]
     assert repository.list_frame_quality(engine, inspection_id) == FRAME_QUALITY
 
 
@@ -557,7 +557,7 @@ def test_resaving_the_same_archive_and_params_replaces_under_the_same_id(
     assert second == first
     assert [r.id for r in repository.list_inspections(engine)] == [first, other]
     assert repository.get_inspection(engine, first).archive_uri == "/moved/run1.zip"
-    assert repository.get_sections(engine, first) == make_sections(3)
+    assert repository.list_sections(engine, first) == make_sections(3)
     # A batch that re-saves one inspection and adds another: each gets its right id.
     ids = repository.save_inspections(
         engine,
@@ -567,7 +567,7 @@ def test_resaving_the_same_archive_and_params_replaces_under_the_same_id(
         ],
     )
     assert ids[1] == other and ids[0] > other
-    assert repository.get_sections(engine, other) == make_sections(2)
+    assert repository.list_sections(engine, other) == make_sections(2)
 
 
 def test_other_params_or_archive_add_an_inspection(engine: sa.Engine) -> None:
@@ -596,7 +596,7 @@ def test_a_failure_after_the_sections_leaves_the_previous_save(
     with pytest.raises(RuntimeError, match="disk full"):
         save(engine, sections=make_sections(2))
     assert [r.id for r in repository.list_inspections(engine)] == [first]
-    assert repository.get_sections(engine, first) == make_sections()
+    assert repository.list_sections(engine, first) == make_sections()
     assert count_rows(engine, "defects") == len(DEFECTS)
 
 
@@ -614,7 +614,7 @@ def test_a_section_the_database_refuses_leaves_the_previous_save(
     with pytest.raises(db.StorageError, match="coverage_range"):
         save(engine)
     assert [r.id for r in repository.list_inspections(engine)] == [first]
-    assert repository.get_sections(engine, first) == make_sections()
+    assert repository.list_sections(engine, first) == make_sections()
 
 
 def item(**changes: object) -> repository.InspectionToSave:
@@ -638,8 +638,8 @@ def test_save_inspections_in_one_transaction(engine: sa.Engine) -> None:
     for inspection_id, it in zip(ids, batch, strict=True):
         record = repository.get_inspection(engine, inspection_id)
         assert (record.asset_id, record.content_hash) == (it.meta.asset_id, it.content_hash)
-        assert repository.get_sections(engine, inspection_id) == list(it.sections)
-        assert len(repository.get_defects(engine, inspection_id)) == len(it.defects)
+        assert repository.list_sections(engine, inspection_id) == list(it.sections)
+        assert len(repository.list_defects(engine, inspection_id)) == len(it.defects)
         assert record.measured_section_count == sum(
             1 for x in it.sections if x.status is SectionStatus.OK
         )
@@ -656,7 +656,7 @@ def test_a_repeated_item_in_a_batch_is_saved_once(engine: sa.Engine) -> None:
         engine, [item(sections=make_sections(2)), item(sections=make_sections(4))]
     )
     assert ids[0] == ids[1]  # the later replaced the earlier
-    assert repository.get_sections(engine, ids[0]) == make_sections(4)
+    assert repository.list_sections(engine, ids[0]) == make_sections(4)
     assert count_rows(engine, "inspections") == 1
 
 
@@ -701,13 +701,13 @@ def test_invalid_sections_are_refused_before_writing(
     first = save(engine)
     with pytest.raises(db.StorageError, match=match):
         save(engine, sections=sections)
-    assert repository.get_sections(engine, first) == make_sections()
+    assert repository.list_sections(engine, first) == make_sections()
 
 
 def test_nan_figures_are_stored_as_null(engine: sa.Engine) -> None:
     section = replace(make_sections(1)[0], blockage_ratio=math.nan, open_area_m2=math.nan)
     inspection_id = save(engine, sections=[section])
-    stored = repository.get_sections(engine, inspection_id)[0]
+    stored = repository.list_sections(engine, inspection_id)[0]
     assert stored.blockage_ratio is None
     assert stored.open_area_m2 is None
 
@@ -725,7 +725,7 @@ def test_non_circular_pipe_without_diameter(engine: sa.Engine) -> None:
     record = repository.get_inspection(engine, inspection_id)
     assert record.nominal_diameter_m is None
     assert record.pipe_shape == "egg"
-    assert math.isnan(repository.get_sections(engine, inspection_id)[0].nominal_area_m2)
+    assert math.isnan(repository.list_sections(engine, inspection_id)[0].nominal_area_m2)
 
 
 def test_assets_and_their_upsert(engine: sa.Engine) -> None:
@@ -776,8 +776,8 @@ def test_section_trend(engine: sa.Engine) -> None:
 def test_missing_inspection_is_named(engine: sa.Engine) -> None:
     for get in (
         repository.get_inspection,
-        repository.get_sections,
-        repository.get_defects,
+        repository.list_sections,
+        repository.list_defects,
         repository.list_frame_quality,
     ):
         with pytest.raises(db.StorageError, match="no inspection with id 4242"):
@@ -926,7 +926,7 @@ def test_postgres_sections_are_copied_and_typed(
     try:
         inspection_id = save(engine)
         assert calls == [5]  # the bulk path, not row-by-row INSERTs
-        assert repository.get_sections(engine, inspection_id) == make_sections()
+        assert repository.list_sections(engine, inspection_id) == make_sections()
         with engine.connect() as connection:
             types = dict(
                 connection.exec_driver_sql(

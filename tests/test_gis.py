@@ -425,7 +425,7 @@ def test_the_new_columns_survive_a_downgrade_and_upgrade(engine: sa.Engine) -> N
     record = repository.list_inspections(engine)[0]
     # Inspections stored before the columns existed say "unknown", never a guess.
     assert (record.direction, record.chainage_offset_m) == (None, None)
-    assert len(repository.get_sections(engine, record.id)) == 10
+    assert len(repository.list_sections(engine, record.id)) == 10
 
 
 # ---------------------------------------------------------------------------------------------

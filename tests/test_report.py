@@ -550,7 +550,7 @@ def report_db(tmp_path_factory) -> tuple[str, dict[str, int]]:
 
 def test_report_from_the_database_holds_its_figures(report_db, tmp_path):
     from pipescan.storage.database.db import connect
-    from pipescan.storage.database.repository import get_defects, get_sections
+    from pipescan.storage.database.repository import list_defects, list_sections
     from pipescan.tasks.reporting import load_report_input
 
     url, ids = report_db
@@ -559,7 +559,7 @@ def test_report_from_the_database_holds_its_figures(report_db, tmp_path):
     text = pdf_text(render_pdf(inp, tmp_path / "now.pdf"))
     flat = re.sub(r"\s+", " ", text)
     engine = connect(url)
-    defects, sections = get_defects(engine, ids["now"]), get_sections(engine, ids["now"])
+    defects, sections = list_defects(engine, ids["now"]), list_sections(engine, ids["now"])
     engine.dispose()
     assert len(defects) == 1
     (d,) = defects

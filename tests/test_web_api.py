@@ -136,14 +136,14 @@ def test_pipes_carry_the_cli_figures(client: TestClient, network_db: Path) -> No
         growth = {r.asset_id: r.peak_change_per_year for r in worst_assets(engine, by="current")}
         for asset_id, *_ in PIPES:
             latest = repository.list_inspections(engine, asset_id)[-1]
-            sections = repository.get_sections(engine, latest.id)
+            sections = repository.list_sections(engine, latest.id)
             pipe = by_id[asset_id]
             assert pipe["last_inspection_id"] == latest.id
             assert pipe["condition_class"] == worst_grade(sections)  # the one rule, in SQL
             assert pipe["peak_blockage_ratio"] == pytest.approx(latest.peak_blockage_ratio)
             assert pipe["growth_per_year_ratio"] == pytest.approx(growth[asset_id])
             assert pipe["inspection_count"] == YEARS
-            assert pipe["defect_count"] == len(repository.get_defects(engine, latest.id))
+            assert pipe["defect_count"] == len(repository.list_defects(engine, latest.id))
     finally:
         engine.dispose()
     assert by_id["MH1-MH2"]["line"][0][:2] == [0.0, 0.0]  # upstream first
@@ -418,7 +418,7 @@ def test_worst_grade_in_sql_is_the_core_rule(network_db: Path) -> None:
             engine, sa.select(sa.literal_column("id")).select_from(sa.table("inspections"))
         )
         for inspection_id in ids:
-            expected = worst_grade(repository.get_sections(engine, inspection_id))
+            expected = worst_grade(repository.list_sections(engine, inspection_id))
             assert grades.get(inspection_id) == expected
     finally:
         engine.dispose()

@@ -408,13 +408,14 @@ def _unmeasured_lines(db_url: str, summary) -> list[str]:
         from collections import Counter
 
         from pipescan.reports.context import MeasureLimits, status_words
-        from pipescan.storage.database.db import connect
-        from pipescan.storage.database.repository import get_inspection, get_sections
+        from pipescan.storage.database.db import connect, session_scope
+        from pipescan.storage.database.repository import get_inspection, list_sections
 
         engine = connect(db_url)
         try:
-            record = get_inspection(engine, summary.inspection_id)
-            sections = get_sections(engine, summary.inspection_id)
+            with session_scope(engine) as session:
+                record = get_inspection(session, summary.inspection_id)
+                sections = list_sections(session, summary.inspection_id)
         finally:
             engine.dispose()
         limits = MeasureLimits.of((record.params or {}).get("measure"))

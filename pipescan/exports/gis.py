@@ -50,9 +50,9 @@ from pipescan.storage.database.queries import (
 )
 from pipescan.storage.database.repository import (
     InspectionRecord,
-    get_defects,
     get_inspection,
     inspection_records,
+    list_defects,
     record_statement,
 )
 
@@ -231,6 +231,8 @@ def _features(
         history = earlier_scans(engine, ids)
         profiles = section_profiles(engine, ids)
         counts = defect_counts(engine, ids)
+        with session_scope(engine) as session:
+            chunk_defects = {r.id: list_defects(session, r.id) for r in chunk}
         for record in chunk:
             geometry = geometries[record.asset_id]
             line = geometry.line
@@ -276,7 +278,7 @@ def _features(
                 "gis_id": geometry.gis_id,
                 "inspection_id": record.id,
             }
-            for defect in get_defects(engine, record.id):
+            for defect in chunk_defects[record.id]:
                 cut = line.cut(defect.chainage_start_m, defect.chainage_end_m)
                 defects.add(
                     _linestring(shapely, cut.coords, dims),

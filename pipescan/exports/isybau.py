@@ -49,8 +49,8 @@ from pipescan.storage.database.network import gis_ids, resolve_asset
 from pipescan.storage.database.queries import section_profiles
 from pipescan.storage.database.repository import (
     InspectionRecord,
-    get_defects,
     get_inspection,
+    list_defects,
     list_inspections,
     mm_to_m,
 )
@@ -611,18 +611,18 @@ def load_isybau_inspections(
                 sa.select(Inspection.id, Inspection.params_json).where(Inspection.id.in_(ids))
             )
         }
-    return [
-        IsybauInspection(
-            record=r,
-            defects=get_defects(engine, r.id),
-            first_chainage_m=extents.get(r.id, (None, None))[0],
-            last_chainage_m=extents.get(r.id, (None, None))[1],
-            worst_grade=worst_grade(profiles[r.id]),
-            step_m=steps.get(r.id, 0.1),
-            gis_id=names.get(r.asset_id),
-        )
-        for r in records
-    ]
+        return [
+            IsybauInspection(
+                record=r,
+                defects=list_defects(session, r.id),
+                first_chainage_m=extents.get(r.id, (None, None))[0],
+                last_chainage_m=extents.get(r.id, (None, None))[1],
+                worst_grade=worst_grade(profiles[r.id]),
+                step_m=steps.get(r.id, 0.1),
+                gis_id=names.get(r.asset_id),
+            )
+            for r in records
+        ]
 
 
 @dataclass(frozen=True)

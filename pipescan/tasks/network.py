@@ -26,9 +26,9 @@ from pipescan.storage.database.models import Inspection
 from pipescan.storage.database.repository import (
     InspectionRecord,
     find_inspection,
-    get_defects,
     get_inspection,
-    get_sections,
+    list_defects,
+    list_sections,
 )
 from pipescan.storage.input.metadata import INSPECTION_FILE
 from pipescan.storage.input.urls import is_local, url_filesystem
@@ -173,11 +173,12 @@ def load_stored_inspection(database_url: str, inspection_id: int) -> StoredInspe
     """Read a stored inspection with its sections and defects."""
     engine = connect(database_url)
     try:
-        return StoredInspection(
-            record=get_inspection(engine, inspection_id),
-            sections=get_sections(engine, inspection_id),
-            defects=get_defects(engine, inspection_id),
-        )
+        with session_scope(engine) as session:
+            return StoredInspection(
+                record=get_inspection(session, inspection_id),
+                sections=list_sections(session, inspection_id),
+                defects=list_defects(session, inspection_id),
+            )
     finally:
         engine.dispose()
 

@@ -27,7 +27,7 @@ from pipescan.reports.network import (
     build_network_context,
 )
 from pipescan.reports.render import render_network_pdf, render_pdf
-from pipescan.storage.database.db import connect
+from pipescan.storage.database.db import connect, session_scope
 from pipescan.storage.database.network import placements
 from pipescan.storage.database.queries import (
     defect_counts,
@@ -37,7 +37,7 @@ from pipescan.storage.database.queries import (
     list_network_inspections,
     section_profiles,
 )
-from pipescan.storage.database.repository import get_defects, get_inspection, get_sections
+from pipescan.storage.database.repository import get_inspection, list_defects, list_sections
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
 
 __all__ = [
@@ -67,9 +67,10 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
     inspections (up to :data:`TREND_HISTORY`) for the trend page."""
     engine = connect(database_url)
     try:
-        rec = get_inspection(engine, inspection_id)
-        sections = get_sections(engine, inspection_id)
-        defects = get_defects(engine, inspection_id)
+        with session_scope(engine) as session:
+            rec = get_inspection(session, inspection_id)
+            sections = list_sections(session, inspection_id)
+            defects = list_defects(session, inspection_id)
         earlier = list_earlier_inspections(engine, inspection_id, limit=TREND_HISTORY)
         ids = [e.id for e in earlier]
         profiles = section_profiles(engine, ids)

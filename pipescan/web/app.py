@@ -60,8 +60,8 @@ from pipescan.storage.database.models import Inspection
 from pipescan.storage.database.network import gis_ids
 from pipescan.storage.database.queries import defect_counts
 from pipescan.storage.database.repository import (
-    get_defects,
     get_inspection,
+    list_defects,
     list_inspections,
 )
 from pipescan.storage.database.trends import AssetTrend, asset_trend
@@ -693,7 +693,7 @@ def create_app(config: WebConfig) -> FastAPI:
         records = list_inspections(engine, asset_id)
         counts = defect_counts(engine, [r.id for r in records])
         latest = records[-1]
-        defects = get_defects(engine, latest.id)
+        defects = list_defects(engine, latest.id)
         _server_timing(request, "queries", started)
         # This pipe's own head line, without reading the whole network.
         row = _PipeHead(
@@ -1072,7 +1072,7 @@ def create_app(config: WebConfig) -> FastAPI:
                 clock_to_h=d.clock_to_h,
                 characterisation=d.characterisation,
             )
-            for d in get_defects(engine, inspection_id)
+            for d in list_defects(engine, inspection_id)
         ]
 
     return app

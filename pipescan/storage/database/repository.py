@@ -18,7 +18,8 @@ import json
 import logging
 import math
 import operator
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from datetime import UTC, date, datetime
 from pathlib import PurePath
@@ -48,20 +49,21 @@ __all__ = [
     "AssetRecord",
     "InspectionRecord",
     "InspectionToSave",
+    "Reader",
     "TrendPoint",
     "canonical_params_json",
     "defect_from_row",
     "find_inspection",
     "find_latest_inspection_id",
     "get_asset",
-    "get_defects",
     "get_inspection",
-    "get_sections",
     "inspection_records",
     "list_assets",
+    "list_defects",
     "list_frame_quality",
     "list_inspections",
     "list_section_trend",
+    "list_sections",
     "m_to_mm",
     "mm_to_m",
     "params_hash",
@@ -921,6 +923,20 @@ def _no_inspection(inspection_id: int) -> StorageError:
     )
 
 
+Reader = Engine | Session
+"""What a read takes: an engine (the read opens its own session) or the session of a caller
+that makes several reads, which then see one state of the database and open one connection."""
+
+
+@contextmanager
+def _reading(source: Reader) -> Iterator[Session]:
+    if isinstance(source, Session):
+        yield source
+    else:
+        with session_scope(source) as session:
+            yield session
+
+
 def get_inspection_row(session: Session, inspection_id: int) -> Inspection:
     """The stored inspection's row, in a session the caller holds.
 
@@ -989,7 +1005,7 @@ def _asset_records(engine: Engine, *where: Any) -> list[AssetRecord]:
         return records
 
 
-def list_inspections(engine: Engine, asset_id: str | None = None) -> list[InspectionRecord]:
+def list_inspections(source: Reader, asset_id: str | None = None) -> list[InspectionRecord]:
     """The stored inspections, of one asset or of all, by asset, date and id."""
     ids = None
     if asset_id is not None:
@@ -997,11 +1013,11 @@ def list_inspections(engine: Engine, asset_id: str | None = None) -> list[Inspec
     statement = record_statement(ids).order_by(
         Inspection.asset_id, Inspection.inspected_at, Inspection.id
     )
-    with session_scope(engine) as session:
+    with _reading(source) as session:
         return inspection_records(session, statement)
 
 
-def get_inspection(engine: Engine, inspection_id: int) -> InspectionRecord:
+def get_inspection(source: Reader, inspection_id: int) -> InspectionRecord:
     """One inspection by id.
 
     Raises
@@ -1009,7 +1025,7 @@ def get_inspection(engine: Engine, inspection_id: int) -> InspectionRecord:
     StorageError
         If there is no inspection with that id.
     """
-    with session_scope(engine) as session:
+    with _reading(source) as session:
         found = inspection_records(session, record_statement([inspection_id]))
         if not found:
             raise _no_inspection(inspection_id)
@@ -1017,7 +1033,7 @@ def get_inspection(engine: Engine, inspection_id: int) -> InspectionRecord:
 
 
 def find_inspection(
-    engine: Engine, asset_id: str, content_hash: str, params_hash: str
+    source: Reader, asset_id: str, content_hash: str, params_hash: str
 ) -> int | None:
     """The id of the inspection with this identity (asset, archive content, parameters), or
     None. Saving an identity again replaces the earlier inspection, so there is at most one."""
@@ -1026,11 +1042,11 @@ def find_inspection(
         Inspection.content_hash == content_hash,
         Inspection.params_hash == params_hash,
     )
-    with session_scope(engine) as session:
+    with _reading(source) as session:
         return session.scalar(statement)
 
 
-def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:
+def list_sections(source: Reader, inspection_id: int) -> list[SectionMeasures]:
     """An inspection's sections by chainage, with ``contour_m`` as (M, 2) float64 metres.
 
     Raises
@@ -1039,11 +1055,11 @@ def get_sections(engine: Engine, inspection_id: int) -> list[SectionMeasures]:
         If there is no inspection with that id.
     """
     return _inspection_rows(
-        engine, inspection_id, Section, section_from_row, Section.chainage_start_mm
+        source, inspection_id, Section, section_from_row, Section.chainage_start_mm
     )
 
 
-def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
+def list_defects(source: Reader, inspection_id: int) -> list[Defect]:
     """An inspection's defects by start chainage.
 
     Raises
@@ -1052,7 +1068,7 @@ def get_defects(engine: Engine, inspection_id: int) -> list[Defect]:
         If there is no inspection with that id.
     """
     return _inspection_rows(
-        engine, inspection_id, DefectRow, defect_from_row, DefectRow.chainage_start_m, DefectRow.id
+        source, inspection_id, DefectRow, defect_from_row, DefectRow.chainage_start_m, DefectRow.id
     )
 
 
@@ -1060,7 +1076,7 @@ _Row = TypeVar("_Row")
 
 
 def _inspection_rows(
-    engine: Engine,
+    source: Reader,
     inspection_id: int,
     model: type[Section] | type[DefectRow] | type[FrameQualityRow],
     convert: Callable[[Any], _Row],
@@ -1074,7 +1090,7 @@ def _inspection_rows(
         If there is no inspection with that id.
     """
     statement = sa.select(model).where(model.inspection_id == inspection_id).order_by(*order_by)
-    with session_scope(engine) as session:
+    with _reading(source) as session:
         get_inspection_row(session, inspection_id)
         return [convert(row) for row in session.scalars(statement)]
 
@@ -1096,7 +1112,7 @@ def defect_from_row(row: DefectRow) -> Defect:
     )
 
 
-def list_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]:
+def list_frame_quality(source: Reader, inspection_id: int) -> list[FrameQuality]:
     """An inspection's per-frame registration quality by frame index.
 
     Raises
@@ -1105,7 +1121,7 @@ def list_frame_quality(engine: Engine, inspection_id: int) -> list[FrameQuality]
         If there is no inspection with that id.
     """
     return _inspection_rows(
-        engine, inspection_id, FrameQualityRow, _frame_quality_from_row, FrameQualityRow.frame_index
+        source, inspection_id, FrameQualityRow, _frame_quality_from_row, FrameQualityRow.frame_index
     )
 
 
@@ -1115,7 +1131,7 @@ def _frame_quality_from_row(row: FrameQualityRow) -> FrameQuality:
     )
 
 
-def find_latest_inspection_id(engine: Engine, asset_id: str | None = None) -> int | None:
+def find_latest_inspection_id(source: Reader, asset_id: str | None = None) -> int | None:
     """The id of the most recent inspection (by ``inspected_at``, then the last saved), of
     one asset or of all; None if there is none."""
     statement = sa.select(Inspection.id).order_by(
@@ -1123,11 +1139,11 @@ def find_latest_inspection_id(engine: Engine, asset_id: str | None = None) -> in
     )
     if asset_id is not None:
         statement = statement.where(Inspection.asset_id == asset_id)
-    with session_scope(engine) as session:
+    with _reading(source) as session:
         return session.scalars(statement.limit(1)).first()
 
 
-def list_section_trend(engine: Engine, asset_id: str, chainage_m: float) -> list[TrendPoint]:
+def list_section_trend(source: Reader, asset_id: str, chainage_m: float) -> list[TrendPoint]:
     """How the section at one chainage of an asset changed across its inspections.
 
     Parameters
@@ -1154,7 +1170,7 @@ def list_section_trend(engine: Engine, asset_id: str, chainage_m: float) -> list
         )
         .order_by(Inspection.inspected_at, Inspection.id)
     )
-    with session_scope(engine) as session:
+    with _reading(source) as session:
         return [
             TrendPoint(inspection_id=i, inspected_at=t, section=section_from_row(s))
             for i, t, s in session.execute(statement).all()
