@@ -29,6 +29,7 @@ from pipescan.flows.deploy import (
     RETRY_AFTER_S,
     SILENT_AFTER_S,
 )
+from pipescan.flows.notification import RUN_ENDED_EVENT
 from pipescan.settings import Settings, database_url
 from pipescan.storage.database.db import connect, upgrade
 from pipescan.storage.database.repository import list_inspections
@@ -122,8 +123,10 @@ def test_the_deployment_holds_no_database_and_ships_its_recovery(server, deploye
     trigger = silent["trigger"]
     assert (trigger["posture"], trigger["within"]) == ("Proactive", SILENT_AFTER_S)
     assert trigger["after"] == ["prefect.flow-run.heartbeat"]
-    assert "prefect.flow-run.heartbeat" in trigger["expect"]
-    assert trigger["match_related"]["prefect.resource.id"] == f"prefect.tag.{RECOVERY_TAG}"
+    assert {"prefect.flow-run.heartbeat", RUN_ENDED_EVENT} <= set(trigger["expect"])
+    tag, deployment_role = trigger["match_related"]  # a deployment's runs, not sub-flows
+    assert tag["prefect.resource.id"] == f"prefect.tag.{RECOVERY_TAG}"
+    assert deployment_role == {"prefect.resource.role": "deployment"}
     assert silent["actions"][0]["state"] == "CRASHED"
     trigger = retry["trigger"]
     assert (trigger["posture"], trigger["within"]) == ("Proactive", RETRY_AFTER_S)
@@ -473,3 +476,99 @@ def test_a_run_that_ends_failed_sends_a_notification(server, tmp_path):
         and "inspect-network/notified" in note["subject"]
     )
     assert message in note["body"] and "pipescan runs" in note["body"]
+
+
+def _post_event(server: PrefectServer, run_id: str, deployment_id: str, name: str) -> None:
+    """An event of a run of the deployment, as its process sends it (now)."""
+    import uuid
+    from datetime import datetime
+
+    server.call(
+        "POST",
+        "/events",
+        [
+            {
+                "id": str(uuid.uuid4()),
+                "occurred": datetime.now(UTC).isoformat(),
+                "event": name,
+                "resource": {"prefect.resource.id": f"prefect.flow-run.{run_id}"},
+                "related": [
+                    {
+                        "prefect.resource.id": f"prefect.deployment.{deployment_id}",
+                        "prefect.resource.role": "deployment",
+                    },
+                    {
+                        "prefect.resource.id": f"prefect.tag.{RECOVERY_TAG}",
+                        "prefect.resource.role": "tag",
+                    },
+                ],
+                "payload": {},
+            }
+        ],
+    )
+
+
+def _set_state(server: PrefectServer, run_id: str, state: str) -> None:
+    server.call("POST", f"/flow_runs/{run_id}/set_state", {"state": {"type": state}, "force": True})
+
+
+def test_the_silent_rule_crashes_a_silent_run_and_not_one_that_ended(server, deployed):
+    """Issue 53: the rule fired on finished runs ("Run is already COMPLETED"). A heartbeat sent
+    just before the final state reaches the server's triggers after that state's event (which
+    the server emits itself) and starts a wait nothing ends. The run's end event
+    (``pipescan.flow-run.ended``, sent after its heartbeats) ends it. The same rule, with a
+    10 s wait, on three runs of the deployment: one that goes silent (crashed), one that ends
+    with such a late heartbeat and its end event (left alone), and one that ends with the late
+    heartbeat alone (the rule fires, and Prefect refuses to crash a finished run: this is
+    what the end event prevents; if this stops firing, Prefect has fixed it)."""
+    from pipescan.flows.deploy import ensure_automations, recovery_automations
+
+    assert deployed[0].exit_code == 0
+    deployment_id = server.deployment("inspect-network/network-nightly")["id"]
+    with _on(server):
+        [silent, *_] = recovery_automations(deployment_id, "test", silent_after_s=10)
+        silent.name = "pipescan test: crash silent runs after 10 s"
+        ensure_automations([silent])
+    time.sleep(12)  # the triggers service reads new automations every few seconds
+    runs = {
+        case: server.run_deployment("inspect-network/network-nightly")
+        for case in ("silent", "announced", "unannounced")
+    }
+    for run_id in runs.values():
+        _set_state(server, run_id, "RUNNING")
+        _post_event(server, run_id, deployment_id, "prefect.flow-run.heartbeat")
+    for case in ("announced", "unannounced"):
+        _set_state(server, runs[case], "COMPLETED")
+        time.sleep(1)
+        _post_event(server, runs[case], deployment_id, "prefect.flow-run.heartbeat")  # late
+    _post_event(server, runs["announced"], deployment_id, RUN_ENDED_EVENT)
+
+    def fired_on() -> set[str]:
+        events = server.call(
+            "POST",
+            "/events/filter",
+            {"filter": {"event": {"prefix": ["prefect.automation.action.triggered"]}}},
+        )["events"]
+        targets = {
+            r["prefect.resource.id"].removeprefix("prefect.flow-run.")
+            for e in events
+            if e["resource"].get("prefect.resource.name") == silent.name
+            for r in e["related"]
+            if r.get("prefect.resource.role") == "target"
+        }
+        return {case for case, run_id in runs.items() if run_id in targets}
+
+    try:
+        deadline = time.monotonic() + 90
+        while fired_on() != {"silent", "unannounced"} and time.monotonic() < deadline:
+            time.sleep(2)
+        time.sleep(10)  # as long again for the announced run, which must not come
+        states = {
+            case: server.call("GET", f"/flow_runs/{r}")["state_type"] for case, r in runs.items()
+        }
+        assert fired_on() == {"silent", "unannounced"}, (fired_on(), states)
+        assert states == {"silent": "CRASHED", "announced": "COMPLETED", "unannounced": "COMPLETED"}
+    finally:
+        server.call("DELETE", f"/automations/{silent.id}")
+        for run_id in runs.values():
+            server.call("DELETE", f"/flow_runs/{run_id}")

@@ -12,9 +12,12 @@ Recovery uses Prefect's own means (docs/operations.md):
 
 - the flow-run process emits a heartbeat every :data:`HEARTBEAT_S` seconds, and does not write
   to the worker's pipe (``stream_output`` off), so it finishes its run when the worker dies;
-- automation "crash silent runs": a run of a deployment (tag :data:`RECOVERY_TAG`, which the
-  network run passes on to its sub-flows) that sends no heartbeat and no final state for
-  :data:`SILENT_AFTER_S` seconds is marked Crashed: its process or host died;
+- automation "crash silent runs": a run of a deployment (tag :data:`RECOVERY_TAG`) that sends
+  no heartbeat and no final state for :data:`SILENT_AFTER_S` seconds is marked Crashed: its
+  process or host died. Its sub-flows ran in that process: its next attempt marks them
+  Crashed. The run's end event (:data:`pipescan.flows.notification.RUN_ENDED_EVENT`) is
+  awaited too, so that a heartbeat reaching the server after the final state does not start a
+  wait that would end in a "crash" of a finished run;
 - automation "retry crashed runs": a run of the deployment still Crashed :data:`RETRY_AFTER_S`
   seconds after its crash is scheduled again, at most :data:`MAX_ATTEMPTS` attempts in all, and
   the next worker finishes it (archives already stored are reused);
@@ -30,6 +33,7 @@ from typing import Any
 
 from pipescan.core.errors import PipescanError
 from pipescan.flows.network import absolute_location, inspect_network
+from pipescan.flows.notification import RUN_ENDED_EVENT
 
 DEFAULT_WORK_POOL = "pipescan"
 RECOVERY_TAG = "pipescan-scheduled"
@@ -210,8 +214,11 @@ def job_variables() -> dict[str, Any]:
     }
 
 
-def recovery_automations(deployment_id: str, deployment_name: str) -> list:
-    """The three automations of :mod:`this module's doc <pipescan.flows.deploy>`."""
+def recovery_automations(
+    deployment_id: str, deployment_name: str, *, silent_after_s: float = SILENT_AFTER_S
+) -> list:
+    """The three automations of :mod:`this module's doc <pipescan.flows.deploy>`
+    (``silent_after_s``: :data:`SILENT_AFTER_S`, shorter in tests)."""
     from prefect.automations import Automation
     from prefect.client.schemas.objects import StateType
     from prefect.events.actions import ChangeFlowRunState
@@ -222,21 +229,31 @@ def recovery_automations(deployment_id: str, deployment_name: str) -> list:
     silent = Automation(
         name="pipescan: crash silent runs",
         description=f"A scheduled pipescan run (tag {RECOVERY_TAG}) that sends no heartbeat "
-        f"for {SILENT_AFTER_S} s is marked Crashed: its process or host died.",
+        f"for {silent_after_s:g} s is marked Crashed: its process or host died.",
         trigger=EventTrigger(
             match={"prefect.resource.id": "prefect.flow-run.*"},
-            match_related=tagged,
+            # A deployment's runs only: a sub-flow runs in its parent's process, and has no
+            # end event to follow its last heartbeat.
+            match_related=[tagged, {"prefect.resource.role": "deployment"}],
             after={"prefect.flow-run.heartbeat"},
-            expect={"prefect.flow-run.heartbeat", "prefect.flow-run.Cancelling", *final},
+            # The end event: a heartbeat sent just before the final state can reach the
+            # trigger after that state's event (the server emits it, the run queues its
+            # heartbeats), and start a wait that only a later event of the run ends.
+            expect={
+                "prefect.flow-run.heartbeat",
+                "prefect.flow-run.Cancelling",
+                *final,
+                RUN_ENDED_EVENT,
+            },
             for_each={"prefect.resource.id"},
             posture=Posture.Proactive,
             threshold=1,
-            within=timedelta(seconds=SILENT_AFTER_S),
+            within=timedelta(seconds=silent_after_s),
         ),
         actions=[
             ChangeFlowRunState(
                 state=StateType.CRASHED,
-                message=f"no heartbeat for {SILENT_AFTER_S} s: the run's process or host died "
+                message=f"no heartbeat for {silent_after_s:g} s: the run's process or host died "
                 "(its output, with the error, is in PIPESCAN_REPORTS_DIR/logs/ on the worker; "
                 "a retried attempt logs it)",
             )
