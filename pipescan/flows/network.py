@@ -544,6 +544,11 @@ def inspect_network(
     with ``PIPESCAN_DATABASE_PASSWORD_BLOCK``; :func:`pipescan.settings.use_settings`), never
     a parameter. It is checked once (reachable, migrated, writable) before any archive.
 
+    The stages: :func:`_announce_attempt`, :func:`_plan_run` (the settings, the database),
+    ``discover_archives``, :func:`_inspect_archives` (the archives' tasks, retries),
+    :func:`_summarise` (the summary, the network report). (Over 80 lines for this docstring
+    only, the parameters' reference that Prefect's UI shows: the body is its stages.)
+
     Parameters
     ----------
     store
@@ -599,108 +604,26 @@ def inspect_network(
     started = time.perf_counter()
     run_log = get_run_logger()
     s = get_settings()
-    died_of = _keep_scheduled_output(s, reports_dir, run_log)
-    if flow_run.run_count > 1:  # retried after a crash (pipescan.flows.deploy)
-        closed = close_earlier_attempts(flow_run.id, flow_run.name, died_of)
-        _progress(
-            run_log,
-            f"attempt {flow_run.run_count} of this run: {closed[0]} sub-flow and {closed[1]} "
-            "task runs of the earlier attempts marked Crashed"
-            + ("; archives already stored are reused" if reuse_stored else "")
-            + (f"; the earlier attempt died of: {died_of}" if died_of else ""),
-            failed=bool(died_of),
-        )
-    if startup_wait_s is None:
-        startup_wait_s = DATABASE_WAIT_S if in_deployment() else 0.0
-    database_url = wait_for_database(s, startup_wait_s, run_log)
-    retry_window_s = RETRY_WINDOW_S if retry_window_s is None else retry_window_s
-    params = params or params_from_settings(s)
-    work_dir = absolute_location(str(work_dir or s.work_dir))
-    report_out = (
-        _network_report_out(
-            network_report_path, Path(reports_dir) if reports_dir else s.reports_dir
-        )
-        if write_network_report
-        else None
-    )
-    dask_address = dask_address or s.dask_address
-    runner_kind = task_runner or s.task_runner
-    if runner_kind == "dask":  # the chunk and window tasks run beside their archive's task
-        runner_kind = "threads"
-    workers = workers or s.workers
-    local = f"{runner_kind} x{workers} per archive"
-    executor = f"dask {dask_address} ({local})" if dask_address else f"local {local}"
-
-    archives = discover_archives(absolute_location(store))
-    total = len(archives)
-    labels = dict(zip(archives, _unique_labels(archives), strict=True))
-    # Archives with no stored inspection go first: those an earlier run left missing (and
-    # new ones), so that a short night still catches up.
-    order = unstored_first(archives, find_stored_archives(database_url))
-    # On Dask each archive is one task on a worker (its chunks and windows on the worker's
-    # own pool): Prefect's overhead per Dask task run (~0.15 s) would otherwise eat a large
-    # share of a register-chunk or measure-window task (see docs/orchestration.md).
-    pool = (
-        make_task_runner("dask", dask_address=dask_address)
-        if dask_address
-        else ThreadPoolTaskRunner(max_workers=concurrency or s.network_concurrency or 2)
-    )
-    api_url = _api_url_for_workers(bool(dask_address))
-    settings = temporary_settings({PREFECT_API_URL: api_url}) if api_url else nullcontext()
-    # The sub-flows carry this run's tags (a deployment's), which its recovery automations
-    # look for (pipescan.flows.deploy).
-    with settings, pool, tags(*(flow_run.tags or [])):
-        if not concurrency:
-            concurrency = s.network_concurrency or (
-                sum(pool.client.nthreads().values()) if dask_address else 2
-            )
-        _progress(
-            run_log,
-            f"{total} archives in {strip_credentials(store)}; "
-            f"{concurrency} at a time on {executor}",
-        )
-
-        def submit(archive: str):
-            label = labels[archive]
-            return pool.submit(
-                inspect_one_archive.with_options(task_run_name=f"archive {label}"),
-                parameters={
-                    "archive": archive,
-                    "label": label,
-                    "database_url": database_url,
-                    "params": params,
-                    "work_dir": work_dir,
-                    "runner_kind": runner_kind,
-                    "workers": workers,
-                    "report_path": (
-                        str(Path(reports_dir) / f"{label}.pdf") if reports_dir else None
-                    ),
-                    "reuse_stored": reuse_stored,
-                },
-            )
-
-        outcomes = _run_archives(order, labels, submit, concurrency, retry_window_s, run_log, total)
-
-    ordered = merge_duplicates([outcomes[a] for a in archives])
-    counts = {k: sum(o.status == k for o in ordered) for k in STATUSES}
-    report_path = report_error = None
-    ids = list(dict.fromkeys(o.inspection_id for o in ordered if o.inspection_id is not None))
-    if report_out is not None and ids:
-        not_stored = [o for o in ordered if not o.stored]
-        report_path, report_error = _write_network_report(
-            database_url, report_out, ids, not_stored, retry_window_s
-        )
-    summary = NetworkSummary(
-        store=strip_credentials(store),
-        executor=executor,
-        outcomes=ordered,
-        worst=worst_pipes([o for o in ordered if o.status != "duplicate"], worst_count),
-        wall_time_s=time.perf_counter() - started,
-        network_report_path=report_path,
-        network_report_error=report_error,
-        counts=counts,
+    _announce_attempt(s, reports_dir, reuse_stored, run_log)
+    plan = _plan_run(
+        s,
+        run_log,
+        params=params,
+        work_dir=work_dir,
+        concurrency=concurrency,
+        dask_address=dask_address,
+        task_runner=task_runner,
+        workers=workers,
+        reports_dir=reports_dir,
+        network_report_path=network_report_path,
+        write_network_report=write_network_report,
+        reuse_stored=reuse_stored,
         retry_window_s=retry_window_s,
+        startup_wait_s=startup_wait_s,
     )
+    archives = discover_archives(absolute_location(store))
+    outcomes = _inspect_archives(plan, store, archives, s, run_log)
+    summary = _summarise(plan, store, [outcomes[a] for a in archives], worst_count, started)
     for line in format_network_summary(summary):
         run_log.info(line)
     _leave_outcomes(summary)
@@ -710,6 +633,175 @@ def inspect_network(
         message = incomplete_message(summary)
         return Failed(message=message, data=NetworkIncomplete(message, summary))
     return summary
+
+
+# --- the flow's stages ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _RunPlan:
+    """How a network run works: its parameters, with the settings filling what they left
+    unset (:func:`_plan_run`)."""
+
+    database_url: str
+    params: InspectionParams
+    work_dir: str
+    reports_dir: str | None
+    report_out: Path | None
+    reuse_stored: bool
+    retry_window_s: float
+    concurrency: int | None
+    dask_address: str | None
+    runner_kind: str
+    workers: int
+
+    @property
+    def executor(self) -> str:
+        """Where the archives run, in words (``local threads x2 per archive``)."""
+        local = f"{self.runner_kind} x{self.workers} per archive"
+        return f"dask {self.dask_address} ({local})" if self.dask_address else f"local {local}"
+
+
+def _announce_attempt(settings, reports_dir: str | None, reuse_stored: bool, run_log) -> None:
+    """Keep a scheduled run's output (:func:`_keep_scheduled_output`); in a run retried after
+    a crash (:mod:`pipescan.flows.deploy`), close its earlier attempts' runs and say so."""
+    died_of = _keep_scheduled_output(settings, reports_dir, run_log)
+    if flow_run.run_count <= 1:
+        return
+    closed = close_earlier_attempts(flow_run.id, flow_run.name, died_of)
+    _progress(
+        run_log,
+        f"attempt {flow_run.run_count} of this run: {closed[0]} sub-flow and {closed[1]} "
+        "task runs of the earlier attempts marked Crashed"
+        + ("; archives already stored are reused" if reuse_stored else "")
+        + (f"; the earlier attempt died of: {died_of}" if died_of else ""),
+        failed=bool(died_of),
+    )
+
+
+def _plan_run(
+    s,
+    run_log,
+    *,
+    params: InspectionParams | None,
+    work_dir: str | None,
+    concurrency: int | None,
+    dask_address: str | None,
+    task_runner: str | None,
+    workers: int | None,
+    reports_dir: str | None,
+    network_report_path: str | None,
+    write_network_report: bool,
+    reuse_stored: bool,
+    retry_window_s: float | None,
+    startup_wait_s: float | None,
+) -> _RunPlan:
+    """The run's plan from the flow's parameters and the settings ``s``, once the database
+    answers (:func:`wait_for_database`)."""
+    if startup_wait_s is None:
+        startup_wait_s = DATABASE_WAIT_S if in_deployment() else 0.0
+    database_url = wait_for_database(s, startup_wait_s, run_log)
+    report_out = None
+    if write_network_report:
+        reports = Path(reports_dir) if reports_dir else s.reports_dir
+        report_out = _network_report_out(network_report_path, reports)
+    runner_kind = task_runner or s.task_runner
+    if runner_kind == "dask":  # the chunk and window tasks run beside their archive's task
+        runner_kind = "threads"
+    return _RunPlan(
+        database_url=database_url,
+        params=params or params_from_settings(s),
+        work_dir=absolute_location(str(work_dir or s.work_dir)),
+        reports_dir=reports_dir,
+        report_out=report_out,
+        reuse_stored=reuse_stored,
+        retry_window_s=RETRY_WINDOW_S if retry_window_s is None else retry_window_s,
+        concurrency=concurrency,
+        dask_address=dask_address or s.dask_address,
+        runner_kind=runner_kind,
+        workers=workers or s.workers,
+    )
+
+
+def _inspect_archives(
+    plan: _RunPlan, store: str, archives: list[str], s, run_log
+) -> dict[str, ArchiveOutcome]:
+    """Each archive's outcome: its ``archive`` task submitted to the run's pool, archives
+    without a stored inspection first, transient failures tried again (:func:`_run_archives`)."""
+    labels = dict(zip(archives, _unique_labels(archives), strict=True))
+    # Archives with no stored inspection go first: those an earlier run left missing (and
+    # new ones), so that a short night still catches up.
+    order = unstored_first(archives, find_stored_archives(plan.database_url))
+    # On Dask each archive is one task on a worker (its chunks and windows on the worker's
+    # own pool): Prefect's overhead per Dask task run (~0.15 s) would otherwise eat a large
+    # share of a register-chunk or measure-window task (see docs/orchestration.md).
+    pool = (
+        make_task_runner("dask", dask_address=plan.dask_address)
+        if plan.dask_address
+        else ThreadPoolTaskRunner(max_workers=plan.concurrency or s.network_concurrency or 2)
+    )
+    api_url = _api_url_for_workers(bool(plan.dask_address))
+    api = temporary_settings({PREFECT_API_URL: api_url}) if api_url else nullcontext()
+    # The sub-flows carry this run's tags (a deployment's), which its recovery automations
+    # look for (pipescan.flows.deploy).
+    with api, pool, tags(*(flow_run.tags or [])):
+        concurrency = plan.concurrency or s.network_concurrency
+        if not concurrency:
+            concurrency = sum(pool.client.nthreads().values()) if plan.dask_address else 2
+        _progress(
+            run_log,
+            f"{len(archives)} archives in {strip_credentials(store)}; "
+            f"{concurrency} at a time on {plan.executor}",
+        )
+
+        def submit(archive: str):
+            label = labels[archive]
+            return pool.submit(
+                inspect_one_archive.with_options(task_run_name=f"archive {label}"),
+                parameters={
+                    "archive": archive,
+                    "label": label,
+                    "database_url": plan.database_url,
+                    "params": plan.params,
+                    "work_dir": plan.work_dir,
+                    "runner_kind": plan.runner_kind,
+                    "workers": plan.workers,
+                    "report_path": (
+                        str(Path(plan.reports_dir) / f"{label}.pdf") if plan.reports_dir else None
+                    ),
+                    "reuse_stored": plan.reuse_stored,
+                },
+            )
+
+        return _run_archives(
+            order, labels, submit, concurrency, plan.retry_window_s, run_log, len(archives)
+        )
+
+
+def _summarise(
+    plan: _RunPlan, store: str, outcomes: list[ArchiveOutcome], worst_count: int, started: float
+) -> NetworkSummary:
+    """The run's summary, with the network report written (when the run asks for one and
+    stored anything), from its archives' outcomes in the store's order."""
+    ordered = merge_duplicates(outcomes)
+    report_path = report_error = None
+    ids = list(dict.fromkeys(o.inspection_id for o in ordered if o.inspection_id is not None))
+    if plan.report_out is not None and ids:
+        not_stored = [o for o in ordered if not o.stored]
+        report_path, report_error = _write_network_report(
+            plan.database_url, plan.report_out, ids, not_stored, plan.retry_window_s
+        )
+    return NetworkSummary(
+        store=strip_credentials(store),
+        executor=plan.executor,
+        outcomes=ordered,
+        worst=worst_pipes([o for o in ordered if o.status != "duplicate"], worst_count),
+        wall_time_s=time.perf_counter() - started,
+        network_report_path=report_path,
+        network_report_error=report_error,
+        counts={k: sum(o.status == k for o in ordered) for k in STATUSES},
+        retry_window_s=plan.retry_window_s,
+    )
 
 
 def _run_archives(
