@@ -16,6 +16,7 @@ from typing import Any, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
+from pipescan.core import defaults
 from pipescan.core.flags import DEFAULT_TABLE, FlagRule
 from pipescan.storage.input.limits import InputLimits
 from pipescan.storage.input.network_layer import LayerLimits
@@ -44,11 +45,16 @@ class Settings(BaseSettings):
     )
     reports_dir: Path = Field(Path("reports"), description="where reports are written by default")
     contour_method: str = Field(
-        "polar", description="a name in pipescan.core.contour.CONTOUR_METHODS (polar, grid)"
+        defaults.CONTOUR_METHOD,
+        description="a name in pipescan.core.contour.CONTOUR_METHODS (polar, grid)",
     )
-    grid_k: int = Field(12, ge=3, description="grid method: neighbours in the angle-gap test")
+    grid_k: int = Field(
+        defaults.GRID_K, ge=3, description="grid method: neighbours in the angle-gap test"
+    )
     grid_s_threshold_rad: float = Field(
-        0.55, gt=0, description="grid method: angle-gap standard deviation S of a boundary point"
+        defaults.GRID_S_THRESHOLD_RAD,
+        gt=0,
+        description="grid method: angle-gap standard deviation S of a boundary point",
     )
     registration_method: Literal["gicp", "point_to_plane", "point_to_point"] = Field(
         "gicp", description="gicp (default), point_to_plane, or the paper's point_to_point"
@@ -56,9 +62,13 @@ class Settings(BaseSettings):
     registration_engine: Literal["small_gicp", "open3d", "open3d_tensor"] = Field(
         "small_gicp", description="the library that runs the ICP (docs/registration.md)"
     )
-    step_m: float = Field(0.1, gt=0, description="section length along the chainage")
-    window_m: float = Field(2.0, gt=0, description="chainage window processed per task")
-    chunk_frames: int = Field(60, ge=2, description="frames registered per task")
+    step_m: float = Field(
+        defaults.SECTION_STEP_M, gt=0, description="section length along the chainage"
+    )
+    window_m: float = Field(
+        defaults.WINDOW_M, gt=0, description="chainage window processed per task"
+    )
+    chunk_frames: int = Field(defaults.CHUNK_FRAMES, ge=2, description="frames registered per task")
     frame_stride: int | None = Field(
         None,
         ge=1,
@@ -81,7 +91,8 @@ class Settings(BaseSettings):
     )
     threshold_table: str = DEFAULT_TABLE
     pipe_class: Literal["auto", "rigid", "flexible"] = Field(
-        "auto", description="BAA deformation rule: from the archive's material, or set for a run"
+        defaults.PIPE_CLASS,
+        description="BAA deformation rule: from the archive's material, or set for a run",
     )
     blockage_threshold_ratio: float = Field(FlagRule.blockage_threshold_ratio, ge=0, le=1)
     flag_grade: int = Field(FlagRule.flag_grade, ge=0, le=4)

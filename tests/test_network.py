@@ -188,6 +188,19 @@ def test_settings_give_the_inspection_parameters(monkeypatch):
         Settings()
 
 
+def test_default_settings_give_the_default_inspection_parameters(monkeypatch):
+    """The settings and the parameters' own defaults agree (both from core.defaults)."""
+    import os
+
+    from pipescan.flows.inspect import InspectionParams
+    from pipescan.flows.network import params_from_settings
+    from pipescan.settings import Settings
+
+    for name in [k for k in os.environ if k.startswith("PIPESCAN_")]:
+        monkeypatch.delenv(name)
+    assert params_from_settings(Settings(_env_file=None)) == InspectionParams()
+
+
 # --- no password in a parameter Prefect keeps ---------------------------------------------------
 
 

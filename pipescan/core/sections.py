@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipescan.core.axis import PipeAxis
+from pipescan.core.defaults import SECTION_STEP_M, WINDOW_M
 from pipescan.core.measures import MeasureParams, measure_section
 from pipescan.core.model import SectionMeasures
 from pipescan.core.registration.metrics import RegistrationEvidence
@@ -39,7 +40,11 @@ class ChainageWindow:
 
 
 def plan_windows(
-    chainage_min_m: float, chainage_max_m: float, *, step_m: float = 0.1, window_m: float = 2.0
+    chainage_min_m: float,
+    chainage_max_m: float,
+    *,
+    step_m: float = SECTION_STEP_M,
+    window_m: float = WINDOW_M,
 ) -> list[ChainageWindow]:
     """Split a chainage range into windows of whole sections.
 

@@ -38,6 +38,7 @@ from typing import Any
 import sqlalchemy as sa
 from sqlalchemy.engine import Engine
 
+from pipescan.core.defaults import SECTION_STEP_M
 from pipescan.core.errors import PipescanError
 from pipescan.core.flags import DEFAULT_TABLE
 from pipescan.core.model import Defect
@@ -182,7 +183,7 @@ class IsybauInspection:
     first_chainage_m: float | None
     last_chainage_m: float | None
     worst_grade: int | None
-    step_m: float = 0.1
+    step_m: float = SECTION_STEP_M
     gis_id: str | None = None
 
 
@@ -606,7 +607,7 @@ def load_isybau_inspections(
     names = gis_ids(engine, sorted({r.asset_id for r in records}))
     with session_scope(engine) as session:
         steps = {
-            i: float((params or {}).get("step_m", 0.1))
+            i: float((params or {}).get("step_m", SECTION_STEP_M))
             for i, params in session.execute(
                 sa.select(Inspection.id, Inspection.params_json).where(Inspection.id.in_(ids))
             )
@@ -618,7 +619,7 @@ def load_isybau_inspections(
                 first_chainage_m=extents.get(r.id, (None, None))[0],
                 last_chainage_m=extents.get(r.id, (None, None))[1],
                 worst_grade=worst_grade(profiles[r.id]),
-                step_m=steps.get(r.id, 0.1),
+                step_m=steps.get(r.id, SECTION_STEP_M),
                 gis_id=names.get(r.asset_id),
             )
             for r in records

@@ -29,6 +29,7 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any, Protocol
 
+from pipescan.core.defaults import CONTOUR_METHOD
 from pipescan.core.errors import OptionError
 
 if TYPE_CHECKING:
@@ -51,7 +52,7 @@ CONTOUR_METHODS: dict[str, str] = {
     "polar": "pipescan.core.contour.polar",
     "grid": "pipescan.core.contour.grid",
 }
-DEFAULT_CONTOUR_METHOD = "polar"
+DEFAULT_CONTOUR_METHOD = CONTOUR_METHOD
 #: The field of ``MeasureParams`` that holds each method's own parameters (none for polar).
 CONTOUR_PARAMS: dict[str, str] = {"grid": "grid"}
 

@@ -15,6 +15,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from pipescan.core.contour.base import ContourResult, polygon_area, radii_of_polygon
+from pipescan.core.defaults import GRID_K, GRID_S_THRESHOLD_RAD
 from pipescan.core.errors import GeometryError
 
 if TYPE_CHECKING:
@@ -52,8 +53,8 @@ class GridParams:
         found no contour, rather than a small one.
     """
 
-    k: int = 12
-    s_threshold_rad: float = 0.55
+    k: int = GRID_K
+    s_threshold_rad: float = GRID_S_THRESHOLD_RAD
     closing: Literal["circular", "paper"] = "circular"
     downsample_m: float = 0.003
     smooth_window: int = 5
