@@ -18,6 +18,7 @@ import numpy as np
 
 from pipescan.core.contour.base import ContourResult, angle_bins, polar_coordinates
 from pipescan.core.errors import GeometryError
+from pipescan.core.uncertainty import unseen_runs
 
 
 @dataclass(frozen=True)
@@ -64,19 +65,8 @@ class PolarProfile:
     @property
     def max_gap_deg(self) -> float:
         """The longest run of unseen bins, in degrees (wrapping around)."""
-        seen = self.seen
-        if seen.all():
-            return 0.0
-        if not seen.any():
-            return 360.0
-        # Rotate so the sequence starts at a seen bin, then measure runs of unseen bins.
-        start = int(np.argmax(seen))
-        rolled = np.roll(~seen, -start)
-        runs, run = [], 0
-        for unseen in rolled:
-            run = run + 1 if unseen else 0
-            runs.append(run)
-        return float(max(runs)) * 360.0 / len(seen)
+        runs = unseen_runs(self.seen)
+        return float(max(map(len, runs), default=0)) * 360.0 / len(self.seen)
 
     def filled_radii(self) -> np.ndarray:
         """Radii of the nearest surface, with unseen bins linearly interpolated around the circle.
