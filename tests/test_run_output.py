@@ -3,9 +3,12 @@ stack) goes to a named file, and the retried attempt finds the error its predece
 
 from __future__ import annotations
 
+import os
+import signal
 import subprocess
 import sys
 import textwrap
+import time
 
 import pytest
 
@@ -67,3 +70,47 @@ def test_a_fatal_signal_leaves_its_stack(tmp_path):
 
 def test_no_output_file_no_error(tmp_path):
     assert last_error(tmp_path / "none.log") is None
+
+
+def test_a_sigterm_ends_the_run_while_an_archive_is_still_running(tmp_path):
+    """A cancel is a SIGTERM from the worker. Prefect's handler raises in the main thread, which
+    then waits for the pool thread inspecting an archive (here: 120 s of work); the process
+    ends within seconds all the same, exit code 143, saying so in its output. (Prefect's API
+    is away here: the closing of the sub-flow runs fails, and the process still ends.)"""
+    path = tmp_path / "logs" / "run.log"
+    code = textwrap.dedent(
+        f"""
+        import signal, threading, time
+        from pathlib import Path
+        from pipescan.flows.recovery import end_promptly_on_sigterm, keep_output
+
+        class TerminationSignal(BaseException):
+            pass
+
+        def prefects(signum, frame):
+            raise TerminationSignal()
+
+        keep_output(Path({str(path)!r}), 1, "cerise-lemming")
+        signal.signal(signal.SIGTERM, prefects)
+        assert end_promptly_on_sigterm("0b1e", "cerise-lemming")
+        archive = threading.Thread(target=time.sleep, args=(120,))
+        archive.start()
+        print("archive running", flush=True)
+        try:
+            time.sleep(120)
+        finally:
+            archive.join()  # as Prefect's thread pool does on the way out
+        """
+    )
+    env = {**os.environ, "PREFECT_API_URL": "http://127.0.0.1:9/api"}
+    proc = subprocess.Popen([sys.executable, "-c", code], env=env, stdout=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while not (path.exists() and "archive running" in path.read_text()):
+        assert time.monotonic() < deadline and proc.poll() is None
+        time.sleep(0.1)
+    signalled = time.monotonic()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(timeout=30) == 143
+    took_s = time.monotonic() - signalled
+    assert took_s < 15, took_s
+    assert "--- SIGTERM: the process ends now" in path.read_text()

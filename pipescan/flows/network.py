@@ -48,6 +48,7 @@ from pipescan.flows.notification import RUN_HOOKS
 from pipescan.flows.recovery import (
     close_earlier_attempts,
     close_task_runs_of,
+    end_promptly_on_sigterm,
     keep_output,
     last_error,
     run_output_path,
@@ -952,6 +953,7 @@ def _keep_scheduled_output(settings, reports_dir: str | None, run_log) -> str | 
         run_log.warning(f"this run's process output goes nowhere: cannot write {path}: {exc}")
         return died_of
     run_log.info(f"this run's process output (errors included): {path} on the worker")
+    end_promptly_on_sigterm(flow_run.id, flow_run.name)  # a cancel ends it in seconds
     return died_of
 
 

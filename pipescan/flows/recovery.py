@@ -49,6 +49,14 @@ def close_earlier_attempts(
     """Mark Crashed the sub-flow runs and task runs of this flow run (and of its sub-flows) that
     are still active, their message naming the error the earlier attempt ``died_of`` if known;
     call it before the run starts any of its own. Returns (sub-flow runs, task runs) marked."""
+    message = MESSAGE.format(run=run_name) + (f": {died_of}" if died_of else "")
+    return close_open_runs(flow_run_id, message)
+
+
+def close_open_runs(flow_run_id: str, message: str, *, cancelled: bool = False) -> tuple[int, int]:
+    """Mark Crashed (or Cancelled) the sub-flow runs and task runs of this flow run (and of its
+    sub-flows) that are still active, with ``message``. Returns (sub-flow runs, task runs)
+    marked."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
         FlowRunFilter,
@@ -59,10 +67,10 @@ def close_earlier_attempts(
         TaskRunFilterStateType,
     )
     from prefect.client.schemas.objects import StateType
-    from prefect.states import Crashed
+    from prefect.states import Cancelled, Crashed
 
     active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
-    message = MESSAGE.format(run=run_name) + (f": {died_of}" if died_of else "")
+    final = Cancelled if cancelled else Crashed
     with get_client(sync_client=True) as client:
         subflows = list(
             _pages(
@@ -84,10 +92,81 @@ def close_earlier_attempts(
         )
         open_subflows = [r for r in subflows if r.state is not None and r.state.type in active]
         for task_run in tasks:
-            client.set_task_run_state(task_run.id, Crashed(message=message), force=True)
+            client.set_task_run_state(task_run.id, final(message=message), force=True)
         for subflow in open_subflows:
-            client.set_flow_run_state(subflow.id, Crashed(message=message), force=True)
+            client.set_flow_run_state(subflow.id, final(message=message), force=True)
     return len(open_subflows), len(tasks)
+
+
+def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
+    """In a scheduled run's process: on SIGTERM (the worker's way to cancel a run, or a person
+    stopping the process), mark the run's active sub-flow and task runs Cancelled (Crashed when
+    the run is not being cancelled) and end the process at once, within
+    :data:`SIGTERM_END_S` seconds. Call it from the flow, in the main thread, inside
+    Prefect's own SIGTERM handler, which it also calls. Returns whether it was installed
+    (not outside the main thread).
+
+    Without it, Prefect's handler stops the run from starting more archives, but the archive
+    being inspected runs in a pool thread that nothing can stop, and the pool waits for it on
+    the way out: the process lived on until its archive was done or until the worker killed it
+    30 s after its SIGTERM (Prefect 3.8's fixed grace), leaving that archive's sub-flow
+    Running (cancels took 25-34 s). The archive is taken first by the next run.
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return False
+    previous = signal.getsignal(signal.SIGTERM)
+
+    def end() -> None:
+        threading.Timer(SIGTERM_END_S, _exit_now).start()  # whatever the API does
+        try:
+            cancelled = _is_cancelling(flow_run_id)
+            closed = close_open_runs(
+                flow_run_id,
+                f"{'cancelled' if cancelled else 'stopped'} with run {run_name}, whose process "
+                "ended on SIGTERM",
+                cancelled=cancelled,
+            )
+            print(
+                f"--- SIGTERM: run {run_name} {'cancelled' if cancelled else 'stopped'}; "
+                f"{closed[0]} sub-flow and {closed[1]} task runs marked "
+                f"{'Cancelled' if cancelled else 'Crashed'}; the process ends now",
+                flush=True,
+            )
+        except Exception as exc:  # the API is away: end all the same
+            print(f"--- SIGTERM: the process ends now ({type(exc).__name__}: {exc})", flush=True)
+        _exit_now()
+
+    def handler(signum, frame) -> None:
+        signal.signal(signal.SIGTERM, previous)  # a second SIGTERM: Prefect's way
+        threading.Thread(target=end, name="pipescan-sigterm", daemon=True).start()
+        if callable(previous):
+            previous(signum, frame)  # raises in this thread: no more archives start
+
+    signal.signal(signal.SIGTERM, handler)
+    return True
+
+
+SIGTERM_END_S = 10.0
+"""At most this long after a SIGTERM, a scheduled run's process ends."""
+
+
+def _is_cancelling(flow_run_id: str) -> bool:
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.objects import StateType
+
+    with get_client(sync_client=True) as client:
+        state = client.read_flow_run(flow_run_id).state
+    return state is not None and state.type in (StateType.CANCELLING, StateType.CANCELLED)
+
+
+def _exit_now() -> None:
+    for stream in (sys.stdout, sys.stderr):
+        if stream is not None:
+            stream.flush()
+    os._exit(128 + 15)  # as a SIGTERM would have ended it
 
 
 def run_output_path(reports_dir: Path, file_stem: str) -> Path:
