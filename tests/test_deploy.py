@@ -100,6 +100,7 @@ def test_the_deployment_holds_no_database_and_ships_its_recovery(server, deploye
     assert "prefect worker start --pool pipescan-test" in result.stdout
     assert "PIPESCAN_DATABASE_URL=sqlite:///" in result.stdout  # what the workers need
     assert "--param reuse_stored=false" in result.stdout  # how to force a full re-run
+    assert "alerts: none for a run that ends Failed (PIPESCAN_SMTP_ALERT_TO" in result.stdout
 
     deployment = server.deployment("inspect-network/network-nightly")
     assert deployment["entrypoint"] == "pipescan.flows.network.inspect_network"
@@ -452,6 +453,10 @@ def test_a_run_that_ends_failed_sends_a_notification(server, tmp_path):
         )  # fmt: skip
         assert result.exit_code == 0, result.output[-3000:]
         assert "pipescan: notify when a run of inspect-network/notified fails" in result.stdout
+        assert (
+            "alerts: a run that ends Failed (archives missing or failed) sends the notification "
+            "block custom-webhook/pipescan-alerts" in result.stdout
+        )
         bad = _deploy(
             server, tmp_path, "--store", "store", "--cron", "0 2 * * *", "--name", "notified",
             "--notify", "custom-webhook/nope", db=db,

@@ -43,6 +43,27 @@ def test_the_worker_environment_has_every_variable_with_secrets_as_placeholders(
     assert "Zq7" not in printed and "***" not in printed
 
 
+def test_the_alert_e_mail_settings_are_in_the_worker_environment():
+    env = _env(
+        database_url="sqlite:////srv/p.db",
+        smtp_host="mail.example",
+        smtp_port=587,
+        smtp_security="starttls",
+        smtp_sender="pipescan@utility.example",
+        smtp_alert_to="ops@utility.example",
+    )
+    assert {k: v for k, v in env.items() if k.startswith("PIPESCAN_SMTP")} == {
+        "PIPESCAN_SMTP_HOST": "mail.example",
+        "PIPESCAN_SMTP_PORT": "587",
+        "PIPESCAN_SMTP_SECURITY": "starttls",
+        "PIPESCAN_SMTP_SENDER": "pipescan@utility.example",
+        "PIPESCAN_SMTP_ALERT_TO": "ops@utility.example",
+    }
+    # An alert address and no server: the worker needs one, and the line says so.
+    env = _env(database_url="sqlite:////srv/p.db", smtp_alert_to="ops@utility.example")
+    assert env["PIPESCAN_SMTP_HOST"] == "<smtp host>"
+
+
 def test_a_secret_block_leaves_the_password_out_of_the_url():
     env = _env(
         database_url="postgresql+psycopg://pipescan@db-host/pipescan",

@@ -254,6 +254,7 @@ def deploy(
         f"retried after {RETRY_AFTER_S} s ({MAX_ATTEMPTS} attempts in all), a run Cancelling "
         f"for {CANCELLING_AFTER_S} s is marked Cancelled\n"
         f"    (automations {', '.join(repr(a) for a in info.automations)})\n"
+        f"  alerts: {_alerts(notify)}\n"
         f"  start workers, under systemd or another supervisor, with this environment "
         f"(docs/operations.md; {PLACEHOLDER_NOTE}):\n"
         + "".join(f"    {line}\n" for line in _worker_environment(info.api_url, store, db))
@@ -268,6 +269,24 @@ def deploy(
             fg=typer.colors.YELLOW,
             err=True,
         )
+
+
+def _alerts(notify: str | None) -> str:
+    """Who hears of a run that ends Failed, as far as this shell knows the workers' settings."""
+    from pipescan.settings import get_settings
+
+    ways = []
+    to = get_settings().smtp_alert_to
+    if to:
+        ways.append(f"e-mail to {to} (PIPESCAN_SMTP_ALERT_TO, sent by the run on its worker)")
+    if notify:
+        ways.append(f"the notification block {notify}")
+    if not ways:
+        return (
+            "none for a run that ends Failed (PIPESCAN_SMTP_ALERT_TO on the workers for "
+            "e-mail; --notify TYPE/NAME for a webhook or Slack block)"
+        )
+    return "a run that ends Failed (archives missing or failed) sends " + " and ".join(ways)
 
 
 def _worker_environment(api_url: str, store: str, db: str | None) -> list[str]:

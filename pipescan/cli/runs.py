@@ -47,7 +47,8 @@ def run_lines(runs) -> list[str]:
         )
         if run.source != "outcomes":
             lines.append(
-                "    (did not finish: counted from its sub-flow runs; "
+                "    (did not finish: counted from its sub-flow runs, the archives it did not "
+                "reach left out; "
                 + (f"state: {escape_control(run.message)})" if run.message else "no message)")
             )
         elif run.state != "COMPLETED" and not (run.failed or run.missing) and run.message:

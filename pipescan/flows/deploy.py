@@ -113,12 +113,19 @@ def worker_environment(
         lines.append(f"PIPESCAN_DASK_ADDRESS={settings.dask_address}")
     if store.startswith("s3://"):
         lines += ["AWS_ACCESS_KEY_ID=<key id>", "AWS_SECRET_ACCESS_KEY=<secret key>"]
-    if settings.smtp_host:
-        lines.append(f"PIPESCAN_SMTP_HOST={settings.smtp_host}")
+    if settings.smtp_host or settings.smtp_alert_to:
+        # An alert address without a server sends nothing: the line asks for one.
+        lines.append(f"PIPESCAN_SMTP_HOST={settings.smtp_host or '<smtp host>'}")
+        defaults = type(settings).model_fields
+        for name in ("smtp_port", "smtp_security", "smtp_sender"):
+            if getattr(settings, name) != defaults[name].default:
+                lines.append(f"PIPESCAN_{name.upper()}={getattr(settings, name)}")
         if settings.smtp_username:
             lines.append(f"PIPESCAN_SMTP_USERNAME={settings.smtp_username}")
         if settings.smtp_password is not None:
             lines.append("PIPESCAN_SMTP_PASSWORD=<smtp password>")
+        if settings.smtp_alert_to:
+            lines.append(f"PIPESCAN_SMTP_ALERT_TO={settings.smtp_alert_to}")
     return lines
 
 
