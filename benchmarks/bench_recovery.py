@@ -34,7 +34,7 @@ from pathlib import Path
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from tests.kill_matrix import OUTAGES, SCENARIOS, format_outcome, run_scenario
+from tests.kill_matrix import CANCEL, OUTAGES, SCENARIOS, format_outcome, run_scenario
 from tests.netstore import write_store
 
 
@@ -42,7 +42,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--archives", type=int, default=4)
     parser.add_argument(
-        "--scenarios", nargs="+", choices=[*SCENARIOS, *OUTAGES], default=list(SCENARIOS)
+        "--scenarios", nargs="+", choices=[*SCENARIOS, *OUTAGES, CANCEL], default=list(SCENARIOS)
     )
     parser.add_argument("--time-limit", type=float, default=600, help="seconds after the kill")
     parser.add_argument("--keep", action="store_true", help="keep the run folders (logs)")

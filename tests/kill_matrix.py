@@ -18,6 +18,9 @@ And outages, at the same moment, that end by themselves after their seconds:
 - ``pg20``: PostgreSQL, which holds both pipescan's database and Prefect's state (as
   docs/operations.md recommends), is stopped for 20 s.
 
+And ``cancel``: the run is cancelled (``prefect flow-run cancel``) at that moment; it ends
+when the run is Cancelled and its process (and every process it started) is gone.
+
 Then it waits, doing nothing a person would do, until every archive has its inspection and no
 run is left active, or a time limit passes. Used by ``tests/test_crash_recovery.py`` and
 ``benchmarks/bench_recovery.py``.
@@ -34,9 +37,16 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from tests.prefect_stack import ACTIVE_STATES, PrefectServer, Worker, run_pipescan
+from tests.prefect_stack import (
+    ACTIVE_STATES,
+    PrefectServer,
+    Worker,
+    descendants,
+    run_pipescan,
+)
 
 SCENARIOS = ("worker", "flow", "both", "server")
+CANCEL = "cancel"
 OUTAGES = {
     "db45": 45.0,
     "db120": 120.0,
@@ -72,6 +82,11 @@ class Outcome:
     active_subflows: int
     active_task_runs: int
     """Task runs left Running or Pending (the tasks of a dead process)."""
+    active_task_run_names: list[str] = field(default_factory=list)
+    """Those task runs: name (state, of flow run)."""
+    silent_rule_on_ended_runs: int = 0
+    """Times the "crash silent runs" automation acted on a run that had ended (the server
+    refused: "Run is already ...")."""
     timeline: list[str] = field(default_factory=list)
     runs_says: dict | None = None
     """``pipescan runs --json --limit 1`` at the end: what an operator sees of the run."""
@@ -173,6 +188,20 @@ def _active_task_runs(server: PrefectServer) -> int:
     )
 
 
+def _active_task_run_names(server: PrefectServer) -> list[str]:
+    """Each task run left active: its name, state, and the flow run it belongs to."""
+    flow_runs = {r["id"]: r["name"] for r in server.flow_runs()}
+    task_runs = server.call(
+        "POST",
+        "/task_runs/filter",
+        {"task_runs": {"state": {"type": {"any_": sorted(ACTIVE_STATES)}}}, "limit": 50},
+    )
+    return [
+        f"{t['name']} ({t['state_name']}, of {flow_runs.get(t['flow_run_id'], t['flow_run_id'])})"
+        for t in task_runs
+    ]
+
+
 def run_scenario(
     scenario: str,
     root: Path,
@@ -183,7 +212,7 @@ def run_scenario(
     worker_env: dict[str, str] | None = None,
 ) -> Outcome:
     """Run one scenario under ``root`` (a fresh folder) over ``store``; see the module doc."""
-    assert scenario in SCENARIOS or scenario in OUTAGES, scenario
+    assert scenario in SCENARIOS or scenario in OUTAGES or scenario == CANCEL, scenario
     outage_s = OUTAGES.get(scenario)
     root.mkdir(parents=True)
     pg = _Postgres() if scenario == "pg20" else None
@@ -255,6 +284,14 @@ def run_scenario(
                 _kill(pid)
         if scenario in ("server", "server105"):
             server.stop(signal.SIGKILL)
+        if scenario == CANCEL:
+            server.call(
+                "POST",
+                f"/flow_runs/{run_id}/set_state",
+                {"state": {"type": "CANCELLING", "name": "Cancelling"}},
+            )
+            note("cancel requested")
+            flow_tree = flow_pids + [d for pid in flow_pids for d in descendants(pid)]
         if scenario.startswith("db") and scenario != "dbstart30":
             aside = break_database(db)
             mend_at = killed + (outage_s or 0)
@@ -298,6 +335,13 @@ def run_scenario(
             if now != last:
                 note(now)
                 last = now
+            if scenario == CANCEL:
+                settled = network["state_type"] == "CANCELLED" and not any(
+                    _alive(pid) for pid in flow_tree
+                )
+                if network["state_type"] == "CANCELLED" and "run Cancelled" not in last:
+                    note("run Cancelled")
+                    last += " run Cancelled"
             if settled or (aside is None and _failed_for_good(server, run_id)):
                 finished = time.monotonic() - killed
                 break
@@ -321,6 +365,8 @@ def run_scenario(
             subflow_states=dict(Counter(r["state_name"] for r in subflows)),
             active_subflows=sum(r["state_type"] in ACTIVE_STATES for r in subflows),
             active_task_runs=_active_task_runs(server),
+            active_task_run_names=_active_task_run_names(server),
+            silent_rule_on_ended_runs=_silent_rule_on_ended_runs(server),
             timeline=timeline,
             runs_says=runs_says,
             runs_text=runs_text,
@@ -334,6 +380,28 @@ def run_scenario(
             pg.cluster.stop()
         (root / "worker.log").write_text(worker.log() if worker else "")
         shutil.rmtree(root / "work", ignore_errors=True)
+
+
+def _silent_rule_on_ended_runs(server: PrefectServer) -> int:
+    events = server.call(
+        "POST",
+        "/events/filter",
+        {"filter": {"event": {"name": ["prefect.automation.action.failed"]}}, "limit": 50},
+    )["events"]
+    return sum(
+        e["resource"].get("prefect.resource.name") == "pipescan: crash silent runs"
+        and "already" in json.dumps(e["payload"])
+        for e in events
+    )
+
+
+def _alive(pid: int) -> bool:
+    """The process lives (a zombie, exited but not yet reaped, does not)."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return stat.rsplit(")", 1)[1].split()[0] != "Z"
 
 
 def _kill(pid: int) -> None:
@@ -351,6 +419,8 @@ def format_outcome(o: Outcome) -> str:
         f"finished: {finished}; inspections {o.inspections} "
         f"({o.distinct_identities} distinct); network run: {o.network_run}; "
         f"sub-flows: {o.subflow_states}; task runs left active: {o.active_task_runs}"
+        + (f" {o.active_task_run_names}" if o.active_task_run_names else "")
+        + f"; silent rule on ended runs: {o.silent_rule_on_ended_runs}"
     )
     if o.runs_says is not None:
         r = o.runs_says
