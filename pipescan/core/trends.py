@@ -82,14 +82,9 @@ SIGNIFICANT_CHANGE_RATIO = 0.02
 """The smallest change of a blockage ratio between surveys that is a change and not noise:
 2 percentage points over the years the surveys span.
 
-A measured section's blockage is within 1 pp of the truth in the accuracy sweeps (largest
-error 0.94 pp over six seeds, docs/how-it-works.md), so two surveys of an unchanged pipe can
-read it up to 2 pp apart whatever their errors. The repeatability sweep (``python
-benchmarks/bench_repeatability.py``: five surveys of one unchanged pipe, sensor and crawler
-effects drawn at random around realistic values) stays inside that, but for one fault: one
-section read up to 1.5 pp apart (95 % of pairs within 0.6 pp), the peak blockage up to 0.07 pp
-apart; the scan's last section, which one survey read at 8.2 % where the truth is 0, is the
-exception (docs/measures.md).
+A measured section's blockage is within 1 pp of the truth, so two surveys of an unchanged
+pipe can read it up to 2 pp apart whatever their errors (docs/measures.md, *Where the 2 points
+and 3 cm come from*, with the repeatability sweep that checks it).
 """
 
 CHAINAGE_REPEATABILITY_M = 0.03
@@ -97,8 +92,8 @@ CHAINAGE_REPEATABILITY_M = 0.03
 
 Where the blockage profile is steep (a deposit's ramp, an obstacle's face), that shift alone
 changes the reading at a chainage by the profile's slope times it; :func:`change_thresholds`
-adds that to :data:`SIGNIFICANT_CHANGE_RATIO`. The repeatability sweep
-(``benchmarks/bench_repeatability.py``) found shifts of up to 2.5 cm on a deposit's ramp.
+adds that to :data:`SIGNIFICANT_CHANGE_RATIO` (docs/measures.md, *Where the 2 points and 3 cm
+come from*).
 """
 
 NO_SIGNIFICANT_CHANGE = "no significant change"
