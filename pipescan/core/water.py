@@ -100,10 +100,55 @@ def detect_water(
     WaterLevel or None
         None when the invert is seen (dry), or the gap there is not level water.
     """
-    bins = len(angles_rad)
-    dtheta = 2.0 * math.pi / bins
-    down = int(np.argmin(angle_from_invert_rad(angles_rad)))
     typical = float(np.median(counts[seen])) if seen.any() else 0.0
+    run = _invert_gap(angles_rad, seen, counts, radii_m, wall_radius_m, typical, max_gap_deg)
+    if run is None:
+        return None
+    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    edges = _wall_edges(xy, run, len(angles_rad), wall_radius_m, sigma_m) or [0.0, 0.0]
+    tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(2.0 * math.pi / len(seen))
+    if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
+        return None  # no wall on a side, the sides at different heights, or above the axis
+    raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
+    edge_level = 0.5 * (edges[0] + edges[1])
+    surface_y = _surface_returns(raw, run, len(seen), edge_level, tolerance, wall_radius_m, sigma_m)
+    if len(surface_y) > typical / 3.0 * len(run):
+        # As dense as a wall: a deposit's top seen along part of the section (its shadow).
+        return None
+    if len(surface_y) < MIN_SURFACE_POINTS:
+        # No surface seen: water whose surface returns nothing, or a view that stops short of
+        # the invert. One section cannot tell; the sections along the pipe can
+        # (:func:`confirm_surfaceless_water`).
+        depth = (edge_level + wall_radius_m) / nominal_diameter_m
+        if depth <= 0:
+            return None
+        return WaterLevel(level_m=edge_level, depth_ratio=depth, bins=run, from_surface=False)
+    # Then only the points close to their median: stray returns in the window do not count.
+    level = float(np.median(surface_y))
+    surface_y = surface_y[np.abs(surface_y - level) <= max(3.0 * sigma_m, 0.02)]
+    if len(surface_y) < MIN_SURFACE_POINTS:
+        return None
+    level = float(np.median(surface_y))
+    depth = (level + wall_radius_m) / nominal_diameter_m
+    if depth <= 0:
+        return None
+    return WaterLevel(level_m=level, depth_ratio=depth, bins=run, from_surface=True)
+
+
+def _invert_gap(
+    angles_rad: np.ndarray,
+    seen: np.ndarray,
+    counts: np.ndarray,
+    radii_m: np.ndarray,
+    wall_radius_m: float,
+    typical: float,
+    max_gap_deg: float,
+) -> np.ndarray | None:
+    """The run of bins at the invert that water could hide (its bin indices, in order), or
+    None when the invert is seen, the run is too narrow or too wide, or the wall elsewhere is
+    not seen as a measured section's is. ``typical``: the seen bins' median count."""
+    bins = len(angles_rad)
+    down = int(np.argmin(angle_from_invert_rad(angles_rad)))
     # Water leaves the invert unseen, or holding only a sparse line of points: very few, or
     # few and well inside the wall (not a flattened invert, which a dense scan sees sparsely).
     inside = np.nan_to_num(radii_m, nan=wall_radius_m) < wall_radius_m * (1.0 - 0.12)
@@ -122,60 +167,55 @@ def detect_water(
     other_gaps = [len(r) for r in unseen_runs(seen | ~rest)]
     if other_gaps and max(other_gaps) * 360.0 / bins > max(max_gap_deg, 2 * 360.0 / bins):
         return None
-    left, right = (run[0] - 1) % bins, (run[-1] + 1) % bins
-    xy = np.asarray(points, dtype=np.float64)[:, :2]
+    return run
+
+
+def _wall_edges(
+    xy: np.ndarray, run: np.ndarray, bins: int, wall_radius_m: float, sigma_m: float
+) -> list[float] | None:
+    """The height where the wall stops on each side of ``run`` (its lowest point at the wall
+    in the nearest bin, or the next one when that holds nothing); None when a side has none."""
+    dtheta = 2.0 * math.pi / bins
     ang, rad = polar_coordinates(xy)
     b_idx = np.minimum((ang / dtheta).astype(np.int64), bins - 1)
     at_wall = np.abs(rad - wall_radius_m) <= max(3.0 * sigma_m, 0.01)
     edges = []
-    for b, away in ((left, -1), (right, 1)):
-        # The wall beside the run: its nearest bin, or the next one when that holds nothing.
+    for b, away in (((run[0] - 1) % bins, -1), ((run[-1] + 1) % bins, 1)):
         near = at_wall & (b_idx == b)
         if not near.any():
             near = at_wall & (b_idx == (b + away) % bins)
         if not near.any():
             return None
         edges.append(float(xy[near, 1].min()))
-    tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(dtheta)
-    if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
-        return None
-    # The chord must be seen: a few points lying flat on the water's surface. A view that
-    # merely stops short of the invert (a forward-looking sensor's first metre, a shadow)
-    # leaves no such line.
-    # Its returns are sparse, so they are looked for among all the section's points (stray
-    # removal drops most of them), near the level where the wall stops.
-    raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
+    return edges
+
+
+def _surface_returns(
+    raw: np.ndarray,
+    run: np.ndarray,
+    bins: int,
+    edge_level: float,
+    tolerance: float,
+    wall_radius_m: float,
+    sigma_m: float,
+) -> np.ndarray:
+    """Heights of the returns on the water's chord: in ``run``'s bins, inside the wall, within
+    ``tolerance`` of the level where the wall stops.
+
+    The chord must be seen: a few points lying flat on the water's surface. A view that merely
+    stops short of the invert (a forward-looking sensor's first metre, a shadow) leaves no
+    such line. Its returns are sparse, so they are looked for among all the section's points
+    (``raw``: stray removal drops most of them).
+    """
+    dtheta = 2.0 * math.pi / bins
     raw_ang, raw_rad = polar_coordinates(raw)
     raw_bin = np.minimum((raw_ang / dtheta).astype(np.int64), bins - 1)
-    edge_level = 0.5 * (edges[0] + edges[1])
     on_chord = (
         np.isin(raw_bin, run)
         & (raw_rad < wall_radius_m - max(3.0 * sigma_m, 0.01))
         & (np.abs(raw[:, 1] - edge_level) <= tolerance)
     )
-    surface_y = raw[on_chord, 1]
-    if len(surface_y) > typical / 3.0 * len(run):
-        # As dense as a wall: a deposit's top seen along part of the section (its shadow).
-        return None
-    if len(surface_y) < MIN_SURFACE_POINTS:
-        # No surface seen: water whose surface returns nothing, or a view that stops short of
-        # the invert. One section cannot tell; the sections along the pipe can
-        # (:func:`confirm_surfaceless_water`).
-        depth = (edge_level + wall_radius_m) / nominal_diameter_m
-        if depth <= 0:
-            return None
-        return WaterLevel(level_m=edge_level, depth_ratio=depth, bins=run, from_surface=False)
-    # Then only the points close to their median: stray returns in the window do not count.
-    level = float(np.median(surface_y))
-    surface_y = surface_y[np.abs(surface_y - level) <= max(3.0 * sigma_m, 0.02)]
-    if len(surface_y) < MIN_SURFACE_POINTS:
-        return None
-    level = float(np.median(surface_y))
-    from_surface = True
-    depth = (level + wall_radius_m) / nominal_diameter_m
-    if depth <= 0:
-        return None
-    return WaterLevel(level_m=level, depth_ratio=depth, bins=run, from_surface=from_surface)
+    return raw[on_chord, 1]
 
 
 SHADOW_LEVEL_MARGIN_RATIO = 0.01
