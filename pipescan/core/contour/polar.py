@@ -406,6 +406,9 @@ def polar_profile(
 ) -> PolarProfile:
     """Robust radius per angle bin, judged along the section's length.
 
+    (Over 80 lines for this reference docstring only: the body is about 60, its steps named:
+    ``_sorted_by_cell``, ``_near_layer_length``, ``_voting_cells``, ``_far_layer``.)
+
     The section is split into ``slices`` sub-slices along the axis. Each (bin, sub-slice) cell
     gets the median radius of its points; a bin is seen when at least ``min_slices`` of its
     sub-slices have points (each at least ``min_cell_share`` of their median count), and its
@@ -470,30 +473,17 @@ def polar_profile(
     else:
         slices, min_slices = 1, 1
         s_idx = np.zeros(len(pts), dtype=np.int64)
-    cell = b_idx * slices + s_idx
-    counts = np.bincount(cell, minlength=bins * slices)
+    counts = np.bincount(b_idx * slices + s_idx, minlength=bins * slices)
+    sorted_rad, starts = _sorted_by_cell(b_idx * slices + s_idx, rad, counts)
     near_median = np.full(bins * slices, np.nan)
-    far_median = np.full(bins * slices, np.nan)
     if len(pts):
-        # Sorted by (cell, radius), a cell's points are one run, in order of radius. One
-        # float key (the cell plus the radius as a fraction below 1) sorts about ten times
-        # faster than ``np.lexsort`` on the two.
-        order = np.argsort(cell + rad / (float(rad.max()) * (1.0 + 1e-9) + 1e-300))
-        sorted_rad = rad[order]
-        starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
         good = np.flatnonzero(counts > 0)
         lo, n = starts[good], counts[good]
         near_median[good] = _run_median(
             sorted_rad, lo, _near_layer_length(sorted_rad, lo, n, layer_gap_m, min_layer_points)
         )
-    near_per_bin = near_median.reshape(bins, slices)
-    # A sub-slice that holds only a few points where the others hold many (the edge of a
-    # deposit's plateau leaking past the place where its hidden downstream ramp begins) did
-    # not see that bin: it does not vote. Relative to the bin's median sub-slice (not its
-    # densest: a face across the axis packs one sub-slice), so it holds at any point density.
     per_cell = counts.reshape(bins, slices)
-    typical = np.median(per_cell, axis=1, keepdims=True)  # not the max: a face is dense
-    near_per_bin[per_cell < min_cell_share * typical] = np.nan
+    near_per_bin = _voting_cells(near_median.reshape(bins, slices), per_cell, min_cell_share)
     seen = np.isfinite(near_per_bin).sum(axis=1) >= min_slices
     if min_bin_share > 0:
         per_bin = per_cell.sum(axis=1)
@@ -504,24 +494,9 @@ def polar_profile(
     both = np.zeros(bins, dtype=bool)
     if seen.any():
         radii[seen] = np.nanmedian(near_per_bin[seen], axis=1)
-        # The far layer: the points of each cell beyond the bin's near surface by more than
-        # the gap, a suffix of the cell's sorted run. Pooled by bin, as it is sparse.
-        cell_of = np.repeat(good, n)
-        with np.errstate(invalid="ignore"):
-            beyond = sorted_rad >= radii[cell_of // slices] + layer_gap_m
-        far_n = np.bincount(cell_of[beyond], minlength=bins * slices)
-        has_far = far_n > 0
-        far_median[has_far] = _run_median(
-            sorted_rad, (starts + counts - far_n)[has_far], far_n[has_far]
+        far_radii, both = _far_layer(
+            sorted_rad, starts, counts, radii, near_per_bin, seen, layer_gap_m, min_slices
         )
-        far_per_bin = far_median.reshape(bins, slices)
-        far_seen = seen & (np.isfinite(far_per_bin).sum(axis=1) >= min_slices)
-        if far_seen.any():
-            far_radii[far_seen] = np.nanmedian(far_per_bin[far_seen], axis=1)
-        # Sub-slices that hold the bin's near surface and, in the same cell, a far layer.
-        with np.errstate(invalid="ignore"):
-            near_here = np.abs(near_per_bin - radii[:, None]) < layer_gap_m
-        both = (near_here & np.isfinite(far_per_bin)).sum(axis=1) >= min_slices
     angles = (np.arange(bins) + 0.5) * 2.0 * np.pi / bins
     return PolarProfile(
         angles_rad=angles,
@@ -532,6 +507,73 @@ def polar_profile(
         slice_radii_m=near_per_bin,
         both_layers=both,
     )
+
+
+def _sorted_by_cell(
+    cell: np.ndarray, rad: np.ndarray, counts: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The radii sorted by (cell, radius), so that a cell's points are one run in order of
+    radius, and where each cell's run starts."""
+    starts = np.concatenate(([0], np.cumsum(counts)[:-1]))
+    if not len(rad):
+        return rad, starts
+    # One float key (the cell plus the radius as a fraction below 1) sorts about ten times
+    # faster than ``np.lexsort`` on the two.
+    order = np.argsort(cell + rad / (float(rad.max()) * (1.0 + 1e-9) + 1e-300))
+    return rad[order], starts
+
+
+def _voting_cells(
+    near_per_bin: np.ndarray, per_cell: np.ndarray, min_cell_share: float
+) -> np.ndarray:
+    """(B, S) each cell's near radius, NaN where the cell does not vote.
+
+    A sub-slice that holds only a few points where the others hold many (the edge of a
+    deposit's plateau leaking past the place where its hidden downstream ramp begins) did not
+    see that bin: it does not vote. Relative to the bin's median sub-slice (not its densest: a
+    face across the axis packs one sub-slice), so it holds at any point density.
+    """
+    typical = np.median(per_cell, axis=1, keepdims=True)
+    return np.where(per_cell < min_cell_share * typical, np.nan, near_per_bin)
+
+
+def _far_layer(
+    sorted_rad: np.ndarray,
+    starts: np.ndarray,
+    counts: np.ndarray,
+    radii: np.ndarray,
+    near_per_bin: np.ndarray,
+    seen: np.ndarray,
+    layer_gap_m: float,
+    min_slices: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(B,) the far layer's radius (NaN where none was seen) and (B,) bool, the bins where
+    the near surface and a far layer were seen in the same sub-slices.
+
+    The far layer: the points of each cell beyond the bin's near surface by more than the
+    gap, a suffix of the cell's sorted run. Pooled by bin, as it is sparse.
+    """
+    bins, slices = near_per_bin.shape
+    good = np.flatnonzero(counts > 0)
+    cell_of = np.repeat(good, counts[good])
+    with np.errstate(invalid="ignore"):
+        beyond = sorted_rad >= radii[cell_of // slices] + layer_gap_m
+    far_n = np.bincount(cell_of[beyond], minlength=bins * slices)
+    has_far = far_n > 0
+    far_median = np.full(bins * slices, np.nan)
+    far_median[has_far] = _run_median(
+        sorted_rad, (starts + counts - far_n)[has_far], far_n[has_far]
+    )
+    far_per_bin = far_median.reshape(bins, slices)
+    far_seen = seen & (np.isfinite(far_per_bin).sum(axis=1) >= min_slices)
+    far_radii = np.full(bins, np.nan)
+    if far_seen.any():
+        far_radii[far_seen] = np.nanmedian(far_per_bin[far_seen], axis=1)
+    # Sub-slices that hold the bin's near surface and, in the same cell, a far layer.
+    with np.errstate(invalid="ignore"):
+        near_here = np.abs(near_per_bin - radii[:, None]) < layer_gap_m
+    both = (near_here & np.isfinite(far_per_bin)).sum(axis=1) >= min_slices
+    return far_radii, both
 
 
 def _wrapped(angle_rad: float) -> float:
