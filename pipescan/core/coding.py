@@ -816,31 +816,57 @@ def code_section(
     wall = _fit_wall(radii, angles, floor_m, p)
     wall_r = wall.radius(angles)
     threshold = max(p.noise_factor * wall.noise_m, floor_m)
-    features: list[WallFeature] = []
-
     if wall.noise_m > p.max_scatter_ratio * nominal_r:
-        # A wall this ragged (a face across the section, points from elsewhere) is no wall to
-        # code anything against.
-        lost = float(nominal_area - np.sum(0.5 * radii * radii) * _TWO_PI / bins)
-        ragged = WallFeature(
-            UNCLASSIFIED,
-            None,
-            None,
-            max(lost, 0.0),
-            0.0,
-            rule=(
-                "the contour is too ragged to code: the wall scatters by "
-                f"{1000 * wall.noise_m:.0f} mm"
-            ),
-        )
-        return SectionCoding((ragged,), float(wall.coef[0]), wall.noise_m, threshold)
+        return _too_ragged(radii, wall, nominal_area, threshold)
     ring = _ring_feature(wall, wall_r, radii, nominal_r, nominal_area, bins, p)
     if ring is not None:
         return SectionCoding((ring,), float(wall.coef[0]), wall.noise_m, threshold)
+    deposits, reference = _deposits(radii, angles, wall, wall_r, threshold, nominal_diameter_m, p)
+    standing = _standing_arcs(radii, angles, wall, wall_r, reference, threshold, nominal_area, p)
+    features = [f for f in deposits + standing if f.lost_area_m2 >= p.min_area_ratio * nominal_area]
+    deformation = _deformation_feature(wall, wall_r, nominal_r, bins, p)
+    if deformation is not None:
+        features.append(deformation)
+    features.sort(key=lambda f: (f.arc_from_rad is None, f.arc_from_rad or 0.0))
+    return SectionCoding(tuple(features), float(wall.coef[0]), wall.noise_m, threshold)
 
+
+def _too_ragged(
+    radii: np.ndarray, wall: _Wall, nominal_area: float, threshold: float
+) -> SectionCoding:
+    """A wall this ragged (a face across the section, points from elsewhere) is no wall to
+    code anything against: one unclassified feature says so."""
+    bins = len(radii)
+    lost = float(nominal_area - np.sum(0.5 * radii * radii) * _TWO_PI / bins)
+    ragged = WallFeature(
+        UNCLASSIFIED,
+        None,
+        None,
+        max(lost, 0.0),
+        0.0,
+        rule=(
+            f"the contour is too ragged to code: the wall scatters by {1000 * wall.noise_m:.0f} mm"
+        ),
+    )
+    return SectionCoding((ragged,), float(wall.coef[0]), wall.noise_m, threshold)
+
+
+def _deposits(
+    radii: np.ndarray,
+    angles: np.ndarray,
+    wall: _Wall,
+    wall_r: np.ndarray,
+    threshold: float,
+    nominal_diameter_m: float,
+    p: CodingParams,
+) -> tuple[list[WallFeature], np.ndarray]:
+    """Settled deposits (BBC): displaced arcs over the invert whose top is a straight chord.
+    Returns them, and the surface each remaining arc stands off (the wall, or a fill's top)."""
+    bins = len(radii)
     displaced = _close_gaps(wall_r - radii > threshold, round(p.gap_deg * bins / 360.0))
     tol_m = max(p.chord_tol_ratio * nominal_diameter_m, 2.5 * wall.noise_m)
-    reference = wall_r.copy()  # the surface each remaining arc stands off: wall or fill
+    reference = wall_r.copy()
+    features = []
     for arc in _circular_runs(displaced):
         if not _covers_invert(arc, bins):
             continue
@@ -876,10 +902,26 @@ def code_section(
             )
         )
         reference = np.minimum(reference, chord.fill_r)
+    return features, reference
 
-    # Whatever stands inside the wall, or inside a deposit's top, beyond the threshold; each
-    # arc then runs on to where its displacement fades into the wall's scatter, so that a
-    # tapering edge is seen whole (an even band has square edges; a thin chord tapers).
+
+def _standing_arcs(
+    radii: np.ndarray,
+    angles: np.ndarray,
+    wall: _Wall,
+    wall_r: np.ndarray,
+    reference: np.ndarray,
+    threshold: float,
+    nominal_area: float,
+    p: CodingParams,
+) -> list[WallFeature]:
+    """Whatever stands inside the wall, or inside a deposit's top, beyond the threshold,
+    classified (:func:`_classify_arc`).
+
+    Each arc runs on to where its displacement fades into the wall's scatter, so that a
+    tapering edge is seen whole (an even band has square edges; a thin chord tapers).
+    """
+    bins = len(radii)
     disp = _smooth3(reference - radii)
     rest = _close_gaps(disp > threshold, round(p.gap_deg * bins / 360.0))
     runs = _circular_runs(rest)
@@ -888,6 +930,7 @@ def code_section(
     for k, arc in enumerate(runs):
         runs[k] = arc = _grow(arc, disp > fade, taken)
         taken[arc] = True
+    features = []
     for arc in runs:
         area = _arc_area_m2(reference, radii, arc, bins)
         if area < p.min_area_ratio * nominal_area:
@@ -897,13 +940,7 @@ def code_section(
         features.append(
             WallFeature(code, *_arc_ends(arc, bins), area, float(disp[arc].max()), rule)
         )
-    features = [f for f in features if f.lost_area_m2 >= p.min_area_ratio * nominal_area]
-
-    deformation = _deformation_feature(wall, wall_r, nominal_r, bins, p)
-    if deformation is not None:
-        features.append(deformation)
-    features.sort(key=lambda f: (f.arc_from_rad is None, f.arc_from_rad or 0.0))
-    return SectionCoding(tuple(features), float(wall.coef[0]), wall.noise_m, threshold)
+    return features
 
 
 def _grow(arc: np.ndarray, above: np.ndarray, taken: np.ndarray) -> np.ndarray:
