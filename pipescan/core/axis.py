@@ -677,6 +677,104 @@ ELONGATION = 1.5
 times its spread across; a shorter cloud needs a cylinder fit (:func:`fit_cylinder`)."""
 
 
+_Slices = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]
+"""What ``_slice_centres`` returns: each slice's place along the axis, circle centre, radius
+and weight."""
+
+
+def _first_direction(
+    pts: np.ndarray,
+    centroid: np.ndarray,
+    travel_m: np.ndarray | None,
+    nominal_diameter_m: float | None,
+) -> np.ndarray:
+    """The axis's first guess: the cloud's principal direction (or, for a cloud too short
+    for it, :func:`axis_direction`), oriented along ``travel_m`` (else so that its largest
+    world component is positive)."""
+    _, sing, vt = np.linalg.svd(pts - centroid, full_matrices=False)
+    elongated = sing[0] >= ELONGATION * sing[1]
+    axis_dir = vt[0] if elongated else axis_direction(pts, nominal_diameter_m)
+    if travel_m is not None and np.linalg.norm(travel_m) > 1e-9:
+        if axis_dir @ travel_m < 0:
+            axis_dir = -axis_dir
+    elif axis_dir[np.argmax(np.abs(axis_dir))] < 0:
+        axis_dir = -axis_dir
+    return axis_dir
+
+
+def _straight_axis(
+    pts: np.ndarray,
+    centroid: np.ndarray,
+    axis_dir: np.ndarray,
+    up_hint: np.ndarray,
+    slice_m: float,
+    workers: int,
+) -> tuple[PipeAxis, _Slices]:
+    """A straight axis refined twice: a line through the slice centres, the slices cut again
+    across it. Returns the axis and its slices."""
+
+    def straight(point: np.ndarray, d: np.ndarray) -> PipeAxis:
+        return PipeAxis(origin_m=point, direction=d, up=_orthonormal_up(d, up_hint))
+
+    axis = straight(centroid, axis_dir)
+    s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m, workers=workers)
+    for _ in range(2):
+        good = _plausible(r_k, w_k)
+        if good.sum() < 2:
+            break
+        point, axis_dir = _line_through(c_k[good], w_k[good], axis_dir)
+        axis = straight(point, axis_dir)
+        s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m, workers=workers)
+    return axis, (s_k, c_k, r_k, w_k)
+
+
+def _curved_axis(
+    pts: np.ndarray,
+    axis: PipeAxis,
+    slices: _Slices,
+    up_hint: np.ndarray,
+    slice_m: float,
+    curve_tolerance_m: float,
+    node_step_m: float,
+    workers: int,
+) -> tuple[PipeAxis, np.ndarray]:
+    """A bend or a sag: where the slice centres leave the straight axis, a smoothing spline
+    through them, refined once with slices cut across it. Returns the axis (the straight one
+    unchanged) and the radii of its slices.
+
+    Slices whose circle is implausible (an end wall, a section mostly blocked) do not count,
+    and one slice off the line is not a bend.
+    """
+    s_k, c_k, r_k, w_k = slices
+    trusted = _plausible(r_k, w_k)
+    if trusted.sum() < 5:
+        return axis, r_k
+    rel = c_k[trusted] - axis.origin_m
+    off_line = np.linalg.norm(rel - np.outer(rel @ axis.direction, axis.direction), axis=1)
+    if (off_line > curve_tolerance_m).sum() < 2:
+        return axis, r_k
+    s_k, c_k = s_k[trusted], c_k[trusted]
+    for _ in range(2):
+        nodes, tangents, ups, arc = _centreline(
+            s_k, c_k, up_hint, node_step_m, extend_m=slice_m + 1.0
+        )
+        axis = PipeAxis(
+            origin_m=nodes[0],
+            direction=axis.direction,
+            up=axis.up,
+            nodes_m=nodes,
+            tangents=tangents,
+            ups=ups,
+            arc_m=arc,
+        )
+        s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m / 2, workers=workers)
+        keep = _plausible(r_k, w_k)
+        s_k, c_k = s_k[keep], c_k[keep]
+        if len(c_k) < 5:
+            break
+    return axis, r_k
+
+
 def fit_axis(
     points_m: np.ndarray,
     *,
@@ -694,6 +792,9 @@ def fit_axis(
     workers: int = 1,
 ) -> PipeAxis:
     """Fit the pipe's centreline: PCA for a first guess, then robust circle fits on slices.
+
+    (Over 80 lines for this reference docstring only: the body is its steps,
+    ``_first_direction``, ``_straight_axis``, ``_curved_axis``, then the start and chainage.)
 
     The circles are fitted to the wall, so deposits and obstacles do not pull the axis. When
     the slice centres deviate from a straight line by more than ``curve_tolerance_m`` (a bend
@@ -764,58 +865,12 @@ def fit_axis(
     if len(pts) > max_points:
         pts = pts[rng.choice(len(pts), max_points, replace=False)]
     up_hint = np.asarray(up_hint, dtype=np.float64)
-
     centroid = pts.mean(axis=0)
-    _, sing, vt = np.linalg.svd(pts - centroid, full_matrices=False)
-    elongated = sing[0] >= ELONGATION * sing[1]
-    axis_dir = vt[0] if elongated else axis_direction(pts, nominal_diameter_m)
-    if travel_m is not None and np.linalg.norm(travel_m) > 1e-9:
-        if axis_dir @ travel_m < 0:
-            axis_dir = -axis_dir
-    elif axis_dir[np.argmax(np.abs(axis_dir))] < 0:
-        axis_dir = -axis_dir
-
-    def straight(point: np.ndarray, d: np.ndarray) -> PipeAxis:
-        return PipeAxis(origin_m=point, direction=d, up=_orthonormal_up(d, up_hint))
-
-    # Straight refinement: a line through the slice centres, twice.
-    axis = straight(centroid, axis_dir)
-    s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m, workers=workers)
-    for _ in range(2):
-        good = _plausible(r_k, w_k)
-        if good.sum() < 2:
-            break
-        point, axis_dir = _line_through(c_k[good], w_k[good], axis_dir)
-        axis = straight(point, axis_dir)
-        s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m, workers=workers)
-
-    # A bend or a sag: the centres leave the line. Slices whose circle is implausible (an end
-    # wall, a section mostly blocked) do not count, and one slice off the line is not a bend.
-    trusted = _plausible(r_k, w_k)
-    if trusted.sum() >= 5:
-        rel = c_k[trusted] - axis.origin_m
-        off_line = np.linalg.norm(rel - np.outer(rel @ axis.direction, axis.direction), axis=1)
-        if (off_line > curve_tolerance_m).sum() >= 2:
-            s_k, c_k = s_k[trusted], c_k[trusted]
-            for _ in range(2):
-                nodes, tangents, ups, arc = _centreline(
-                    s_k, c_k, up_hint, node_step_m, extend_m=slice_m + 1.0
-                )
-                axis = PipeAxis(
-                    origin_m=nodes[0],
-                    direction=axis.direction,
-                    up=axis.up,
-                    nodes_m=nodes,
-                    tangents=tangents,
-                    ups=ups,
-                    arc_m=arc,
-                )
-                s_k, c_k, r_k, w_k = _slice_centres(pts, axis, slice_m / 2, workers=workers)
-                keep = _plausible(r_k, w_k)
-                s_k, c_k = s_k[keep], c_k[keep]
-                if len(c_k) < 5:
-                    break
-
+    axis_dir = _first_direction(pts, centroid, travel_m, nominal_diameter_m)
+    axis, slices = _straight_axis(pts, centroid, axis_dir, up_hint, slice_m, workers)
+    axis, r_k = _curved_axis(
+        pts, axis, slices, up_hint, slice_m, curve_tolerance_m, node_step_m, workers
+    )
     radius = float(np.median(r_k)) if len(r_k) else float("nan")
     vertical = is_vertical(axis.direction, up_hint)
     if start_m is not None:
