@@ -35,6 +35,7 @@ from pipescan.core.coding import (
     BAA,
     UNCLASSIFIED,
     CodingParams,
+    FeatureRun,
     SectionCoding,
     WallFeature,
     arcs_meet,
@@ -730,53 +731,63 @@ def merge_defects(
         else:
             coded.append(c)
 
-    defects = []
-    for run in feature_runs(ordered, coded):
-        graded = [
-            grade_feature(f, ordered[k], table, pipe_class=pipe_class, coding=coded[k])[0]
-            for k, f in zip(run.sections, run.features, strict=True)
-        ]
-        grades = [g for g in graded if g is not None]
-        worst_grade = min(grades) if grades else None
-        # The run's figure is its code's measure: a section that joined it with another code
-        # (a deposit's unclassified ramp, graded on its blockage) is graded, but its figure,
-        # in other units, does not compete for the peak.
-        measure = next(f.measure for f in run.features if f.code == run.code)
-        own = [
-            (k, f) for k, f in zip(run.sections, run.features, strict=True) if f.measure == measure
-        ]
-        candidates = [
-            (value, k, f)
-            for k, f in own
-            if (value := feature_value(f, ordered[k], coded[k])) is not None
-        ]
-        if not candidates:
-            # The figure is missing in every section of the run (the bins it is read from were
-            # not seen): the feature is still listed, ungraded, with the coder's own estimate.
-            candidates = [(_coder_estimate(f, ordered[k]), k, f) for k, f in own]
-        # max() keeps the first of equal values, so ties go to the upstream section.
-        peak_value, peak_index, peak_feature = max(candidates, key=lambda c: c[0])
-        first, last = run.sections[0], run.sections[-1]
-        span_peak = peak_blockage(ordered[first : last + 1])
-        arc_from, arc_to = run.arc()
-        defect = Defect(
-            code=run.code,
-            measure=measure,
-            chainage_start_m=ordered[first].chainage_start_m,
-            chainage_end_m=ordered[last].chainage_end_m,
-            peak_chainage_m=ordered[peak_index].chainage_start_m,
-            peak_value=peak_value,
-            peak_blockage_ratio=None if span_peak is None else span_peak.blockage_ratio,
-            grade=worst_grade,
-            clock_from_h=None if arc_from is None else clock_hours(arc_from),
-            clock_to_h=None if arc_to is None else clock_hours(arc_to),
-            characterisation=peak_feature.characterisation if run.code == BAA else None,
-        )
-        listed = run.code != UNCLASSIFIED or is_flagged(defect, **flags)
-        listed = listed or (worst_grade is not None and worst_grade < _N_BOUNDS)
-        if listed:
-            defects.append(defect)
-    return defects
+    defects = [
+        _run_defect(run, ordered, coded, table, pipe_class) for run in feature_runs(ordered, coded)
+    ]
+    return [
+        d
+        for d in defects
+        if d.code != UNCLASSIFIED
+        or is_flagged(d, **flags)
+        or (d.grade is not None and d.grade < _N_BOUNDS)
+    ]
+
+
+def _run_defect(
+    run: FeatureRun,
+    ordered: Sequence[SectionMeasures],
+    coded: Sequence[SectionCoding | None],
+    table: ThresholdTable,
+    pipe_class: PipeClass,
+) -> Defect:
+    """One run of a feature along the chainage as a defect (see :func:`merge_defects`)."""
+    graded = [
+        grade_feature(f, ordered[k], table, pipe_class=pipe_class, coding=coded[k])[0]
+        for k, f in zip(run.sections, run.features, strict=True)
+    ]
+    grades = [g for g in graded if g is not None]
+    # The run's figure is its code's measure: a section that joined it with another code
+    # (a deposit's unclassified ramp, graded on its blockage) is graded, but its figure,
+    # in other units, does not compete for the peak.
+    measure = next(f.measure for f in run.features if f.code == run.code)
+    own = [(k, f) for k, f in zip(run.sections, run.features, strict=True) if f.measure == measure]
+    candidates = [
+        (value, k, f)
+        for k, f in own
+        if (value := feature_value(f, ordered[k], coded[k])) is not None
+    ]
+    if not candidates:
+        # The figure is missing in every section of the run (the bins it is read from were
+        # not seen): the feature is still listed, ungraded, with the coder's own estimate.
+        candidates = [(_coder_estimate(f, ordered[k]), k, f) for k, f in own]
+    # max() keeps the first of equal values, so ties go to the upstream section.
+    peak_value, peak_index, peak_feature = max(candidates, key=lambda c: c[0])
+    first, last = run.sections[0], run.sections[-1]
+    span_peak = peak_blockage(ordered[first : last + 1])
+    arc_from, arc_to = run.arc()
+    return Defect(
+        code=run.code,
+        measure=measure,
+        chainage_start_m=ordered[first].chainage_start_m,
+        chainage_end_m=ordered[last].chainage_end_m,
+        peak_chainage_m=ordered[peak_index].chainage_start_m,
+        peak_value=peak_value,
+        peak_blockage_ratio=None if span_peak is None else span_peak.blockage_ratio,
+        grade=min(grades) if grades else None,
+        clock_from_h=None if arc_from is None else clock_hours(arc_from),
+        clock_to_h=None if arc_to is None else clock_hours(arc_to),
+        characterisation=peak_feature.characterisation if run.code == BAA else None,
+    )
 
 
 # --- choosing the table and the pipe class ---------------------------------------------------
