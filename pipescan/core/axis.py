@@ -561,6 +561,8 @@ def fit_cylinder(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Robust fit of a cylinder of known radius: its axis, where PCA cannot find it.
 
+    (Over 80 lines for its reference docstring: the body is the three fits it describes.)
+
     PCA needs a cloud longer than it is wide; a stub scanned over 1.5 diameters, or a shaft
     seen from one station, is not. A cylinder's surface normals all lie across its axis, so
     the axis is the direction least present among the normals (Open3D estimates them), with

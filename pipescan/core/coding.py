@@ -1145,6 +1145,8 @@ def feature_runs(
 ) -> list[FeatureRun]:
     """Follow each section's features along the chainage into one run per physical feature.
 
+    (Over 80 lines for its rules' docstring: the body is one pass along the chainage.)
+
     Rules (docs/coding.md):
 
     - A feature continues a run when the run's last section touches this one

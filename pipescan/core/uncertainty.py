@@ -217,6 +217,9 @@ def area_uncertainty(
 ) -> AreaUncertainty:
     """The 95 % uncertainty of the polar area ``½ Σ r² Δθ`` of a section profile.
 
+    (Over 80 lines for its reference docstring: the body sums its parts, noise, unseen bins,
+    edges and kinks, and the change along the section.)
+
     Parameters
     ----------
     radii_m : (B,) float

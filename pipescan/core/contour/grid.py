@@ -196,6 +196,9 @@ class GridContour:
 def grid_contour(points_2d: np.ndarray, params: GridParams = GridParams()) -> GridContour:
     """The paper's grid-partition contour of a section's inner wall.
 
+    (Over 80 lines for its docstring: the body is the paper's steps in its order, the grid,
+    the open region round the centre, its boundary cells, the chain and its smoothing.)
+
     Parameters
     ----------
     points_2d : (N, 2) float
