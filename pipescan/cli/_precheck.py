@@ -13,18 +13,15 @@ from dataclasses import dataclass, field
 from datetime import UTC
 from pathlib import Path
 
-import numpy as np
-
 from pipescan.core.errors import MetadataError
 from pipescan.core.wording import plural
+from pipescan.storage.input.pointfiles import width_across_m
 
 DIAMETER_SCALE_FACTOR = 1.8
 """How far the points' width across the pipe may differ from ``nominal_diameter_m`` (a
 factor, either way) before the look refuses the archive: below the nearest mistake of unit or
 quantity, a radius given for the diameter (2 times off; feet 3.3, inches 39, centimetres 100),
 and well above a right diameter's scatter (docs/usage.md, *Mistakes are found first*)."""
-
-_SAMPLE_POINTS = 200_000
 
 
 @dataclass(frozen=True)
@@ -34,21 +31,6 @@ class FirstLook:
     found: str
     checked: str | None = None
     warnings: list[str] = field(default_factory=list)
-
-
-def width_across_m(points: np.ndarray) -> float:
-    """The extent of ``points`` (N, 3), metres, along their second principal axis, between
-    the 0.5th and 99.5th percentiles: about the pipe's inside diameter for a frame of a
-    forward-looking sensor (whose first axis runs along the pipe), a ring profile or a piece
-    of a registered cloud. 0 for fewer than 3 points."""
-    sample = points[:: max(1, len(points) // _SAMPLE_POINTS)]
-    if len(sample) < 3:
-        return 0.0
-    centred = sample - sample.mean(axis=0)
-    _, vectors = np.linalg.eigh(centred.T @ centred)  # eigenvalues ascending
-    along = centred @ vectors[:, 1]
-    low, high = np.percentile(along, [0.5, 99.5])
-    return float(high - low)
 
 
 def _describe(meta, content: str) -> str:

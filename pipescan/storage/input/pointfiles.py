@@ -62,6 +62,7 @@ __all__ = [
     "point_suffix",
     "read_point_time",
     "read_points",
+    "width_across_m",
     "write_points",
 ]
 
@@ -136,7 +137,7 @@ CLOUD_CHUNK_POINTS = 1_000_000
 
 _CHECK_SAMPLE_POINTS = 200_000
 """At most this many points (a stride through the cloud) decide the millimetre check of a
-cloud read in chunks, as :func:`_second_principal_extent` strides a whole one."""
+cloud read in chunks, as :func:`width_across_m` strides a whole one."""
 
 
 @dataclass(frozen=True)
@@ -457,7 +458,7 @@ def _check_units(points: np.ndarray, kind: PointKind, where: Where) -> None:
                 hint=MM_HINT,
             )
     else:
-        extent = _second_principal_extent(points)
+        extent = width_across_m(points)
         if extent > CLOUD_MM_DIAMETER_M:
             raise where.error(
                 f"the cloud is {extent:.4g} across its second principal axis (≈ the pipe "
@@ -466,10 +467,13 @@ def _check_units(points: np.ndarray, kind: PointKind, where: Where) -> None:
             )
 
 
-def _second_principal_extent(points: np.ndarray) -> float:
-    """Extent of ``points`` (N, 3) along their second principal axis, robust to outliers."""
+def width_across_m(points: np.ndarray) -> float:
+    """The extent of ``points`` (N, 3), metres, along their second principal axis, between
+    the 0.5th and 99.5th percentiles: about the pipe's inside diameter for a frame of a
+    forward-looking sensor (whose first axis runs along the pipe), a ring profile or a piece
+    of a registered cloud. 0 for fewer than 3 points."""
     # A strided sample is plenty for a covariance and keeps this cheap on 10^8-point clouds.
-    sample = points[:: max(1, len(points) // 200_000)]
+    sample = points[:: max(1, len(points) // _CHECK_SAMPLE_POINTS)]
     if len(sample) < 3:
         return 0.0
     centred = sample - sample.mean(axis=0)
