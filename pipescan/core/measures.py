@@ -514,7 +514,7 @@ def _profile(
     clean: _CleanSection, length_m: float, *, layer_gap_m: float | None = None
 ) -> PolarProfile:
     """Stage 2: the radius per angle bin (``polar_profile``) in the section's layout."""
-    gap = {} if layer_gap_m is None else {"layer_gap_m": layer_gap_m}
+    gap: dict[str, Any] = {} if layer_gap_m is None else {"layer_gap_m": layer_gap_m}
     return polar_profile(
         clean.points,
         bins=clean.bins,
@@ -629,7 +629,7 @@ class _Figures:
     wall_spread_m: float | None
     wall_behind_deg: float | None
 
-    def measures(self) -> dict[str, float | None]:
+    def measures(self) -> dict[str, Any]:
         """The ``SectionMeasures`` fields these figures fill, but the open area."""
         return dict(
             wall_spread_m=self.wall_spread_m,
@@ -706,7 +706,7 @@ class _Uncertainty:
     deformation_ratio: float | None
     deposit_height_ratio: float | None
 
-    def measures(self) -> dict[str, float | None]:
+    def measures(self) -> dict[str, Any]:
         """The ``SectionMeasures`` fields these uncertainties fill."""
         return dict(
             blockage_uncertainty_ratio=self.blockage_ratio,
