@@ -472,6 +472,67 @@ def test_a_sub_flow_that_failed_for_a_transient_cause_leaves_no_task_run_pending
     assert (state.type.value, state.message) == ("CRASHED", "slot refused, tried again")
 
 
+def test_what_an_outage_of_prefects_database_left_active_is_closed_at_the_end(prefect):
+    """PostgreSQL stopped for 20 s under Prefect left a sub-flow Running and task runs Pending
+    after the run was over (their final states were lost). At the end of the run: its sub-flow
+    runs still active, their unfinished task runs, and its own task runs whose state is older
+    than 30 s (here 2 s) are marked Crashed; a task run whose state is recent (maybe on its way
+    through Prefect's event pipeline) is left alone."""
+    import time
+
+    from prefect import task
+    from prefect.client.orchestration import get_client
+    from prefect.states import Pending, Running
+
+    from pipescan.flows.recovery import close_leftovers
+
+    @flow(name="inspect-network")
+    def network_run():
+        pass
+
+    @flow(name="inspect-archive")
+    def subflow():
+        pass
+
+    @task(name="archive")
+    def archive():
+        pass
+
+    @task(name="fit-axis")
+    def fit_axis():
+        pass
+
+    with get_client(sync_client=True) as client:
+        run = client.create_flow_run(network_run, state=Running())
+        wrapper = client.create_task_run(archive, run.id, "0", state=Running())
+        lost = client.create_task_run(archive, run.id, "1", state=Pending())
+        sub = client.create_flow_run(subflow, parent_task_run_id=wrapper.id, state=Running())
+        inner = client.create_task_run(fit_axis, sub.id, "0", state=Pending())
+        time.sleep(2.5)
+        recent = client.create_task_run(archive, run.id, "2", state=Running())
+
+        closed = close_leftovers(str(run.id), stale_s=2)
+        states = {
+            name: client.read_task_run(t.id).state.type.value
+            for name, t in [
+                ("wrapper", wrapper),
+                ("lost", lost),
+                ("recent", recent),
+                ("inner", inner),
+            ]
+        }
+        sub_state = client.read_flow_run(sub.id).state.type.value
+    assert closed == (1, 3)
+    assert states == {
+        "wrapper": "CRASHED",
+        "lost": "CRASHED",
+        "recent": "RUNNING",
+        "inner": "CRASHED",
+    }
+    assert sub_state == "CRASHED"
+    assert close_leftovers(None) == (0, 0)  # the flow's function called as such
+
+
 def test_the_cli_waits_for_its_database_when_told(prefect, tmp_path, fast_retries, monkeypatch):
     FakeSubflow(monkeypatch, {})
     monkeypatch.setattr(network, "DATABASE_FIRST_DELAY_S", 0.2)

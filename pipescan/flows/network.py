@@ -47,6 +47,7 @@ from pipescan.flows.inspect import InspectionParams, InspectionSummary, inspect_
 from pipescan.flows.notification import RUN_HOOKS
 from pipescan.flows.recovery import (
     close_earlier_attempts,
+    close_leftovers,
     close_task_runs_of,
     end_promptly_on_sigterm,
     keep_output,
@@ -866,6 +867,7 @@ def _run_archives(
         close_task_runs_of(
             subflow_run_id, "its sub-flow failed for a transient cause; the archive was tried again"
         )
+    close_leftovers(flow_run.id)  # what an outage of Prefect's database left active
     return outcomes
 
 

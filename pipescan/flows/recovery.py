@@ -98,6 +98,79 @@ def close_open_runs(flow_run_id: str, message: str, *, cancelled: bool = False) 
     return len(open_subflows), len(tasks)
 
 
+STALE_S = 30.0
+"""A task run of a finished network run still active in Prefect after this long lost its
+later states (:func:`close_leftovers`)."""
+
+
+def close_leftovers(flow_run_id: str, stale_s: float = STALE_S) -> tuple[int, int]:
+    """At the end of a network run, mark Crashed what Prefect still holds active of it though
+    it is over: its sub-flow runs (every sub-flow it started has returned), the task runs of
+    its sub-flows that did not complete, and its own task runs whose state is older than
+    ``stale_s`` seconds (one just finished may still be on its way through Prefect's event
+    pipeline). Such runs lost their final state while Prefect's API or database did not answer
+    (seen: PostgreSQL stopped for 20 s left a sub-flow Running and task runs Pending). Returns
+    (sub-flow runs, task runs) marked; an API that does not answer marks none."""
+    from datetime import timedelta
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import (
+        FlowRunFilter,
+        FlowRunFilterId,
+        FlowRunFilterParentFlowRunId,
+        TaskRunFilter,
+        TaskRunFilterState,
+        TaskRunFilterStateType,
+    )
+    from prefect.client.schemas.objects import StateType
+    from prefect.states import Crashed
+
+    if not flow_run_id:  # not a run (the flow's function called as such)
+        return 0, 0
+    active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
+    message = "left active when Prefect's API or database did not answer; the run is over"
+    try:
+        with get_client(sync_client=True) as client:
+            subflows = list(
+                _pages(
+                    client.read_flow_runs,
+                    flow_run_filter=FlowRunFilter(
+                        parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=[flow_run_id])
+                    ),
+                )
+            )
+            open_subflows = [r for r in subflows if r.state is None or r.state.type in active]
+            unfinished = {
+                str(r.id) for r in subflows if r.state is None or not r.state.is_completed()
+            }
+            tasks = list(
+                _pages(
+                    client.read_task_runs,
+                    flow_run_filter=FlowRunFilter(
+                        id=FlowRunFilterId(any_=[flow_run_id, *(str(r.id) for r in subflows)])
+                    ),
+                    task_run_filter=TaskRunFilter(
+                        state=TaskRunFilterState(type=TaskRunFilterStateType(any_=active))
+                    ),
+                )
+            )
+            now = datetime.now(UTC)
+            stale = [
+                t
+                for t in tasks
+                if str(t.flow_run_id) in unfinished
+                or t.state is None
+                or now - t.state.timestamp > timedelta(seconds=stale_s)
+            ]
+            for task_run in stale:
+                client.set_task_run_state(task_run.id, Crashed(message=message), force=True)
+            for subflow in open_subflows:
+                client.set_flow_run_state(subflow.id, Crashed(message=message), force=True)
+    except Exception:  # the API is away: nothing to do about it now
+        return 0, 0
+    return len(open_subflows), len(stale)
+
+
 def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
     """In a scheduled run's process: on SIGTERM (the worker's way to cancel a run, or a person
     stopping the process), mark the run's active sub-flow and task runs Cancelled (Crashed when
