@@ -228,10 +228,10 @@ def _features(
     for start in range(0, len(records), _CHUNK):
         chunk = records[start : start + _CHUNK]
         ids = [r.id for r in chunk]
-        history = earlier_scans(engine, ids)
-        profiles = section_profiles(engine, ids)
-        counts = defect_counts(engine, ids)
         with session_scope(engine) as session:
+            history = earlier_scans(session, ids)
+            profiles = section_profiles(session, ids)
+            counts = defect_counts(session, ids)
             chunk_defects = {r.id: list_defects(session, r.id) for r in chunk}
         for record in chunk:
             geometry = geometries[record.asset_id]

@@ -71,10 +71,10 @@ def load_report_input(database_url: str, inspection_id: int) -> ReportInput:
             rec = get_inspection(session, inspection_id)
             sections = list_sections(session, inspection_id)
             defects = list_defects(session, inspection_id)
-        earlier = list_earlier_inspections(engine, inspection_id, limit=TREND_HISTORY)
-        ids = [e.id for e in earlier]
-        profiles = section_profiles(engine, ids)
-        counts = defect_counts(engine, ids)
+            earlier = list_earlier_inspections(session, inspection_id, limit=TREND_HISTORY)
+            ids = [e.id for e in earlier]
+            profiles = section_profiles(session, ids)
+            counts = defect_counts(session, ids)
         reach = max((sec.chainage_end_m for sec in sections), default=None)
         placement = placements(engine, {rec.asset_id: reach})[rec.asset_id]
     finally:
@@ -133,11 +133,13 @@ def load_network_input(
     archives that ``failed``."""
     engine = connect(database_url)
     try:
-        records = list_network_inspections(engine, since=since, inspection_ids=inspection_ids)
-        ids = [r.id for r in records]
-        history = earlier_scans(engine, ids)
-        profiles = section_profiles(engine, ids)
-        counts = defect_counts(engine, ids)
+        with session_scope(engine) as session:
+            records = list_network_inspections(session, since=since, inspection_ids=inspection_ids)
+            ids = [r.id for r in records]
+            history = earlier_scans(session, ids)
+            profiles = section_profiles(session, ids)
+            counts = defect_counts(session, ids)
+            defects = defects_by_inspection(session, ids)
         placed = placements(
             engine,
             {
@@ -145,7 +147,6 @@ def load_network_input(
                 for r in records
             },
         )
-        defects = defects_by_inspection(engine, ids)
     finally:
         engine.dispose()
     pipes = []

@@ -243,6 +243,22 @@ def session_scope(engine: Engine, *, write: bool = False) -> Iterator[Session]:
         session.close()
 
 
+Reader = Engine | Session
+"""What a read takes: an engine (the read opens its own session) or the session of a caller
+that makes several reads, which then see one state of the database over one connection."""
+
+
+@contextmanager
+def reading(source: Reader) -> Iterator[Session]:
+    """A session to read in: ``source`` itself, or a new one on the engine
+    (:func:`session_scope`)."""
+    if isinstance(source, Session):
+        yield source
+    else:
+        with session_scope(source) as session:
+            yield session
+
+
 def _set_sqlite_foreign_keys(connection: Connection, *, on: bool) -> None:
     # The pragma only takes effect outside a transaction, so it goes straight to the driver
     # (through SQLAlchemy it would autobegin one first).

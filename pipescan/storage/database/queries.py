@@ -25,11 +25,10 @@ from datetime import UTC, datetime
 from typing import Any
 
 import sqlalchemy as sa
-from sqlalchemy.engine import Engine
 from sqlalchemy.orm import Session
 
 from pipescan.core.model import Defect, SectionMeasures
-from pipescan.storage.database.db import StorageError, session_scope
+from pipescan.storage.database.db import Reader, StorageError, reading
 from pipescan.storage.database.models import DefectRow, Inspection, Section
 from pipescan.storage.database.repository import (
     InspectionRecord,
@@ -163,7 +162,7 @@ class ScanRecord:
 
 
 def earlier_scans(
-    engine: Engine, inspection_ids: Sequence[int], *, limit: int | None = None
+    source: Reader, inspection_ids: Sequence[int], *, limit: int | None = None
 ) -> dict[int, list[ScanRecord]]:
     """The earlier scans of each inspection's pipe, most recent first (see the module's rules).
 
@@ -181,7 +180,7 @@ def earlier_scans(
     """
     if not inspection_ids:
         return {}
-    with session_scope(engine) as session:
+    with reading(source) as session:
         return _earlier_scans(session, inspection_ids, limit)
 
 
@@ -196,7 +195,7 @@ def _earlier_scans(
 
 
 def list_earlier_inspections(
-    engine: Engine, inspection_id: int, *, limit: int | None = None
+    source: Reader, inspection_id: int, *, limit: int | None = None
 ) -> list[ScanRecord]:
     """The earlier scans of the same asset as this inspection, most recent first (see the
     module's rules): its trend history.
@@ -206,13 +205,13 @@ def list_earlier_inspections(
     StorageError
         If there is no inspection with that id.
     """
-    with session_scope(engine) as session:  # one session for the check and the read
+    with reading(source) as session:  # one session for the check and the read
         get_inspection_row(session, inspection_id)
         return _earlier_scans(session, [inspection_id], limit)[inspection_id]
 
 
 def previous_inspections(
-    engine: Engine, records: Sequence[InspectionRecord]
+    source: Reader, records: Sequence[InspectionRecord]
 ) -> dict[int, ScanRecord]:
     """For each inspection, its pipe's previous scan, if any (see the module's rules).
 
@@ -221,7 +220,7 @@ def previous_inspections(
     dict
         Inspection id to its previous scan; ids without one are left out.
     """
-    earlier = earlier_scans(engine, [r.id for r in records], limit=1)
+    earlier = earlier_scans(source, [r.id for r in records], limit=1)
     return {i: scans[0] for i, scans in earlier.items() if scans}
 
 
@@ -261,7 +260,7 @@ def scans_statement(*where: Any) -> sa.Select:  # type: ignore[type-arg]
 
 
 def section_profiles(
-    engine: Engine, inspection_ids: Sequence[int]
+    source: Reader, inspection_ids: Sequence[int]
 ) -> dict[int, list[SectionMeasures]]:
     """The sections of several inspections without their contours, by chainage.
 
@@ -303,13 +302,13 @@ def section_profiles(
         .where(Section.inspection_id.in_(list(inspection_ids)))
         .order_by(Section.inspection_id, Section.chainage_start_mm)
     )
-    with session_scope(engine) as session:
+    with reading(source) as session:
         for row in session.connection().execute(statement):
             profiles[row.inspection_id].append(section_from_row(row))
     return profiles
 
 
-def defect_counts(engine: Engine, inspection_ids: Sequence[int]) -> dict[int, int]:
+def defect_counts(source: Reader, inspection_ids: Sequence[int]) -> dict[int, int]:
     """The number of defects of each inspection (0 for one without defects)."""
     counts = dict.fromkeys(inspection_ids, 0)
     if not inspection_ids:
@@ -319,13 +318,13 @@ def defect_counts(engine: Engine, inspection_ids: Sequence[int]) -> dict[int, in
         .where(DefectRow.inspection_id.in_(list(inspection_ids)))
         .group_by(DefectRow.inspection_id)
     )
-    with session_scope(engine) as session:
+    with reading(source) as session:
         for inspection_id, count in session.execute(statement):
             counts[inspection_id] = count
     return counts
 
 
-def defects_by_inspection(engine: Engine, inspection_ids: Sequence[int]) -> dict[int, list[Defect]]:
+def defects_by_inspection(source: Reader, inspection_ids: Sequence[int]) -> dict[int, list[Defect]]:
     """The defects of each inspection, by start chainage (an empty list for one without)."""
     out: dict[int, list[Defect]] = {i: [] for i in inspection_ids}
     if not inspection_ids:
@@ -335,14 +334,14 @@ def defects_by_inspection(engine: Engine, inspection_ids: Sequence[int]) -> dict
         .where(DefectRow.inspection_id.in_(list(inspection_ids)))
         .order_by(DefectRow.inspection_id, DefectRow.chainage_start_m, DefectRow.id)
     )
-    with session_scope(engine) as session:
+    with reading(source) as session:
         for row in session.scalars(statement):
             out[row.inspection_id].append(defect_from_row(row))
     return out
 
 
 def list_network_inspections(
-    engine: Engine,
+    source: Reader,
     *,
     since: datetime | None = None,
     inspection_ids: Sequence[int] | None = None,
@@ -373,7 +372,7 @@ def list_network_inspections(
     if since is not None:
         where.append(Inspection.inspected_at >= _aware(since))
     latest = latest_per_asset_statement(*where)
-    with session_scope(engine) as session:
+    with reading(source) as session:
         if inspection_ids is not None:
             known = set(
                 session.scalars(

@@ -18,8 +18,7 @@ import json
 import logging
 import math
 import operator
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from datetime import UTC, date, datetime
 from pathlib import PurePath
@@ -34,7 +33,7 @@ from sqlalchemy.orm import Session
 from pipescan.core.model import Defect, FrameQuality, InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.core.sanitize import strip_credentials
 from pipescan.core.summary import blockage_summary
-from pipescan.storage.database.db import StorageError, session_scope
+from pipescan.storage.database.db import Reader, StorageError, reading, session_scope
 from pipescan.storage.database.models import (
     Asset,
     DefectRow,
@@ -923,20 +922,6 @@ def _no_inspection(inspection_id: int) -> StorageError:
     )
 
 
-Reader = Engine | Session
-"""What a read takes: an engine (the read opens its own session) or the session of a caller
-that makes several reads, which then see one state of the database and open one connection."""
-
-
-@contextmanager
-def _reading(source: Reader) -> Iterator[Session]:
-    if isinstance(source, Session):
-        yield source
-    else:
-        with session_scope(source) as session:
-            yield session
-
-
 def get_inspection_row(session: Session, inspection_id: int) -> Inspection:
     """The stored inspection's row, in a session the caller holds.
 
@@ -1013,7 +998,7 @@ def list_inspections(source: Reader, asset_id: str | None = None) -> list[Inspec
     statement = record_statement(ids).order_by(
         Inspection.asset_id, Inspection.inspected_at, Inspection.id
     )
-    with _reading(source) as session:
+    with reading(source) as session:
         return inspection_records(session, statement)
 
 
@@ -1025,7 +1010,7 @@ def get_inspection(source: Reader, inspection_id: int) -> InspectionRecord:
     StorageError
         If there is no inspection with that id.
     """
-    with _reading(source) as session:
+    with reading(source) as session:
         found = inspection_records(session, record_statement([inspection_id]))
         if not found:
             raise _no_inspection(inspection_id)
@@ -1042,7 +1027,7 @@ def find_inspection(
         Inspection.content_hash == content_hash,
         Inspection.params_hash == params_hash,
     )
-    with _reading(source) as session:
+    with reading(source) as session:
         return session.scalar(statement)
 
 
@@ -1090,7 +1075,7 @@ def _inspection_rows(
         If there is no inspection with that id.
     """
     statement = sa.select(model).where(model.inspection_id == inspection_id).order_by(*order_by)
-    with _reading(source) as session:
+    with reading(source) as session:
         get_inspection_row(session, inspection_id)
         return [convert(row) for row in session.scalars(statement)]
 
@@ -1139,7 +1124,7 @@ def find_latest_inspection_id(source: Reader, asset_id: str | None = None) -> in
     )
     if asset_id is not None:
         statement = statement.where(Inspection.asset_id == asset_id)
-    with _reading(source) as session:
+    with reading(source) as session:
         return session.scalars(statement.limit(1)).first()
 
 
@@ -1170,7 +1155,7 @@ def list_section_trend(source: Reader, asset_id: str, chainage_m: float) -> list
         )
         .order_by(Inspection.inspected_at, Inspection.id)
     )
-    with _reading(source) as session:
+    with reading(source) as session:
         return [
             TrendPoint(inspection_id=i, inspected_at=t, section=section_from_row(s))
             for i, t, s in session.execute(statement).all()
