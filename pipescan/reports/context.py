@@ -934,12 +934,52 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
 
     ok = [s for s in sections if s.is_ok]
     total_length_m = sum(_length_m(s) for s in sections)
-    ok_length_m = sum(_length_m(s) for s in ok)
-    threshold_pct = fmt_pct(inp.blockage_threshold_ratio)
-    flag_rule = f"blockage of {threshold_pct} or more, or condition class {inp.flag_grade} or worse"
+    # The worst measured sections by blockage.
+    worst_sections = sorted(
+        [s for s in ok if _finite(s.blockage_ratio)],
+        key=lambda s: (-(s.blockage_ratio or 0.0), s.chainage_start_m),
+    )[:WORST_SECTIONS]
+    appendix_rows, appendix_complete = _appendix(sections, section_flagged, limits)
+    return {
+        "title": f"Pipe condition report {inp.asset_id}",
+        "asset": _asset_facts(inp, sections, limits),
+        "table": {"name": inp.threshold_table.name, "source": inp.threshold_table.source},
+        "summary": _summary(inp, sections, defects, flagged),
+        "grades": _grade_rows(ok, total_length_m, inp.flag_grade),
+        "unmeasured": _unmeasured_rows(sections, limits),
+        "worst": [_section_row(s, section_flagged(s), limits) for s in worst_sections],
+        "defects": [_defect_row(d, is_flagged(d, **flags)) for d in defects],
+        "sections": appendix_rows,
+        "appendix": {
+            "complete": appendix_complete,
+            "row_count": len(appendix_rows),
+            "section_count": len(sections),
+            "every_m": fmt_m(APPENDIX_SAMPLE_EVERY_M, 0),
+            "export_command": (
+                f"pipescan export sections --inspection {inp.inspection_id} -o sections.csv"
+            ),
+        },
+        "figures": _defect_figures(inp, sections, defects) if chart else [],
+        "trend": _trend(inp, sections, defects, chart=chart),
+        "chart_uri": _chart_uri(inp, sections, flagged, limits) if chart and sections else None,
+        "not_measured": NOT_MEASURED,
+        "limits": {
+            "coverage": limits.coverage,
+            "gap_deg": f"{limits.max_gap_deg:g}",
+            "uncertainty": limits.uncertainty,
+            "min_points": limits.min_points,
+        },
+        "registration": _registration_rows(inp),
+        "chainage_uncertainty": _chainage_uncertainty_range(sections),
+    }
 
+
+def _asset_facts(
+    inp: ReportInput, sections: Sequence[SectionMeasures], limits: MeasureLimits
+) -> dict[str, Any]:
+    """The cover's facts: the pipe, the scan, what it can be trusted for, the run."""
     nominal = inp.nominal_diameter_m
-    asset = {
+    return {
         "asset_id": inp.asset_id,
         "upstream_node": _text(inp.upstream_node),
         "downstream_node": _text(inp.downstream_node),
@@ -965,9 +1005,12 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "gis_id": inp.gis_id,
         "length_note": inp.length_note,
     }
-    table = {"name": inp.threshold_table.name, "source": inp.threshold_table.source}
 
-    # Counts by grade, over measured sections only.
+
+def _grade_rows(
+    ok: Sequence[SectionMeasures], total_length_m: float, flag_grade: int
+) -> list[dict[str, Any]]:
+    """Counts by condition class, over measured sections only."""
     grades = []
     for grade in range(5):
         members = [s for s in ok if s.grade == grade]
@@ -980,20 +1023,24 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
                 "share": _fmt_share(
                     sum(_length_m(s) for s in members) / total_length_m if total_length_m else None
                 ),
-                "flag": grade <= inp.flag_grade,
+                "flag": grade <= flag_grade,
             }
         )
-    ungraded_ok = [s for s in ok if s.grade is None]
+    return grades
 
-    # Unmeasured metres by reason, with the spans so an engineer can find them.
-    # One row per status as the reader reads it ("low coverage" and "low coverage: unseen
-    # arc" are two rows, each with the limit it missed).
-    unmeasured = []
+
+def _unmeasured_rows(
+    sections: Sequence[SectionMeasures], limits: MeasureLimits
+) -> list[dict[str, Any]]:
+    """Unmeasured metres by reason, with the spans so an engineer can find them: one row per
+    status as the reader reads it ("low coverage" and "low coverage: unseen arc" are two rows,
+    each with the limit it missed)."""
     by_words: dict[tuple[str, str], list[SectionMeasures]] = {}
     for status in SectionStatus:
         for s in sections:
             if s.status == status and status != SectionStatus.OK:
                 by_words.setdefault(status_words(s, limits), []).append(s)
+    unmeasured = []
     for (label, explanation), members in by_words.items():
         spans = _spans(members)
         listed = [fmt_span(a, b) for a, b in spans[:MAX_LISTED_SPANS]]
@@ -1007,37 +1054,42 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
                 "spans": ", ".join(listed) + (f" and {more} more" if more else ""),
             }
         )
+    return unmeasured
+
+
+def _defect_row(d: Defect, flagged: bool) -> dict[str, Any]:
+    """One row of the defects table."""
+    return {
+        "code": d.code or "—",
+        "code_label": _code_words(d),
+        "clock": fmt_clock(d.clock_from_h, d.clock_to_h, d.code),
+        "flagged": flagged,
+        "measure": MEASURE_LABELS.get(d.measure, d.measure),
+        "start": fmt_m(d.chainage_start_m, unit=False),
+        "end": fmt_m(d.chainage_end_m, unit=False),
+        "length": fmt_m(d.chainage_end_m - d.chainage_start_m, unit=False),
+        "peak_at": fmt_m(d.peak_chainage_m, unit=False),
+        "peak_value": fmt_pct(d.peak_value, unit=False),
+        "peak_blockage": fmt_pct(d.peak_blockage_ratio, unit=False),
+        "grade": fmt_grade(d.grade),
+    }
+
+
+def _summary(
+    inp: ReportInput,
+    sections: Sequence[SectionMeasures],
+    defects: Sequence[Defect],
+    flagged: Sequence[Defect],
+) -> dict[str, Any]:
+    """The summary's figures: what was measured, the blockage, the grades and the defects."""
+    ok = [s for s in sections if s.is_ok]
+    total_length_m = sum(_length_m(s) for s in sections)
+    ok_length_m = sum(_length_m(s) for s in ok)
     unmeasured_length_m = total_length_m - ok_length_m
-
-    # The worst measured sections by blockage.
-    with_blockage = [s for s in ok if _finite(s.blockage_ratio)]
     blockage = blockage_summary(sections)
-    worst_sections = sorted(
-        with_blockage, key=lambda s: (-(s.blockage_ratio or 0.0), s.chainage_start_m)
-    )[:WORST_SECTIONS]
-    worst = [_section_row(s, section_flagged(s), limits) for s in worst_sections]
-
-    defect_rows = []
-    for d in defects:
-        defect_rows.append(
-            {
-                "code": d.code or "—",
-                "code_label": _code_words(d),
-                "clock": fmt_clock(d.clock_from_h, d.clock_to_h, d.code),
-                "flagged": is_flagged(d, **flags),
-                "measure": MEASURE_LABELS.get(d.measure, d.measure),
-                "start": fmt_m(d.chainage_start_m, unit=False),
-                "end": fmt_m(d.chainage_end_m, unit=False),
-                "length": fmt_m(d.chainage_end_m - d.chainage_start_m, unit=False),
-                "peak_at": fmt_m(d.peak_chainage_m, unit=False),
-                "peak_value": fmt_pct(d.peak_value, unit=False),
-                "peak_blockage": fmt_pct(d.peak_blockage_ratio, unit=False),
-                "grade": fmt_grade(d.grade),
-            }
-        )
-
     graded_ok = [s.grade for s in ok if s.grade is not None]
-    summary = {
+    threshold_pct = fmt_pct(inp.blockage_threshold_ratio)
+    return {
         "section_count": len(sections),
         "section_length": fmt_m(sections[0].chainage_end_m - sections[0].chainage_start_m, 2)
         if sections
@@ -1060,61 +1112,37 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "defect_count": len(defects),
         "flagged_count": len(flagged),
         "flagged_length": fmt_m(sum(d.chainage_end_m - d.chainage_start_m for d in flagged), 1),
-        "ungraded_ok_count": len(ungraded_ok),
-        "flag_rule": flag_rule,
+        "ungraded_ok_count": sum(s.grade is None for s in ok),
+        "flag_rule": (
+            f"blockage of {threshold_pct} or more, or condition class {inp.flag_grade} or worse"
+        ),
         "threshold": threshold_pct,
         "flag_grade": inp.flag_grade,
-        "has_negative_blockage": any((s.blockage_ratio or 0.0) < 0 for s in with_blockage),
+        "has_negative_blockage": any(
+            (s.blockage_ratio or 0.0) < 0 for s in ok if _finite(s.blockage_ratio)
+        ),
     }
 
-    chart_uri = None
-    if chart and sections:
-        # Imported here so that building a context without a chart needs no matplotlib.
-        from pipescan.reports.charts import blockage_chart_svg
 
-        chart_uri = _svg_uri(
-            blockage_chart_svg(
-                sections,
-                flagged,
-                blockage_threshold_ratio=inp.blockage_threshold_ratio,
-                flag_grade=inp.flag_grade,
-                min_coverage_ratio=limits.min_coverage_ratio,
-            )
+def _chart_uri(
+    inp: ReportInput,
+    sections: Sequence[SectionMeasures],
+    flagged: Sequence[Defect],
+    limits: MeasureLimits,
+) -> str:
+    """The blockage chart along the pipe, as a data URI."""
+    # Imported here so that building a context without a chart needs no matplotlib.
+    from pipescan.reports.charts import blockage_chart_svg
+
+    return _svg_uri(
+        blockage_chart_svg(
+            sections,
+            flagged,
+            blockage_threshold_ratio=inp.blockage_threshold_ratio,
+            flag_grade=inp.flag_grade,
+            min_coverage_ratio=limits.min_coverage_ratio,
         )
-    appendix_rows, appendix_complete = _appendix(sections, section_flagged, limits)
-
-    return {
-        "title": f"Pipe condition report {inp.asset_id}",
-        "asset": asset,
-        "table": table,
-        "summary": summary,
-        "grades": grades,
-        "unmeasured": unmeasured,
-        "worst": worst,
-        "defects": defect_rows,
-        "sections": appendix_rows,
-        "appendix": {
-            "complete": appendix_complete,
-            "row_count": len(appendix_rows),
-            "section_count": len(sections),
-            "every_m": fmt_m(APPENDIX_SAMPLE_EVERY_M, 0),
-            "export_command": (
-                f"pipescan export sections --inspection {inp.inspection_id} -o sections.csv"
-            ),
-        },
-        "figures": _defect_figures(inp, sections, defects) if chart else [],
-        "trend": _trend(inp, sections, defects, chart=chart),
-        "chart_uri": chart_uri,
-        "not_measured": NOT_MEASURED,
-        "limits": {
-            "coverage": limits.coverage,
-            "gap_deg": f"{limits.max_gap_deg:g}",
-            "uncertainty": limits.uncertainty,
-            "min_points": limits.min_points,
-        },
-        "registration": _registration_rows(inp),
-        "chainage_uncertainty": _chainage_uncertainty_range(sections),
-    }
+    )
 
 
 def _chainage_uncertainty_range(sections: Sequence[SectionMeasures]) -> str:
