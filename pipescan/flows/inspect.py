@@ -343,7 +343,6 @@ def inspect_archive(
                     bucket_root,
                     params.max_section_range_m,
                     frame_store,
-                    stride.stride,
                 )
             )
             for w in range(len(windows)):
