@@ -12,6 +12,7 @@ from pipescan.core.model import FrameQuality
 from pipescan.core.registration.engines import (
     LocalMap,
     aligner,
+    plane_icp_steps,
     small_gicp_source,
     small_gicp_steps,
     transform,
@@ -46,6 +47,12 @@ _MIN_CORRESPONDENCES = 30
 # it; frames with features in view converge in 3 (median) and never read it. It decides when
 # the evidence is read, not what is kept (docs/registration.md, *Convergence*).
 _ITERATIONS_BEFORE_EVIDENCE = 4
+
+TRACK_ITERATIONS = _ITERATIONS_BEFORE_EVIDENCE
+"""ICP iterations a tracked frame gets: it starts within the vibration of its place (a
+centimetre, a fraction of a degree), and across the axis and in tilt ICP's steps fall below
+0.1 mm and 0.1 mrad by the third iteration; along the axis, which tracking leaves to the
+interpolation, a smooth pipe's ICP would creep on to any cap."""
 
 TRACK_POINTS = 1500
 """Returns of a frame between registered ones that tracking aligns (a regular share of those
@@ -251,7 +258,11 @@ class FrameRegistrar:
         """
         if len(source) < _MIN_FRAME_POINTS or self._axis_world is None:
             return None
-        T = self._align(self._map, source, init)
+        p = self.params
+        if p.engine == "small_gicp" and p.method != "point_to_point":
+            T = plane_icp_steps(self._map, source, init, TRACK_ITERATIONS)
+        else:
+            T = self._align(self._map, source, init)
         if not np.isfinite(T).all():
             return None
         x = small_motion(np.linalg.inv(init) @ T)
