@@ -495,8 +495,8 @@ def every_frame_lines(rows: list[dict]) -> list[str]:
     ]
     every = {r["scan"].removesuffix(" (every frame)"): r for r in rows if "(every" in r["scan"]}
     for r in rows:
-        e = every.get(r["scan"])
-        if e is None or "measured_share" not in r:
+        e = every.get(r["scan"].removesuffix(" (baseline)"))
+        if e is None or e is r or "measured_share" not in r:
             continue
         loss = 100 * (e["measured_share"] - r["measured_share"])
         verdict = (
