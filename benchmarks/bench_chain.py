@@ -171,12 +171,30 @@ def _simulate_slow(out: Path, length_m: float) -> None:
     write_simulated_archive(simulate_scan(scene, seed=0), out, layout="frames")
 
 
+ROSETTE_SHARE = 0.3
+"""The ``rosette`` scans: the ``long`` scenario seen by a non-repetitive pattern, one frame
+covering this share of the field of view (the simulator's default effects otherwise)."""
+
+
+def _simulate_rosette(out: Path, length_m: float, share: float) -> None:
+    """The ``long`` scenario with a non-repetitive (rosette) pattern, as ``.npy`` frames."""
+    if (out / "inspection.toml").is_file():
+        print(f"{out}: exists, kept")
+        return
+    print(f"simulating {length_m:g} m, rosette ({share:.0%} a frame) into {out} ...", flush=True)
+    options = ["--scenario", "long", "--travel-m", str(length_m), "--frame-coverage", str(share)]
+    subprocess.run(
+        [*PIPESCAN, "simulate", str(out), *options], check=True, stdout=subprocess.DEVNULL
+    )
+
+
 def prepare(
     out: Path,
     lengths: list[float],
     cloud: bool,
     cloud_points: list[float] = (),
     slow: bool = False,
+    rosette: bool = False,
 ) -> None:
     out.mkdir(parents=True, exist_ok=True)
     for length in lengths:
@@ -189,6 +207,10 @@ def prepare(
             slow_npy = out / f"slow{length:g}-npy"
             _simulate_slow(slow_npy, length)
             _convert_frames(slow_npy, out / f"slow{length:g}-laz", ".laz")
+        if rosette:
+            rosette_npy = out / f"rosette{length:g}-npy"
+            _simulate_rosette(rosette_npy, length, ROSETTE_SHARE)
+            _convert_frames(rosette_npy, out / f"rosette{length:g}-laz", ".laz")
         if cloud:
             _simulate(out / f"{name}-cloud", length, "cloud")
             for n in cloud_points:
@@ -294,7 +316,12 @@ def _child(archive: str, out_json: str) -> None:
 
 
 def _run_one(
-    archive: Path, profile_dir: Path | None, sections_dir: Path | None, source: Path | None = None
+    archive: Path,
+    profile_dir: Path | None,
+    sections_dir: Path | None,
+    source: Path | None = None,
+    tag: str = "",
+    env_extra: dict | None = None,
 ) -> dict:
     with tempfile.TemporaryDirectory(prefix="bench-chain-") as tmp:
         env = dict(os.environ)
@@ -306,12 +333,13 @@ def _run_one(
             PIPESCAN_WORK_DIR=f"{tmp}/work",
             PREFECT_HOME=f"{tmp}/prefect",
         )
+        env.update(env_extra or {})
         out_json = Path(tmp) / "marks.json"
         cmd = [sys.executable, __file__, "_child", str(archive), str(out_json)]
         raw = None
         if profile_dir is not None:
             profile_dir.mkdir(parents=True, exist_ok=True)
-            raw = profile_dir / f"{archive.name}{'-baseline' if source else ''}.txt"
+            raw = profile_dir / f"{archive.name}{tag}.txt"
             py_spy = str(Path(sys.executable).with_name("py-spy"))
             if not Path(py_spy).is_file():
                 raise SystemExit(
@@ -336,7 +364,7 @@ def _run_one(
                     "export",
                     "sections",
                     "-o",
-                    str(sections_dir / f"{archive.name}{'-baseline' if source else ''}.csv"),
+                    str(sections_dir / f"{archive.name}{tag}.csv"),
                 ],
                 env=env,
                 check=True,
@@ -430,8 +458,124 @@ def truth_errors(sections_csv: Path, archive: Path) -> str:
     return "; ".join(parts)
 
 
+FULLY_SEEN = 0.999
+"""A section the sensor saw all the way round, in truth (the simulator's coverage)."""
+
+
+def seen_and_measured(sections_csv: Path, archive: Path) -> dict:
+    """The run's mean section coverage, and the share of the sections fully seen in truth
+    that it measured (``ok``)."""
+    import csv
+
+    import numpy as np
+
+    from pipescan.simulator.archive import read_ground_truth
+
+    _, truth = read_ground_truth(archive)
+    seen = {round(t.chainage_start_m, 1) for t in truth if t.coverage_ratio >= FULLY_SEEN}
+    with sections_csv.open(encoding="utf-8") as fh:
+        rows = list(csv.DictReader(fh))
+    coverage = [float(r["coverage_ratio"]) for r in rows if r["coverage_ratio"] != ""]
+    ok = {round(float(r["chainage_start_m"]), 1) for r in rows if r["status"] == "ok"}
+    return {
+        "coverage": float(np.mean(coverage)) if coverage else float("nan"),
+        "seen": len(seen),
+        "measured_share": len(ok & seen) / len(seen) if seen else float("nan"),
+    }
+
+
+def every_frame_lines(rows: list[dict]) -> list[str]:
+    """Each run beside the same scan registering every frame: speed, coverage and the share of
+    fully seen sections measured; a speed-up that loses more than ``SHARE_LOSS_MAX_PP`` of
+    that share is not one."""
+    lines = [
+        "| scan | chain x | every frame x | speed-up | coverage | every frame | fully seen "
+        "| measured | every frame | verdict |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|",
+    ]
+    every = {r["scan"].removesuffix(" (every frame)"): r for r in rows if "(every" in r["scan"]}
+    for r in rows:
+        e = every.get(r["scan"].removesuffix(" (baseline)"))
+        if e is None or e is r or "measured_share" not in r:
+            continue
+        loss = 100 * (e["measured_share"] - r["measured_share"])
+        verdict = (
+            "holds" if loss <= SHARE_LOSS_MAX_PP else f"NOT a speed-up: {loss:.1f} points lost"
+        )
+        lines.append(
+            f"| {r['scan']} | {r['rt_chain']:.1f} | {e['rt_chain']:.1f} "
+            f"| {r['rt_chain'] / e['rt_chain']:.2f} | {100 * r['coverage']:.1f} % "
+            f"| {100 * e['coverage']:.1f} % | {r['seen']} | {100 * r['measured_share']:.1f} % "
+            f"| {100 * e['measured_share']:.1f} % | {verdict} |"
+        )
+    return lines
+
+
+STAGE_PATTERNS = (
+    (
+        "decoding",
+        re.compile(
+            r"laspy|lazrs|read_points|pointfiles|npyheader|numpy/lib/_npyio|"
+            r"iter_frames \(pipescan/storage"
+        ),
+    ),
+    (
+        "filtering",
+        re.compile(
+            r"preprocess|voxel_downsample|crop_range|drop_early_returns|"
+            r"seen_twice|remove_isolated|track_source"
+        ),
+    ),
+    (
+        "ICP",
+        re.compile(
+            r"small_gicp|_icp |_matches|_evidence|_fuse|track \(|add_keyframe|"
+            r"registrar"
+        ),
+    ),
+    ("placing", re.compile(r"write_buckets|iter_registered_points|FramePoses|scratch\.py")),
+    ("axis", re.compile(r"fit_axis|fit_pipe_axis")),
+    ("measuring", re.compile(r"measure_window|measure_section|measures\.py|contour|water\.py")),
+    ("grading, storing, report", re.compile(r"grading|coding|repository|sqlalchemy|reports/")),
+    ("Prefect, start-up", re.compile(r"prefect/|anyio/|uvicorn|importlib|<frozen")),
+)
+"""The stage a sample counts for: the first pattern, in this order, that a frame of its stack
+matches (a stack from leaf up; ``other`` when none does)."""
+
+
+def stage_shares(raw: Path) -> list[tuple[str, float]]:
+    """Busy samples (as :func:`top_cumulative` counts them) by stage: each sample counts once,
+    for the stage of the innermost frame that names one."""
+    idle = re.compile(r"\b(wait|_wait_for_tstate_lock|select|poll|sleep|acquire|recv|get)\b")
+    totals: Counter[str] = Counter()
+    for line in raw.read_text(encoding="utf-8", errors="replace").splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack or not count.isdigit():
+            continue
+        frames = stack.split(";")
+        if idle.search(frames[-1].split(" (")[0]):
+            continue
+        stage = "other"
+        for frame in reversed(frames):
+            hit = next((name for name, pattern in STAGE_PATTERNS if pattern.search(frame)), None)
+            if hit is not None:
+                stage = hit
+                break
+        totals[stage] += int(count)
+    busy = sum(totals.values()) or 1
+    return [(stage, n / busy) for stage, n in totals.most_common()]
+
+
 def _fmt_mb(b: float) -> str:
     return f"{b / 2**20:,.0f}"
+
+
+EVERY_FRAME = {"PIPESCAN_FRAME_STRIDE": "1"}
+"""The environment of a run that registers every frame: what a speed-up is compared with."""
+
+SHARE_LOSS_MAX_PP = 1.0
+"""A speed-up that measures a share of the fully seen sections more than this many points
+below registering every frame is not a speed-up."""
 
 
 def run(
@@ -439,14 +583,25 @@ def run(
     profile_dir: Path | None,
     sections_dir: Path | None,
     baseline: Path | None = None,
+    every_frame: bool = False,
 ) -> None:
     rows = []
     # With a baseline checkout, each scan runs under it and then under this pipescan, one
-    # after the other: on a shared machine, compare the two rows of a pair.
-    runs = [(a, src) for a in archives for src in ([baseline, None] if baseline else [None])]
-    for archive, source in runs:
-        print(f"running {archive}{f' with {source}' if source else ''} ...", flush=True)
-        result = _run_one(archive, profile_dir, sections_dir, source)
+    # after the other: on a shared machine, compare the two rows of a pair. With
+    # ``every_frame``, each scan also runs registering every frame, right after.
+    variants = [("-baseline", baseline, None)] if baseline else []
+    variants.append(("", None, None))
+    if every_frame:
+        variants.append(("-every-frame", None, EVERY_FRAME))
+    scratch = None
+    if every_frame and sections_dir is None:
+        scratch = tempfile.TemporaryDirectory(prefix="bench-chain-sections-")
+        sections_dir = Path(scratch.name)
+    runs = [(a, v) for a in archives for v in variants]
+    for archive, (tag, source, env_extra) in runs:
+        label = f" with {source}" if source else " registering every frame" if env_extra else ""
+        print(f"running {archive}{label} ...", flush=True)
+        result = _run_one(archive, profile_dir, sections_dir, source, tag, env_extra)
         recording = _recording_s(archive)
         marks = result["marks"]
         print(f"\n{archive.name}: {result['summary']['frame_count']} frames, "
@@ -469,7 +624,8 @@ def run(
         reg = marks.get("registered", marks["axis"])[0] - start_t if frames else float("nan")
         peak = result["peak"]
         row = {
-            "scan": archive.name + (" (baseline)" if source else ""),
+            "scan": archive.name
+            + {"-baseline": " (baseline)", "-every-frame": " (every frame)"}.get(tag, ""),
             "frames": frames,
             "points": result["summary"]["point_count"],
             "recorded_s": recording,
@@ -491,9 +647,13 @@ def run(
         print(f"  peak RSS: process tree {_fmt_mb(peak['tree_rss'])} MB, "
               f"pipescan process {_fmt_mb(peak['main_rss'])} MB")  # fmt: skip
         if sections_dir is not None and (archive / "ground_truth").is_dir():
-            csv_name = f"{archive.name}{'-baseline' if source else ''}.csv"
+            csv_name = f"{archive.name}{tag}.csv"
             print("  against ground truth:", truth_errors(sections_dir / csv_name, archive))
+            row.update(seen_and_measured(sections_dir / csv_name, archive))
         if result["raw_profile"]:
+            print("  where the time went, by stage (share of busy samples, all processes):")
+            for stage, share in stage_shares(Path(result["raw_profile"])):
+                print(f"    {100 * share:5.1f} %  {stage}")
             print("  top 10 by cumulative share of busy samples:")
             for name, share in top_cumulative(Path(result["raw_profile"])):
                 print(f"    {100 * share:5.1f} %  {name}")
@@ -501,7 +661,13 @@ def run(
     for r in rows:
         print(TABLE_ROW.format(**r).replace("nan", "-"))
     print()
-    for line in target_lines([r for r in rows if not r["scan"].endswith("(baseline)")]):
+    if every_frame:
+        for line in every_frame_lines(rows):
+            print(line)
+        print()
+    if scratch is not None:
+        scratch.cleanup()
+    for line in target_lines([r for r in rows if not r["scan"].endswith(")")]):
         print(line)
 
 
@@ -581,6 +747,12 @@ def main() -> None:
         "(30e6: the 30 M-point cloud of issue 16)",
     )
     p.add_argument(
+        "--rosette",
+        action="store_true",
+        help=f"also write rosette<L>-npy and rosette<L>-laz: the long scenario seen by a "
+        f"non-repetitive pattern, {ROSETTE_SHARE:.0%} of the view a frame",
+    )
+    p.add_argument(
         "--slow",
         action="store_true",
         help="also write slow<L>-npy and slow<L>-laz: a 0.6 m pipe at 0.1035 m/s (290 s for "
@@ -601,14 +773,22 @@ def main() -> None:
     r.add_argument(
         "--sections", type=Path, default=None, help="export each run's sections as DIR/<scan>.csv"
     )
+    r.add_argument(
+        "--every-frame",
+        action="store_true",
+        help="also run each scan registering every frame (PIPESCAN_FRAME_STRIDE=1), and compare "
+        "coverage and the share of fully seen sections measured",
+    )
     args = parser.parse_args()
     if args.command == "prepare":
-        prepare(args.out, args.lengths, not args.no_cloud, args.cloud_points, args.slow)
+        prepare(
+            args.out, args.lengths, not args.no_cloud, args.cloud_points, args.slow, args.rosette
+        )
     elif args.top is not None:
         for name, share in top_cumulative(args.top):
             print(f"{100 * share:5.1f} %  {name}")
     else:
-        run(args.archives, args.profile, args.sections, args.baseline)
+        run(args.archives, args.profile, args.sections, args.baseline, args.every_frame)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from pipescan.core.registration.stride import (
     FRAMES_PER_KEYFRAME,
     LOOK_CLOSER_SIGMAS,
     LOOK_CLOSER_STRIDES,
-    VIEWS_PER_SECTION,
     choose_frame_stride,
     frames_to_register,
     is_stride_frame,
@@ -76,22 +75,15 @@ def slow_scan():
     return scan, list(scan.frames())
 
 
-def test_the_chosen_stride_keeps_every_section_s_points(slow_scan):
-    """The points bound, against the truth: with the stride chosen, every section the whole
-    run saw still gets at least the points it keeps (``MeasureParams.max_points``); a bound
-    that allows more than that is caught by raising the points a section needs."""
+def test_the_sections_need_not_bind_the_stride(slow_scan):
+    """Every frame is placed (tracked between registered ones), so the points a section keeps
+    do not bound the stride: asking for twice the points chooses the same stride."""
     need = MeasureParams().max_points
     scan, frames = slow_scan
     frames, choice = _scan_choice(scan, frames)
-    assert choice.stride >= 3, choice
-    counts = _points_per_section(scan, frames, used_frame_indices(len(frames), choice.stride))
-    assert len(counts) >= 5
-    assert counts.min() >= need, (counts.min(), choice)
-    # With a section needing more points, the points bound binds: still met against the truth.
-    frames, tight = _scan_choice(scan, frames, section_points=2 * need)
-    assert 1 < tight.stride < choice.stride and "points" in tight.reason, tight
-    counts = _points_per_section(scan, frames, used_frame_indices(len(frames), tight.stride))
-    assert counts.min() >= 2 * need, (counts.min(), tight)
+    frames, more = _scan_choice(scan, frames, section_points=2 * need)
+    assert choice.stride >= 3 and more.stride == choice.stride, (choice, more)
+    assert "local map" in choice.reason
 
 
 def _frames_per_keyframe(travel: np.ndarray, keyframe_m: float) -> list[int]:
@@ -110,7 +102,7 @@ def test_the_local_map_keeps_three_frames_a_keyframe(slow_scan):
     """Against the true travel: with the stride chosen where the local map binds, every
     keyframe still groups three registered frames; one frame more skipped and some would not."""
     scan, frames = slow_scan
-    frames, choice = _scan_choice(scan, frames, section_points=1000)
+    frames, choice = _scan_choice(scan, frames)
     assert "local map" in choice.reason and choice.stride > 3, choice
     keyframe = RegistrationParams().keyframe_distance_m
     travel = scan.true_travel_m
@@ -120,16 +112,17 @@ def test_the_local_map_keeps_three_frames_a_keyframe(slow_scan):
     assert min(_frames_per_keyframe(travel[wider], keyframe)) < FRAMES_PER_KEYFRAME
 
 
-def test_a_short_view_is_bound_by_the_views():
-    """A sensor that sees 0.6 m of pipe a frame: each section keeps 25 positions."""
+def test_a_short_view_is_bound_by_the_local_map_only():
+    """A sensor that sees 0.6 m of pipe a frame: every frame is placed, so the stride is the
+    local map's (k < 0.15 m / (2 × 2 mm)), not a count of views."""
     rng = np.random.default_rng(0)
     a = rng.uniform(0, 2 * np.pi, 60_000)
     short = np.column_stack((rng.uniform(0.3, 0.9, 60_000), 0.3 * np.cos(a), 0.3 * np.sin(a)))
     odometer = np.arange(400) * 0.002  # a slow crawler: 2 mm a frame
     choice = _choose([short] * 3, odometer)
-    assert "views" in choice.reason
     assert choice.view_length_m == pytest.approx(0.54, abs=0.03)  # 5-95 % of 0.6 m
-    assert choice.stride == int(choice.view_length_m / (0.002 * VIEWS_PER_SECTION))
+    keyframe = RegistrationParams().keyframe_distance_m
+    assert choice.stride == int(np.ceil(keyframe / (0.002 * (FRAMES_PER_KEYFRAME - 1)))) - 1
 
 
 def test_a_profiler_and_a_run_without_odometer_use_every_frame():

@@ -442,7 +442,9 @@ def _print_summary(summary, replaced: bool = False, unmeasured: list[str] | None
         read = summary.registration.get("frames", summary.frame_count)
         closer = summary.registration.get("frames_looked_closer")
         more = f", and {closer:,} where ICP disagreed with the odometer" if closer else ""
-        content += f" ({read:,} read: every {stride}{more})"
+        tracked = summary.registration.get("frames_tracked")
+        others = f"; {tracked:,} tracked between them" if tracked else ""
+        content += f" ({read:,} registered: every {stride}{more}{others})"
     typer.echo(
         f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
     )

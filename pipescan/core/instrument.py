@@ -399,10 +399,11 @@ def instrumented(
 
 
 def partial_view_stride(instrument: Instrument | None) -> FrameStride | None:
-    """Every frame, when one frame covers only part of the field of view (a map seeded by
-    several frames): a frame skipped then leaves part of each section's perimeter unseen.
-    None when frames may be skipped (the stride is chosen from the points and views,
-    ``choose_frame_stride``)."""
+    """Every frame registered, when one frame covers only part of the field of view: the
+    local map is built from registered frames only, and a map of every k-th frame's part of
+    the view leaves the others' parts, and what tracking would align them with, unmapped.
+    None when the stride may be chosen (``choose_frame_stride``). Every frame is placed
+    either way."""
     from pipescan.core.registration.stride import FrameStride
 
     if instrument is None or not instrument.partial_view:
@@ -410,7 +411,7 @@ def partial_view_stride(instrument: Instrument | None) -> FrameStride | None:
     return FrameStride(
         1,
         f"one frame sees {100 * instrument.frame_view_share:.0f} % of the view "
-        "(a non-repetitive pattern): every frame is needed for the sections' perimeters",
+        "(a non-repetitive pattern): the local map needs every frame's part of it",
     )
 
 

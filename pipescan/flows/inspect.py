@@ -220,7 +220,7 @@ def inspect_archive(
                 )
 
         trajectory = None
-        closer = 0  # frames registration read besides the stride's (to look closer)
+        closer = 0  # frames registered besides the stride's (to look closer)
         # The sensor's blind zone, noise and pattern, from inspection.toml's [sensor] or the
         # scan: figures of the run, not of the stored parameters (the same archive and
         # parameters give the same instrument, so the stored hash still keys re-runs).
@@ -237,7 +237,10 @@ def inspect_archive(
         frame_store = FrameStore(run_dir / "frames")
         if chunks:
             used = len(used_frame_indices(staged.frame_count, stride.stride))
-            log.info(f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks")
+            log.info(
+                f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks, "
+                "tracking the others: every frame is placed"
+            )
             # How the work is split, not the figures: kept out of the stored parameters.
             # In the engine pool's processes, one engine thread each: both cores are busy.
             registering = replace(reg_params, num_threads=1 if pooled else engine_threads())
@@ -260,9 +263,11 @@ def inspect_archive(
             ]
             trajectory = chain_trajectories([f.result() for f in futures])
             closer = len(trajectory.frame_indices) - used
+            tracked = len(trajectory.tracked_indices)
             log.info(
                 f"registered {len(trajectory.frame_indices)} of {staged.frame_count} frames"
-                + (f" ({closer} read where ICP disagreed with the odometer)" if closer else "")
+                + (f" ({closer} more where ICP disagreed with the odometer)" if closer else "")
+                + (f", tracked {tracked}" if tracked else "")
             )
 
         fit = fit_pipe_axis(
@@ -343,7 +348,6 @@ def inspect_archive(
                     bucket_root,
                     params.max_section_range_m,
                     frame_store,
-                    stride.stride,
                 )
             )
             for w in range(len(windows)):

@@ -674,9 +674,9 @@ def register_scan(
 ):
     """A simulated scan registered in memory as the inspect flow registers it: every k-th
     frame (and the last; k chosen as the flow chooses it when ``frame_stride`` is None), and
-    every frame for a while after one whose ICP disagreed with the odometer
-    (``register_strided``), in chunks of ``chunk_frames`` of the stride's frames registered on
-    their own and chained. Returns the :class:`~pipescan.core.model.Trajectory`
+    every frame for a while after one whose ICP disagreed with the odometer, the others tracked
+    (``register_keyframes``), in chunks of ``chunk_frames`` of the stride's frames registered
+    on their own and chained. Returns the :class:`~pipescan.core.model.Trajectory`
     (``frame_indices`` into the scan's frames)."""
     from pipescan.core.registration import RegistrationParams
 
@@ -699,17 +699,18 @@ def scan_instrument(scan, max_section_range_m: float = 5.0):
 
 
 def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_stride):
-    """:func:`register_scan`, and the stride's frames (those the sections are built from) as
-    ``(index, points, odometer, gravity)``. ``params`` are used as given (the caller applies
+    """:func:`register_scan`, and every frame (the sections are built from every frame, the
+    unregistered ones placed by interpolated poses) as ``(index, points, odometer,
+    gravity)``. ``params`` are used as given (the caller applies
     the scan's instrument: :func:`measure_scan`)."""
     from pipescan.core.measures import MeasureParams
     from pipescan.core.registration import (
+        FramePoses,
         chain_trajectories,
         choose_frame_stride,
         plan_chunks,
-        register_strided,
+        register_keyframes,
         sample_frame_indices,
-        used_frame_indices,
     )
 
     frames = [(f.index, f.points_sensor, f.odometer_m, f.gravity) for f in scan.frames()]
@@ -723,16 +724,14 @@ def _register_in_memory(scan, chunk_frames, max_section_range_m, params, frame_s
             keyframe_distance_m=params.keyframe_distance_m,
         ).stride
 
-    def frames_at(indices):
-        return (frames[i] for i in indices)
-
+    along = FramePoses.along_from([float(t) for t in scan.times_s], [f[2] for f in frames])
     trajectory = chain_trajectories(
         [
-            register_strided(frames_at, a, b, frame_stride, params)
+            register_keyframes(frames[a : b + 1], a, b, frame_stride, params, along=along)
             for a, b in plan_chunks(len(frames), chunk_frames, frame_stride)
         ]
     )
-    return trajectory, [frames[i] for i in used_frame_indices(len(frames), frame_stride)]
+    return trajectory, frames
 
 
 def measure_scan(
@@ -763,6 +762,7 @@ def measure_scan(
     from pipescan.core.instrument import instrumented, partial_view_stride, registration_trusted
     from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
     from pipescan.core.registration import (
+        FramePoses,
         RegistrationParams,
         iter_registered_points,
         registration_evidence,
@@ -784,7 +784,8 @@ def measure_scan(
     cropped = (
         (i, p[np.einsum("ij,ij->i", p, p) <= max_section_range_m**2]) for i, p, _, _ in frames
     )
-    points = np.concatenate(list(iter_registered_points(cropped, trajectory)))
+    along = FramePoses.along_from([float(t) for t in scan.times_s], [f[2] for f in frames])
+    points = np.concatenate(list(iter_registered_points(cropped, trajectory, along)))
     positions = trajectory.positions_m()
     axis = fit_axis(
         points,

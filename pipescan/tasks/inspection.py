@@ -32,7 +32,6 @@ from pipescan.core.registration import (
     RegistrationParams,
     Trajectory,
     choose_frame_stride,
-    is_stride_frame,
     iter_registered_points,
     sample_frame_indices,
 )
@@ -48,7 +47,7 @@ from pipescan.storage.scratch import (
 from pipescan.tasks import enginepool
 from pipescan.tasks.memory import releases_memory
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
-from pipescan.tasks.staged import StagedArchive, crop, register_staged_frames
+from pipescan.tasks.staged import StagedArchive, crop, frame_along, register_staged_frames
 
 log = logging.getLogger("pipescan")
 
@@ -86,6 +85,13 @@ def register_chunk(
         trajectory = register_staged_frames(*args)
     held = sum(q.degenerate for q in trajectory.quality)
     log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
+    untracked = int((~np.isfinite(trajectory.T_world_tracked).all(axis=(1, 2))).sum())
+    if untracked:
+        log.warning(
+            "frames %d-%d: %d frame(s) between registered ones could not be tracked on the "
+            "local map; they are not placed",
+            first, last, untracked,
+        )  # fmt: skip
     if held and trajectory.along_axis_prior != "odometer":
         log.warning(
             "frames %d-%d: %d frame(s) without odometer and without geometry along the axis; "
@@ -143,12 +149,12 @@ def survey_scan(
     return ScanSurvey(instrument, stride)
 
 
-def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float):
+def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float, along=None):
     def cropped():
         for i, pts in arc.iter_frames(indices):
             yield i, crop(pts, max_range_m)
 
-    yield from iter_registered_points(cropped(), trajectory)
+    yield from iter_registered_points(cropped(), trajectory, along)
 
 
 def _stored_frames(
@@ -292,14 +298,15 @@ def bucket_points(
     bucket_root: Path,
     max_range_m: float,
     frame_store: FrameStore | None = None,
-    stride: int = 1,
 ) -> Bucketed:
-    """Write the registered points of frames ``first..last`` (or the cloud) into window files.
+    """Write the points of every frame ``first..last`` (or the cloud) into window files:
+    registered frames by their poses, the frames between them by interpolated ones
+    (:class:`~pipescan.core.registration.FramePoses`), so that a section's coverage does not
+    depend on which frames were registered. A chunk's last frame is the next chunk's first:
+    it is placed there (the run's last frame here).
 
     With ``frame_store``, the frames are those :func:`register_chunk` stored for the chunk
     that starts at ``first`` (already cropped to ``max_range_m``): the archive is not read.
-    Either way only the ``stride``'s own frames are placed, not those registration read to
-    look closer (:func:`~pipescan.core.registration.is_stride_frame`).
     A registered cloud that :func:`fit_pipe_axis` kept there is placed by rows: ``first`` to
     ``last`` (exclusive).
     """
@@ -307,20 +314,20 @@ def bucket_points(
         rows = frame_store.read_cloud_rows(first, last)
         return write_buckets(rows, axis, windows, bucket_root, f"cloud_{first:011d}")
     tag = f"chunk_{first:07d}"
+    along = frame_along(staged.meta)
     if trajectory is not None and frame_store is not None:
+        # Every frame the chunk decoded; its last is the next chunk's first, placed there.
         # Frames that slid along the axis are not placed (iter_registered_points).
-        placed = iter_registered_points(frame_store.iter_frames(first), trajectory)
+        final = last == staged.frame_count - 1
+        frames = ((i, pts) for i, pts in frame_store.iter_frames(first) if i < last or final)
+        placed = iter_registered_points(frames, trajectory, along)
         return write_buckets(placed, axis, windows, bucket_root, tag)
     with staged.reopen() as arc:
         if trajectory is None:
             chunks = (chunk.points for chunk in arc.iter_cloud())
             return write_buckets(chunks, axis, windows, bucket_root, "cloud")
-        frames = [
-            i
-            for i in trajectory.frame_indices
-            if first <= i <= last and is_stride_frame(i, first, last, stride)
-        ]
-        placed = _frame_points_world(arc, trajectory, frames, max_range_m)
+        stop = last + 1 if last == staged.frame_count - 1 else last
+        placed = _frame_points_world(arc, trajectory, range(first, stop), max_range_m, along)
         return write_buckets(placed, axis, windows, bucket_root, tag)
 
 

@@ -12,10 +12,10 @@ import numpy as np
 
 from pipescan.core.model import InspectionMeta
 from pipescan.core.registration import (
+    FramePoses,
     RegistrationParams,
     Trajectory,
-    is_stride_frame,
-    register_strided,
+    register_keyframes,
 )
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.bags import BagIndex
@@ -71,28 +71,38 @@ def register_staged_frames(
     keep_range_m: float = np.inf,
     stride: int = 1,
 ) -> Trajectory:
-    """Register frames ``first..last`` (inclusive) relative to frame ``first``; with
-    ``stride`` k, only every k-th of them and the last, and every frame for a while after one
-    whose ICP disagreed with the odometer (the others are not read:
-    :func:`~pipescan.core.registration.register_strided`). A ROS bag is read in order, so it
-    keeps to the stride.
+    """Register frames ``first..last`` (inclusive) relative to frame ``first``: with
+    ``stride`` k, every k-th of them and the last, and every frame for a while after one
+    whose ICP disagreed with the odometer; the frames between are tracked
+    (:func:`~pipescan.core.registration.register_keyframes`).
 
-    Frames stream from the archive one at a time; only the local map stays in memory. The
-    IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about the axis.
-    With ``frame_store``, the stride's own frames' points within ``keep_range_m`` are also
-    written there as they are read, so that the sections never decode the archive again (the
-    frames read to look closer only place the others).
+    Every frame of the chunk is decoded once, in order. With ``frame_store``, each frame's
+    points within ``keep_range_m`` are written there as they are read, registered or not, so
+    that the sections place every frame and never decode the archive again. Only the local
+    map and the frames since the last registered one (a share of their points) stay in
+    memory. The IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about
+    the axis.
     """
     meta = staged.meta
     with contextlib.ExitStack() as stack:
         arc = stack.enter_context(staged.reopen())
         keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
 
-        def frames(indices):
-            for i, pts in arc.iter_frames(indices):
-                if keep is not None and is_stride_frame(i, first, last, stride):
+        def frames():
+            for i, pts in arc.iter_frames(range(first, last + 1)):
+                if keep is not None:
                     keep.add(i, crop(pts, keep_range_m))
                 gravity = meta.frames[i].gravity if meta.frames else None
                 yield i, pts, odometer_at(meta, i), gravity
 
-        return register_strided(frames, first, last, stride, params, look_closer=arc.bag is None)
+        return register_keyframes(frames(), first, last, stride, params, along=frame_along(meta))
+
+
+def frame_along(meta: InspectionMeta) -> list[float | None] | None:
+    """What the archive's frames are placed along between registered frames
+    (:meth:`~pipescan.core.registration.FramePoses.along_from`)."""
+    if not meta.frames:
+        return None
+    return FramePoses.along_from(
+        [f.time_s for f in meta.frames], [f.odometer_m for f in meta.frames]
+    )

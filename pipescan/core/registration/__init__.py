@@ -73,7 +73,11 @@ from pipescan.core.registration.preprocess import (
     seen_twice,
     voxel_downsample,
 )
-from pipescan.core.registration.registrar import FrameRegistrar, register_frames, register_strided
+from pipescan.core.registration.registrar import (
+    FrameRegistrar,
+    register_frames,
+    register_keyframes,
+)
 from pipescan.core.registration.stride import (
     FrameStride,
     choose_frame_stride,
@@ -82,11 +86,14 @@ from pipescan.core.registration.stride import (
     sample_frame_indices,
 )
 from pipescan.core.registration.trajectory import (
+    FramePoses,
     Trajectory,
     chain_trajectories,
     chunk_frame_indices,
+    interpolate_pose,
     iter_registered_points,
     plan_chunks,
+    share_of_way,
     used_frame_indices,
 )
 
@@ -95,6 +102,7 @@ __all__ = [
     "REGISTRATION_METHODS",
     "AlongAxisPrior",
     "AxialFilter",
+    "FramePoses",
     "FrameRegistrar",
     "FrameStride",
     "LocalMap",
@@ -117,6 +125,7 @@ __all__ = [
     "frames_to_register",
     "gravity_corrected",
     "icp_point_to_point",
+    "interpolate_pose",
     "is_stride_frame",
     "iter_registered_points",
     "kabsch",
@@ -124,12 +133,13 @@ __all__ = [
     "point_to_plane_hessian",
     "preprocess_frame",
     "register_frames",
-    "register_strided",
+    "register_keyframes",
     "registration_evidence",
     "registration_summary",
     "remove_isolated",
     "sample_frame_indices",
     "seen_twice",
+    "share_of_way",
     "slide_spans",
     "slips_out_of_view",
     "standstill_allowance",

@@ -214,6 +214,28 @@ def small_gicp_steps(
     return np.asarray(result.T_target_source), bool(result.converged)
 
 
+def plane_icp_steps(
+    m: LocalMap, source: np.ndarray, init: np.ndarray, iterations: int
+) -> np.ndarray:
+    """At most ``iterations`` of small_gicp's point-to-plane ICP of ``source`` (sensor frame)
+    from ``init`` against the map's normals: no neighbourhood of the source is needed (GICP's
+    covariances), which is most of what aligning a few hundred points costs."""
+    sg, p = m._sg, m.params
+    result = sg.align(
+        m.sg_cloud,
+        sg.PointCloud(source),
+        m.sg_tree,
+        init_T_target_source=init,
+        registration_type="PLANE_ICP",
+        max_correspondence_distance=p.max_correspondence_m,
+        num_threads=p.num_threads,
+        max_iterations=iterations,
+        rotation_epsilon=p.converged_rotation_rad,
+        translation_epsilon=p.converged_translation_m,
+    )
+    return np.asarray(result.T_target_source)
+
+
 def _align_small_gicp(m: LocalMap, source: np.ndarray, init: np.ndarray) -> np.ndarray:
     return small_gicp_steps(m, small_gicp_source(m, source), init, m.params.max_iterations)[0]
 

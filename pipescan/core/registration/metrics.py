@@ -52,7 +52,9 @@ def registration_summary(
     is given). ``chainage_uncertainty_m`` bounds the last frame's along-axis position.
     ``slides`` and ``odometer_slips`` count the faults found over the slide window;
     ``odometer_slips_caught_m`` sizes each slip caught (what the chainage uncertainty allows
-    for where the odometer was alone).
+    for where the odometer was alone). ``frames`` counts the registered frames;
+    ``frames_tracked`` the frames between them placed by tracking, ``frames_not_tracked``
+    those that could not be (not placed).
     """
     q = trajectory.quality[1:] or trajectory.quality
     positions = trajectory.positions_m()
@@ -91,6 +93,10 @@ def registration_summary(
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
         "odometer_uncertainty_ratio": params.odometer_scale_error_ratio,
         "odometer_slip_stated_m": params.odometer_slip_m,
+        "frames_tracked": int(np.isfinite(trajectory.T_world_tracked).all(axis=(1, 2)).sum()),
+        "frames_not_tracked": int(
+            (~np.isfinite(trajectory.T_world_tracked).all(axis=(1, 2))).sum()
+        ),
     }
     if odometer_m is not None and None not in odometer_m:
         first, last = odometer_m

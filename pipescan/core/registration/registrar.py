@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -12,6 +12,7 @@ from pipescan.core.model import FrameQuality
 from pipescan.core.registration.engines import (
     LocalMap,
     aligner,
+    plane_icp_steps,
     small_gicp_source,
     small_gicp_steps,
     transform,
@@ -29,9 +30,13 @@ from pipescan.core.registration.fusion import (
     small_motion,
 )
 from pipescan.core.registration.params import AlongAxisPrior, RegistrationParams
-from pipescan.core.registration.preprocess import preprocess_frame
+from pipescan.core.registration.preprocess import crop_range, preprocess_frame
 from pipescan.core.registration.stride import frames_to_register
-from pipescan.core.registration.trajectory import Trajectory, chunk_frame_indices
+from pipescan.core.registration.trajectory import (
+    Trajectory,
+    interpolate_pose,
+    share_of_way,
+)
 
 _MIN_FRAME_POINTS = 50
 _MIN_CORRESPONDENCES = 30
@@ -42,6 +47,18 @@ _MIN_CORRESPONDENCES = 30
 # it; frames with features in view converge in 3 (median) and never read it. It decides when
 # the evidence is read, not what is kept (docs/registration.md, *Convergence*).
 _ITERATIONS_BEFORE_EVIDENCE = 4
+
+TRACK_ITERATIONS = _ITERATIONS_BEFORE_EVIDENCE
+"""ICP iterations a tracked frame gets: it starts within the vibration of its place (a
+centimetre, a fraction of a degree), and across the axis and in tilt ICP's steps fall below
+0.1 mm and 0.1 mrad by the third iteration; along the axis, which tracking leaves to the
+interpolation, a smooth pipe's ICP would creep on to any cap."""
+
+TRACK_POINTS = 1500
+"""Returns of a frame between registered ones that tracking aligns (a regular share of those
+in range): four directions (tilt and offset across the axis) against a map of thousands of
+points, where registering a frame takes all of its voxels and six (docs/registration.md,
+*Every frame placed*)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -210,6 +227,52 @@ class FrameRegistrar:
         self.odometer_frames += odometer_m is not None
         self.count += 1
         return T, quality
+
+    @property
+    def last_pose(self) -> np.ndarray | None:
+        """The pose of the frame registered last (None before the first)."""
+        return self._prev
+
+    def track_source(self, points_sensor_m: np.ndarray) -> np.ndarray:
+        """What :meth:`track` aligns of a frame: at most ``TRACK_POINTS`` of its returns within
+        the registration's range, a regular share of them (cheap to hold until the next
+        registered frame)."""
+        p = self.params
+        pts = np.asarray(points_sensor_m, dtype=np.float64)
+        pts = crop_range(pts, p.max_range_m, p.min_range_m)
+        if len(pts) > TRACK_POINTS:
+            pts = pts[np.linspace(0, len(pts) - 1, TRACK_POINTS).astype(np.int64)]
+        return pts
+
+    def track(self, source: np.ndarray, init: np.ndarray) -> np.ndarray | None:
+        """The pose of a frame that is not registered, between two that are: ``init``
+        (interpolated between them) corrected by ICP against the local map in tilt and
+        across the axis, the directions a pipe's wall fixes. A crawler's vibration changes the
+        attitude from frame to frame, which interpolation cannot follow (0.3° at 2 m is 10 mm
+        on the wall). Its place along the axis and its roll stay the interpolation's, which
+        the registered frames' fusion decided. ``source``: :meth:`track_source`.
+
+        None when the frame cannot be tracked: too few points, or a correction that moves a
+        point of the frame further than the correspondence distance (ICP did not converge on
+        the map, and the interpolation is no better).
+        """
+        if len(source) < _MIN_FRAME_POINTS or self._axis_world is None:
+            return None
+        p = self.params
+        if p.engine == "small_gicp" and p.method != "point_to_point":
+            T = plane_icp_steps(self._map, source, init, TRACK_ITERATIONS)
+        else:
+            T = self._align(self._map, source, init)
+        if not np.isfinite(T).all():
+            return None
+        x = small_motion(np.linalg.inv(init) @ T)
+        axis_sensor = init[:3, :3].T @ self._axis_world
+        x[:3] -= axis_sensor * (axis_sensor @ x[:3])  # roll: the interpolation's
+        x[3:] -= axis_sensor * (axis_sensor @ x[3:])  # along the axis: the interpolation's
+        reach = float(np.sqrt(np.max(np.einsum("ij,ij->i", source, source))))
+        if np.linalg.norm(x[:3]) * reach + np.linalg.norm(x[3:]) > self.params.max_correspondence_m:
+            return None
+        return init @ from_small_motion(x)
 
     def _seeding(self) -> bool:
         """Whether the local map is still being seeded: it was (re)started from fewer than
@@ -532,27 +595,55 @@ def register_frames(
     )
 
 
-def register_strided(
-    frames_at: Callable[[Iterator[int]], Iterable[tuple]],
+def register_keyframes(
+    frames: Iterable[tuple],
     first: int,
     last: int,
     stride: int,
     params: RegistrationParams = RegistrationParams(),
     *,
-    look_closer: bool = True,
+    along: Sequence[float | None] | None = None,
 ) -> Trajectory:
-    """Register chunk ``first..last`` with ``stride`` k: every k-th frame and the last, and
-    every frame for a while after one whose ICP disagreed with the odometer
-    (:func:`~pipescan.core.registration.stride.frames_to_register`; ``look_closer`` False
-    keeps to the stride, for a source that cannot be read out of order).
+    """Register chunk ``first..last`` from every one of its frames, in order: the frames
+    :func:`~pipescan.core.registration.stride.frames_to_register` chooses with ``stride`` k
+    (every k-th and the last, and every frame for a while after one whose ICP disagreed with
+    the odometer) are registered; each frame between two registered ones is tracked once the
+    later one is (:meth:`FrameRegistrar.track`, from the pose interpolated between them at
+    :func:`~pipescan.core.registration.trajectory.share_of_way` along ``along``).
 
-    ``frames_at(indices)`` reads the frames as :func:`register_frames` takes them, one index
-    at a time: the next index is chosen only once the frame before it is registered.
+    ``frames`` yields ``(frame_index, points, odometer_m, gravity)`` for every frame of the
+    chunk, as :func:`register_frames` takes them. The trajectory carries the tracked frames'
+    poses (NaN for a frame that could not be tracked).
     """
     reg = FrameRegistrar(params)
-    indices = (
-        frames_to_register(first, last, stride, lambda: reg.disagreement_sigmas)
-        if look_closer
-        else iter(chunk_frame_indices(first, last, stride))
-    )
-    return register_frames(frames_at(indices), params, registrar=reg)
+    chosen = frames_to_register(first, last, stride, lambda: reg.disagreement_sigmas)
+    tracked: dict[int, np.ndarray] = {}
+
+    def registered() -> Iterator[tuple]:
+        source = iter(frames)
+        held: list[tuple[int, np.ndarray]] = []
+        previous: tuple[int, np.ndarray] | None = None
+        for wanted in chosen:
+            for frame in source:
+                if frame[0] == wanted:
+                    break
+                held.append((frame[0], reg.track_source(frame[1])))
+            else:
+                return  # the source ended before the frame wanted
+            yield frame
+            pose = reg.last_pose  # the frame just yielded, now registered
+            assert pose is not None
+            for i, pts in held:
+                if previous is None:
+                    continue
+                a, T_a = previous
+                init = interpolate_pose(T_a, pose, share_of_way(along, i, a, wanted))
+                T = reg.track(pts, init)
+                tracked[i] = T if T is not None else np.full((4, 4), np.nan)
+            held = []
+            previous = (wanted, pose.copy())
+
+    trajectory = register_frames(registered(), params, registrar=reg)
+    order = sorted(tracked)
+    poses = np.array([tracked[i] for i in order]).reshape(-1, 4, 4)
+    return dataclasses.replace(trajectory, tracked_indices=tuple(order), T_world_tracked=poses)

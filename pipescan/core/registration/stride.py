@@ -1,45 +1,35 @@
-"""Which frames a run needs: every frame, or every k-th when the scan is denser in time than
-the sections and the local map can use.
+"""Which frames a run registers: every frame, or every k-th when the scan is denser in time than
+the local map needs. Every frame is read and placed either way: the frames between registered
+ones are tracked (:meth:`~pipescan.core.registration.FrameRegistrar.track`), so a section's
+points and coverage never depend on the stride.
 
-A crawler moving at 0.15 m/s with a 10 Hz sensor that looks along the pipe sees each section
-from hundreds of frames, and each section gets several times the points its per-angle medians
-keep (the rest are thinned away, ``MeasureParams.max_points``). Every frame still costs its
-decoding and its registration. Registering every k-th frame, and reading only those, keeps
-what each figure rests on as long as three bounds hold, each from the geometry of the scan:
-
-- **points**: each section still gets at least the points it keeps. A frame that puts ``n``
-  points within the section range, over a view ``L`` long, gives a section ``n · step / L``
-  points, and ``L / d`` frames see it when the crawler moves ``d`` a frame: ``n · step / d``
-  points a section, whatever ``L`` is. So ``k ≤ n · step / (d · max_points)``.
-- **views**: each section is still seen from at least ``VIEWS_PER_SECTION`` registered
-  positions, ``k ≤ L / (d · VIEWS_PER_SECTION)``. A frame's pose error across the axis
-  (1.2-4.8 mm RMS over the accuracy sweep's draws, per-frame vibration included) then averages
-  to about 1 mm over the frames that place a section's wall. A profiler, whose frame is one
-  ring (``L`` ≈ 0), needs every frame: its sections are built ring by ring.
-- **the local map**: each keyframe still groups at least ``FRAMES_PER_KEYFRAME`` registered
-  frames. A keyframe closes at the first frame ``keyframe_distance`` or more from the last
-  one, so it groups ``ceil(keyframe_distance / (k · d))`` frames: at least three while
-  ``k < keyframe_distance / (2 d)``. A keyframe keeps only what
-  two of its frames saw (``seen_twice``), the filter that keeps spurious returns out of the
-  map; three leave one to spare.
+A crawler moving at 0.15 m/s with a 10 Hz sensor moves 15 mm a frame, and the local map groups
+frames into keyframes every ``keyframe_distance`` (15 cm). Registering every k-th frame keeps
+what registration rests on while **the local map** bound holds: each keyframe still groups at
+least ``FRAMES_PER_KEYFRAME`` registered frames. A keyframe closes at the first frame
+``keyframe_distance`` or more from the last one, so it groups ``ceil(keyframe_distance /
+(k · d))`` frames: at least three while ``k < keyframe_distance / (2 d)``. A keyframe keeps
+only what two of its frames saw (``seen_twice``), the filter that keeps spurious returns out
+of the map; three leave one to spare.
 
 ``d`` is the odometer's travel a frame, taken at the fast end of the run (the 95th percentile
-over ten-frame spans), so that the sparsest stretch still meets the bounds. Without an
-odometer the spacing is not known and every frame is used.
+over ten-frame spans), so that the sparsest stretch still meets the bound. Without an odometer
+the spacing is not known and every frame is registered. A profiler, whose frame is one ring
+(its view ``L`` ≈ 0 along the pipe), registers every frame: the map behind it never holds the
+ring it sees next.
 
-**Looking closer where ICP disagrees with the odometer** (:func:`frames_to_register`). The
-three bounds keep the sections' figures; they do not keep the odometer's slips as easy to
-catch. A slip is caught where ICP, with features in view, overrides the odometer through the
-innovation gate (a disagreement beyond 3σ of both errors). ICP's own error along the axis
-varies widely from frame to frame, and with every frame the gate gets every chance; at every
-k-th frame it gets one in k. On the 14 slip draws of ``bench_registration.py slips`` the
-stride caught 11 slips where every frame caught 15, and on one draw (k = 4) the chainage ±
-fell 41 cm short. So after a frame whose ICP disagrees with the odometer by more than
+Before every frame was tracked, two more bounds kept the sections' figures (the points each
+section keeps, and 25 registered positions to average each section's pose error over); with
+every frame placed by its own measured tilt and offset they bind nothing
+(docs/registration.md, *Every frame placed*).
+
+**Looking closer where ICP disagrees with the odometer** (:func:`frames_to_register`). A slip
+is caught where ICP, with features in view, overrides the odometer through the innovation gate
+(a disagreement beyond 3σ of both errors). ICP's own error along the axis varies widely from
+frame to frame, and with every frame the gate gets every chance; at every k-th frame it gets
+one in k. So after a frame whose ICP disagrees with the odometer by more than
 ``LOOK_CLOSER_SIGMAS`` (2σ: a chance of 1 in 22 without a slip), the frames up to
-``LOOK_CLOSER_STRIDES`` strides further are read one by one, as every frame would be. Those
-frames are registered (they are in the trajectory, and in the local map), but only the
-stride's frames are kept for the sections, so that every section is built from frames
-spaced alike.
+``LOOK_CLOSER_STRIDES`` strides further are registered one by one, as every frame would be.
 """
 
 from __future__ import annotations
@@ -51,9 +41,6 @@ import numpy as np
 
 from pipescan.core.registration.preprocess import estimate_normals, voxel_downsample
 from pipescan.core.registration.trajectory import used_frame_indices
-
-VIEWS_PER_SECTION = 25
-"""Registered positions each section must still be seen from (see the module's notes)."""
 
 FRAMES_PER_KEYFRAME = 3
 """Registered frames each keyframe of the local map must still group."""
@@ -82,9 +69,9 @@ class FrameStride:
         """One line for the log and the report."""
         used = len(used_frame_indices(frame_count, self.stride))
         if self.stride == 1:
-            return f"every frame of {frame_count:,} used ({self.reason})"
-        which = f"every {_ordinal(self.stride)} frame used, {used:,} of {frame_count:,}"
-        return f"{which} ({self.reason})"
+            return f"every frame of {frame_count:,} registered ({self.reason})"
+        which = f"every {_ordinal(self.stride)} frame registered, {used:,} of {frame_count:,}"
+        return f"{which}, the others tracked ({self.reason})"
 
 
 def _ordinal(k: int) -> str:
@@ -143,8 +130,8 @@ def choose_frame_stride(
     section_points: int,
     keyframe_distance_m: float,
 ) -> FrameStride:
-    """The largest stride that meets the three bounds of the module's notes (1 when none
-    allows more).
+    """The largest stride the local map allows (the module's notes; 1 when it allows no
+    more, for a profiler, or without an odometer).
 
     Parameters
     ----------
@@ -157,7 +144,8 @@ def choose_frame_stride(
     step_m : float
         Section length.
     section_points : int
-        Points a section keeps (``MeasureParams.max_points``).
+        Points a section keeps (``MeasureParams.max_points``): reported, not bound by (every
+        frame is placed).
     keyframe_distance_m : float
         ``RegistrationParams.keyframe_distance_m``.
 
@@ -190,21 +178,17 @@ def choose_frame_stride(
         return FrameStride(1, "no frame to sample", d)
     n = float(np.percentile([len(f) for f in in_range], 25))
     length = float(np.median([view_length(f) for f in in_range]))
-    per_section = n * step_m / d
-    bounds = {
-        "points": per_section / section_points,
-        "views": length / (d * VIEWS_PER_SECTION),
-        "local map": keyframe_distance_m / (d * (FRAMES_PER_KEYFRAME - 1)),
-    }
-    # The largest k within each bound: k ≤ the first two, k < the local map's.
-    most = {b: int(np.floor(v + 1e-9)) for b, v in bounds.items()}
-    most["local map"] = int(np.ceil(bounds["local map"] - 1e-9)) - 1
-    binding = min(most, key=lambda b: most[b])
-    stride = max(1, most[binding])
+    per_section = n * step_m / d  # with every frame placed
+    if length == 0.0:
+        return FrameStride(
+            1, "one ring a frame (a profiler): every frame registered", d, per_section, length
+        )
+    # The largest k < keyframe_distance / (2 d) (the local map's bound).
+    stride = max(1, int(np.ceil(keyframe_distance_m / (d * (FRAMES_PER_KEYFRAME - 1)) - 1e-9)) - 1)
     reason = (
-        f"each section seen from about {length / d / stride:,.0f} positions with "
-        f"{per_section / stride:,.0f} points; {d * 1000:.1f} mm of travel a frame; "
-        f"bound by the {binding}"
+        f"{d * 1000:.1f} mm of travel a frame: each keyframe of the local map groups "
+        f"{FRAMES_PER_KEYFRAME} or more registered frames; every frame placed, each section "
+        f"seen from about {length / d:,.0f} positions with {per_section:,.0f} points"
     )
     return FrameStride(stride, reason, d, per_section, length)
 

@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation, Slerp
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
@@ -60,6 +61,11 @@ class Trajectory:
         are chained.
     standstill_frames : int
         The registered frames over which the count stood so.
+    tracked_indices : tuple of int
+        Archive indices of the frames between registered ones that were tracked
+        (:meth:`~pipescan.core.registration.FrameRegistrar.track`): placed, not registered.
+    T_world_tracked : (T, 4, 4) float
+        Their poses (NaN where tracking failed: such a frame is not placed).
     """
 
     T_world_frame: np.ndarray
@@ -72,6 +78,8 @@ class Trajectory:
     stated_slip_m: float = 0.0
     standstill_m: float = 0.0
     standstill_frames: int = 0
+    tracked_indices: tuple[int, ...] = ()
+    T_world_tracked: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 4, 4)))
 
     def positions_m(self) -> np.ndarray:
         """Sensor positions in the world frame, (F, 3)."""
@@ -132,6 +140,7 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     poses = [chunks[0].T_world_frame]
     quality = list(chunks[0].quality)
     indices = list(chunks[0].frame_indices)
+    tracked = [chunks[0].T_world_tracked]
     for chunk in chunks[1:]:
         if chunk.frame_indices[0] != indices[-1]:
             raise RegistrationError(
@@ -139,6 +148,7 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
             )
         T_world_shared = poses[-1][-1]
         poses.append(np.einsum("ij,fjk->fik", T_world_shared, chunk.T_world_frame[1:]))
+        tracked.append(np.einsum("ij,fjk->fik", T_world_shared, chunk.T_world_tracked))
         offset = quality[-1].chainage_uncertainty_m
         quality.extend(
             dataclasses.replace(q, chainage_uncertainty_m=q.chainage_uncertainty_m + offset)
@@ -185,20 +195,123 @@ def chain_trajectories(chunks: list[Trajectory]) -> Trajectory:
     return Trajectory(
         T, tuple(quality), tuple(indices), prior, slips, window, unseen, stated,
         standstill, stood_frames,
+        tracked_indices=tuple(i for c in chunks for i in c.tracked_indices),
+        T_world_tracked=np.concatenate(tracked),
     )  # fmt: skip
 
 
-def iter_registered_points(
-    frames: Iterable[tuple[int, np.ndarray]], trajectory: Trajectory
-) -> Iterator[np.ndarray]:
-    """Transform frames into the world frame, one at a time, (N, 3) each.
+def share_of_way(along: Sequence[float | None] | None, index: int, a: int, b: int) -> float:
+    """Frame ``index``'s share of the way from frame ``a`` to frame ``b`` (``a < index < b``):
+    measured in ``along`` (the frames' times or odometer readings, by frame index) where it
+    gives all three and moves between ``a`` and ``b``, else in frame indices."""
+    if along is not None:
+        ends = (along[a], along[b], along[index])
+        if all(v is not None and np.isfinite(v) for v in ends) and ends[1] != ends[0]:
+            t = (ends[2] - ends[0]) / (ends[1] - ends[0])
+            if 0.0 <= t <= 1.0:
+                return float(t)
+    return (index - a) / (b - a)
 
-    Frames that slid along the axis (``fault == "slide"``) are left out: their place is not
-    known, and the sections are seen from many other frames.
+
+def interpolate_pose(T_a: np.ndarray, T_b: np.ndarray, t: float) -> np.ndarray:
+    """The pose ``t`` of the way from ``T_a`` to ``T_b``: translation linearly, rotation by
+    slerp."""
+    T = np.eye(4)
+    rotations = Rotation.from_matrix(np.stack((T_a[:3, :3], T_b[:3, :3])))
+    T[:3, :3] = Slerp([0.0, 1.0], rotations)(t).as_matrix()
+    T[:3, 3] = (1.0 - t) * T_a[:3, 3] + t * T_b[:3, 3]
+    return T
+
+
+class FramePoses:
+    """Every frame's pose from a trajectory: a registered frame its own, a tracked frame its
+    own (a frame between registered ones whose tilt and offset ICP measured against the local
+    map: :meth:`~pipescan.core.registration.FrameRegistrar.track`), and any other frame between
+    two registered ones interpolated between them (:func:`interpolate_pose`, at
+    :func:`share_of_way` along ``along``).
+
+    Registration needs only some frames (keyframes); the sections need every frame's points,
+    so that a section's coverage never depends on which frames were registered.
+
+    A frame is not placed (:meth:`pose` None) when it lies outside the registered frames,
+    next to a registered frame that slid along the axis (whose place is not known), or where
+    its tracking failed.
+
+    Parameters
+    ----------
+    trajectory : Trajectory
+    along : sequence of float or None, optional
+        Per archive frame (indexed by frame index), what a frame's share of the way between
+        registered frames is measured in (:meth:`along_from`).
+
+    Examples
+    --------
+    >>> T = np.repeat(np.eye(4)[None], 2, axis=0)
+    >>> T[1, :3, 3] = (0.4, 0.0, 0.0)
+    >>> q = (FrameQuality(0, 1.0, 0.0, False), FrameQuality(4, 1.0, 0.0, False))
+    >>> traj = Trajectory(T, q, (0, 4))
+    >>> FramePoses(traj).pose(1)[:3, 3].tolist()
+    [0.1, 0.0, 0.0]
+    >>> FramePoses(traj, along=[0.0, 0.3, 0.35, 0.4, 0.4]).pose(1)[:3, 3].round(3).tolist()
+    [0.3, 0.0, 0.0]
+    >>> FramePoses(traj).pose(5) is None
+    True
     """
-    pose_of = dict(zip(trajectory.frame_indices, trajectory.T_world_frame, strict=True))
-    slid = {q.index for q in trajectory.quality if q.fault == "slide"}
+
+    def __init__(self, trajectory: Trajectory, along: Sequence[float | None] | None = None):
+        self.trajectory = trajectory
+        self.indices = np.asarray(trajectory.frame_indices, dtype=np.int64)
+        self.along = along
+        self.slid = np.array([q.fault == "slide" for q in trajectory.quality], dtype=bool)
+        self.tracked = dict(
+            zip(trajectory.tracked_indices, trajectory.T_world_tracked, strict=True)
+        )
+
+    @staticmethod
+    def along_from(
+        time_s: Sequence[float | None], odometer_m: Sequence[float | None]
+    ) -> list[float | None] | None:
+        """What frames are placed along between registered frames: their times where every
+        frame has one (between two registered frames, a fraction of a second apart, the
+        crawler's speed hardly changes, while the odometer's count is quantised and can stand
+        as it moves), else their odometer readings, else None (their indices: frames come
+        at a steady rate)."""
+        for column in (time_s, odometer_m):
+            if len(column) and all(v is not None for v in column):
+                return list(column)
+        return None
+
+    def pose(self, index: int) -> np.ndarray | None:
+        """Frame ``index``'s pose ``T_world_frame`` (4×4), or None when it is not placed."""
+        k = int(np.searchsorted(self.indices, index))
+        if k < len(self.indices) and self.indices[k] == index:
+            return None if self.slid[k] else self.trajectory.T_world_frame[k]
+        if k == 0 or k == len(self.indices) or self.slid[k - 1] or self.slid[k]:
+            return None
+        if index in self.tracked:
+            T = self.tracked[index]
+            return T if np.isfinite(T).all() else None
+        a, b = int(self.indices[k - 1]), int(self.indices[k])
+        ends = self.trajectory.T_world_frame[k - 1 : k + 1]
+        return interpolate_pose(ends[0], ends[1], share_of_way(self.along, index, a, b))
+
+
+def iter_registered_points(
+    frames: Iterable[tuple[int, np.ndarray]],
+    trajectory: Trajectory,
+    along: Sequence[float | None] | None = None,
+) -> Iterator[np.ndarray]:
+    """Transform frames into the world frame, one at a time, (N, 3) each: registered frames
+    by their own pose, the frames between them by an interpolated one (:class:`FramePoses`,
+    with ``along``).
+
+    Frames that slid along the axis (``fault == "slide"``), and the frames next to them, are
+    left out: their place is not known, and the sections are seen from many other frames.
+    So are frames outside the registered ones.
+    """
+    poses = FramePoses(trajectory, along)
     for frame_index, points in frames:
-        if frame_index in slid:
+        pose = poses.pose(frame_index)
+        if pose is None:
             continue
-        yield transform(pose_of[frame_index], np.asarray(points, dtype=np.float64))
+        yield transform(pose, np.asarray(points, dtype=np.float64))
