@@ -121,141 +121,166 @@ def blockage_chart_svg(
     """
     ordered = sorted(sections, key=lambda s: s.chainage_start_m)
     measured = [s.is_ok and _finite(s.blockage_ratio) for s in ordered]
-    unmeasured_runs = _chainage_spans(ordered, [not s.is_ok for s in ordered])
+    flagged = [
+        flag_section(s, blockage_threshold_ratio=blockage_threshold_ratio, flag_grade=flag_grade)
+        for s in ordered
+    ]
     x_min_m = min((s.chainage_start_m for s in ordered), default=0.0)
     x_max_m = max((s.chainage_end_m for s in ordered), default=1.0)
     threshold_pct = blockage_threshold_ratio * 100.0
 
-    def in_defect(s: SectionMeasures) -> bool:
-        return flag_section(
-            s, blockage_threshold_ratio=blockage_threshold_ratio, flag_grade=flag_grade
-        )
-
     with mpl.rc_context(_STYLE):  # type: ignore[arg-type]  # stubs want Literal keys
         fig = Figure(figsize=(width_in, height_in), layout="constrained")
         ax, ax_cov = fig.subplots(2, 1, sharex=True, gridspec_kw={"height_ratios": [4.2, 1.0]})
-
-        bars = [s for s, m in zip(ordered, measured, strict=True) if m]
-        values_pct = [s.blockage_ratio * 100.0 for s in bars]  # type: ignore[operator]
+        values_pct = [
+            s.blockage_ratio * 100.0  # type: ignore[operator]
+            for s, m in zip(ordered, measured, strict=True)
+            if m
+        ]
         y_top = max([threshold_pct * 1.6, *(v * 1.12 for v in values_pct)])
         y_bottom = min([0.0, *(v * 1.12 for v in values_pct)])
         ax.set_ylim(y_bottom, y_top)
-
-        for number, d in enumerate(defects, start=1):
-            ax.axvspan(
-                d.chainage_start_m, d.chainage_end_m, color=_COLOUR_FLAG_SPAN, lw=0, zorder=0
-            )
-            # Number and code, as in the defects table: a span flagged on deposits or
-            # deformation has no tall bar, and this says why it is shaded.
-            ax.text(
-                0.5 * (d.chainage_start_m + d.chainage_end_m),
-                y_top,
-                # With many defects the codes would run into each other: numbers only.
-                f"{number} {d.code}".strip() if len(defects) <= 8 else str(number),
-                ha="center",
-                va="top",
-                color=_COLOUR_THRESHOLD,
-                fontsize=7,
-                fontweight="bold",
-                zorder=5,
-            )
-        for start_m, end_m in unmeasured_runs:
-            for axis in (ax, ax_cov):
-                axis.axvspan(
-                    start_m,
-                    end_m,
-                    facecolor="#ececec",
-                    edgecolor=_COLOUR_UNMEASURED,
-                    hatch="///",
-                    lw=0,
-                    zorder=1,
-                )
-            # Label wide bands in place; narrow ones are explained by the legend.
-            if end_m - start_m >= 0.05 * (x_max_m - x_min_m):
-                ax.text(
-                    0.5 * (start_m + end_m),
-                    y_bottom + 0.5 * (y_top - y_bottom),
-                    "not measured",
-                    rotation=90,
-                    ha="center",
-                    va="center",
-                    color="#555555",
-                    fontsize=7,
-                    bbox={"facecolor": "#ececec", "edgecolor": "none", "pad": 1.0},
-                    zorder=4,
-                )
-
-        # Bars as two filled step outlines (one per colour), not one patch per section: a
-        # 100 m scan has 1000 sections, and 1000 patches make the SVG slow to draw and to lay
-        # out in the PDF. A NaN step is not drawn, so unmeasured sections stay empty.
-        flagged = [in_defect(s) for s in ordered]
-        for colour, keep in (
-            (_COLOUR_MEASURED, [m and not f for m, f in zip(measured, flagged, strict=True)]),
-            (_COLOUR_FLAGGED, [m and f for m, f in zip(measured, flagged, strict=True)]),
-        ):
-            if not any(keep):
-                continue
-            heights, edges_m = _steps(
-                ordered,
-                [
-                    s.blockage_ratio * 100.0 if k else math.nan  # type: ignore[operator]
-                    for s, k in zip(ordered, keep, strict=True)
-                ],
-            )
-            ax.stairs(heights, edges_m, fill=True, color=colour, lw=0, baseline=0.0, zorder=2)
+        _shade_defects(ax, defects, y_top)
+        unmeasured_runs = _chainage_spans(ordered, [not s.is_ok for s in ordered])
+        _shade_unmeasured(ax, ax_cov, unmeasured_runs, (y_bottom, y_top), x_max_m - x_min_m)
+        _blockage_bars(ax, ordered, measured, flagged)
         ax.axhline(0.0, color="#333333", lw=0.6, zorder=3)
         ax.axhline(threshold_pct, color=_COLOUR_THRESHOLD, lw=1.0, ls="--", zorder=3)
         ax.set_ylabel("blockage (%)")
         ax.grid(axis="y", color="#dddddd", lw=0.5, zorder=0)
         ax.set_xlim(x_min_m, x_max_m)
-
-        handles = [
-            Patch(color=_COLOUR_MEASURED, label="blockage, measured section"),
-            Patch(color=_COLOUR_FLAGGED, label="flagged section"),
-            Patch(color=_COLOUR_FLAG_SPAN, label="flagged span (defect)"),
-            Patch(
-                facecolor="#ececec", edgecolor=_COLOUR_UNMEASURED, hatch="///", label="not measured"
-            ),
-            Line2D(
-                [],
-                [],
-                color=_COLOUR_THRESHOLD,
-                ls="--",
-                label=f"flag threshold {threshold_pct:g} %",
-            ),
-        ]
-        fig.legend(handles=handles, loc="outside upper center", ncols=3, frameon=False, fontsize=7)
-
-        # Coverage is known for every section, measured or not: it shows why a band is grey.
-        coverage_pct, edges_m = _steps(ordered)
-        ax_cov.stairs(
-            coverage_pct,
-            edges_m,
-            color="#2d7d46",
-            lw=0.9,
-            baseline=None,
-            zorder=2,
-        )
-        if min_coverage_ratio is not None:
-            ax_cov.axhline(100 * min_coverage_ratio, color="#2d7d46", lw=0.6, ls=":", zorder=1)
-            ax_cov.text(
-                x_max_m,
-                100 * min_coverage_ratio,
-                f" {100 * min_coverage_ratio:g} %",
-                color="#2d7d46",
-                fontsize=6,
-                ha="left",
-                va="center",
-            )
-        ax_cov.set_ylim(0, 105)
-        ax_cov.set_yticks([0, 50, 100])
-        ax_cov.set_ylabel("coverage\n(%)")
-        ax_cov.set_xlabel("chainage from upstream node (m)")
-        ax_cov.grid(axis="y", color="#dddddd", lw=0.5, zorder=0)
-
+        _blockage_legend(fig, threshold_pct)
+        _coverage_strip(ax_cov, ordered, min_coverage_ratio, x_max_m)
         buffer = io.StringIO()
         fig.savefig(buffer, format="svg", metadata={"Date": None})
     return buffer.getvalue()
+
+
+def _shade_defects(ax: Any, defects: Sequence[Defect], y_top: float) -> None:
+    """Flagged defects' spans, shaded, each with its number and code at the top."""
+    for number, d in enumerate(defects, start=1):
+        ax.axvspan(d.chainage_start_m, d.chainage_end_m, color=_COLOUR_FLAG_SPAN, lw=0, zorder=0)
+        # Number and code, as in the defects table: a span flagged on deposits or
+        # deformation has no tall bar, and this says why it is shaded.
+        ax.text(
+            0.5 * (d.chainage_start_m + d.chainage_end_m),
+            y_top,
+            # With many defects the codes would run into each other: numbers only.
+            f"{number} {d.code}".strip() if len(defects) <= 8 else str(number),
+            ha="center",
+            va="top",
+            color=_COLOUR_THRESHOLD,
+            fontsize=7,
+            fontweight="bold",
+            zorder=5,
+        )
+
+
+def _shade_unmeasured(
+    ax: Any,
+    ax_cov: Any,
+    runs: Sequence[tuple[float, float]],
+    y_range: tuple[float, float],
+    x_span_m: float,
+) -> None:
+    """Unmeasured spans as grey hatched bands on both axes, the wide ones labelled."""
+    y_bottom, y_top = y_range
+    for start_m, end_m in runs:
+        for axis in (ax, ax_cov):
+            axis.axvspan(
+                start_m,
+                end_m,
+                facecolor="#ececec",
+                edgecolor=_COLOUR_UNMEASURED,
+                hatch="///",
+                lw=0,
+                zorder=1,
+            )
+        # Label wide bands in place; narrow ones are explained by the legend.
+        if end_m - start_m >= 0.05 * x_span_m:
+            ax.text(
+                0.5 * (start_m + end_m),
+                y_bottom + 0.5 * (y_top - y_bottom),
+                "not measured",
+                rotation=90,
+                ha="center",
+                va="center",
+                color="#555555",
+                fontsize=7,
+                bbox={"facecolor": "#ececec", "edgecolor": "none", "pad": 1.0},
+                zorder=4,
+            )
+
+
+def _blockage_bars(
+    ax: Any,
+    ordered: Sequence[SectionMeasures],
+    measured: Sequence[bool],
+    flagged: Sequence[bool],
+) -> None:
+    """Measured sections' blockage as bars, red where the section is flagged.
+
+    Two filled step outlines (one per colour), not one patch per section: a 100 m scan has
+    1000 sections, and 1000 patches make the SVG slow to draw and to lay out in the PDF. A NaN
+    step is not drawn, so unmeasured sections stay empty.
+    """
+    for colour, keep in (
+        (_COLOUR_MEASURED, [m and not f for m, f in zip(measured, flagged, strict=True)]),
+        (_COLOUR_FLAGGED, [m and f for m, f in zip(measured, flagged, strict=True)]),
+    ):
+        if not any(keep):
+            continue
+        heights, edges_m = _steps(
+            ordered,
+            [
+                s.blockage_ratio * 100.0 if k else math.nan  # type: ignore[operator]
+                for s, k in zip(ordered, keep, strict=True)
+            ],
+        )
+        ax.stairs(heights, edges_m, fill=True, color=colour, lw=0, baseline=0.0, zorder=2)
+
+
+def _blockage_legend(fig: Figure, threshold_pct: float) -> None:
+    handles = [
+        Patch(color=_COLOUR_MEASURED, label="blockage, measured section"),
+        Patch(color=_COLOUR_FLAGGED, label="flagged section"),
+        Patch(color=_COLOUR_FLAG_SPAN, label="flagged span (defect)"),
+        Patch(facecolor="#ececec", edgecolor=_COLOUR_UNMEASURED, hatch="///", label="not measured"),
+        Line2D(
+            [], [], color=_COLOUR_THRESHOLD, ls="--", label=f"flag threshold {threshold_pct:g} %"
+        ),
+    ]
+    fig.legend(handles=handles, loc="outside upper center", ncols=3, frameon=False, fontsize=7)
+
+
+def _coverage_strip(
+    ax_cov: Any,
+    ordered: Sequence[SectionMeasures],
+    min_coverage_ratio: float | None,
+    x_max_m: float,
+) -> None:
+    """Each section's angular coverage, with the coverage a section needs dotted.
+
+    Coverage is known for every section, measured or not: it shows why a band is grey.
+    """
+    coverage_pct, edges_m = _steps(ordered)
+    ax_cov.stairs(coverage_pct, edges_m, color="#2d7d46", lw=0.9, baseline=None, zorder=2)
+    if min_coverage_ratio is not None:
+        ax_cov.axhline(100 * min_coverage_ratio, color="#2d7d46", lw=0.6, ls=":", zorder=1)
+        ax_cov.text(
+            x_max_m,
+            100 * min_coverage_ratio,
+            f" {100 * min_coverage_ratio:g} %",
+            color="#2d7d46",
+            fontsize=6,
+            ha="left",
+            va="center",
+        )
+    ax_cov.set_ylim(0, 105)
+    ax_cov.set_yticks([0, 50, 100])
+    ax_cov.set_ylabel("coverage\n(%)")
+    ax_cov.set_xlabel("chainage from upstream node (m)")
+    ax_cov.grid(axis="y", color="#dddddd", lw=0.5, zorder=0)
 
 
 def _save_svg(fig: Figure) -> str:
