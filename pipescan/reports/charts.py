@@ -332,6 +332,9 @@ def cross_section_svg(
 ) -> str:
     """One section's measured contour against the nominal circle, to scale, as SVG.
 
+    (Over 80 lines for this docstring only: the body draws its parts, ``_draw_open_and_lost``,
+    ``_clear_height``, ``_clear_width``, ``_nominal_diameter_line``, ``_clock_marks``.)
+
     The section is drawn as seen looking in the survey's direction (the way clock positions
     are read: 12 at the crown, 3 on the right), with the clock positions 12, 3, 6 and 9 marked
     around it; ``clock_arc_h``, a defect's ``(from, to)`` clock positions, is drawn as a thick
@@ -387,110 +390,11 @@ def cross_section_svg(
         fig = Figure(figsize=(width_in, height_in))
         ax = fig.add_axes((0.19, 0.12, 0.78, 0.8))
         ax.set_aspect("equal")
-        # Outlines are simplified to 0.3 mm (far below what the printed figure resolves): the
-        # PDF renderer parses every vertex, and a report draws one figure per defect.
-        outline = polygon.simplify(_DRAW_TOLERANCE_MM)
-        ax.fill(*outline.exterior.xy, color="#dce9f5", lw=0, zorder=1)
+        _draw_open_and_lost(ax, polygon, radius_mm)
+        _clear_height(ax, polygon, radius_mm, extent_mm)
+        _clear_width(ax, polygon, extent_mm)
         if radius_mm is not None:
-            circle = Point(0.0, 0.0).buffer(radius_mm, quad_segs=64)
-            # The measured contour wanders a millimetre or two either side of a sound wall,
-            # which cuts the circle's difference into a hundred slivers. They are noise, not
-            # lost area: an opening (erode, then dilate) removes anything thinner than
-            # 2 * _SLIVER_MM, and specks under _MIN_LOST_MM2 are dropped.
-            lost_area = (
-                circle.difference(polygon)
-                .buffer(-_SLIVER_MM, quad_segs=2)
-                .buffer(_SLIVER_MM, quad_segs=2)
-                .simplify(_DRAW_TOLERANCE_MM)
-            )
-            for lost in (p for p in _polygons(lost_area) if p.area >= _MIN_LOST_MM2):
-                ax.fill(
-                    *lost.exterior.xy,
-                    facecolor="#f3c4bd",
-                    edgecolor=_COLOUR_FLAGGED,
-                    hatch="////",
-                    lw=0,
-                    zorder=2,
-                )
-            ax.add_patch(
-                Circle((0.0, 0.0), radius_mm, fill=False, ec="#333333", lw=0.9, ls=(0, (4, 2)))
-            )
-        ax.plot(*outline.exterior.xy, color=_COLOUR_MEASURED, lw=1.4, zorder=4)
-
-        arrow = {
-            "arrowstyle": "<|-|>",
-            "color": "#222222",
-            "lw": 0.7,
-            "shrinkA": 0,
-            "shrinkB": 0,
-            "mutation_scale": 6,
-        }
-        label_box = {"facecolor": "white", "edgecolor": "none", "pad": 0.6, "alpha": 0.85}
-        far = 2.0 * extent_mm
-        height = _chord_mm(polygon, (0.0, -far), (0.0, far))
-        if height is not None:
-            low, high = height
-            ax.annotate("", (0.0, low), (0.0, high), arrowprops=arrow, zorder=5)
-            ax.text(
-                0.03 * extent_mm,
-                0.5 * (low + high) + 0.2 * extent_mm,
-                f"clear height\n{high - low:.0f} mm",
-                fontsize=6.5,
-                ha="left",
-                va="center",
-                bbox=label_box,
-                zorder=6,
-            )
-            if radius_mm is not None:
-                for a, b in ((-radius_mm, low), (high, radius_mm)):
-                    if b - a > 0.02 * radius_mm:
-                        ax.annotate(
-                            "",
-                            (0.0, a),
-                            (0.0, b),
-                            arrowprops={**arrow, "color": _COLOUR_FLAGGED},
-                            zorder=5,
-                        )
-                        ax.text(
-                            -4.0,
-                            0.5 * (a + b),
-                            f"{b - a:.0f} mm",
-                            color=_COLOUR_THRESHOLD,
-                            fontsize=6.5,
-                            ha="right",
-                            va="center",
-                            bbox=label_box,
-                            zorder=6,
-                        )
-        width = _chord_mm(polygon, (-far, 0.0), (far, 0.0))
-        if width is not None:
-            left, right = width
-            ax.annotate("", (left, 0.0), (right, 0.0), arrowprops=arrow, zorder=5)
-            # Below the line and left of the centre: the clear height's label sits above, right.
-            ax.text(
-                left + 0.06 * extent_mm,
-                -0.06 * extent_mm,
-                f"clear width\n{right - left:.0f} mm",
-                fontsize=6.5,
-                ha="left",
-                va="top",
-                bbox=label_box,
-                zorder=6,
-            )
-        if radius_mm is not None:
-            y_dim = radius_mm * 1.2
-            ax.annotate("", (-radius_mm, y_dim), (radius_mm, y_dim), arrowprops=arrow, zorder=5)
-            for x in (-radius_mm, radius_mm):
-                ax.plot([x, x], [0.0, y_dim * 1.03], color="#999999", lw=0.4, zorder=0)
-            ax.text(
-                0.0,
-                y_dim,
-                f"nominal \u2300 {2 * radius_mm:.0f} mm",
-                fontsize=6.5,
-                ha="center",
-                va="bottom",
-                zorder=6,
-            )
+            _nominal_diameter_line(ax, radius_mm)
         _clock_marks(ax, radius_mm or extent_mm, clock_arc_h)
         limit = extent_mm * 1.3
         ax.set_xlim(-limit, limit)
@@ -513,6 +417,131 @@ def cross_section_svg(
             )  # fmt: skip
         # No legend in the figure: the report gives one key for all of them.
         return _save_svg(fig)
+
+
+_ARROW = {
+    "arrowstyle": "<|-|>",
+    "color": "#222222",
+    "lw": 0.7,
+    "shrinkA": 0,
+    "shrinkB": 0,
+    "mutation_scale": 6,
+}
+"""A cross-section's dimension lines."""
+_LABEL_BOX = {"facecolor": "white", "edgecolor": "none", "pad": 0.6, "alpha": 0.85}
+"""Behind a dimension's label."""
+
+
+def _draw_open_and_lost(ax: Any, polygon: shapely.Polygon, radius_mm: float | None) -> None:
+    """The open area (pale blue), the nominal circle (dashed) and what of it is lost (red
+    hatching), and the measured contour (solid blue)."""
+    # Outlines are simplified to 0.3 mm (far below what the printed figure resolves): the
+    # PDF renderer parses every vertex, and a report draws one figure per defect.
+    outline = polygon.simplify(_DRAW_TOLERANCE_MM)
+    ax.fill(*outline.exterior.xy, color="#dce9f5", lw=0, zorder=1)
+    if radius_mm is not None:
+        circle = Point(0.0, 0.0).buffer(radius_mm, quad_segs=64)
+        # The measured contour wanders a millimetre or two either side of a sound wall,
+        # which cuts the circle's difference into a hundred slivers. They are noise, not
+        # lost area: an opening (erode, then dilate) removes anything thinner than
+        # 2 * _SLIVER_MM, and specks under _MIN_LOST_MM2 are dropped.
+        lost_area = (
+            circle.difference(polygon)
+            .buffer(-_SLIVER_MM, quad_segs=2)
+            .buffer(_SLIVER_MM, quad_segs=2)
+            .simplify(_DRAW_TOLERANCE_MM)
+        )
+        for lost in (p for p in _polygons(lost_area) if p.area >= _MIN_LOST_MM2):
+            ax.fill(
+                *lost.exterior.xy,
+                facecolor="#f3c4bd",
+                edgecolor=_COLOUR_FLAGGED,
+                hatch="////",
+                lw=0,
+                zorder=2,
+            )
+        ax.add_patch(
+            Circle((0.0, 0.0), radius_mm, fill=False, ec="#333333", lw=0.9, ls=(0, (4, 2)))
+        )
+    ax.plot(*outline.exterior.xy, color=_COLOUR_MEASURED, lw=1.4, zorder=4)
+
+
+def _clear_height(
+    ax: Any, polygon: shapely.Polygon, radius_mm: float | None, extent_mm: float
+) -> None:
+    """The clear height through the centre, and the loss at the invert and the crown."""
+    far = 2.0 * extent_mm
+    height = _chord_mm(polygon, (0.0, -far), (0.0, far))
+    if height is None:
+        return
+    low, high = height
+    ax.annotate("", (0.0, low), (0.0, high), arrowprops=_ARROW, zorder=5)
+    ax.text(
+        0.03 * extent_mm,
+        0.5 * (low + high) + 0.2 * extent_mm,
+        f"clear height\n{high - low:.0f} mm",
+        fontsize=6.5,
+        ha="left",
+        va="center",
+        bbox=_LABEL_BOX,
+        zorder=6,
+    )
+    if radius_mm is None:
+        return
+    for a, b in ((-radius_mm, low), (high, radius_mm)):
+        if b - a > 0.02 * radius_mm:
+            ax.annotate(
+                "", (0.0, a), (0.0, b), arrowprops={**_ARROW, "color": _COLOUR_FLAGGED}, zorder=5
+            )
+            ax.text(
+                -4.0,
+                0.5 * (a + b),
+                f"{b - a:.0f} mm",
+                color=_COLOUR_THRESHOLD,
+                fontsize=6.5,
+                ha="right",
+                va="center",
+                bbox=_LABEL_BOX,
+                zorder=6,
+            )
+
+
+def _clear_width(ax: Any, polygon: shapely.Polygon, extent_mm: float) -> None:
+    """The clear width through the centre."""
+    far = 2.0 * extent_mm
+    width = _chord_mm(polygon, (-far, 0.0), (far, 0.0))
+    if width is None:
+        return
+    left, right = width
+    ax.annotate("", (left, 0.0), (right, 0.0), arrowprops=_ARROW, zorder=5)
+    # Below the line and left of the centre: the clear height's label sits above, right.
+    ax.text(
+        left + 0.06 * extent_mm,
+        -0.06 * extent_mm,
+        f"clear width\n{right - left:.0f} mm",
+        fontsize=6.5,
+        ha="left",
+        va="top",
+        bbox=_LABEL_BOX,
+        zorder=6,
+    )
+
+
+def _nominal_diameter_line(ax: Any, radius_mm: float) -> None:
+    """The nominal diameter's dimension line above the section."""
+    y_dim = radius_mm * 1.2
+    ax.annotate("", (-radius_mm, y_dim), (radius_mm, y_dim), arrowprops=_ARROW, zorder=5)
+    for x in (-radius_mm, radius_mm):
+        ax.plot([x, x], [0.0, y_dim * 1.03], color="#999999", lw=0.4, zorder=0)
+    ax.text(
+        0.0,
+        y_dim,
+        f"nominal \u2300 {2 * radius_mm:.0f} mm",
+        fontsize=6.5,
+        ha="center",
+        va="bottom",
+        zorder=6,
+    )
 
 
 def _clock_marks(ax: Any, radius_mm: float, arc_h: tuple[float, float] | None) -> None:
