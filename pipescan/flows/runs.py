@@ -99,18 +99,13 @@ def recent_network_runs(limit: int = 10, database_url: str | None = None) -> lis
     """
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import (
-        ArtifactFilter,
-        ArtifactFilterFlowRunId,
-        ArtifactFilterKey,
         FlowFilter,
         FlowFilterName,
         FlowRunFilter,
-        FlowRunFilterParentFlowRunId,
         FlowRunFilterStartTime,
     )
     from prefect.client.schemas.sorting import FlowRunSort
 
-    runs: list[NetworkRun] = []
     with get_client(sync_client=True) as client:
         flow_runs = client.read_flow_runs(
             flow_filter=FlowFilter(name=FlowFilterName(any_=[FLOW_NAME])),
@@ -118,53 +113,8 @@ def recent_network_runs(limit: int = 10, database_url: str | None = None) -> lis
             sort=FlowRunSort.START_TIME_DESC,
             limit=limit,
         )
-        ids = [r.id for r in flow_runs]
-        artifacts = (
-            client.read_artifacts(
-                artifact_filter=ArtifactFilter(
-                    flow_run_id=ArtifactFilterFlowRunId(any_=ids),
-                    key=ArtifactFilterKey(any_=[OUTCOMES_ARTIFACT]),
-                )
-            )
-            if ids
-            else []
-        )
-        # The latest table of each run (a retried run writes one per attempt that finished).
-        tables: dict[str, Any] = {}
-        for artifact in sorted(artifacts, key=lambda a: a.created):
-            tables[str(artifact.flow_run_id)] = artifact
-        for r in flow_runs:
-            table = tables.get(str(r.id))
-            if table is not None:
-                rows = table.data if isinstance(table.data, list) else json.loads(table.data)
-                counts, failed, missing = outcomes_from_rows(rows)
-                source = "outcomes"
-            else:
-                subflows = client.read_flow_runs(
-                    flow_run_filter=FlowRunFilter(
-                        parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=[r.id])
-                    ),
-                    limit=200,
-                )
-                counts, failed, missing = outcomes_from_subflows(subflows)
-                source = "sub-flows"
-            runs.append(
-                NetworkRun(
-                    id=str(r.id),
-                    name=r.name,
-                    state=r.state.type.value if r.state else "UNKNOWN",
-                    state_name=r.state.name if r.state else "Unknown",
-                    message=r.state.message if r.state else None,
-                    started=r.start_time,
-                    finished=r.end_time,
-                    run_count=r.run_count,
-                    store=(r.parameters or {}).get("store"),
-                    counts=counts,
-                    failed=failed,
-                    missing=missing,
-                    source=source,
-                )
-            )
+        tables = _outcome_tables(client, [r.id for r in flow_runs])
+        runs = [_network_run(client, r, tables.get(str(r.id))) for r in flow_runs]
     if database_url and any(run.failed or run.missing for run in runs):
         from pipescan.core.errors import PipescanError
         from pipescan.tasks.network import stored_archive_uris
@@ -175,6 +125,64 @@ def recent_network_runs(limit: int = 10, database_url: str | None = None) -> lis
             return runs
         runs = [with_stored_since(run, stored) for run in runs]
     return runs
+
+
+def _outcome_tables(client: Any, flow_run_ids: list[Any]) -> dict[str, Any]:
+    """Each run's outcome table (:data:`OUTCOMES_ARTIFACT`), by run id: the latest, as a
+    retried run writes one per attempt that finished."""
+    from prefect.client.schemas.filters import (
+        ArtifactFilter,
+        ArtifactFilterFlowRunId,
+        ArtifactFilterKey,
+    )
+
+    if not flow_run_ids:
+        return {}
+    artifacts = client.read_artifacts(
+        artifact_filter=ArtifactFilter(
+            flow_run_id=ArtifactFilterFlowRunId(any_=flow_run_ids),
+            key=ArtifactFilterKey(any_=[OUTCOMES_ARTIFACT]),
+        )
+    )
+    tables: dict[str, Any] = {}
+    for artifact in sorted(artifacts, key=lambda a: a.created):
+        tables[str(artifact.flow_run_id)] = artifact
+    return tables
+
+
+def _network_run(client: Any, r: Any, table: Any | None) -> NetworkRun:
+    """One run, its archives' outcomes from its outcome table, or (a run that left none: it
+    died) from its sub-flow runs."""
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterParentFlowRunId
+
+    if table is not None:
+        rows = table.data if isinstance(table.data, list) else json.loads(table.data)
+        counts, failed, missing = outcomes_from_rows(rows)
+        source = "outcomes"
+    else:
+        subflows = client.read_flow_runs(
+            flow_run_filter=FlowRunFilter(
+                parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=[r.id])
+            ),
+            limit=200,
+        )
+        counts, failed, missing = outcomes_from_subflows(subflows)
+        source = "sub-flows"
+    return NetworkRun(
+        id=str(r.id),
+        name=r.name,
+        state=r.state.type.value if r.state else "UNKNOWN",
+        state_name=r.state.name if r.state else "Unknown",
+        message=r.state.message if r.state else None,
+        started=r.start_time,
+        finished=r.end_time,
+        run_count=r.run_count,
+        store=(r.parameters or {}).get("store"),
+        counts=counts,
+        failed=failed,
+        missing=missing,
+        source=source,
+    )
 
 
 def with_stored_since(run: NetworkRun, stored: set[str]) -> NetworkRun:
