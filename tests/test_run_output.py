@@ -113,4 +113,4 @@ def test_a_sigterm_ends_the_run_while_an_archive_is_still_running(tmp_path):
     assert proc.wait(timeout=30) == 143
     took_s = time.monotonic() - signalled
     assert took_s < 15, took_s
-    assert "--- SIGTERM: the process ends now" in path.read_text()
+    assert "--- SIGTERM: the process ends now (" in path.read_text()  # and why

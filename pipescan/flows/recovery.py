@@ -6,7 +6,10 @@ When the process of a run dies (SIGKILL, OOM, a host crash), nothing marks the t
 sub-flow runs it was executing: Prefect leaves them Running for good, even after the run
 itself is marked Crashed and retried (see :mod:`pipescan.flows.deploy` for the automations that
 do that). A retried run knows that they belong to no living process, because it is the run
-now: it marks them Crashed, so that no run of it stays Running.
+now: it marks them Crashed, so that no run of it stays Running. At its end, a run marks
+Crashed what an outage of Prefect's API or database left active of it
+(:func:`close_leftovers`); on SIGTERM (a cancel), it closes what it was running and ends at
+once (:func:`end_promptly_on_sigterm`).
 """
 
 from __future__ import annotations
@@ -98,6 +101,8 @@ def close_open_runs(flow_run_id: str, message: str, *, cancelled: bool = False) 
     return len(open_subflows), len(tasks)
 
 
+SIGTERM_END_S = 10.0
+"""At most this long after a SIGTERM, a scheduled run's process ends."""
 STALE_S = 30.0
 """A task run of a finished network run still active in Prefect after this long lost its
 later states (:func:`close_leftovers`)."""
@@ -175,9 +180,9 @@ def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
     """In a scheduled run's process: on SIGTERM (the worker's way to cancel a run, or a person
     stopping the process), mark the run's active sub-flow and task runs Cancelled (Crashed when
     the run is not being cancelled) and end the process at once, within
-    :data:`SIGTERM_END_S` seconds. Call it from the flow, in the main thread, inside
-    Prefect's own SIGTERM handler, which it also calls. Returns whether it was installed
-    (not outside the main thread).
+    :data:`SIGTERM_END_S` seconds. Call it from the flow's function, in the main thread,
+    where Prefect's own SIGTERM handler is installed: it calls that handler too. Returns
+    whether it was installed (not outside the main thread).
 
     Without it, Prefect's handler stops the run from starting more archives, but the archive
     being inspected runs in a pool thread that nothing can stop, and the pool waits for it on
@@ -193,7 +198,16 @@ def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
     previous = signal.getsignal(signal.SIGTERM)
 
     def end() -> None:
-        threading.Timer(SIGTERM_END_S, _exit_now).start()  # whatever the API does
+        deadline = threading.Timer(  # whatever Prefect's API does
+            SIGTERM_END_S,
+            _exit_now,
+            args=(
+                f"--- SIGTERM: the process ends now (Prefect's API gave no answer in "
+                f"{SIGTERM_END_S:g} s)",
+            ),
+        )
+        deadline.daemon = True
+        deadline.start()
         try:
             cancelled = _is_cancelling(flow_run_id)
             closed = close_open_runs(
@@ -202,15 +216,14 @@ def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
                 "ended on SIGTERM",
                 cancelled=cancelled,
             )
-            print(
+            said = (
                 f"--- SIGTERM: run {run_name} {'cancelled' if cancelled else 'stopped'}; "
                 f"{closed[0]} sub-flow and {closed[1]} task runs marked "
-                f"{'Cancelled' if cancelled else 'Crashed'}; the process ends now",
-                flush=True,
+                f"{'Cancelled' if cancelled else 'Crashed'}; the process ends now"
             )
         except Exception as exc:  # the API is away: end all the same
-            print(f"--- SIGTERM: the process ends now ({type(exc).__name__}: {exc})", flush=True)
-        _exit_now()
+            said = f"--- SIGTERM: the process ends now ({type(exc).__name__}: {exc})"
+        _exit_now(said)
 
     def handler(signum, frame) -> None:
         signal.signal(signal.SIGTERM, previous)  # a second SIGTERM: Prefect's way
@@ -222,10 +235,6 @@ def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
     return True
 
 
-SIGTERM_END_S = 10.0
-"""At most this long after a SIGTERM, a scheduled run's process ends."""
-
-
 def _is_cancelling(flow_run_id: str) -> bool:
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.objects import StateType
@@ -235,7 +244,8 @@ def _is_cancelling(flow_run_id: str) -> bool:
     return state is not None and state.type in (StateType.CANCELLING, StateType.CANCELLED)
 
 
-def _exit_now() -> None:
+def _exit_now(said: str) -> None:
+    print(said, flush=True)
     for stream in (sys.stdout, sys.stderr):
         if stream is not None:
             stream.flush()
