@@ -231,9 +231,9 @@ def write_to_location(pdf_path: Path, location: str, name: str) -> str:
         The location cannot be written (the error names it and the cause).
     """
     import fsspec
-    from fsspec.implementations.local import LocalFileSystem
 
     from pipescan.storage.atomic import atomic_file
+    from pipescan.storage.input.urls import is_local
 
     target = location.rstrip("/") + "/" + name.lstrip("/")
     try:
@@ -245,7 +245,7 @@ def write_to_location(pdf_path: Path, location: str, name: str) -> str:
         # Write beside the target and move into place, so a reader never sees half a PDF: on
         # a local folder a new file of a random name (O_EXCL, no link followed); on a store,
         # a random name no one can plant ahead.
-        if isinstance(fs, LocalFileSystem):
+        if is_local(fs):
             with atomic_file(path) as fh:
                 fh.write(data)
         else:
