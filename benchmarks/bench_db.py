@@ -261,10 +261,10 @@ def network_report_figures(engine: sa.Engine, url: str, label: str) -> None:
 
     latest = queries.list_network_inspections(engine)
     ids = [r.id for r in latest]
-    history = queries.earlier_scans(engine, ids)
+    history = queries.list_earlier_scans(engine, ids)
     steps = (
         ("latest inspection of each asset", lambda: queries.list_network_inspections(engine)),
-        ("earlier scans of each (history)", lambda: queries.earlier_scans(engine, ids)),
+        ("earlier scans of each (history)", lambda: queries.list_earlier_scans(engine, ids)),
         ("their sections, no contours", lambda: queries.section_profiles(engine, ids)),
         ("defect counts", lambda: queries.defect_counts(engine, ids)),
         ("all, as the report task reads it", lambda: load_network_input(url)),

@@ -16,10 +16,10 @@ import sqlalchemy as sa
 from pipescan.core.model import InspectionMeta, SectionMeasures, SectionStatus
 from pipescan.storage.database import db, repository
 from pipescan.storage.database.queries import (
-    earlier_scans,
+    find_previous_scans,
     list_earlier_inspections,
+    list_earlier_scans,
     list_network_inspections,
-    previous_inspections,
     scans_statement,
 )
 
@@ -98,16 +98,16 @@ def test_latest_per_asset_and_earlier_scans_follow_their_rules(
     assert [r.id for r in latest] == [max(rs, key=_order).id for _, rs in sorted(by_asset.items())]
     assert latest == [r for r in stored if r.id in {x.id for x in latest}]  # whole records
 
-    every = earlier_scans(engine, [r.id for r in stored])
+    every = list_earlier_scans(engine, [r.id for r in stored])
     assert {i: [e.id for e in scans] for i, scans in every.items()} == {
         r.id: reference_earlier(stored, r) for r in stored
     }
     assert any(len(scans) >= 3 for scans in every.values())
-    two = earlier_scans(engine, [r.id for r in stored], limit=2)
+    two = list_earlier_scans(engine, [r.id for r in stored], limit=2)
     assert {i: [e.id for e in s] for i, s in two.items()} == {
         i: [e.id for e in s][:2] for i, s in every.items()
     }
-    previous = previous_inspections(engine, latest)
+    previous = find_previous_scans(engine, latest)
     assert {i: p.id for i, p in previous.items()} == {
         r.id: reference_earlier(stored, r)[0] for r in latest if reference_earlier(stored, r)
     }

@@ -43,8 +43,8 @@ from pipescan.storage.database.models import Inspection
 from pipescan.storage.database.network import asset_geometries, resolve_asset
 from pipescan.storage.database.queries import (
     defect_counts,
-    earlier_scans,
     latest_per_asset_statement,
+    list_earlier_scans,
     list_network_inspections,
     section_profiles,
 )
@@ -229,7 +229,7 @@ def _features(
         chunk = records[start : start + _CHUNK]
         ids = [r.id for r in chunk]
         with session_scope(engine) as session:
-            history = earlier_scans(session, ids)
+            history = list_earlier_scans(session, ids)
             profiles = section_profiles(session, ids)
             counts = defect_counts(session, ids)
             chunk_defects = {r.id: list_defects(session, r.id) for r in chunk}

@@ -32,8 +32,8 @@ from pipescan.storage.database.network import placements
 from pipescan.storage.database.queries import (
     defect_counts,
     defects_by_inspection,
-    earlier_scans,
     list_earlier_inspections,
+    list_earlier_scans,
     list_network_inspections,
     section_profiles,
 )
@@ -136,7 +136,7 @@ def load_network_input(
         with session_scope(engine) as session:
             records = list_network_inspections(session, since=since, inspection_ids=inspection_ids)
             ids = [r.id for r in records]
-            history = earlier_scans(session, ids)
+            history = list_earlier_scans(session, ids)
             profiles = section_profiles(session, ids)
             counts = defect_counts(session, ids)
             defects = defects_by_inspection(session, ids)

@@ -43,12 +43,12 @@ __all__ = [
     "ScanRecord",
     "defect_counts",
     "defects_by_inspection",
-    "earlier_scans",
     "earlier_scans_statement",
+    "find_previous_scans",
     "latest_per_asset_statement",
     "list_earlier_inspections",
+    "list_earlier_scans",
     "list_network_inspections",
-    "previous_inspections",
     "scans_statement",
     "section_profiles",
 ]
@@ -161,7 +161,7 @@ class ScanRecord:
     peak_blockage_ratio: float | None
 
 
-def earlier_scans(
+def list_earlier_scans(
     source: Reader, inspection_ids: Sequence[int], *, limit: int | None = None
 ) -> dict[int, list[ScanRecord]]:
     """The earlier scans of each inspection's pipe, most recent first (see the module's rules).
@@ -210,7 +210,7 @@ def list_earlier_inspections(
         return _earlier_scans(session, [inspection_id], limit)[inspection_id]
 
 
-def previous_inspections(
+def find_previous_scans(
     source: Reader, records: Sequence[InspectionRecord]
 ) -> dict[int, ScanRecord]:
     """For each inspection, its pipe's previous scan, if any (see the module's rules).
@@ -220,7 +220,7 @@ def previous_inspections(
     dict
         Inspection id to its previous scan; ids without one are left out.
     """
-    earlier = earlier_scans(source, [r.id for r in records], limit=1)
+    earlier = list_earlier_scans(source, [r.id for r in records], limit=1)
     return {i: scans[0] for i, scans in earlier.items() if scans}
 
 
