@@ -461,6 +461,9 @@ def truth_errors(sections_csv: Path, archive: Path) -> str:
 FULLY_SEEN = 0.999
 """A section the sensor saw all the way round, in truth (the simulator's coverage)."""
 
+SECTION_RANGE_M = 5.0
+"""pipescan's section range (``InspectionParams.max_section_range_m``)."""
+
 
 def seen_and_measured(sections_csv: Path, archive: Path) -> dict:
     """The run's mean section coverage, and the share of the sections fully seen in truth
@@ -471,8 +474,15 @@ def seen_and_measured(sections_csv: Path, archive: Path) -> dict:
 
     from pipescan.simulator.archive import read_ground_truth
 
-    _, truth = read_ground_truth(archive)
-    seen = {round(t.chainage_start_m, 1) for t in truth if t.coverage_ratio >= FULLY_SEEN}
+    poses, truth = read_ground_truth(archive)
+    # Within the section range (5 m) of the sensor's last position: the truth's coverage
+    # counts returns up to the sensor's own range.
+    reach = truth[0].chainage_start_m + poses[-1][0, 3] + SECTION_RANGE_M
+    seen = {
+        round(t.chainage_start_m, 1)
+        for t in truth
+        if t.coverage_ratio >= FULLY_SEEN and t.chainage_end_m <= reach
+    }
     with sections_csv.open(encoding="utf-8") as fh:
         rows = list(csv.DictReader(fh))
     coverage = [float(r["coverage_ratio"]) for r in rows if r["coverage_ratio"] != ""]

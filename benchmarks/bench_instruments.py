@@ -1,6 +1,6 @@
 """The accuracy sweep over instruments: each draw a sensor model and its effects, inspected in
 memory as the inspect flow does it (the scan's own instrument estimated and applied, every
-frame where one frame covers only part of the view), and scored against the simulator's truth.
+frame registered where one frame covers only part of the view, every frame placed), and scored against the simulator's truth.
 
     python benchmarks/bench_instruments.py                 # 32 draws, two at a time
     python benchmarks/bench_instruments.py --count 8 --only rosette
@@ -8,7 +8,8 @@ frame where one frame covers only part of the view), and scored against the simu
     python benchmarks/bench_instruments.py --findings      # issue 50's three findings
 
 Each row is one draw (``pipescan.simulator.sweep.instrument_draws``): the instrument estimated
-from the scan, the fully seen sections away from defect edges and the share of them measured
+from the scan, the fully seen sections away from defect edges (all round, in truth, and within
+pipescan's 5 m section range of the sensor's last position) and the share of them measured
 (``ok``), their mean and largest |error| against the truth at the same chainage, the ok
 sections off by more than 2 pp anywhere within their chainage ± ("dishonest"), the true
 defects over 5 % that the run coded (a defect as the report lists it, overlapping the true
@@ -99,10 +100,14 @@ def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
         trajectory, sections = measure_scan(scan, instrument=not before)
     truth = TrueBlockage(scan)
     by_start = {round(sec.chainage_start_m, 3): sec for sec in sections}
+    # Fully seen within pipescan's section range (5 m): the truth's coverage counts every
+    # return up to the sensor's own range, further ahead of its last position.
+    reach = scan.scenario.chainage_offset_m + scan.T_world_sensor[-1][0, 3] + SECTION_RANGE_M
     seen = [
         t
         for t in truth.sections.values()
         if t.coverage_ratio >= 0.999
+        and t.chainage_end_m <= reach
         and truth.variation(round(t.chainage_start_m, 3), 0.1) * 100 <= FLAT_PP
     ]
     errors, ok_seen = [], 0
@@ -155,6 +160,12 @@ def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
         "water": water,
         "seconds": time.perf_counter() - started,
     }
+
+
+SECTION_RANGE_M = 5.0
+"""pipescan's section range (``InspectionParams.max_section_range_m``): returns further from
+the sensor are not measured, so a section further ahead of the sensor's last position than
+this is not counted among the fully seen."""
 
 
 FINDINGS = {

@@ -24,7 +24,7 @@ DOCUMENTED_COLUMNS = (
     "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
     "coverage_ratio,point_count,status,grade,blockage_uncertainty_ratio,"
     "ovality_uncertainty_ratio,deformation_uncertainty_ratio,deposit_height_uncertainty_ratio,"
-    "water_depth_ratio,chainage_uncertainty_m"
+    "water_depth_ratio,chainage_uncertainty_m,measured_inner_diameter_m"
 )
 NOMINAL_AREA_M2 = math.pi * 0.6**2 / 4
 MEASURED = SectionMeasures(
@@ -146,6 +146,7 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         "deposit_height_uncertainty_ratio": "0.012",
         "water_depth_ratio": "0",
         "chainage_uncertainty_m": "0.042",
+        "measured_inner_diameter_m": "",  # stored without one
     }
     assert float(measured["blockage_ratio"]) == pytest.approx(0.125, abs=1e-3)
     # Unmeasured figures are empty, never 0.
@@ -313,3 +314,34 @@ def test_export_streams_in_batches(sqlite_url: str, monkeypatch: pytest.MonkeyPa
     assert sum(_CountingCursor.fetch_sizes) == 6
     assert max(_CountingCursor.fetch_sizes) == 2
     assert len(out.getvalue().splitlines()) == 7
+
+
+def test_sections_carry_the_inspection_s_measured_inner_diameter(engine: sa.Engine) -> None:
+    """Blockage is against the nominal diameter: the diameter the wall measured goes beside
+    it on every row of the inspection (empty where the inspection measured none)."""
+    measured = repository.save_inspection(
+        engine,
+        repository.InspectionToSave(
+            meta=InspectionMeta(
+                asset_id="M", inspected_at=datetime(2025, 1, 2, tzinfo=UTC), nominal_diameter_m=0.6
+            ),
+            archive_uri="/scans/m.zip",
+            content_hash="hm",
+            params={},
+            software_version="0.1.0",
+            sections=[MEASURED, UNMEASURED],
+            defects=[],
+            registration={"measured_inner_diameter_m": 0.5893},
+        ),
+    )
+    unmeasured = _save(engine, "N", 2025, "hn")
+    out = io.StringIO()
+    export.export_sections_csv(engine, out)
+    rows = list(csv.DictReader(io.StringIO(out.getvalue())))
+    by_inspection = {(r["inspection_id"], r["measured_inner_diameter_m"]) for r in rows}
+    assert by_inspection == {(str(measured), "0.5893"), (str(unmeasured), "")}
+    out = io.StringIO()
+    export.export_sections_jsonl(engine, out, inspection_id=measured)
+    assert {
+        json.loads(line)["measured_inner_diameter_m"] for line in out.getvalue().splitlines()
+    } == {0.5893}

@@ -500,3 +500,21 @@ def test_an_inspection_stored_without_its_direction(engine_with_inspection, tmp_
     )
     assert result.exit_code == 2
     assert "inspect its archive again" in result.output
+
+
+def test_the_profile_is_the_measured_one_where_the_scan_measured_it() -> None:
+    """U124: 4 (Querschnittsvermessung) with the inner diameter the wall measured, else 2 (aus
+    Stammdaten) with the nominal one; both validate."""
+
+    def profile(rec) -> tuple[str, str, str]:
+        document = build_isybau([inspection(record=rec)], HEADER)
+        assert validation_errors(document) == []
+        basics = parse(document).find(".//i:RGrunddaten", NS)
+        return tuple(
+            basics.find(f"i:{name}", NS).text
+            for name in ("HerkunftProfilmasse", "Profilhoehe", "Profilbreite")
+        )
+
+    assert profile(record()) == ("2", "500", "500")
+    measured = record(registration={"measured_inner_diameter_m": 0.4872})
+    assert profile(measured) == ("4", "487", "487")

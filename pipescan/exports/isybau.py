@@ -443,7 +443,11 @@ def _inspected_object(parent: ET.Element, inspection: IsybauInspection, pipe: _P
         )
         _sub(basics, "KnotenAblaufTyp", 0)
         if record.pipe_shape == "circular" and record.nominal_diameter_m:
-            size_mm = round(record.nominal_diameter_m * 1000)
+            # The inner diameter the scan measured (U124 4: Querschnittsvermessung), else
+            # the nominal one (2: aus Stammdaten).
+            measured = (record.registration or {}).get("measured_inner_diameter_m")
+            _sub(basics, "HerkunftProfilmasse", 2 if measured is None else 4)
+            size_mm = round((record.nominal_diameter_m if measured is None else measured) * 1000)
             _sub(basics, "Profilhoehe", size_mm)
             _sub(basics, "Profilbreite", size_mm)
             _sub(basics, "Profilart", 0)  # G205: Kreisprofil

@@ -53,9 +53,13 @@ SECTION_CSV_COLUMNS: tuple[str, ...] = (
     "deposit_height_uncertainty_ratio",
     "water_depth_ratio",
     "chainage_uncertainty_m",
+    "measured_inner_diameter_m",
 )
 """Header of the sections CSV, in order. ``chainage_uncertainty_m`` bounds how far the
-section's true place along the pipe may be from its chainage (empty when not known)."""
+section's true place along the pipe may be from its chainage (empty when not known).
+``measured_inner_diameter_m`` is the inner diameter the inspection measured on the clean
+wall (``core.summary.measured_inner_diameter``; the same on every row of an inspection, empty
+when it measured none): blockage is against the nominal diameter."""
 
 DEFECT_CSV_COLUMNS: tuple[str, ...] = (
     "asset_id",
@@ -180,6 +184,9 @@ def _section_rows(
         Section.status,
         Section.grade,
         *(getattr(Section, name) for name in _LATER_COLUMNS),
+        Inspection.registration_json["measured_inner_diameter_m"]
+        .as_float()
+        .label("measured_inner_diameter_m"),
     ).join(Section, Section.inspection_id == Inspection.id)
     statement = _filtered(statement, asset_id, inspection_id).order_by(
         Inspection.asset_id, Inspection.inspected_at, Inspection.id, Section.chainage_start_mm
@@ -237,6 +244,7 @@ def _section_csv_cells(record: Mapping[str, Any]) -> list[str]:
         text_cell(record["status"]),
         _int_cell(record["grade"]),
         *(_float_cell(record[name]) for name in _LATER_COLUMNS),
+        _float_cell(record["measured_inner_diameter_m"]),
     ]
 
 
@@ -384,7 +392,7 @@ def export_sections_jsonl(
         out,
         SECTION_CSV_COLUMNS,
         _section_rows(engine, asset_id, inspection_id),
-        (*_MEASURE_COLUMNS, *_LATER_COLUMNS),
+        (*_MEASURE_COLUMNS, *_LATER_COLUMNS, "measured_inner_diameter_m"),
     )
 
 
