@@ -123,3 +123,22 @@ def test_a_deployments_run_announces_its_end_and_another_run_does_not(monkeypatc
         ("prefect.deployment.d3p", "deployment"),
         ("prefect.tag.pipescan-scheduled", "tag"),
     }
+
+
+def test_a_run_that_cannot_start_e_mails_why(prefect, tmp_path, monkeypatch, smtp_env):  # noqa: F811
+    """No archive done: the database check at the start failed. The alert says so."""
+    from pipescan.flows.network import inspect_network
+
+    (tmp_path / "r.db").mkdir()  # refuses connections: "unable to open database file"
+    monkeypatch.setenv("PIPESCAN_DATABASE_URL", f"sqlite:///{tmp_path / 'r.db'}")
+    state = inspect_network(
+        store=_store(tmp_path / "store", ["a1"]),
+        work_dir=str(tmp_path / "work"),
+        write_network_report=False,
+        startup_wait_s=0,
+        return_state=True,
+    )
+    assert state.is_failed(), state
+    [(_, to, message)] = smtp_env.messages
+    assert to == ["ops@utility.example", "oncall@utility.example"]
+    assert "cannot open database" in message.get_content()
