@@ -533,6 +533,48 @@ def test_what_an_outage_of_prefects_database_left_active_is_closed_at_the_end(pr
     assert close_leftovers(None) == (0, 0)  # the flow's function called as such
 
 
+def test_what_a_run_cancelled_on_a_dead_host_left_active_is_closed_by_a_later_run(prefect):
+    """A run whose host died is Cancelled by the automation with its sub-flow still Running:
+    no process is left to close it, and no automation watches sub-flows. A later run of the
+    same deployment closes it (here: once the earlier run ended 1 s ago, not 30 min)."""
+    import time
+
+    from prefect import task
+    from prefect.client.orchestration import get_client
+    from prefect.states import Cancelled, Running
+
+    from pipescan.flows.recovery import close_abandoned_runs
+
+    @flow(name="inspect-network")
+    def network_run():
+        pass
+
+    @flow(name="inspect-archive")
+    def subflow():
+        pass
+
+    @task(name="archive")
+    def archive():
+        pass
+
+    with get_client(sync_client=True) as client:
+        deployment = client.create_deployment(client.create_flow(network_run), "nightly")
+        dead = client.create_flow_run_from_deployment(deployment, state=Running())
+        wrapper = client.create_task_run(archive, dead.id, "0", state=Running())
+        sub = client.create_flow_run(subflow, parent_task_run_id=wrapper.id, state=Running())
+        client.set_flow_run_state(dead.id, Cancelled(message="its host died"), force=True)
+        now = client.create_flow_run_from_deployment(deployment, state=Running())
+        assert close_abandoned_runs(str(now.id)) == (0, 0)  # 30 min have not passed
+        time.sleep(1.5)
+        assert close_abandoned_runs(str(now.id), abandoned_after_s=1) == (1, 1)
+        sub_state = client.read_flow_run(sub.id).state
+        wrapper_state = client.read_task_run(wrapper.id).state
+        alone = client.create_flow_run(network_run, state=Running())
+        assert close_abandoned_runs(str(alone.id), abandoned_after_s=1) == (0, 0)
+    assert (sub_state.type.value, wrapper_state.type.value) == ("CANCELLED", "CANCELLED")
+    assert sub_state.message.startswith("left active by run ")
+
+
 def test_the_cli_waits_for_its_database_when_told(prefect, tmp_path, fast_retries, monkeypatch):
     FakeSubflow(monkeypatch, {})
     monkeypatch.setattr(network, "DATABASE_FIRST_DELAY_S", 0.2)

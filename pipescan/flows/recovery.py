@@ -171,9 +171,71 @@ def close_leftovers(flow_run_id: str, stale_s: float = STALE_S) -> tuple[int, in
                 client.set_task_run_state(task_run.id, Crashed(message=message), force=True)
             for subflow in open_subflows:
                 client.set_flow_run_state(subflow.id, Crashed(message=message), force=True)
+        abandoned = close_abandoned_runs(flow_run_id)
     except Exception:  # the API is away: nothing to do about it now
         return 0, 0
-    return len(open_subflows), len(stale)
+    return len(open_subflows) + abandoned[0], len(stale) + abandoned[1]
+
+
+ABANDONED_AFTER_S = 1800.0
+"""An earlier run that ended Crashed or Cancelled this long ago has no process left (a live run
+the silent-run automation took for dead is back within minutes; a crashed one is retried
+after 30 s)."""
+LOOK_BACK_S = 7 * 86400.0
+"""How far back :func:`close_abandoned_runs` looks."""
+
+
+def close_abandoned_runs(
+    flow_run_id: str, abandoned_after_s: float = ABANDONED_AFTER_S
+) -> tuple[int, int]:
+    """Close what earlier runs of this run's deployment left active: a run that ended Crashed
+    (on its last attempt) or Cancelled (its host dead) between :data:`LOOK_BACK_S` and
+    ``abandoned_after_s`` seconds ago has no process left, and its sub-flow and task runs
+    still active are marked Cancelled or Crashed, as the run ended. No automation does it: a
+    sub-flow sends no end event, so the silent-run automation does not watch sub-flows
+    (:mod:`pipescan.flows.deploy`). Returns (sub-flow runs, task runs) marked."""
+    from datetime import timedelta
+
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import (
+        DeploymentFilter,
+        DeploymentFilterId,
+        FlowRunFilter,
+        FlowRunFilterEndTime,
+        FlowRunFilterState,
+        FlowRunFilterStateType,
+    )
+    from prefect.client.schemas.objects import StateType
+
+    with get_client(sync_client=True) as client:
+        deployment_id = client.read_flow_run(flow_run_id).deployment_id
+        if deployment_id is None:
+            return 0, 0
+        now = datetime.now(UTC)
+        ended = client.read_flow_runs(
+            deployment_filter=DeploymentFilter(id=DeploymentFilterId(any_=[deployment_id])),
+            flow_run_filter=FlowRunFilter(
+                state=FlowRunFilterState(
+                    type=FlowRunFilterStateType(any_=[StateType.CRASHED, StateType.CANCELLED])
+                ),
+                end_time=FlowRunFilterEndTime(
+                    after_=now - timedelta(seconds=LOOK_BACK_S),
+                    before_=now - timedelta(seconds=abandoned_after_s),
+                ),
+            ),
+            limit=PAGE,
+        )
+    closed = (0, 0)
+    for run in ended:
+        cancelled = run.state is not None and run.state.is_cancelled()
+        more = close_open_runs(
+            str(run.id),
+            f"left active by run {run.name}, which ended "
+            f"{'Cancelled' if cancelled else 'Crashed'} with no process left",
+            cancelled=cancelled,
+        )
+        closed = (closed[0] + more[0], closed[1] + more[1])
+    return closed
 
 
 def end_promptly_on_sigterm(flow_run_id: str, run_name: str) -> bool:
