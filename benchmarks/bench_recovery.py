@@ -8,18 +8,24 @@ supervisor would) until every archive has its inspection and no run is active.
 
 The outages (``db45``, ``db120``, ``db600``: the database refusing connections for that many
 seconds from the same moment; ``dbstart30``: refusing for 30 s when the run starts;
-``server105``: the Prefect server down for 105 s) end by themselves; a run that ends Failed
-(not green, naming what is missing) also ends the wait.
+``server105``: the Prefect server down for 105 s; ``pg20``: a PostgreSQL cluster holding
+pipescan's database and Prefect's, started by the bench from Debian's binaries in a temporary
+folder, stopped for 20 s) end by themselves; a run that ends Failed (not green, naming what
+is missing) also ends the wait. ``cancel`` cancels the run at that moment, and ends when the
+run is Cancelled and its processes are gone.
 
 Prints, per scenario: the final state of the network run and its sub-flows, the inspections
 stored (and distinct identities), the seconds from the kill (or outage) until the work was
-finished, and what ``pipescan runs`` says of the run.
+finished, the task runs left active, the silent-run automation's acts on ended runs, and what
+``pipescan runs`` says of the run.
 
 Usage::
 
     python benchmarks/bench_recovery.py                    # 4 archives, every kill scenario
     python benchmarks/bench_recovery.py --scenarios both --archives 3 --time-limit 300
     python benchmarks/bench_recovery.py --scenarios db45 dbstart30 server105
+    python benchmarks/bench_recovery.py --scenarios db600 --time-limit 1500   # 12 min
+    python benchmarks/bench_recovery.py --scenarios pg20 cancel
 """
 
 from __future__ import annotations
