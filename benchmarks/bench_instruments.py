@@ -1,6 +1,7 @@
 """The accuracy sweep over instruments: each draw a sensor model and its effects, inspected in
 memory as the inspect flow does it (the scan's own instrument estimated and applied, every
-frame registered where one frame covers only part of the view, every frame placed), and scored against the simulator's truth.
+frame registered where one frame covers only part of the view, every frame placed), and
+scored against the simulator's truth.
 
     python benchmarks/bench_instruments.py                 # 32 draws, two at a time
     python benchmarks/bench_instruments.py --count 8 --only rosette

@@ -16,14 +16,23 @@ from prefect import flow
 from prefect.utilities.annotations import quote
 
 import pipescan
+from pipescan.core import defaults
 from pipescan.core.errors import MetadataError
+from pipescan.core.flags import DEFAULT_TABLE, FlagRule
 from pipescan.core.grading import choose_grading, is_flagged
-from pipescan.core.instrument import instrument_summary, instrumented, registration_trusted
+from pipescan.core.instrument import (
+    Instrument,
+    instrument_summary,
+    instrumented,
+    registration_trusted,
+)
 from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
+from pipescan.core.model import SectionMeasures
 from pipescan.core.registration import (
     FrameStride,
     RegistrationEvidence,
     RegistrationParams,
+    Trajectory,
     chain_trajectories,
     plan_chunks,
     registration_evidence,
@@ -31,8 +40,13 @@ from pipescan.core.registration import (
     used_frame_indices,
 )
 from pipescan.core.sanitize import strip_credentials
-from pipescan.core.sections import plan_windows, windows_reached
-from pipescan.core.summary import diameter_mismatch, measured_inner_diameter, peak_blockage
+from pipescan.core.sections import ChainageWindow, plan_windows, windows_reached
+from pipescan.core.summary import (
+    InnerDiameter,
+    diameter_mismatch,
+    measured_inner_diameter,
+    peak_blockage,
+)
 from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows
 from pipescan.flows.database import run_database_url
 from pipescan.flows.housekeeping import start_run_dir
@@ -42,6 +56,7 @@ from pipescan.storage.database.repository import InspectionToSave, params_hash
 from pipescan.storage.scratch import FrameStore, remove_workspace
 from pipescan.tasks import enginepool
 from pipescan.tasks.inspection import (
+    AxisFit,
     bucket_points,
     fit_pipe_axis,
     grade,
@@ -54,6 +69,7 @@ from pipescan.tasks.network import (
     load_stored_inspection,
 )
 from pipescan.tasks.reporting import render_report
+from pipescan.tasks.staged import StagedArchive
 from pipescan.tasks.storing import save_results, stage_archive
 
 log = logging.getLogger("pipescan")
@@ -65,17 +81,17 @@ class InspectionParams:
 
     registration: RegistrationParams = field(default_factory=RegistrationParams)
     measure: MeasureParams = field(default_factory=MeasureParams)
-    step_m: float = 0.1
-    window_m: float = 2.0
-    chunk_frames: int = 60
+    step_m: float = defaults.SECTION_STEP_M
+    window_m: float = defaults.WINDOW_M
+    chunk_frames: int = defaults.CHUNK_FRAMES
     max_section_range_m: float = 5.0
     frame_stride: int | None = None
-    """Read and register every k-th frame; None: chosen from the scan (the largest k that
-    keeps each section's points, views and the local map: ``choose_frame_stride``)."""
-    threshold_table: str = "vsa-2023"
-    pipe_class: str = "auto"
-    blockage_threshold_ratio: float = 0.10
-    flag_grade: int = 2
+    """Register every k-th frame (the others are tracked, and every frame is placed); None:
+    chosen from the scan (the largest k the local map allows: ``choose_frame_stride``)."""
+    threshold_table: str = DEFAULT_TABLE
+    pipe_class: str = defaults.PIPE_CLASS
+    blockage_threshold_ratio: float = FlagRule.blockage_threshold_ratio
+    flag_grade: int = FlagRule.flag_grade
 
     def stride_bounds(self) -> dict:
         """What ``choose_stride`` weighs a scan's frames against, from these parameters: the
@@ -156,303 +172,53 @@ def inspect_archive(
     With ``reuse_stored``, an archive whose content (hash) was already inspected under the same
     figure parameters (hash) is not processed again: its stored inspection is summarised
     (``reused=True``). This is what lets a network run resume after a crash.
+
+    The stages: stage the archive, reuse a stored inspection, register, fit the axis, place
+    and measure, check the diameter, grade and store, report.
     """
     started = time.perf_counter()
     settings = get_settings()
     limit_library_threads(settings.library_threads)
     database_url = run_database_url(settings)
-    params = params or InspectionParams()
     run_dir = start_run_dir(Path(work_dir or settings.work_dir))
     pooled = engine_processes(settings.engine_processes)
     try:
-        # With frames, the engine pool's workers start as the archive opens.
-        staged = stage_archive(archive, run_dir, get_settings().input_limits(), pooled)
-        if not staged.frame_count:
-            enginepool.release_unused()  # a registered cloud: nothing registers
-        meta = staged.meta
-        content = (
-            f"{staged.frame_count} frames"
-            if staged.cloud_member is None
-            else f"a registered cloud ({staged.cloud_member})"
-        )
-        log.info(f"archive {staged.name}: asset {meta.asset_id}, {content}")
+        staged = _stage(archive, run_dir, pooled)
         # The crawler's own odometer uncertainty, where inspection.toml states it, is what
         # registration uses and what is stored with the inspection.
+        meta = staged.meta
+        params = params or InspectionParams()
         params = replace(
             params,
             registration=params.registration.for_odometer(
                 meta.odometer_uncertainty_ratio, meta.odometer_slip_m
             ),
         )
-        if reuse_stored:
-            # The same choice as the grade task's, so the same parameters and hash as a save.
-            choice = choose_grading(
-                meta.material, pipe_class=params.pipe_class, table=params.threshold_table
-            )
-            stored_id = find_stored_inspection(
-                database_url,
-                meta.asset_id,
-                staged.content_hash,
-                params_hash(stored_params(params, choice.pipe_class, choice.reason)),
-            )
-            if stored_id is not None:
-                log.info(f"archive {staged.name} already stored as inspection {stored_id}")
-                stored = load_stored_inspection(database_url, stored_id)
-                rec = stored.record
-                written = None
-                if report_path:
-                    written = str(render_report(database_url, stored_id, Path(report_path)))
-                return _summarise(
-                    inspection_id=stored_id,
-                    meta=meta,
-                    archive=archive,
-                    frame_count=rec.frame_count,
-                    point_count=rec.point_count,
-                    scanned_length_m=rec.scanned_length_m,
-                    graded=stored.sections,
-                    defects=stored.defects,
-                    registration=rec.registration,
-                    report_path=written,
-                    started=started,
-                    reused=True,
-                    start_source=rec.start_source,
-                    flags=_flags(params),
-                )
-
-        trajectory = None
-        closer = 0  # frames registered besides the stride's (to look closer)
-        # The sensor's blind zone, noise and pattern, from inspection.toml's [sensor] or the
-        # scan: figures of the run, not of the stored parameters (the same archive and
-        # parameters give the same instrument, so the stored hash still keys re-runs).
-        survey = (
-            survey_scan(quote(staged), frame_stride=params.frame_stride, **params.stride_bounds())
-            if staged.frame_count
-            else None
+        if reuse_stored and (done := _reuse(database_url, staged, params, archive, report_path)):
+            return replace(done, wall_time_s=time.perf_counter() - started)
+        scan = _register(staged, params, run_dir, pooled)
+        fit, windows, evidence = _fit_axis(staged, params, scan)
+        sections, point_count = _place_and_measure(
+            staged, params, scan, fit, windows, evidence, run_dir
         )
-        instrument = survey.instrument if survey else None
-        stride = survey.stride if survey else FrameStride(1, "a registered cloud")
-        reg_params, measure_params = instrumented(params.registration, params.measure, instrument)
-        chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
-        # Each frame is decoded once: registration keeps what the sections need here.
-        frame_store = FrameStore(run_dir / "frames")
-        if chunks:
-            used = len(used_frame_indices(staged.frame_count, stride.stride))
-            log.info(
-                f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks, "
-                "tracking the others: every frame is placed"
-            )
-            # How the work is split, not the figures: kept out of the stored parameters.
-            # In the engine pool's processes, one engine thread each: both cores are busy.
-            registering = replace(reg_params, num_threads=1 if pooled else engine_threads())
-            # Large arguments without futures in them (the staged archive's frame list, here
-            # and below the trajectory, the axis, the windows, the evidence) are quoted:
-            # Prefect would otherwise walk every element of them for every task, under the
-            # GIL (10 % of a 30 m run's samples, measured with py-spy).
-            futures = [
-                register_chunk.submit(
-                    quote(staged),
-                    a,
-                    b,
-                    registering,
-                    frame_store,
-                    params.max_section_range_m,
-                    engine_processes=pooled,
-                    stride=stride.stride,
-                )
-                for a, b in chunks
-            ]
-            trajectory = chain_trajectories([f.result() for f in futures])
-            closer = len(trajectory.frame_indices) - used
-            tracked = len(trajectory.tracked_indices)
-            log.info(
-                f"registered {len(trajectory.frame_indices)} of {staged.frame_count} frames"
-                + (f" ({closer} more where ICP disagreed with the odometer)" if closer else "")
-                + (f", tracked {tracked}" if tracked else "")
-            )
-
-        fit = fit_pipe_axis(
-            quote(staged),
-            quote(trajectory),
-            max_range_m=params.max_section_range_m,
-            frame_store=frame_store,
-            chunks=chunks,
-            workers=engine_threads(),  # nothing else runs while the axis is fitted
-        )
-        windows = plan_windows(
-            max(fit.chainage_min_m, meta.chainage_offset_m)
-            if meta.direction == "downstream"
-            else fit.chainage_min_m,
-            fit.chainage_max_m,
-            step_m=params.step_m,
-            window_m=params.window_m,
-        )
-        log.info(
-            f"axis fitted; chainage {fit.chainage_min_m:.2f}-{fit.chainage_max_m:.2f} m "
-            f"in {len(windows)} windows"
-        )
-        # Each section's chainage uncertainty, and whether a frame that saw it slid.
-        evidence = (
-            registration_evidence(
-                trajectory,
-                fit.axis.chainage(trajectory.positions_m()),
-                seen_from_m=params.max_section_range_m,
-            )
-            if trajectory is not None
-            else RegistrationEvidence.uniform(fit.start_uncertainty_m)
-        )
-        if not registration_trusted(instrument):
-            log.warning(
-                "one frame covers only part of the view: registration of such a scan is not "
-                "yet trusted for figures, and every section is weak_registration "
-                "(docs/instrument.md)"
-            )
-            evidence = replace(evidence, untrusted=True)
-        bucket_root = run_dir / "buckets"
-        # Frames are placed by chunk; a registered cloud by slices of its rows.
-        rows = frame_store.cloud_rows() if trajectory is None else 0
-        spans = chunks or [
-            (i, min(i + CLOUD_SLICE_POINTS, rows)) for i in range(0, rows, CLOUD_SLICE_POINTS)
-        ]
-        # A window is measured as soon as the chunks whose points can reach it are placed:
-        # chunks are submitted in order along the pipe, each followed by the windows it
-        # completes, so that placing and measuring overlap on the pool's workers.
-        reached = windows_reached(
-            _chunk_chainages(trajectory, fit.axis, spans),
-            windows,
-            reach_m=params.max_section_range_m + BENT_AXIS_MARGIN_M,
-        )
-        last_needed = [max(r, default=-1) for r in reached]
-        bucket_futures = []
-        window_futures: list = [None] * len(windows)
-
-        def submit_window(w: int, after: list) -> None:
-            window_futures[w] = measure_sections.submit(
-                bucket_root,
-                windows[w],
-                quote(fit.axis),
-                meta.nominal_diameter_m,
-                measure_params,
-                quote(evidence),
-                wait_for=after,
-            )
-
-        for k, (a, b) in enumerate(spans):
-            bucket_futures.append(
-                bucket_points.submit(
-                    quote(staged),
-                    quote(trajectory),
-                    a,
-                    b,
-                    quote(fit.axis),
-                    quote(windows),
-                    bucket_root,
-                    params.max_section_range_m,
-                    frame_store,
-                )
-            )
-            for w in range(len(windows)):
-                if window_futures[w] is None and last_needed[w] <= k:
-                    submit_window(w, [bucket_futures[j] for j in reached[w]])
-        for w in range(len(windows)):  # reached by no chunk (nothing to place)
-            if window_futures[w] is None:
-                submit_window(w, bucket_futures)
-        placed = [f.result() for f in bucket_futures]
-        point_count = sum(p.points for p in placed)
-        # A bent axis can carry a chunk's points further than the margin: measure again any
-        # window that such a chunk wrote into after the window was measured.
-        for k, p in enumerate(placed):
-            for w, window in enumerate(windows):
-                if window.start_mm in p.windows_mm and k not in reached[w]:
-                    log.info(f"window at {window.start_m:.1f} m measured again: a chunk reached it")
-                    reached[w].append(k)
-                    submit_window(w, bucket_futures)
-        # Water read where a deposit's or obstacle's shadow explains the unseen invert is
-        # taken back, and an object's edge is withheld where the object was seen where other
-        # frames saw bare wall (both take sections on both sides of a window's edge).
-        sections = withhold_smeared_object_edges(
-            explain_invert_shadows(
-                confirm_surfaceless_water([s for f in window_futures for s in f.result()])
-            ),
-            measure_params,
-        )
-        # Blockage is a share of the nominal area: a nominal diameter the wall contradicts
-        # would grade the wrong pipe, so the run stops before anything is stored.
-        inner = measured_inner_diameter(sections)
-        mismatch = diameter_mismatch(inner, meta.nominal_diameter_m)
-        if mismatch is not None:
-            raise MetadataError(
-                mismatch,
-                archive=staged.name,
-                file="inspection.toml",
-                field="nominal_diameter_m",
-                hint="state the pipe's inner diameter in metres; nothing was stored",
-            )
-        grading = grade(
-            sections,
-            params.threshold_table,
-            material=meta.material,
-            pipe_class=params.pipe_class,
-            blockage_threshold_ratio=params.blockage_threshold_ratio,
-            flag_grade=params.flag_grade,
-        )
-        graded, defects = grading.sections, grading.defects
-        registration = (
-            registration_summary(
-                trajectory,
-                params.registration,
-                odometer_m=(meta.frames[0].odometer_m, meta.frames[-1].odometer_m)
-                if meta.frames
-                else None,
-            )
-            | {
-                "frame_stride": stride.stride,
-                "frame_stride_reason": stride.reason,
-                "frames_looked_closer": closer,
-            }
-            | instrument_summary(instrument)
-            if trajectory is not None
-            else {
-                "engine": "none (registered cloud)",
-                "frames": 0,
-                "chainage_uncertainty_m": fit.start_uncertainty_m,
-            }
-        ) | {"measured_inner_diameter_m": inner.diameter_m if inner else None}
-        scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
-        inspection = InspectionToSave(
-            meta=meta,
-            archive_uri=staged.name,  # without credentials
-            content_hash=staged.content_hash,
-            params=stored_params(params, grading.pipe_class, grading.pipe_class_reason),
-            software_version=pipescan.__version__,
-            sections=graded,
-            defects=defects,
-            frame_quality=list(trajectory.quality) if trajectory else [],
-            registration=registration,
-            status="ok" if any(s.is_ok for s in graded) else "unmeasured",
-            threshold_table=params.threshold_table,
-            point_count=point_count,
-            frame_count=staged.frame_count,
-            scanned_length_m=scanned,
-            start_source=fit.start_source,
-        )
-        inspection_id = save_results(database_url, inspection)
-        log.info(
-            f"stored inspection {inspection_id}: {len(graded)} sections, {len(defects)} defects"
+        inner = _check_diameter(sections, staged)
+        stored = _grade_and_store(
+            database_url, staged, params, scan, fit, windows, sections, point_count, inner
         )
         written = None
         if report_path:
-            written = str(render_report(database_url, inspection_id, Path(report_path)))
+            written = str(render_report(database_url, stored.inspection_id, Path(report_path)))
             log.info(f"report written to {written}")
         return _summarise(
-            inspection_id=inspection_id,
+            inspection_id=stored.inspection_id,
             meta=meta,
             archive=archive,
             frame_count=staged.frame_count,
             point_count=point_count,
-            scanned_length_m=scanned,
-            graded=graded,
-            defects=defects,
-            registration=registration,
+            scanned_length_m=stored.scanned_length_m,
+            graded=stored.graded,
+            defects=stored.defects,
+            registration=stored.registration,
             report_path=written,
             started=started,
             start_source=fit.start_source,
@@ -460,6 +226,362 @@ def inspect_archive(
         )
     finally:
         remove_workspace(run_dir)
+
+
+def _stage(archive: str, run_dir: Path, pooled: int) -> StagedArchive:
+    """The archive staged (validated, local), with its first log line. With frames, the engine
+    pool's workers start as the archive opens; a registered cloud releases them."""
+    staged = stage_archive(archive, run_dir, get_settings().input_limits(), pooled)
+    if not staged.frame_count:
+        enginepool.release_unused()  # a registered cloud: nothing registers
+    content = (
+        f"{staged.frame_count} frames"
+        if staged.cloud_member is None
+        else f"a registered cloud ({staged.cloud_member})"
+    )
+    log.info(f"archive {staged.name}: asset {staged.meta.asset_id}, {content}")
+    return staged
+
+
+def _reuse(
+    database_url: str,
+    staged: StagedArchive,
+    params: InspectionParams,
+    archive: str,
+    report_path: str | None,
+) -> InspectionSummary | None:
+    """The stored inspection of this content under these figure parameters, summarised (its
+    report rendered when asked), or None when there is none."""
+    meta = staged.meta
+    # The same choice as the grade task's, so the same parameters and hash as a save.
+    choice = choose_grading(
+        meta.material, pipe_class=params.pipe_class, table=params.threshold_table
+    )
+    stored_id = find_stored_inspection(
+        database_url,
+        meta.asset_id,
+        staged.content_hash,
+        params_hash(stored_params(params, choice.pipe_class, choice.reason)),
+    )
+    if stored_id is None:
+        return None
+    log.info(f"archive {staged.name} already stored as inspection {stored_id}")
+    stored = load_stored_inspection(database_url, stored_id)
+    rec = stored.record
+    written = None
+    if report_path:
+        written = str(render_report(database_url, stored_id, Path(report_path)))
+    return _summarise(
+        inspection_id=stored_id,
+        meta=meta,
+        archive=archive,
+        frame_count=rec.frame_count,
+        point_count=rec.point_count,
+        scanned_length_m=rec.scanned_length_m,
+        graded=stored.sections,
+        defects=stored.defects,
+        registration=rec.registration,
+        report_path=written,
+        started=time.perf_counter(),
+        reused=True,
+        start_source=rec.start_source,
+        flags=_flags(params),
+    )
+
+
+@dataclass(frozen=True)
+class _Registered:
+    """What registration leaves for the later stages: the scan's instrument and the parameters
+    it sets, the stride, the chunks, the frames kept and the trajectory (None for a cloud)."""
+
+    instrument: Instrument | None
+    stride: FrameStride
+    registration: RegistrationParams
+    measure: MeasureParams
+    chunks: list[tuple[int, int]]
+    frame_store: FrameStore
+    trajectory: Trajectory | None
+    closer: int
+    """Frames registered besides the stride's (where ICP disagreed with the odometer)."""
+
+
+def _register(
+    staged: StagedArchive, params: InspectionParams, run_dir: Path, pooled: int
+) -> _Registered:
+    """The scan's instrument and stride (``survey_scan``), then its chunks registered in
+    parallel and chained; every frame kept in the frame store for the sections."""
+    # The sensor's blind zone, noise and pattern, from inspection.toml's [sensor] or the
+    # scan: figures of the run, not of the stored parameters (the same archive and parameters
+    # give the same instrument, so the stored hash still keys re-runs).
+    survey = (
+        survey_scan(quote(staged), frame_stride=params.frame_stride, **params.stride_bounds())
+        if staged.frame_count
+        else None
+    )
+    instrument = survey.instrument if survey else None
+    stride = survey.stride if survey else FrameStride(1, "a registered cloud")
+    reg_params, measure_params = instrumented(params.registration, params.measure, instrument)
+    chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
+    # Each frame is decoded once: registration keeps what the sections need here.
+    frame_store = FrameStore(run_dir / "frames")
+    trajectory, closer = None, 0
+    if chunks:
+        used = len(used_frame_indices(staged.frame_count, stride.stride))
+        log.info(
+            f"registering {used} of {staged.frame_count} frames in {len(chunks)} chunks, "
+            "tracking the others: every frame is placed"
+        )
+        # How the work is split, not the figures: kept out of the stored parameters. In the
+        # engine pool's processes, one engine thread each: both cores are busy.
+        registering = replace(reg_params, num_threads=1 if pooled else engine_threads())
+        # Large arguments without futures in them (the staged archive's frame list, here and
+        # below the trajectory, the axis, the windows, the evidence) are quoted: Prefect
+        # would otherwise walk every element of them for every task, under the GIL
+        # (docs/throughput.md).
+        futures = [
+            register_chunk.submit(
+                quote(staged),
+                a,
+                b,
+                registering,
+                frame_store,
+                params.max_section_range_m,
+                engine_processes=pooled,
+                stride=stride.stride,
+            )
+            for a, b in chunks
+        ]
+        trajectory = chain_trajectories([f.result() for f in futures])
+        closer = len(trajectory.frame_indices) - used
+        tracked = len(trajectory.tracked_indices)
+        log.info(
+            f"registered {len(trajectory.frame_indices)} of {staged.frame_count} frames"
+            + (f" ({closer} more where ICP disagreed with the odometer)" if closer else "")
+            + (f", tracked {tracked}" if tracked else "")
+        )
+    return _Registered(
+        instrument, stride, reg_params, measure_params, chunks, frame_store, trajectory, closer
+    )
+
+
+def _fit_axis(
+    staged: StagedArchive, params: InspectionParams, scan: _Registered
+) -> tuple[AxisFit, list[ChainageWindow], RegistrationEvidence]:
+    """The axis, the chainage windows it spans, and each section's registration evidence."""
+    meta = staged.meta
+    fit = fit_pipe_axis(
+        quote(staged),
+        quote(scan.trajectory),
+        max_range_m=params.max_section_range_m,
+        frame_store=scan.frame_store,
+        chunks=scan.chunks,
+        workers=engine_threads(),  # nothing else runs while the axis is fitted
+    )
+    windows = plan_windows(
+        max(fit.chainage_min_m, meta.chainage_offset_m)
+        if meta.direction == "downstream"
+        else fit.chainage_min_m,
+        fit.chainage_max_m,
+        step_m=params.step_m,
+        window_m=params.window_m,
+    )
+    log.info(
+        f"axis fitted; chainage {fit.chainage_min_m:.2f}-{fit.chainage_max_m:.2f} m "
+        f"in {len(windows)} windows"
+    )
+    # Each section's chainage uncertainty, and whether a frame that saw it slid.
+    trajectory = scan.trajectory
+    evidence = (
+        registration_evidence(
+            trajectory,
+            fit.axis.chainage(trajectory.positions_m()),
+            seen_from_m=params.max_section_range_m,
+        )
+        if trajectory is not None
+        else RegistrationEvidence.uniform(fit.start_uncertainty_m)
+    )
+    if not registration_trusted(scan.instrument):
+        log.warning(
+            "one frame covers only part of the view: registration of such a scan is not yet "
+            "trusted for figures, and every section is weak_registration (docs/instrument.md)"
+        )
+        evidence = replace(evidence, untrusted=True)
+    return fit, windows, evidence
+
+
+def _place_and_measure(
+    staged: StagedArchive,
+    params: InspectionParams,
+    scan: _Registered,
+    fit: AxisFit,
+    windows: list[ChainageWindow],
+    evidence: RegistrationEvidence,
+    run_dir: Path,
+) -> tuple[list[SectionMeasures], int]:
+    """Every frame's points (or the cloud's) placed into window files, each window measured as
+    soon as the chunks that reach it are placed (:func:`_schedule_windows`), then the rules
+    that take sections on both sides of a window's edge. Returns the sections and the points
+    placed."""
+    bucket_root = run_dir / "buckets"
+    trajectory = scan.trajectory
+    # Frames are placed by chunk; a registered cloud by slices of its rows.
+    rows = scan.frame_store.cloud_rows() if trajectory is None else 0
+    spans = scan.chunks or [
+        (i, min(i + CLOUD_SLICE_POINTS, rows)) for i in range(0, rows, CLOUD_SLICE_POINTS)
+    ]
+
+    def place(a: int, b: int):
+        return bucket_points.submit(
+            quote(staged),
+            quote(trajectory),
+            a,
+            b,
+            quote(fit.axis),
+            quote(windows),
+            bucket_root,
+            params.max_section_range_m,
+            scan.frame_store,
+        )
+
+    def measure(w: int, after: list):
+        return measure_sections.submit(
+            bucket_root,
+            windows[w],
+            quote(fit.axis),
+            staged.meta.nominal_diameter_m,
+            scan.measure,
+            quote(evidence),
+            wait_for=after,
+        )
+
+    reached = windows_reached(
+        _chunk_chainages(trajectory, fit.axis, spans),
+        windows,
+        reach_m=params.max_section_range_m + BENT_AXIS_MARGIN_M,
+    )
+    placed, measured = _schedule_windows(spans, reached, windows, place, measure)
+    # Water read where a deposit's or obstacle's shadow explains the unseen invert is taken
+    # back, and an object's edge is withheld where the object was seen where other frames saw
+    # bare wall (both take sections on both sides of a window's edge).
+    sections = withhold_smeared_object_edges(
+        explain_invert_shadows(confirm_surfaceless_water(measured)), scan.measure
+    )
+    return sections, sum(p.points for p in placed)
+
+
+def _schedule_windows(spans, reached, windows, place, measure):
+    """Place every span and measure every window, overlapping the two on the pool's workers:
+    spans are submitted in order along the pipe, each followed by the windows it completes
+    (``reached[w]``: the spans whose points can reach window ``w``). A bent axis can carry a
+    span's points further than planned: a window such a span wrote into after it was measured
+    is measured again. Returns the placements and the sections, in window order."""
+    last_needed = [max(r, default=-1) for r in reached]
+    placing: list = []
+    measuring: list = [None] * len(windows)
+    for k, (a, b) in enumerate(spans):
+        placing.append(place(a, b))
+        for w in range(len(windows)):
+            if measuring[w] is None and last_needed[w] <= k:
+                measuring[w] = measure(w, [placing[j] for j in reached[w]])
+    for w in range(len(windows)):  # reached by no span (nothing to place)
+        if measuring[w] is None:
+            measuring[w] = measure(w, placing)
+    placed = [f.result() for f in placing]
+    for k, p in enumerate(placed):
+        for w, window in enumerate(windows):
+            if window.start_mm in p.windows_mm and k not in reached[w]:
+                log.info(f"window at {window.start_m:.1f} m measured again: a chunk reached it")
+                reached[w].append(k)
+                measuring[w] = measure(w, placing)
+    return placed, [s for f in measuring for s in f.result()]
+
+
+def _check_diameter(sections: list[SectionMeasures], staged: StagedArchive) -> InnerDiameter | None:
+    """The wall's measured inner diameter; a nominal diameter it contradicts stops the run
+    (blockage is a share of the nominal area: it would grade the wrong pipe) before anything
+    is stored."""
+    inner = measured_inner_diameter(sections)
+    mismatch = diameter_mismatch(inner, staged.meta.nominal_diameter_m)
+    if mismatch is not None:
+        raise MetadataError(
+            mismatch,
+            archive=staged.name,
+            file="inspection.toml",
+            field="nominal_diameter_m",
+            hint="state the pipe's inner diameter in metres; nothing was stored",
+        )
+    return inner
+
+
+@dataclass(frozen=True)
+class _Stored:
+    inspection_id: int
+    graded: list
+    defects: list
+    registration: dict
+    scanned_length_m: float
+
+
+def _grade_and_store(
+    database_url, staged, params, scan: _Registered, fit, windows, sections, point_count, inner
+) -> _Stored:
+    """Code and grade the sections, and store them with the registration's summary, in one
+    transaction."""
+    meta = staged.meta
+    grading = grade(
+        sections,
+        params.threshold_table,
+        material=meta.material,
+        pipe_class=params.pipe_class,
+        blockage_threshold_ratio=params.blockage_threshold_ratio,
+        flag_grade=params.flag_grade,
+    )
+    trajectory = scan.trajectory
+    registration = (
+        registration_summary(
+            trajectory,
+            params.registration,
+            odometer_m=(meta.frames[0].odometer_m, meta.frames[-1].odometer_m)
+            if meta.frames
+            else None,
+        )
+        | {
+            "frame_stride": scan.stride.stride,
+            "frame_stride_reason": scan.stride.reason,
+            "frames_looked_closer": scan.closer,
+        }
+        | instrument_summary(scan.instrument)
+        if trajectory is not None
+        else {
+            "engine": "none (registered cloud)",
+            "frames": 0,
+            "chainage_uncertainty_m": fit.start_uncertainty_m,
+        }
+    ) | {"measured_inner_diameter_m": inner.diameter_m if inner else None}
+    scanned = (windows[-1].end_m - windows[0].start_m) if windows else 0.0
+    inspection = InspectionToSave(
+        meta=meta,
+        archive_uri=staged.name,  # without credentials
+        content_hash=staged.content_hash,
+        params=stored_params(params, grading.pipe_class, grading.pipe_class_reason),
+        software_version=pipescan.__version__,
+        sections=grading.sections,
+        defects=grading.defects,
+        frame_quality=list(trajectory.quality) if trajectory else [],
+        registration=registration,
+        status="ok" if any(s.is_ok for s in grading.sections) else "unmeasured",
+        threshold_table=params.threshold_table,
+        point_count=point_count,
+        frame_count=staged.frame_count,
+        scanned_length_m=scanned,
+        start_source=fit.start_source,
+    )
+    inspection_id = save_results(database_url, inspection)
+    log.info(
+        f"stored inspection {inspection_id}: {len(grading.sections)} sections, "
+        f"{len(grading.defects)} defects"
+    )
+    return _Stored(inspection_id, grading.sections, grading.defects, registration, scanned)
 
 
 def _flags(params: InspectionParams) -> dict:

@@ -18,8 +18,8 @@ from pipescan.core.registration import (
     register_keyframes,
 )
 from pipescan.storage.input.archive import ScanArchive
-from pipescan.storage.input.bags import BagIndex
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
+from pipescan.storage.input.readers.bags import BagIndex
 from pipescan.storage.scratch import FrameStore
 
 

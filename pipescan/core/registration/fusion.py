@@ -40,6 +40,8 @@ from typing import Literal
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pipescan.core.uncertainty import MAD_TO_SIGMA
+
 # Gravity says nothing about roll about an axis within ~6° of vertical (a shaft): there the
 # components of gravity across the axis are below this and the IMU correction is skipped.
 _MIN_GRAVITY_ACROSS_AXIS = 0.1
@@ -200,7 +202,7 @@ def axial_information(
     if use.sum() < MIN_FACING_SUPPORT:
         return 0.0
     r = residuals_m[use]
-    sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), _MIN_RESIDUAL_SIGMA_M)
+    sigma = max(MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r)))), _MIN_RESIDUAL_SIGMA_M)
     # One observation per patch of the smallest face: mean (n·a)² times the patches.
     _, patch = np.unique(
         np.floor(points_sensor[use] / FACE_PATCH_M).astype(np.int64), axis=0, return_inverse=True
