@@ -427,6 +427,8 @@ def truth_errors(sections_csv: Path, archive: Path) -> str:
         rows = [r for r in csv.DictReader(fh) if r["status"] == "ok"]
     rows = [r for r in rows if round(float(r["chainage_start_m"]), 1) in true_by_start]
     parts = [f"{len(rows)} ok sections"]
+    if not rows:
+        return parts[0]
     for column in ("blockage_ratio", "deposit_height_ratio", "deformation_ratio"):
         err = np.array(
             [
