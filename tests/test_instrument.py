@@ -277,6 +277,25 @@ def test_water_without_a_surface_return_needs_a_level_run():
     assert alone[0].status == SectionStatus.INVERT_UNDER_WATER
 
 
+def test_a_smeared_deposit_still_casts_its_shadow():
+    """Water read behind a deposit whose wall the frames smeared (``smeared_wall``: its figures
+    withheld) is the deposit's shadow, as behind a measured one; with nothing standing beside
+    it, the same level run stays water."""
+    from pipescan.core.water import LEVEL_RUN_SECTIONS, confirm_surfaceless_water
+    from pipescan.core.water import explain_invert_shadows as shadows
+
+    run = [_wet(round(0.1 * (i + 1), 1), 0.2) for i in range(LEVEL_RUN_SECTIONS)]
+    deposit = SectionMeasures(
+        0.0, 0.1, np.pi * 0.3**2, SectionStatus.SMEARED_WALL, 5000, 1.0, deposit_height_ratio=0.23
+    )
+    taken_back = shadows(confirm_surfaceless_water([deposit, *run]))
+    assert [s.status for s in taken_back[1:]] == [SectionStatus.LOW_COVERAGE] * LEVEL_RUN_SECTIONS
+    assert all(s.water_depth_ratio is None for s in taken_back[1:])
+    dry = dataclasses.replace(deposit, deposit_height_ratio=0.0)
+    water = shadows(confirm_surfaceless_water([dry, *run]))
+    assert all(s.status == SectionStatus.INVERT_UNDER_WATER for s in water[1:])
+
+
 def test_water_whose_surface_returns_nothing_is_read_with_its_depth():
     from pipescan.simulator.sensors import WaterLevel
     from pipescan.simulator.sweep import measure_cloud_scan, smooth_scene

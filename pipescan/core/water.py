@@ -233,7 +233,8 @@ def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionM
     and spurious returns or the ramp's grazing points lie on the chord. Along the pipe they
     differ: a shadow begins where something stands at least as high as its edge. So, for each
     stretch of sections that are water or too little seen (in chainage order), the sections
-    just before and after it are looked at, where they are measured: where one stands
+    just before and after it are looked at, where they have a deposit height (ok or not: a
+    smeared deposit casts a shadow too): where one stands
     within :data:`SHADOW_LEVEL_MARGIN_RATIO` of the water's depth or higher, the stretch's
     water is the shadow's, and those sections become ``low_coverage`` without a water depth.
     Water that really ponds against a deposit is then not reported either: no figure, rather
@@ -255,11 +256,11 @@ def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionM
     def is_gap(s: SectionMeasures) -> bool:
         return s.status in (SectionStatus.INVERT_UNDER_WATER, SectionStatus.LOW_COVERAGE)
 
+    # What stands beside a stretch is evidence for a shadow whatever the section's status: a
+    # deposit whose wall the frames smeared still casts one. (The figure is not reported from
+    # it; it only takes water back, and no figure is the safe side.)
     def height_at(k: int) -> float | None:
-        s = ordered[k]
-        if s.is_ok and s.deposit_height_ratio is not None:
-            return s.deposit_height_ratio
-        return None
+        return ordered[k].deposit_height_ratio
 
     i = 0
     while i < len(ordered):
