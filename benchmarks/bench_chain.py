@@ -482,10 +482,13 @@ def seen_and_measured(sections_csv: Path, archive: Path) -> dict:
 
     from pipescan.simulator.archive import read_ground_truth
 
-    poses, truth = read_ground_truth(archive)
-    # Within the section range (5 m) of the sensor's last position: the truth's coverage
-    # counts returns up to the sensor's own range.
-    reach = truth[0].chainage_start_m + poses[-1][0, 3] + SECTION_RANGE_M
+    _, truth = read_ground_truth(archive)
+    # Within the section range (5 m) of the sensor's last position (its true travel: the
+    # sensor starts at the pipe's chainage 0): the truth's coverage counts returns up to the
+    # sensor's own range.
+    with (archive / "ground_truth" / "poses.csv").open(encoding="utf-8") as fh:
+        travel_m = float(list(csv.DictReader(fh))[-1]["true_travel_m"])
+    reach = truth[0].chainage_start_m + travel_m + SECTION_RANGE_M
     seen = {
         round(t.chainage_start_m, 1)
         for t in truth

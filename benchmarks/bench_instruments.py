@@ -103,7 +103,7 @@ def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
     by_start = {round(sec.chainage_start_m, 3): sec for sec in sections}
     # Fully seen within pipescan's section range (5 m): the truth's coverage counts every
     # return up to the sensor's own range, further ahead of its last position.
-    reach = scan.scenario.chainage_offset_m + scan.T_world_sensor[-1][0, 3] + SECTION_RANGE_M
+    reach = scan.scenario.chainage_offset_m + float(scan.true_travel_m[-1]) + SECTION_RANGE_M
     seen = [
         t
         for t in truth.sections.values()
