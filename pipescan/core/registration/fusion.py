@@ -61,9 +61,8 @@ MIN_FACING_SUPPORT = 10
 """Correspondences on surfaces facing along the axis below which there is no information.
 Set as ten map points at 3 cm spacing, a patch of ~1 dm², the smallest face worth the name;
 the correspondences are the frame's points, though, voxelised at ``source_voxel_m`` (4.5 cm
-by default), so ten of them cover ~2 dm² of a face seen head-on. Five (~1 dm²) was tried on
-random layout 2, whose unseen slips pass a 0.9 dm² obstacle face: nothing more was caught
-(``docs/registration.md``, *Unseen slips*)."""
+by default), so ten of them cover ~2 dm² of a face seen head-on (the half tried:
+docs/history/code-comments.md, *Facing support*)."""
 FACE_PATCH_M = 0.1
 """The side of the patch (~1 dm², the smallest face, :data:`MIN_FACING_SUPPORT`) whose points
 count as one observation along the axis: their errors are not independent."""
@@ -132,6 +131,9 @@ def axial_information(
     points_sensor: np.ndarray,
 ) -> float:
     """ICP's information about the translation along the pipe axis, 1/m².
+
+    (Over 80 lines for this reference docstring only: why each test is what it is; the body
+    is 15 lines.)
 
     The axial entry of the point-to-plane Hessian, ``Σ (n_i·a)² / σ²``, over the
     correspondences whose map point lies on a surface that faces along the axis (rising at
@@ -533,6 +535,9 @@ def unseen_slip_allowance(
     """What the odometer may have slipped unseen by each frame, (F,) m, for the chainage
     uncertainty.
 
+    (Over 80 lines for this reference docstring: why the allowance is what it is, from the
+    slips the run caught; the body is 37 lines.)
+
     An odometer slips wherever the crawler does (stuck on debris while the count runs on,
     sliding on a slimy invert while it stands), by more than its stated scale error covers.
     Registration catches a slip only where features carry its slide window
@@ -554,16 +559,9 @@ def unseen_slip_allowance(
     count that this difference stays within with 95 % probability (``SLIP_CONFIDENCE``), and
     at least one slip from the first held frame on.
 
-    Why so, on the 16 draws of 37 (a sweep of slipping odometers and the sweep's short
-    draws) that caught a slip (``docs/registration.md``, *Unseen slips*; the sweep's 30 m run
-    caught three and has no frame beyond its ± under either rule): the slips caught per metre
-    of the *whole* run, as many as that rate expects (the rule before), counts the held
-    stretches, where no slip can be caught, as slip-free. It left frames further off than
-    their ± (by more than 5 mm) on 9 of them, by up to 32 cm. This rule leaves 5, by up to
-    6.5 cm: one odometer whose unseen slips were larger than the one it was caught in, and
-    four by 0.5-4.3 cm, three of them registration's own error where features held (the same
-    under both rules). All of one sign at a Poisson 95 % count would leave 4, with a ± 1.5-2.6
-    times as wide.
+    Why the rate counts only where slips could be caught: counted over the whole run, it
+    takes the held stretches for slip-free, and frames lay beyond their ± where the odometer
+    slipped unseen (docs/history/code-comments.md, *The unseen-slip rate*).
 
     A caught slip may go on where the frames turn held before it is seen to end
     (``out_of_view``, :func:`slips_out_of_view`): from each such frame on, the allowance

@@ -170,6 +170,9 @@ def standstill_clause(summary: dict) -> str:
 def unseen_slip_caveat(summary: dict) -> str | None:
     """What the chainage uncertainty cannot allow for, in words, or None.
 
+    (Over 80 lines: the docstring says why each caveat is worded as it is, and the body is
+    one sentence built clause by clause, 45 lines.)
+
     Where frames were held to the odometer, a slip (the count running on while the crawler
     stands, or standing while it slides) leaves no trace in the frames. The chainage
     uncertainty allows for slips there as often and as large as those caught where features
