@@ -60,22 +60,6 @@ def _require_inspection(url: str, inspection_id: int) -> None:
         engine.dispose()
 
 
-def _smtp_config(settings):
-    from pipescan.tasks.delivery import SmtpConfig
-
-    if not settings.smtp_host:
-        return None
-    return SmtpConfig(
-        host=settings.smtp_host,
-        port=settings.smtp_port,
-        sender=settings.smtp_sender,
-        username=settings.smtp_username,
-        password=settings.smtp_password.get_secret_value() if settings.smtp_password else None,
-        security=settings.smtp_security,
-        allow_plaintext_login=settings.smtp_allow_plaintext_login,
-    )
-
-
 @app.command()
 def report(
     inspection: Annotated[
@@ -140,6 +124,7 @@ def report(
         # Prefect comes with these: after the checks, so that a mistake is reported at once.
         from pipescan.tasks import reporting
         from pipescan.tasks.delivery import (
+            SmtpConfig,
             checked_addresses,
             deliver_report,
             load_recipients,
@@ -200,7 +185,7 @@ def report(
                 if deliver
                 else None,
                 recipients=recipients,
-                smtp=_smtp_config(settings),
+                smtp=SmtpConfig.from_settings(settings),
                 subject=subject,
                 body=body,
             )

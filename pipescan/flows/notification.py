@@ -70,24 +70,6 @@ def alert_recipients(settings) -> tuple[str, ...]:
     return checked_addresses(given, field="PIPESCAN_SMTP_ALERT_TO") if given else ()
 
 
-def smtp_config(settings):
-    """The SMTP server of the settings as a :class:`~pipescan.tasks.delivery.SmtpConfig`, or
-    None when ``PIPESCAN_SMTP_HOST`` is unset."""
-    from pipescan.tasks.delivery import SmtpConfig
-
-    if not settings.smtp_host:
-        return None
-    return SmtpConfig(
-        host=settings.smtp_host,
-        port=settings.smtp_port,
-        sender=settings.smtp_sender,
-        username=settings.smtp_username,
-        password=settings.smtp_password.get_secret_value() if settings.smtp_password else None,
-        security=settings.smtp_security,
-        allow_plaintext_login=settings.smtp_allow_plaintext_login,
-    )
-
-
 def failed_run_email(flow_name: str, flow_run: Any, message: str) -> tuple[str, str]:
     """The subject and text of the alert for a failed run.
 
@@ -118,7 +100,7 @@ def email_failed_run(flow: Any, flow_run: Any, state: Any) -> None:
     from prefect.logging.loggers import flow_run_logger
 
     from pipescan.settings import get_settings
-    from pipescan.tasks.delivery import send_email, text_message
+    from pipescan.tasks.delivery import SmtpConfig, send_email, text_message
 
     run_log = flow_run_logger(flow_run, flow)
     settings = get_settings()
@@ -126,7 +108,7 @@ def email_failed_run(flow: Any, flow_run: Any, state: Any) -> None:
         recipients = alert_recipients(settings)
         if not recipients:
             return
-        smtp = smtp_config(settings)
+        smtp = SmtpConfig.from_settings(settings)
         if smtp is None:
             raise PipescanError(
                 "no e-mail alert: PIPESCAN_SMTP_ALERT_TO is set but PIPESCAN_SMTP_HOST is not",

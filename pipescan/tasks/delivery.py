@@ -91,6 +91,22 @@ class SmtpConfig:
     def logs_in(self) -> bool:
         return bool(self.username and self.password)
 
+    @classmethod
+    def from_settings(cls, settings) -> SmtpConfig | None:
+        """The SMTP server of pipescan's settings (``PIPESCAN_SMTP_*``), or None when
+        ``PIPESCAN_SMTP_HOST`` is unset."""
+        if not settings.smtp_host:
+            return None
+        return cls(
+            host=settings.smtp_host,
+            port=settings.smtp_port,
+            sender=settings.smtp_sender,
+            username=settings.smtp_username,
+            password=settings.smtp_password.get_secret_value() if settings.smtp_password else None,
+            security=settings.smtp_security,
+            allow_plaintext_login=settings.smtp_allow_plaintext_login,
+        )
+
 
 @dataclass(frozen=True)
 class Recipients:
