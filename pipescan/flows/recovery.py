@@ -56,6 +56,13 @@ def close_earlier_attempts(
     return close_open_runs(flow_run_id, message)
 
 
+def _active_states() -> list:
+    """The states of a run that has not ended."""
+    from prefect.client.schemas.objects import StateType
+
+    return [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
+
+
 def close_open_runs(flow_run_id: str, message: str, *, cancelled: bool = False) -> tuple[int, int]:
     """Mark Crashed (or Cancelled) the sub-flow runs and task runs of this flow run (and of its
     sub-flows) that are still active, with ``message``. Returns (sub-flow runs, task runs)
@@ -69,10 +76,9 @@ def close_open_runs(flow_run_id: str, message: str, *, cancelled: bool = False) 
         TaskRunFilterState,
         TaskRunFilterStateType,
     )
-    from prefect.client.schemas.objects import StateType
     from prefect.states import Cancelled, Crashed
 
-    active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
+    active = _active_states()
     final = Cancelled if cancelled else Crashed
     with get_client(sync_client=True) as client:
         subflows = list(
@@ -127,12 +133,11 @@ def close_leftovers(flow_run_id: str, stale_s: float = STALE_S) -> tuple[int, in
         TaskRunFilterState,
         TaskRunFilterStateType,
     )
-    from prefect.client.schemas.objects import StateType
     from prefect.states import Crashed
 
     if not flow_run_id:  # not a run (the flow's function called as such)
         return 0, 0
-    active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
+    active = _active_states()
     message = "left active when Prefect's API or database did not answer; the run is over"
     try:
         with get_client(sync_client=True) as client:
@@ -386,10 +391,9 @@ def close_task_runs_of(flow_run_id: str, message: str) -> int:
         TaskRunFilterState,
         TaskRunFilterStateType,
     )
-    from prefect.client.schemas.objects import StateType
     from prefect.states import Crashed
 
-    active = [StateType.PENDING, StateType.RUNNING, StateType.CANCELLING, StateType.PAUSED]
+    active = _active_states()
     try:
         with get_client(sync_client=True) as client:
             tasks = list(
