@@ -426,6 +426,8 @@ def deploy_network_inspection(
     """Create or update the deployment that runs ``inspect-network`` over ``store`` on ``cron``,
     and its recovery automations.
 
+    (Over 80 lines for this reference docstring: the body is its steps, 56 lines.)
+
     Parameters
     ----------
     store
