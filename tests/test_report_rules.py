@@ -140,7 +140,14 @@ def test_the_cover_says_how_far_to_trust_and_the_appendix_says_why(tmp_path):
         assert developer_words not in cover, developer_words
     appendix = re.sub(r"\s+", " ", next(p for p in pages if "Appendix A: registration" in p))
     used = "frames used 40 of 120: every 3rd (each section seen from about 59 positions)"
-    assert used in appendix
+    assert used in appendix  # stored before every frame was placed
+    placed = dataclasses.replace(inp, registration=reg | {"frames_tracked": 78})
+    pages = _pages(render_pdf(placed, tmp_path / "placed.pdf"))
+    placed_appendix = re.sub(r"\s+", " ", next(p for p in pages if "Appendix A: registration" in p))
+    assert "frames registered 40 of 120: every 3rd" in placed_appendix
+    assert "frames placed all 120: the 78 between registered ones aligned to the map" in (
+        placed_appendix
+    )
     assert "rested on the odometer alone" in appendix  # the caveat, in full, for the engineer
     assert "bound by" not in appendix
 

@@ -532,16 +532,26 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
     registered = reg.get("frames", inp.frame_count)
     stride = reg.get("frame_stride", 1)
     closer = reg.get("frames_looked_closer")
-    used = f"all {fmt_int(inp.frame_count)}"
+    frame_rows = [("frames used", f"all {fmt_int(inp.frame_count)}")]
     if stride > 1:
         more = f", and {fmt_int(closer)} more where the scan and the odometer disagreed"
         reason = _stride_reason(reg.get("frame_stride_reason", "set for the run"))
-        used = (
+        chosen = (
             f"{fmt_int(registered)} of {fmt_int(inp.frame_count)}: every {_ordinal(stride)}"
             f"{more if closer else ''} ({reason})"
         )
+        # Inspections stored before every frame was placed used only the frames registered.
+        frame_rows = [("frames used", chosen)]
+        if "frames_tracked" in reg:
+            lost = reg.get("frames_not_tracked") or 0
+            placed = (
+                f"all {fmt_int(inp.frame_count)}: the {fmt_int(reg['frames_tracked'])} between "
+                "registered ones aligned to the map"
+                + (f"; {fmt_int(lost)} that could not be are left out" if lost else "")
+            )
+            frame_rows = [("frames registered", chosen), ("frames placed", placed)]
     rows = [
-        ("frames used", used),
+        *frame_rows,
         ("scan matching", _matching_words(engine)),
         (
             "points matched",

@@ -186,9 +186,9 @@ def choose_frame_stride(
     # The largest k < keyframe_distance / (2 d) (the local map's bound).
     stride = max(1, int(np.ceil(keyframe_distance_m / (d * (FRAMES_PER_KEYFRAME - 1)) - 1e-9)) - 1)
     reason = (
-        f"{d * 1000:.1f} mm of travel a frame: each keyframe of the local map groups "
-        f"{FRAMES_PER_KEYFRAME} or more registered frames; every frame placed, each section "
-        f"seen from about {length / d:,.0f} positions with {per_section:,.0f} points"
+        f"each section seen from about {length / d:,.0f} positions with {per_section:,.0f} "
+        f"points; {d * 1000:.1f} mm of travel a frame; bound by the local map (each keyframe "
+        f"groups {FRAMES_PER_KEYFRAME} or more registered frames)"
     )
     return FrameStride(stride, reason, d, per_section, length)
 
