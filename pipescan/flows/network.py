@@ -64,7 +64,7 @@ from pipescan.tasks.network import (
     find_stored_archives,
     unstored_first,
 )
-from pipescan.tasks.retries import TRANSIENT, failure_cause
+from pipescan.tasks.retries import CONTENT, TRANSIENT, failure_cause
 
 log = logging.getLogger("pipescan")
 
@@ -330,11 +330,18 @@ def incomplete_message(summary: NetworkSummary) -> str:
             "cause; the next run takes them first): "
             + ", ".join(f"{o.label} ({o.error})" for o in summary.missing)
         )
-    bad = [o for o in summary.failures if o.status == "failed"]
+    failed = [o for o in summary.failures if o.status == "failed"]
+    bad = [o for o in failed if o.cause == CONTENT]
     if bad:
         parts.append(
             "failed for their own content (not retried; fix the archive): "
             + ", ".join(f"{o.label} ({o.error})" for o in bad)
+        )
+    erred = [o for o in failed if o.cause != CONTENT]
+    if erred:
+        parts.append(
+            "failed on an error in pipescan (not retried; please report it): "
+            + ", ".join(f"{o.label} ({o.error})" for o in erred)
         )
     count = len(summary.failures)
     return f"{count} of {plural(len(summary.outcomes), 'archive')} not stored: " + "; ".join(parts)

@@ -95,9 +95,12 @@ def _refused_login(link: BaseException) -> bool:
 
 def _prefect_unreachable(link: BaseException) -> bool:
     """Prefect's API did not answer, answered with a server error, or could not give a
-    concurrency slot, or Prefect took the run for crashed: all of it outside the archive."""
+    concurrency slot, Prefect took the run for crashed, or it lost a finished sub-flow's
+    result (``MissingResult``: its state read back from the API without its data, seen under
+    load on the test machine): all of it outside the archive. A second attempt finds what the
+    first stored (``reuse_stored``)."""
     import httpx
-    from prefect.exceptions import Abort, CrashedRun
+    from prefect.exceptions import Abort, CrashedRun, MissingResult
 
     try:
         from prefect.concurrency._asyncio import ConcurrencySlotAcquisitionError
@@ -105,7 +108,7 @@ def _prefect_unreachable(link: BaseException) -> bool:
         ConcurrencySlotAcquisitionError = ()  # type: ignore[assignment]
     if isinstance(link, httpx.HTTPStatusError):
         return link.response.status_code >= 500 or link.response.status_code in (408, 429)
-    return isinstance(link, (httpx.TransportError, Abort, CrashedRun)) or (
+    return isinstance(link, (httpx.TransportError, Abort, CrashedRun, MissingResult)) or (
         bool(ConcurrencySlotAcquisitionError) and isinstance(link, ConcurrencySlotAcquisitionError)
     )
 
@@ -135,6 +138,9 @@ def failure_cause(exc: BaseException) -> str:
     'transient'
     >>> failure_cause(GeometryError("no points in the window"))
     'content'
+    >>> from prefect.exceptions import MissingResult
+    >>> failure_cause(MissingResult("State data is missing."))
+    'transient'
     """
     from pipescan.core.errors import PipescanError
 
