@@ -194,8 +194,10 @@ def inspect_archive(
                 meta.odometer_uncertainty_ratio, meta.odometer_slip_m
             ),
         )
-        if reuse_stored and (done := _reuse(database_url, staged, params, archive, report_path)):
-            return replace(done, wall_time_s=time.perf_counter() - started)
+        if reuse_stored and (
+            done := _reuse(database_url, staged, params, archive, report_path, started)
+        ):
+            return done
         scan = _register(staged, params, run_dir, pooled)
         fit, windows, evidence = _fit_axis(staged, params, scan)
         sections, point_count = _place_and_measure(
@@ -249,6 +251,7 @@ def _reuse(
     params: InspectionParams,
     archive: str,
     report_path: str | None,
+    started: float,
 ) -> InspectionSummary | None:
     """The stored inspection of this content under these figure parameters, summarised (its
     report rendered when asked), or None when there is none."""
@@ -282,7 +285,7 @@ def _reuse(
         defects=stored.defects,
         registration=rec.registration,
         report_path=written,
-        started=time.perf_counter(),
+        started=started,
         reused=True,
         start_source=rec.start_source,
         flags=_flags(params),

@@ -85,7 +85,7 @@ def register_chunk(
         trajectory = register_staged_frames(*args)
     held = sum(q.degenerate for q in trajectory.quality)
     log.info("registered frames %d-%d of %d (%s)", first, last, staged.frame_count, params.label)
-    untracked = int((~np.isfinite(trajectory.T_world_tracked).all(axis=(1, 2))).sum())
+    untracked = trajectory.frames_not_tracked
     if untracked:
         log.warning(
             "frames %d-%d: %d frame(s) between registered ones could not be tracked on the "

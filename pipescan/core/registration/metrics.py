@@ -93,10 +93,8 @@ def registration_summary(
         "slide_spans": [span_dict(a, b) for a, b in slide_spans(trajectory)],
         "odometer_uncertainty_ratio": params.odometer_scale_error_ratio,
         "odometer_slip_stated_m": params.odometer_slip_m,
-        "frames_tracked": int(np.isfinite(trajectory.T_world_tracked).all(axis=(1, 2)).sum()),
-        "frames_not_tracked": int(
-            (~np.isfinite(trajectory.T_world_tracked).all(axis=(1, 2))).sum()
-        ),
+        "frames_tracked": len(trajectory.tracked_indices) - trajectory.frames_not_tracked,
+        "frames_not_tracked": trajectory.frames_not_tracked,
     }
     if odometer_m is not None and None not in odometer_m:
         first, last = odometer_m

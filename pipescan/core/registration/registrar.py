@@ -239,11 +239,10 @@ class FrameRegistrar:
         the registration's range, a regular share of them (cheap to hold until the next
         registered frame)."""
         p = self.params
-        pts = np.asarray(points_sensor_m, dtype=np.float64)
-        pts = crop_range(pts, p.max_range_m, p.min_range_m)
+        pts = crop_range(np.asarray(points_sensor_m), p.max_range_m, p.min_range_m)
         if len(pts) > TRACK_POINTS:
             pts = pts[np.linspace(0, len(pts) - 1, TRACK_POINTS).astype(np.int64)]
-        return pts
+        return pts.astype(np.float64)
 
     def track(self, source: np.ndarray, init: np.ndarray) -> np.ndarray | None:
         """The pose of a frame that is not registered, between two that are: ``init``
@@ -262,37 +261,28 @@ class FrameRegistrar:
         if len(source) < _MIN_FRAME_POINTS or self._axis_world is None:
             return None
         p = self.params
-        axis_sensor = init[:3, :3].T @ self._axis_world
-
-        def kept(T: np.ndarray) -> np.ndarray:
-            """``T`` with its correction from ``init`` about and along the axis removed."""
-            x = small_motion(np.linalg.inv(init) @ T)
-            x[:3] -= axis_sensor * (axis_sensor @ x[:3])  # roll: the interpolation's
-            x[3:] -= axis_sensor * (axis_sensor @ x[3:])  # along the axis: the interpolation's
-            return init @ from_small_motion(x)
-
         if p.engine == "small_gicp" and p.method != "point_to_point":
             T = plane_icp_steps(self._map, source, init, TRACK_ITERATIONS)
         else:
             T = self._align(self._map, source, init)
         if not np.isfinite(T).all():
             return None
-        T = kept(T)
+        x = small_motion(np.linalg.inv(init) @ T)
+        axis_sensor = init[:3, :3].T @ self._axis_world
+        x[:3] -= axis_sensor * (axis_sensor @ x[:3])  # roll: the interpolation's
+        x[3:] -= axis_sensor * (axis_sensor @ x[3:])  # along the axis: the interpolation's
+        T = init @ from_small_motion(x)
         # ICP's pose only where it fits the map better than the interpolation: a frame the
         # vibration did not move keeps the interpolated pose.
         return T if self._plane_misfit(source, T) <= self._plane_misfit(source, init) else init
 
     def _plane_misfit(self, source: np.ndarray, T: np.ndarray) -> float:
-        """The median point-to-plane distance of the frame's points at pose ``T`` to the map
-        points within the correspondence distance (infinite with none)."""
-        world = transform(T, source)
-        idx, dist = self._map.nearest(world)
-        near = dist <= self.params.max_correspondence_m
-        if not near.any():
+        """The median point-to-plane distance of the frame's points at pose ``T`` to their
+        correspondences in the map (infinite with none)."""
+        matches = self._matches(source, T)
+        if not len(matches.src):
             return float("inf")
-        target = idx[near]
-        offset = world[near] - self._map.points[target]
-        return float(np.median(np.abs(np.einsum("ij,ij->i", offset, self._map.normals[target]))))
+        return float(np.median(np.abs(matches.residuals(T))))
 
     def _seeding(self) -> bool:
         """Whether the local map is still being seeded: it was (re)started from fewer than

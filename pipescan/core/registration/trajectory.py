@@ -85,6 +85,11 @@ class Trajectory:
         """Sensor positions in the world frame, (F, 3)."""
         return self.T_world_frame[:, :3, 3]
 
+    @property
+    def frames_not_tracked(self) -> int:
+        """Frames between registered ones whose tracking failed (not placed)."""
+        return int((~np.isfinite(self.T_world_tracked).all(axis=(1, 2))).sum())
+
 
 def plan_chunks(frame_count: int, chunk_frames: int, stride: int = 1) -> list[tuple[int, int]]:
     """Split frames into chunks ``[first, last]`` (inclusive) that overlap by one frame.
