@@ -18,10 +18,12 @@ from pipescan.core.instrument import (
     instrumented,
     nearest_range_m,
     partial_view_stride,
+    smear_limit_m,
+    surface_noise,
     view_coverage,
     wall_noise_m,
 )
-from pipescan.core.measures import MeasureParams
+from pipescan.core.measures import MeasureParams, measure_section
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.registration import RegistrationParams
 from pipescan.core.registration.metrics import trajectory_errors
@@ -140,7 +142,7 @@ def test_instrumented_parameters():
         Instrument(min_range_m=0.5, wall_noise_m=0.02, map_seed_frames=7),
     )
     assert reg.min_range_m == 0.5 and reg.map_seed_frames == 7
-    assert measure.max_wall_spread_m == pytest.approx(SMEAR_SPREAD_RATIO * 0.02)
+    assert measure.max_wall_spread_m == pytest.approx(SMEAR_SPREAD_RATIO * 0.02, rel=0.01)
     _, cloud = instrumented(RegistrationParams(), MeasureParams(), None)
     assert cloud.max_wall_spread_m is None  # a registered cloud: no frames to disagree
 
@@ -346,3 +348,149 @@ def test_a_partial_view_scan_gives_no_figure_until_its_registration_is_trusted()
     _, sections = measure_scan(scan)
     assert sections and not any(s.is_ok for s in sections)
     assert any(s.status == SectionStatus.WEAK_REGISTRATION for s in sections)
+
+
+# --------------------------------------------------------------------------- noise across a surface
+
+
+def _forward_tube(range_noise_m: float, radius_m: float = 0.3, seed: int = 0) -> np.ndarray:
+    """One frame of a forward-looking sensor on a tube's axis (120° × 24°, a ray every 0.25°),
+    ``range_noise_m`` along each ray: far ahead the rays graze the wall."""
+    rng = np.random.default_rng(seed)
+    az, el = np.meshgrid(np.radians(np.arange(-60, 60, 0.25)), np.radians(np.arange(-12, 12, 0.25)))
+    ray = np.column_stack((np.cos(az.ravel()), np.sin(az.ravel()), np.sin(el.ravel())))
+    ray /= np.linalg.norm(ray, axis=1, keepdims=True)
+    across = np.hypot(ray[:, 1], ray[:, 2])
+    ray = ray[across > 0]
+    tube = ray * (radius_m / np.hypot(ray[:, 1], ray[:, 2]))[:, None]
+    return tube + ray * rng.normal(0, range_noise_m, (len(ray), 1))
+
+
+@pytest.mark.parametrize("range_noise_m", [0.003, 0.008, 0.018])
+def test_range_noise_is_recovered_where_the_rays_graze(range_noise_m):
+    frame = _forward_tube(range_noise_m)
+    sigma, by_distance = surface_noise([frame], max_range_m=5.0)
+    assert sigma == pytest.approx(range_noise_m, rel=0.2)
+    # The plane fits read a fraction of it across the wall, less the noisier the scan.
+    assert wall_noise_m([frame], max_range_m=5.0) < 0.6 * range_noise_m
+    # Across the wall the noise is σ |cos θ|: the wall 0.5-0.75 m ahead (cos θ 0.39-0.51)
+    # against 2-2.25 m ahead (0.13-0.15).
+    edges = np.array(by_distance.distance_edges_m)
+    near = by_distance.noise_across_m[int(np.searchsorted(edges, 0.5))]
+    far = by_distance.noise_across_m[int(np.searchsorted(edges, 2.0))]
+    assert near == pytest.approx(range_noise_m * 0.45, rel=0.25)
+    assert far == pytest.approx(range_noise_m * 0.14, rel=0.35)
+
+
+def test_range_noise_of_a_simulated_scan():
+    """The simulator's noise along the ray, without its growth with range and towards grazing
+    incidence, is read from the scan within 20 %; the plane fits read under half of it."""
+    scene = _scene(range_noise_sigma_m=0.015, grazing_noise_max_factor=1.0)
+    instrument = scan_instrument(simulate_scan(scene, seed=1))
+    assert instrument.range_noise_m == pytest.approx(0.015, rel=0.2)
+    assert instrument.sources["range_noise_m"] == "estimated"
+    assert instrument.wall_noise_m < 0.5 * instrument.range_noise_m
+
+
+def test_a_section_seen_from_close_by_may_spread_more():
+    """A section the sensor passed over was seen head-on from beside it; one seen only from
+    afar, at grazing incidence: its frames that agree spread it less, and so does its limit."""
+    _, by_distance = surface_noise([_forward_tube(0.015)], max_range_m=5.0)
+    passed = by_distance.spread_m(np.arange(0.0, 5.0, 0.05))
+    ahead = by_distance.spread_m(np.arange(3.0, 5.0, 0.05))
+    assert passed > 2.0 * ahead
+    assert by_distance.max_spread_m(np.arange(0.0, 5.0, 0.05)) == smear_limit_m(passed)
+    assert by_distance.spread_m(np.array([-2.0, 6.0])) is None  # no frame saw it
+
+
+def _pooled_section(by_distance, distances_m, range_noise_m, *, deposit_ratio, seed=0):
+    """The points a 0.1 m section of a 0.6 m pipe pools from frames standing ``distances_m``
+    behind it, each frame's share as ``by_distance`` has it, each point off the surface along
+    its ray by ``range_noise_m`` (the wall's radius, a deposit's flat top's height): frames
+    that agree, no smear."""
+    rng = np.random.default_rng(seed)
+    radius, parts = 0.3, []
+    top_y = -radius + deposit_ratio * 2 * radius
+    edges = np.asarray(by_distance.distance_edges_m)
+    for d in distances_m:
+        k = int(np.searchsorted(edges, d, side="right")) - 1
+        if not 0 <= k < len(by_distance.point_share):
+            continue
+        n = round(60_000 * by_distance.point_share[k] / len(distances_m) * 10)
+        if n == 0:
+            continue
+        a = rng.uniform(0, 2 * np.pi, n)
+        along = rng.uniform(0, 0.1, n)
+        on_wall = np.sin(a) * radius > top_y + 0.005
+        x, y = radius * np.cos(a), radius * np.sin(a)
+        y = np.where(on_wall, y, top_y)
+        x = np.where(on_wall, x, rng.uniform(-1, 1, n) * np.sqrt(radius**2 - top_y**2))
+        # Off the surface along the ray from the sensor, d behind on the axis: radially on the
+        # wall by σ r/√(d² + r²), vertically on the deposit's top by σ |y|/√(d² + |y|²).
+        rho = np.hypot(x, y)
+        cos_incidence = np.where(on_wall, rho, np.abs(y)) / np.hypot(d, np.where(on_wall, rho, y))
+        off = rng.normal(0, range_noise_m, n) * cos_incidence
+        x = np.where(on_wall, x * (1 + off / rho), x)
+        y = np.where(on_wall, y * (1 + off / rho), y - off)
+        parts.append(np.column_stack((x, y, along)))
+    return np.vstack(parts)
+
+
+def test_a_deposit_seen_head_on_is_not_smeared():
+    """At 15 mm of range noise, a section with a deposit seen from close behind (the run began
+    1.5 m before it), pooled from frames that agree, is measured under the limit from where
+    the sensor stood; the scan-wide limit (1.5 × the plane fits' wall noise, read where most
+    rays graze) calls it smeared."""
+    from pipescan.core.registration.metrics import RegistrationEvidence
+    from pipescan.core.sections import section_params
+
+    frame = _forward_tube(0.015)
+    sigma, by_distance = surface_noise([frame], max_range_m=5.0)
+    chainages = np.arange(1.5, 4.0, 0.05)
+    evidence = RegistrationEvidence(
+        chainages, np.zeros(len(chainages)), np.zeros(len(chainages), bool),
+        np.zeros(len(chainages), bool), 5.0,
+    )  # fmt: skip
+    points = _pooled_section(by_distance, 3.05 - chainages, sigma, deposit_ratio=0.2)
+    scan_wide = MeasureParams(
+        max_wall_spread_m=SMEAR_SPREAD_RATIO * wall_noise_m([frame], max_range_m=5.0)
+    )
+    own = section_params(
+        dataclasses.replace(scan_wide, surface_noise=by_distance), evidence, 3.0, 3.1
+    )
+    assert own.max_wall_spread_m > scan_wide.max_wall_spread_m
+    kw = dict(chainage_start_m=3.0, chainage_end_m=3.1, nominal_diameter_m=0.6)
+    measured = measure_section(points, params=own, **kw)
+    assert measured.status == SectionStatus.OK
+    assert measured.deposit_height_ratio == pytest.approx(0.2, abs=0.02)
+    assert measure_section(points, params=scan_wide, **kw).status == SectionStatus.SMEARED_WALL
+    # A registered cloud (no frames' places): the limit given stands.
+    cloud = section_params(
+        dataclasses.replace(scan_wide, surface_noise=by_distance),
+        RegistrationEvidence.uniform(0.4),
+        3.0,
+        3.1,
+    )
+    assert cloud.max_wall_spread_m == scan_wide.max_wall_spread_m
+
+
+def test_frames_that_disagree_still_smear_a_section_seen_head_on():
+    """The same section, its frames split in two halves 5 cm apart across the pipe (a
+    registration error): smeared under its own limit."""
+    from pipescan.core.registration.metrics import RegistrationEvidence
+    from pipescan.core.sections import section_params
+
+    sigma, by_distance = surface_noise([_forward_tube(0.015)], max_range_m=5.0)
+    chainages = np.arange(0.0, 4.0, 0.05)
+    evidence = RegistrationEvidence(
+        chainages, np.zeros(len(chainages)), np.zeros(len(chainages), bool),
+        np.zeros(len(chainages), bool), 5.0,
+    )  # fmt: skip
+    points = _pooled_section(by_distance, 3.05 - chainages, sigma, deposit_ratio=0.2)
+    half = np.arange(len(points)) % 2 == 0
+    points[half, 0] += 0.05
+    own = section_params(MeasureParams(surface_noise=by_distance), evidence, 3.0, 3.1)
+    measured = measure_section(
+        points, params=own, chainage_start_m=3.0, chainage_end_m=3.1, nominal_diameter_m=0.6
+    )
+    assert measured.status == SectionStatus.SMEARED_WALL

@@ -10,7 +10,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 from scipy.ndimage import median_filter
@@ -44,6 +44,17 @@ from pipescan.core.uncertainty import (
     smear_bias_m2,
 )
 from pipescan.core.water import WaterLevel, detect_water
+
+
+@runtime_checkable
+class SpreadModel(Protocol):
+    """What a section's smear limit is read from: the scan's noise across the surface by where
+    the sensor stood (:class:`pipescan.core.instrument.SurfaceNoise`)."""
+
+    def max_spread_m(self, distances_m: np.ndarray) -> float | None:
+        """The smear limit of a section seen by frames ``distances_m`` behind it (m)."""
+        ...
+
 
 _BIN_CHOICES = (360, 180, 120, 90, 72)
 # Coarser bins for sparse sections (a ring profiler's few hundred points): at least
@@ -112,6 +123,12 @@ class MeasureParams:
         The default, 8 mm, stands only where the noise is not known. None: no smear test
         (a registered cloud: with no frames to tell apart, its spread is its noise, which
         the uncertainty carries).
+    surface_noise : SpreadModel or None
+        The scan's noise across the surface by distance along the pipe
+        (:class:`pipescan.core.instrument.SurfaceNoise`). Where the sensor positions that saw
+        a section are known (``sections.measure_window`` with a trajectory's evidence), its
+        smear limit follows from them and replaces ``max_wall_spread_m``: a wall seen from
+        close by is seen more head-on and shows more of the range noise.
     max_wall_behind_deg : float
         A section where a surface was seen in front of the wall across more than this arc,
         with the wall behind it seen in the same sub-slices and continuing on both sides
@@ -135,6 +152,7 @@ class MeasureParams:
     max_points: int = 40_000
     grid: GridParams = field(default_factory=GridParams)
     max_wall_spread_m: float | None = 0.008
+    surface_noise: SpreadModel | None = None
     max_wall_behind_deg: float = 10.0
     max_uncertainty_ratio: float = 0.025
 

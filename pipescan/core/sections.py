@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -248,7 +248,7 @@ def measure_window(
                 chainage_start_m=start_m,
                 chainage_end_m=end_m,
                 nominal_diameter_m=nominal_diameter_m,
-                params=params,
+                params=section_params(params, evidence, start_m, end_m),
                 point_count=count,
                 chainage_uncertainty_m=uncertainty,
                 registration_weak=weak,
@@ -256,3 +256,18 @@ def measure_window(
             )
         )
     return sections
+
+
+def section_params(
+    params: MeasureParams, evidence: RegistrationEvidence | None, start_m: float, end_m: float
+) -> MeasureParams:
+    """The section's own smear limit, from where the sensor stood when it saw it
+    (``SurfaceNoise.max_spread_m``), where the scan's surface noise and the frames' places
+    are known; ``params`` as given otherwise (a registered cloud: no frames)."""
+    if params.surface_noise is None or evidence is None or params.max_wall_spread_m is None:
+        return params
+    middle_m = 0.5 * (start_m + end_m)
+    limit = params.surface_noise.max_spread_m(
+        (middle_m - evidence.frame_chainage_m) * evidence.ahead
+    )
+    return params if limit is None else replace(params, max_wall_spread_m=limit)
