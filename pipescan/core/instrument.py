@@ -103,7 +103,7 @@ _SMOOTH_RSS_RATIO = 4.0
 """A fit whose residual sum of squares is over this many times its bin's median spans an edge
 (χ²₁₀ exceeds 4 × its median once in about 20,000): it is left out of the bin's incidence."""
 _MIN_BIN_FITS = 200
-"""A distance bin with fewer plane fits takes the scan's range noise, not its own."""
+"""A distance bin with fewer fits takes the scan's range noise, not its own."""
 
 
 @dataclass(frozen=True)
@@ -115,9 +115,9 @@ class SurfaceNoise:
     ``σ_range × |cos θ|``, θ between the ray and the surface's normal. A forward-looking sensor
     in a pipe sees the wall far ahead at grazing incidence and the wall beside it more head-on,
     so a section seen by frames standing right behind it scatters more than one seen only from
-    afar. The frames' plane fits (sensor frame, the sensor at the origin) give, per bin of
-    distance along the pipe (the frame's main direction), the share of a frame's returns and
-    the noise across the surface there.
+    afar. The frames' fits of range against direction (:func:`surface_noise`; sensor frame,
+    the sensor at the origin) give, per bin of distance along the pipe (the frame's main
+    direction), the share of a frame's returns and the noise across the surface there.
 
     Attributes
     ----------
@@ -127,8 +127,8 @@ class SurfaceNoise:
     point_share : tuple of float
         (K,) share of a frame's returns in each bin.
     noise_across_m : tuple of float
-        (K,) 1σ noise across the surface in each bin: the bin's range noise times its RMS
-        ``|cos θ|``, metres.
+        (K,) 1σ noise across the surface in each bin: the bin's range noise times its
+        ``|cos θ|`` (from the mean of its fits' ``tan² θ``), metres.
     """
 
     distance_edges_m: tuple[float, ...]

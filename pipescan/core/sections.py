@@ -267,6 +267,8 @@ def section_params(
     if params.surface_noise is None or evidence is None or params.max_wall_spread_m is None:
         return params
     middle_m = 0.5 * (start_m + end_m)
+    # Rule: limit = 1.5 × √(s² + q²), s the robust σ of σ_range(d) |cos θ(d)| pooled over the
+    # frames d behind the section. Why: a wall seen head-on shows more of the range noise.
     limit = params.surface_noise.max_spread_m(
         (middle_m - evidence.frame_chainage_m) * evidence.ahead
     )
