@@ -426,6 +426,40 @@ def test_the_sensor_sight_keeps_the_least_steep_frame_and_refuses_a_backward_loo
     assert sensor_sight(axis, turned, frames, max_range_m=5.0) is None
 
 
+def test_the_flow_reads_the_sight_from_every_registered_frame_it_kept(tmp_path):
+    """``read_sensor_sight`` reads the frames registration kept (two chunks sharing a frame),
+    one at a time, and gives the core's sight: the least steep frame's, 12.5 - 4°."""
+    from pipescan.core.axis import PipeAxis
+    from pipescan.core.model import FrameQuality
+    from pipescan.core.registration import Trajectory
+    from pipescan.storage.scratch import FrameStore
+    from pipescan.tasks.inspection import read_sensor_sight
+
+    rng = np.random.default_rng(5)
+    frames = {i: _fov_returns(rng).astype(np.float32) for i in range(5)}
+    store = FrameStore(tmp_path / "frames")
+    for first, last in ((0, 2), (2, 4)):
+        with store.writer(first) as w:
+            for i in range(first, last + 1):
+                w.add(i, frames[i])
+    T = np.stack([np.eye(4)] * 3)
+    for r, deg in enumerate([2.0, 4.0, 3.0]):
+        T[r, :3, :3] = _pitched_up(deg)
+        T[r, :3, 3] = (0.5 * r, 0.0, -0.05)
+    trajectory = Trajectory(
+        T_world_frame=T,
+        quality=tuple(FrameQuality(i, 1.0, 0.001, False) for i in (0, 2, 4)),
+        frame_indices=(0, 2, 4),
+    )
+    axis = PipeAxis(
+        origin_m=np.zeros(3), direction=np.array([1.0, 0.0, 0.0]), up=np.array([0.0, 0.0, 1.0])
+    )
+    sight = read_sensor_sight.fn(store, [(0, 2), (2, 4)], trajectory, axis, 5.0)
+    assert sight is not None
+    assert np.degrees(np.arctan(sight.descent_ratio)) == pytest.approx(8.5, abs=0.1)
+    assert np.allclose(sight.chainage_m, [0.0, 0.5, 1.0])
+
+
 def test_water_whose_surface_returns_nothing_is_read_with_its_depth():
     from pipescan.simulator.sensors import WaterLevel
     from pipescan.simulator.sweep import measure_cloud_scan, smooth_scene
