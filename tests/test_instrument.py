@@ -354,6 +354,35 @@ def test_a_shadow_reaches_only_as_far_as_the_sensor_could_not_see_past_its_top()
     assert all(s.status == wet for s in drowned[1:])
 
 
+def test_an_upstream_survey_casts_its_shadows_towards_falling_chainage():
+    """The same scene surveyed the other way (chainage falling as the sensor travels): the
+    deposit's top ends at 6.0 m, the shadow reaches 1.0 m on, to 5.0 m."""
+    from pipescan.core.water import SensorSight
+    from pipescan.core.water import explain_invert_shadows as shadows
+
+    mirrored = [
+        dataclasses.replace(
+            s,
+            chainage_start_m=round(10.0 - s.chainage_end_m, 1),
+            chainage_end_m=round(10.0 - s.chainage_start_m, 1),
+        )
+        for s in _deposit_then_water()
+    ]
+    forward = _sight(last_m=4.4)
+    sight = SensorSight(
+        chainage_m=10.0 - forward.chainage_m,
+        height_m=forward.height_m,
+        descent_ratio=forward.descent_ratio,
+        forward_sign=-1.0,
+        max_range_m=5.0,
+    )
+    out = {round(s.chainage_start_m, 1): s.status for s in shadows(mirrored, sight)}
+    assert all(out[round(x, 1)] == SectionStatus.LOW_COVERAGE for x in np.arange(4.9, 6.0, 0.1))
+    assert all(
+        out[round(x, 1)] == SectionStatus.INVERT_UNDER_WATER for x in np.arange(4.0, 4.85, 0.1)
+    )
+
+
 def test_a_shadow_falls_only_ahead_of_a_forward_looking_sensor():
     """Water before the deposit (on the side the sensor came from) is not its shadow; without
     the sensor's positions, the stretch beside the deposit is taken back on both sides."""
