@@ -451,7 +451,7 @@ def _shadowed_within_reach(ordered: list[SectionMeasures], sight: SensorSight) -
         # only from above: the top reaches to the end of the last of them.
         last = j
         while last + 1 < len(along) and wet(along[last + 1]):
-            if along[last + 1].water_depth_ratio < height - SHADOW_LEVEL_MARGIN_RATIO:  # type: ignore[operator]
+            if (along[last + 1].water_depth_ratio or 0.0) < height - SHADOW_LEVEL_MARGIN_RATIO:
                 break
             last += 1
         top_u = max(sign * along[last].chainage_start_m, sign * along[last].chainage_end_m)
@@ -459,7 +459,7 @@ def _shadowed_within_reach(ordered: list[SectionMeasures], sight: SensorSight) -
         top_y = (height + SHADOW_LEVEL_MARGIN_RATIO - 0.5) * diameter
         for k in range(j + 1, len(along)):
             s = along[k]
-            if not wet(s) or not _casts(height, s.water_depth_ratio):  # type: ignore[arg-type]
+            if not wet(s) or not _casts(height, s.water_depth_ratio or 0.0):
                 continue
             start_u, end_u = sorted((sign * s.chainage_start_m, sign * s.chainage_end_m))
             if _shadow_end(sight, top_u, top_y, -0.5 * diameter, end_u) > start_u:
