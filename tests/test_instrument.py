@@ -489,6 +489,28 @@ def test_the_flow_reads_the_sight_from_every_registered_frame_it_kept(tmp_path):
     assert np.allclose(sight.chainage_m, [0.0, 0.5, 1.0])
 
 
+@pytest.mark.slow
+def test_water_is_read_beyond_a_deposits_shadow_and_a_dry_pipe_reads_none():
+    """A 0.6 m pipe, 4.4 m of travel, the deposit 28.5 % high at 3.4-4.3 m, water 8 % deep
+    whose surface returns nothing: the water is read before the deposit and from 1.2 m past
+    its end on, at its depth, and not in the deposit's shadow just behind it. The same pipe
+    dry reads no water at all (the shadow is not water)."""
+    from pipescan.simulator.sensors import WaterLevel
+    from pipescan.simulator.sweep import measure_scan
+
+    dry = defect_scene(0.6, 4.4, effects=Effects())
+    wet_scene = dataclasses.replace(dry, water=WaterLevel(0.08, surface_return_ratio=0.0))
+    _, sections = measure_scan(simulate_scan(wet_scene, seed=2))
+    wet = [s for s in sections if s.status == SectionStatus.INVERT_UNDER_WATER]
+    beyond = [s for s in wet if s.chainage_start_m >= 5.5]
+    before = [s for s in wet if s.chainage_end_m <= 2.5]
+    assert len(beyond) >= 20 and len(before) >= 5
+    assert np.median([s.water_depth_ratio for s in beyond]) == pytest.approx(0.08, abs=0.015)
+    assert not [s for s in wet if 4.3 <= s.chainage_start_m < 4.9]
+    _, dry_sections = measure_scan(simulate_scan(dry, seed=2))
+    assert not [s for s in dry_sections if s.status == SectionStatus.INVERT_UNDER_WATER]
+
+
 def test_water_whose_surface_returns_nothing_is_read_with_its_depth():
     from pipescan.simulator.sensors import WaterLevel
     from pipescan.simulator.sweep import measure_cloud_scan, smooth_scene
