@@ -298,6 +298,221 @@ def test_a_smeared_deposit_still_casts_its_shadow():
     assert all(s.status == SectionStatus.INVERT_UNDER_WATER for s in water[1:])
 
 
+def _deposit_then_water(depth: float = 0.08, top: float = 0.27) -> list[SectionMeasures]:
+    # A 0.6 m pipe: a deposit's top at 3.9-4.0 m, then surfaceless water confirmed to 6.0 m.
+    deposit = SectionMeasures(
+        3.9, 4.0, np.pi * 0.3**2, SectionStatus.OK, 5000, 1.0, deposit_height_ratio=top
+    )
+    wet = [
+        dataclasses.replace(
+            _wet(round(4.0 + 0.1 * i, 1), depth), status=SectionStatus.INVERT_UNDER_WATER
+        )
+        for i in range(20)
+    ]
+    return [deposit, *wet]
+
+
+def _sight(last_m: float, descent_deg: float = 9.5):
+    from pipescan.core.water import SensorSight
+
+    chainage = np.arange(0.0, last_m + 1e-9, 0.05)
+    return SensorSight(
+        chainage_m=chainage,
+        height_m=np.full_like(chainage, -0.08),
+        descent_ratio=float(np.tan(np.radians(descent_deg))),
+        max_range_m=5.0,
+    )
+
+
+def test_a_shadow_reaches_only_as_far_as_the_sensor_could_not_see_past_its_top():
+    """A deposit's top 0.168 m above the invert (0.174 m with the margin) ending at 4.0 m, a
+    sensor 0.08 m below the axis that looked down at most 9.5° and drove on past the
+    deposit: over the top, the steepest sight reaches the invert 0.174 / tan 9.5° = 1.0 m on
+    (from 3.7 m). Within that the water is the shadow's; beyond it, water."""
+    from pipescan.core.water import explain_invert_shadows as shadows
+
+    wet, low = SectionStatus.INVERT_UNDER_WATER, SectionStatus.LOW_COVERAGE
+    out = shadows(_deposit_then_water(), _sight(last_m=4.4))
+    assert [s.status for s in out[1:12]] == [low] * 11  # 4.0-5.1 m
+    assert all(s.water_depth_ratio is None for s in out[1:12])
+    assert [s.status for s in out[12:]] == [wet] * 9  # 5.1-6.0 m
+    assert out[12].water_depth_ratio == 0.08
+    # Looking down at 14°, the sensor saw the invert 0.174 / tan 14° = 0.7 m behind the top.
+    steep = shadows(_deposit_then_water(), _sight(4.4, 14.0))
+    assert [s.status for s in steep[1:9]] == [low] * 7 + [wet]
+    # The section after the top read as water at the top's own height may hold the rest of
+    # the top (its far side, seen only from above): the shadow begins at its end.
+    at_top = _deposit_then_water()
+    at_top[1] = dataclasses.replace(at_top[1], water_depth_ratio=0.265)
+    longer = shadows(at_top, _sight(4.4, 14.0))
+    assert [s.status for s in longer[1:10]] == [low] * 8 + [wet]
+    # A sensor that stopped 2 m before the deposit saw over it only at a grazing angle: the
+    # whole stretch within its 5 m range is the shadow's (and beyond that range, no figure
+    # came from it).
+    far = shadows(_deposit_then_water(), _sight(last_m=2.0))
+    assert all(s.status == low for s in far[1:] if s.chainage_end_m <= 7.0)
+    # Water over the top (a depth within 1 % of it) casts no shadow.
+    drowned = shadows(_deposit_then_water(depth=0.3), _sight(last_m=4.4))
+    assert all(s.status == wet for s in drowned[1:])
+
+
+def test_an_upstream_survey_casts_its_shadows_towards_falling_chainage():
+    """The same scene surveyed the other way (chainage falling as the sensor travels): the
+    deposit's top ends at 6.0 m, the shadow reaches 1.0 m on, to 5.0 m."""
+    from pipescan.core.water import SensorSight
+    from pipescan.core.water import explain_invert_shadows as shadows
+
+    mirrored = [
+        dataclasses.replace(
+            s,
+            chainage_start_m=round(10.0 - s.chainage_end_m, 1),
+            chainage_end_m=round(10.0 - s.chainage_start_m, 1),
+        )
+        for s in _deposit_then_water()
+    ]
+    forward = _sight(last_m=4.4)
+    sight = SensorSight(
+        chainage_m=10.0 - forward.chainage_m,
+        height_m=forward.height_m,
+        descent_ratio=forward.descent_ratio,
+        forward_sign=-1.0,
+        max_range_m=5.0,
+    )
+    out = {round(s.chainage_start_m, 1): s.status for s in shadows(mirrored, sight)}
+    assert all(out[round(x, 1)] == SectionStatus.LOW_COVERAGE for x in np.arange(4.9, 6.0, 0.1))
+    assert all(
+        out[round(x, 1)] == SectionStatus.INVERT_UNDER_WATER for x in np.arange(4.0, 4.85, 0.1)
+    )
+
+
+def test_a_shadow_falls_only_ahead_of_a_forward_looking_sensor():
+    """Water before the deposit (on the side the sensor came from) is not its shadow; without
+    the sensor's positions, the stretch beside the deposit is taken back on both sides."""
+    from pipescan.core.water import explain_invert_shadows as shadows
+
+    deposit = SectionMeasures(
+        3.0, 3.1, np.pi * 0.3**2, SectionStatus.OK, 5000, 1.0, deposit_height_ratio=0.27
+    )
+    before = [
+        dataclasses.replace(
+            _wet(round(2.0 + 0.1 * i, 1), 0.08), status=SectionStatus.INVERT_UNDER_WATER
+        )
+        for i in range(10)
+    ]
+    seen = shadows([*before, deposit], _sight(last_m=2.5))
+    assert all(s.status == SectionStatus.INVERT_UNDER_WATER for s in seen[:10])
+    blind = shadows([*before, deposit])
+    assert all(s.status == SectionStatus.LOW_COVERAGE for s in blind[:10])
+
+
+def _fov_returns(rng, water: bool = True) -> np.ndarray:
+    # A 120° x 25° field of view; with water, the rays down the middle return nothing.
+    az = np.radians(rng.uniform(-60.0, 60.0, 20_000))
+    el = np.radians(rng.uniform(-12.5, 12.5, 20_000))
+    dirs = np.column_stack((np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)))
+    if water:
+        dirs = dirs[~((np.abs(az) < np.radians(30.0)) & (el < np.radians(-5.0)))]
+    return dirs * rng.uniform(0.5, 4.0, (len(dirs), 1))
+
+
+def _pitched_up(deg: float) -> np.ndarray:
+    p = np.radians(deg)
+    return np.array([[np.cos(p), 0.0, -np.sin(p)], [0.0, 1.0, 0.0], [np.sin(p), 0.0, np.cos(p)]])
+
+
+@pytest.mark.parametrize("pitch_up_deg", [3.0, -4.0, 0.0])
+def test_the_steepest_sight_is_the_field_of_views_lower_edge_ahead(pitch_up_deg):
+    """A 120° x 25° field of view pitched nose up (or down): the steepest sight ahead is
+    12.5° less the pitch, though the rays down the middle hit water and return nothing."""
+    from pipescan.core.water import steepest_descent_ratio
+
+    rng = np.random.default_rng(3)
+    got = steepest_descent_ratio(_fov_returns(rng), _pitched_up(pitch_up_deg))
+    assert np.degrees(np.arctan(got)) == pytest.approx(12.5 - pitch_up_deg, abs=0.1)
+
+
+def test_the_sensor_sight_keeps_the_least_steep_frame_and_refuses_a_backward_look():
+    """Frames pitched 2-4° nose up along a straight pipe: the sight is the least steep frame's
+    (12.5 - 4°), at the sensor's heights; a sensor turned round (looking back along its
+    travel) gives none, and the shadow rule keeps to the stretch beside the top."""
+    from pipescan.core.axis import PipeAxis
+    from pipescan.core.water import sensor_sight
+
+    axis = PipeAxis(
+        origin_m=np.zeros(3), direction=np.array([1.0, 0.0, 0.0]), up=np.array([0.0, 0.0, 1.0])
+    )
+    rng = np.random.default_rng(4)
+    pitches = [2.0, 4.0, 3.0]
+    T = np.stack([np.eye(4)] * 3)
+    for r, deg in enumerate(pitches):
+        T[r, :3, :3] = _pitched_up(deg)
+        T[r, :3, 3] = (0.5 * r, 0.0, -0.05)
+    frames = [(r, _fov_returns(rng)) for r in range(3)]
+    sight = sensor_sight(axis, T, frames, max_range_m=5.0)
+    assert sight is not None and sight.forward_sign == 1.0
+    assert np.degrees(np.arctan(sight.descent_ratio)) == pytest.approx(8.5, abs=0.1)
+    assert np.allclose(sight.height_m, -0.05) and np.allclose(sight.chainage_m, [0.0, 0.5, 1.0])
+    turned = T.copy()
+    turned[:, :3, :3] = turned[:, :3, :3] @ np.diag([-1.0, -1.0, 1.0])
+    assert sensor_sight(axis, turned, frames, max_range_m=5.0) is None
+
+
+def test_the_flow_reads_the_sight_from_every_registered_frame_it_kept(tmp_path):
+    """``read_sensor_sight`` reads the frames registration kept (two chunks sharing a frame),
+    one at a time, and gives the core's sight: the least steep frame's, 12.5 - 4°."""
+    from pipescan.core.axis import PipeAxis
+    from pipescan.core.model import FrameQuality
+    from pipescan.core.registration import Trajectory
+    from pipescan.storage.scratch import FrameStore
+    from pipescan.tasks.inspection import read_sensor_sight
+
+    rng = np.random.default_rng(5)
+    frames = {i: _fov_returns(rng).astype(np.float32) for i in range(5)}
+    store = FrameStore(tmp_path / "frames")
+    for first, last in ((0, 2), (2, 4)):
+        with store.writer(first) as w:
+            for i in range(first, last + 1):
+                w.add(i, frames[i])
+    T = np.stack([np.eye(4)] * 3)
+    for r, deg in enumerate([2.0, 4.0, 3.0]):
+        T[r, :3, :3] = _pitched_up(deg)
+        T[r, :3, 3] = (0.5 * r, 0.0, -0.05)
+    trajectory = Trajectory(
+        T_world_frame=T,
+        quality=tuple(FrameQuality(i, 1.0, 0.001, False) for i in (0, 2, 4)),
+        frame_indices=(0, 2, 4),
+    )
+    axis = PipeAxis(
+        origin_m=np.zeros(3), direction=np.array([1.0, 0.0, 0.0]), up=np.array([0.0, 0.0, 1.0])
+    )
+    sight = read_sensor_sight.fn(store, [(0, 2), (2, 4)], trajectory, axis, 5.0)
+    assert sight is not None
+    assert np.degrees(np.arctan(sight.descent_ratio)) == pytest.approx(8.5, abs=0.1)
+    assert np.allclose(sight.chainage_m, [0.0, 0.5, 1.0])
+
+
+@pytest.mark.slow
+def test_water_is_read_beyond_a_deposits_shadow_and_a_dry_pipe_reads_none():
+    """A 0.6 m pipe, 4.4 m of travel, the deposit 28.5 % high at 3.4-4.3 m, water 8 % deep
+    whose surface returns nothing: the water is read before the deposit and from 1.2 m past
+    its end on, at its depth, and not in the deposit's shadow just behind it. The same pipe
+    dry reads no water at all (the shadow is not water)."""
+    from pipescan.simulator.sensors import WaterLevel
+    from pipescan.simulator.sweep import measure_scan
+
+    dry = defect_scene(0.6, 4.4, effects=Effects())
+    wet_scene = dataclasses.replace(dry, water=WaterLevel(0.08, surface_return_ratio=0.0))
+    _, sections = measure_scan(simulate_scan(wet_scene, seed=2))
+    wet = [s for s in sections if s.status == SectionStatus.INVERT_UNDER_WATER]
+    beyond = [s for s in wet if s.chainage_start_m >= 5.5]
+    before = [s for s in wet if s.chainage_end_m <= 2.5]
+    assert len(beyond) >= 20 and len(before) >= 5
+    assert np.median([s.water_depth_ratio for s in beyond]) == pytest.approx(0.08, abs=0.015)
+    assert not [s for s in wet if 4.3 <= s.chainage_start_m < 4.9]
+    _, dry_sections = measure_scan(simulate_scan(dry, seed=2))
+    assert not [s for s in dry_sections if s.status == SectionStatus.INVERT_UNDER_WATER]
+
+
 def test_water_whose_surface_returns_nothing_is_read_with_its_depth():
     from pipescan.simulator.sensors import WaterLevel
     from pipescan.simulator.sweep import measure_cloud_scan, smooth_scene

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from pipescan.core.axis import PipeAxis
 from pipescan.core.contour.base import angle_from_invert_rad, polar_coordinates
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.summary import adjacent_runs
@@ -224,26 +225,170 @@ level, or higher, explains a missing invert by its shadow (the line of sight ove
 descends behind it, so a shadow's edge always lies below the top that casts it)."""
 
 
-def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionMeasures]:
+@dataclass(frozen=True)
+class SensorSight:
+    """Where a forward-looking sensor looked from, and how steeply it could look down: what
+    bounds the reach of a shadow (:func:`explain_invert_shadows`).
+
+    Attributes
+    ----------
+    chainage_m : (P,) float
+        Chainage of the sensor's positions (the registered frames').
+    height_m : (P,) float
+        The sensor's height above the axis at each position (section plane, metres).
+    descent_ratio : float
+        How steeply down, straight ahead in the pipe's vertical plane, every frame could
+        look (the least steep of the frames' steepest sights: a frame whose attitude swung
+        nose up saw less far down): the tangent of the angle below the axis, descent per
+        metre of chainage. 0 when the sensor never looked down.
+    forward_sign : float
+        +1 when the sensor looked towards growing chainage, -1 towards falling chainage.
+    max_range_m : float
+        Returns further from the sensor than this were not measured.
+    """
+
+    chainage_m: np.ndarray
+    height_m: np.ndarray
+    descent_ratio: float
+    forward_sign: float = 1.0
+    max_range_m: float = float("inf")
+
+
+def steepest_descent_ratio(points_sensor_m: np.ndarray, R_pipe_sensor: np.ndarray) -> float:
+    """How steeply one frame looked down straight ahead: the tangent of the angle below the
+    axis of its lowest line of sight in the pipe's vertical plane.
+
+    The field of view's lower edge is the lowest elevation of the frame's returns in the
+    sensor's own frame (x forward, z up), taken as flat across the azimuths the returns span
+    (a rectangular field of view, as a forward-looking scanner's); that edge is turned into
+    the pipe frame by the frame's attitude, and its ray with no sideways component is the one
+    read. Rays that hit water return nothing, but the same lower edge reaches the wall beside
+    it, so the edge is found with water in the invert too.
+
+    Parameters
+    ----------
+    points_sensor_m : (N, 3) float
+        One frame's returns in the sensor frame.
+    R_pipe_sensor : (3, 3) float
+        The frame's attitude: columns are the sensor's axes in the pipe frame (rows: along
+        the sensor's travel, across, up).
+
+    Returns
+    -------
+    float
+        The tangent (0 when the frame holds no return below the sensor, or none ahead).
+    """
+    p = np.asarray(points_sensor_m, dtype=np.float64)
+    r = np.linalg.norm(p, axis=1)
+    p, r = p[r > 0], r[r > 0]
+    if not len(p):
+        return 0.0
+    lowest = float(np.arcsin(np.clip(p[:, 2] / r, -1.0, 1.0)).min())
+    az = np.arctan2(p[:, 1], p[:, 0])
+    grid = np.linspace(float(az.min()), float(az.max()), 721)
+    edge = (
+        np.column_stack(
+            (
+                math.cos(lowest) * np.cos(grid),
+                math.cos(lowest) * np.sin(grid),
+                np.full_like(grid, math.sin(lowest)),
+            )
+        )
+        @ np.asarray(R_pipe_sensor, dtype=np.float64).T
+    )
+    ahead = edge[:, 0] > 0
+    if not ahead.any():
+        return 0.0
+    edge = edge[ahead]
+    straight = int(np.argmin(np.abs(edge[:, 1]) / edge[:, 0]))
+    return max(0.0, float(-edge[straight, 2] / edge[straight, 0]))
+
+
+def sensor_sight(
+    axis: PipeAxis,
+    T_world_sensor: np.ndarray,
+    frames: Iterable[tuple[int, np.ndarray]],
+    *,
+    max_range_m: float,
+) -> SensorSight | None:
+    """The sensor's positions along the pipe and how steeply it looked down.
+
+    Parameters
+    ----------
+    axis : PipeAxis
+    T_world_sensor : (P, 4, 4) float
+        The sensor's poses (the registered frames').
+    frames : iterable of (int, (N, 3) float)
+        The frames to read the sight from (every registered one, or frames spread over the
+        run), read one at a time: the row of their pose in ``T_world_sensor``, and their
+        returns in the sensor frame (x forward, z up).
+    max_range_m : float
+        Returns further from the sensor were not measured.
+
+    Returns
+    -------
+    SensorSight or None
+        None when no frame was read, or the sensor did not look only the way it travelled
+        (its x axis pointing back, or more than 1 % of a frame's returns behind it): a shadow
+        may then fall on either side of what casts it.
+    """
+    T = np.asarray(T_world_sensor, dtype=np.float64)
+    chainage, plane = axis.section_coordinates(T[:, :3, 3])
+    forward = 1.0 if chainage[-1] >= chainage[0] else -1.0  # the way the sensor travelled
+    descents = []
+    for row, points in frames:
+        origin = T[row, :3, 3]
+        ends = origin + 0.1 * T[row, :3, :3].T  # a decimetre along each of the sensor's axes
+        c, pl = axis.section_coordinates(np.vstack((origin, ends)))
+        local = np.column_stack((c, pl))
+        # Columns: the sensor's axes in (ahead, across, up).
+        R = np.diag([forward, 1.0, 1.0]) @ ((local[1:] - local[0]) / 0.1).T
+        p = np.asarray(points, dtype=np.float64)
+        if R[0, 0] <= 0 or np.mean(p @ R[0] < 0) > 0.01:
+            return None
+        descents.append(steepest_descent_ratio(p, R))
+    if not descents:
+        return None
+    return SensorSight(
+        chainage_m=chainage,
+        height_m=plane[:, 1],
+        descent_ratio=min(descents),
+        forward_sign=forward,
+        max_range_m=max_range_m,
+    )
+
+
+def explain_invert_shadows(
+    sections: Sequence[SectionMeasures], sight: SensorSight | None = None
+) -> list[SectionMeasures]:
     """Take water back where a deposit or an obstacle beside it explains the missing invert.
 
     A section reads as water (``invert_under_water``) when its invert is unseen below a level
     chord with a few points on it. The shadow a deposit's or an obstacle's end casts on the
     invert looks the same to one section: the wall stops at the same height on both sides,
     and spurious returns or the ramp's grazing points lie on the chord. Along the pipe they
-    differ: a shadow begins where something stands at least as high as its edge. So, for each
-    stretch of sections that are water or too little seen (in chainage order), the sections
-    just before and after it are looked at, where they have a deposit height (ok or not: a
-    smeared deposit casts a shadow too): where one stands
-    within :data:`SHADOW_LEVEL_MARGIN_RATIO` of the water's depth or higher, the stretch's
-    water is the shadow's, and those sections become ``low_coverage`` without a water depth.
-    Water that really ponds against a deposit is then not reported either: no figure, rather
-    than a wrong one.
+    differ: a shadow begins where something stands at least as high as its edge, and ends
+    where the sensor's line of sight over that top reaches the invert.
+
+    With ``sight``, a water section is the shadow's when a section before it (in the
+    direction the sensor looked) has a deposit height (ok or not: a smeared deposit casts a
+    shadow too) within :data:`SHADOW_LEVEL_MARGIN_RATIO` of its depth, or higher, and no
+    position of the sensor saw the invert past that top before the section's start: from a
+    position before the top, over it, at most as steeply as ``sight`` looked down; from a
+    position past it, with nothing in between. The top reaches on through the sections after
+    it read as water at its own height (its far side, seen only from above). Without
+    ``sight`` (a registered cloud: the positions are not known), a stretch of sections that
+    are water or too little seen is the shadow's all along when a section just before or
+    after it has such a height. Such sections become ``low_coverage`` without a water depth:
+    water that really ponds against a deposit is then not reported either (no figure, rather
+    than a wrong one).
 
     Parameters
     ----------
     sections
         One scan's sections, in any order.
+    sight : SensorSight, optional
+        Where the sensor looked from, and how steeply (:func:`sensor_sight`).
 
     Returns
     -------
@@ -252,16 +397,83 @@ def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionM
     """
     ordered = sorted(sections, key=lambda s: s.chainage_start_m)
     out = list(ordered)
+    if sight is None:
+        shadowed = _shadowed_stretches(ordered)
+    else:
+        shadowed = _shadowed_within_reach(ordered, sight)
+    for k in shadowed:
+        out[k] = dataclasses.replace(
+            ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
+        )
+    return out
+
+
+def _shadow_end(
+    sight: SensorSight, top_u: float, top_y: float, invert_y: float, end_u: float
+) -> float:
+    """Where, beyond a top at ``top_u`` (``sight``'s forward coordinate) standing ``top_y``
+    above the axis, some position of the sensor saw the invert (at ``invert_y``) past it, with
+    ``end_u`` within its range: the shadow's far end (inf where none did)."""
+    u = sight.forward_sign * np.asarray(sight.chainage_m, dtype=np.float64)
+    y = np.asarray(sight.height_m, dtype=np.float64)
+    t = sight.descent_ratio
+    if t <= 0 or not len(u):
+        return math.inf
+    with np.errstate(divide="ignore", invalid="ignore"):
+        near = u + (y - invert_y) / t  # the field of view's lower edge reaches the invert
+        over = top_u + (top_u - u) * (top_y - invert_y) / (y - top_y)  # the sight over the top
+    before = u < top_u
+    near = np.where(before & (y <= top_y), math.inf, near)
+    near = np.where(before & (y > top_y), np.maximum(near, over), near)
+    near = np.where(end_u <= u + sight.max_range_m, near, math.inf)
+    return float(near.min())
+
+
+def _casts(height: float | None, depth: float) -> bool:
+    return height is not None and height >= depth - SHADOW_LEVEL_MARGIN_RATIO
+
+
+def _shadowed_within_reach(ordered: list[SectionMeasures], sight: SensorSight) -> list[int]:
+    """The water sections within the reach of a shadow (:func:`explain_invert_shadows`)."""
+    sign = sight.forward_sign
+    along = ordered if sign > 0 else ordered[::-1]  # in the direction the sensor looked
+    index = list(range(len(ordered))) if sign > 0 else list(range(len(ordered)))[::-1]
+
+    def wet(s: SectionMeasures) -> bool:
+        return s.status == SectionStatus.INVERT_UNDER_WATER and s.water_depth_ratio is not None
+
+    shadowed: set[int] = set()
+    for j, top in enumerate(along):
+        height = top.deposit_height_ratio
+        if height is None:
+            continue
+        # Sections read as water at the top's own height may hold the rest of the top, seen
+        # only from above: the top reaches to the end of the last of them.
+        last = j
+        while last + 1 < len(along) and wet(along[last + 1]):
+            if (along[last + 1].water_depth_ratio or 0.0) < height - SHADOW_LEVEL_MARGIN_RATIO:
+                break
+            last += 1
+        top_u = max(sign * along[last].chainage_start_m, sign * along[last].chainage_end_m)
+        diameter = math.sqrt(4.0 * top.nominal_area_m2 / math.pi)
+        top_y = (height + SHADOW_LEVEL_MARGIN_RATIO - 0.5) * diameter
+        for k in range(j + 1, len(along)):
+            s = along[k]
+            if not wet(s) or not _casts(height, s.water_depth_ratio or 0.0):
+                continue
+            start_u, end_u = sorted((sign * s.chainage_start_m, sign * s.chainage_end_m))
+            if _shadow_end(sight, top_u, top_y, -0.5 * diameter, end_u) > start_u:
+                shadowed.add(index[k])
+    return sorted(shadowed)
+
+
+def _shadowed_stretches(ordered: list[SectionMeasures]) -> list[int]:
+    """The water sections of stretches beside a shadow's top, all along them (no sight)."""
 
     def is_gap(s: SectionMeasures) -> bool:
         return s.status in (SectionStatus.INVERT_UNDER_WATER, SectionStatus.LOW_COVERAGE)
 
-    # What stands beside a stretch is evidence for a shadow whatever the section's status: a
-    # deposit whose wall the frames smeared still casts one. (The figure is not reported from
-    # it; it only takes water back, and no figure is the safe side.)
-    def height_at(k: int) -> float | None:
-        return ordered[k].deposit_height_ratio
-
+    shadowed = []
     i = 0
     while i < len(ordered):
         if not is_gap(ordered[i]):
@@ -270,18 +482,15 @@ def explain_invert_shadows(sections: Sequence[SectionMeasures]) -> list[SectionM
         j = i
         while j < len(ordered) and is_gap(ordered[j]):
             j += 1
-        wet = [k for k in range(i, j) if ordered[k].status == SectionStatus.INVERT_UNDER_WATER]
-        before = height_at(i - 1) if i > 0 else None
-        after = height_at(j) if j < len(ordered) else None
-        beside = [h for h in (before, after) if h is not None]
-        for k in wet:
-            depth = ordered[k].water_depth_ratio
-            if depth is not None and any(h >= depth - SHADOW_LEVEL_MARGIN_RATIO for h in beside):
-                out[k] = dataclasses.replace(
-                    ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
-                )
+        beside = [ordered[k].deposit_height_ratio for k in (i - 1, j) if 0 <= k < len(ordered)]
+        for k in range(i, j):
+            s = ordered[k]
+            if s.status != SectionStatus.INVERT_UNDER_WATER or s.water_depth_ratio is None:
+                continue
+            if any(_casts(h, s.water_depth_ratio) for h in beside):
+                shadowed.append(k)
         i = j
-    return out
+    return shadowed
 
 
 LEVEL_RUN_SECTIONS = 5

@@ -61,6 +61,7 @@ from pipescan.tasks.inspection import (
     fit_pipe_axis,
     grade,
     measure_sections,
+    read_sensor_sight,
     register_chunk,
     survey_scan,
 )
@@ -462,12 +463,27 @@ def _place_and_measure(
         windows,
         reach_m=params.max_section_range_m + BENT_AXIS_MARGIN_M,
     )
+    # Where the sensor looked from, and how steeply: how far a shadow reaches.
+    sight = (
+        read_sensor_sight.submit(
+            scan.frame_store,
+            scan.chunks,
+            quote(trajectory),
+            quote(fit.axis),
+            params.max_section_range_m,
+        )
+        if trajectory is not None
+        else None
+    )
     placed, measured = _schedule_windows(spans, reached, windows, place, measure)
     # Water read where a deposit's or obstacle's shadow explains the unseen invert is taken
     # back, and an object's edge is withheld where the object was seen where other frames saw
     # bare wall (both take sections on both sides of a window's edge).
     sections = withhold_smeared_object_edges(
-        explain_invert_shadows(confirm_surfaceless_water(measured)), scan.measure
+        explain_invert_shadows(
+            confirm_surfaceless_water(measured), sight.result() if sight is not None else None
+        ),
+        scan.measure,
     )
     return sections, sum(p.points for p in placed)
 

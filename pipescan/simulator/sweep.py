@@ -768,7 +768,7 @@ def measure_scan(
         registration_evidence,
     )
     from pipescan.core.sections import measure_window, plan_windows
-    from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows
+    from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows, sensor_sight
 
     params = params or RegistrationParams()
     measure = MeasureParams()
@@ -817,7 +817,12 @@ def measure_scan(
             dataclasses.replace(s, water_depth_ratio=None) if s.water_from_surface is False else s
             for s in sections
         ]
-    sections = explain_invert_shadows(sections)
+    by_index = {f[0]: f[1] for f in frames}
+    registered = ((r, by_index[i]) for r, i in enumerate(trajectory.frame_indices))
+    sight = sensor_sight(
+        axis, trajectory.T_world_frame, registered, max_range_m=max_section_range_m
+    )
+    sections = explain_invert_shadows(sections, sight)
     return trajectory, withhold_smeared_object_edges(sections, measure)
 
 

@@ -37,6 +37,7 @@ from pipescan.core.registration import (
 )
 from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.core.start import cloud_start, sensor_ahead_m
+from pipescan.core.water import SensorSight, sensor_sight
 from pipescan.storage.input.pointfiles import StridedSample
 from pipescan.storage.scratch import (
     Bucketed,
@@ -329,6 +330,23 @@ def bucket_points(
         stop = last + 1 if last == staged.frame_count - 1 else last
         placed = _frame_points_world(arc, trajectory, range(first, stop), max_range_m, along)
         return write_buckets(placed, axis, windows, bucket_root, tag)
+
+
+@task(name="sensor-sight", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
+def read_sensor_sight(
+    frame_store: FrameStore,
+    chunks: Sequence[tuple[int, int]],
+    trajectory: Trajectory,
+    axis: PipeAxis,
+    max_range_m: float,
+) -> SensorSight | None:
+    """The sensor's positions along the axis and how steeply it looked down
+    (:func:`~pipescan.core.water.sensor_sight`), from every registered frame as
+    :func:`register_chunk` stored it, one at a time."""
+    rows = {i: r for r, i in enumerate(trajectory.frame_indices)}
+    stored = _stored_frames(frame_store, chunks, trajectory.frame_indices)
+    frames = ((rows[i], points) for i, points in stored)
+    return sensor_sight(axis, trajectory.T_world_frame, frames, max_range_m=max_range_m)
 
 
 @task(name="measure-window", cache_policy=NO_CACHE, **IO_RETRY_OPTIONS)
