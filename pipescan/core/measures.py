@@ -492,7 +492,7 @@ def _clean(
         # Rays that graze an edge leave a veil of mixed returns behind it; over many frames it
         # fills the shadow, and would count as seen wall and as blockage.
         kept = not_veil(angle, radius, bins, relative_density=params.veil_relative_density)
-        pts, angle, radius = pts[kept], angle[kept], radius[kept]
+        pts, angle, radius = np.compress(kept, pts, axis=0), angle[kept], radius[kept]
     return _CleanSection(used, pts, angle, radius, sparse, bins, slices, min_slices, min_bin_share)
 
 
