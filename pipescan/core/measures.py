@@ -472,7 +472,7 @@ def _clean(
     # whole-number stride: a section just over the limit would lose half its points.)
     used = raw
     if len(raw) > params.max_points:
-        used = raw[np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64)]
+        used = np.take(raw, np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64), 0)
     sparse = len(used) < 16 * _BIN_CHOICES[-1]
     pts = remove_stray_points(
         used,
