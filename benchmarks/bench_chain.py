@@ -327,7 +327,12 @@ def _child(archive: str, out_json: str) -> None:
     marks["end"] = (time.perf_counter() - t0, *tree_cpu())
     Path(out_json).write_text(
         json.dumps(
-            {"marks": marks, "peak": peak, "stage_peak": stage_peak, "sampler_cpu_s": sampler_cpu["s"]}
+            {
+                "marks": marks,
+                "peak": peak,
+                "stage_peak": stage_peak,
+                "sampler_cpu_s": sampler_cpu["s"],
+            }
         ),
         encoding="utf-8",
     )

@@ -414,7 +414,7 @@ def read_window_rows(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
             continue
         with f.open("rb") as fh:
             fh.seek(offset)
-            got = fh.readinto(memoryview(part).cast("B"))
+            got = fh.readinto(part.data.cast("B"))
         if got != part.nbytes:
             raise ValueError(f"{f}: {got:,} bytes of rows where its header says {part.nbytes:,}")
         at += shape[0]
