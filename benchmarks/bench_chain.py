@@ -19,7 +19,9 @@ them outside the repository.
 ``run`` runs ``pipescan inspect`` on each archive in a fresh process (SQLite database and work
 directory in a temporary directory) and prints, per archive, the wall and CPU time of each
 stage, the real-time factor (recording time / wall time) and the peak resident memory of the
-process tree (pipescan, its task workers and the Prefect API server it starts). Stages are
+process tree (pipescan, its task workers and the Prefect API server it starts). CPU time is
+pipescan's process tree's and, apart, the Prefect API server's (without the benchmark's own
+sampling of the tree); the chain's, surveyed to stored, is summed for both. Stages are
 read from pipescan's own log lines, so what is timed is the command a user runs:
 
 - ``start``: process start to the archive staged;
@@ -255,15 +257,20 @@ def _child(archive: str, out_json: str) -> None:
     stage_peak: dict[str, int] = {}  # the pipescan process's peak within each stage
     dead_cpu = {"s": 0.0}
     seen: dict[int, float] = {}
+    api_cpu: dict[int, float] = {}  # the Prefect API server's CPU, as last read
+    sampler_cpu = {"s": 0.0}
 
-    def tree_cpu() -> float:
+    def tree_cpu() -> tuple[float, float]:
         """CPU seconds of this process and its children, live or finished, without the Prefect
-        API server (it serves the run; it is not the chain's work)."""
-        total = sum(me.cpu_times()[:4])
+        API server (it serves the run; it is not the chain's work) and without this script's
+        own sampling thread (listing the process tree reads every process of the machine);
+        and, apart, the API server's CPU seconds."""
+        total = sum(me.cpu_times()[:4]) - sampler_cpu["s"]
         live = {}
         for child in me.children(recursive=True):
             try:
                 if "uvicorn" in " ".join(child.cmdline()) or "prefect" in child.name():
+                    api_cpu[child.pid] = sum(child.cpu_times()[:2])
                     continue
                 live[child.pid] = sum(child.cpu_times()[:2])
             except psutil.Error:
@@ -273,10 +280,11 @@ def _child(archive: str, out_json: str) -> None:
                 dead_cpu["s"] += cpu
         seen.clear()
         seen.update(live)
-        return total + sum(live.values()) + dead_cpu["s"]
+        return total + sum(live.values()) + dead_cpu["s"], sum(api_cpu.values())
 
     def sample() -> None:
         while not done.is_set():
+            started_cpu = time.thread_time()
             try:
                 rss = me.memory_info().rss
                 peak["main_rss"] = max(peak["main_rss"], rss)
@@ -288,6 +296,7 @@ def _child(archive: str, out_json: str) -> None:
                 peak["tree_rss"] = max(peak["tree_rss"], rss)
             except psutil.Error:
                 pass
+            sampler_cpu["s"] += time.thread_time() - started_cpu
             done.wait(0.25)  # listing the process tree costs ~3 % of a run at 0.1 s
 
     class Marks(logging.Handler):
@@ -295,7 +304,7 @@ def _child(archive: str, out_json: str) -> None:
             message = record.getMessage()
             for stage, pattern in STAGES:
                 if stage not in marks and pattern.search(message):
-                    marks[stage] = (time.perf_counter() - t0, tree_cpu())
+                    marks[stage] = (time.perf_counter() - t0, *tree_cpu())
 
     done = threading.Event()
     sampler = threading.Thread(target=sample, daemon=True)
@@ -315,9 +324,17 @@ def _child(archive: str, out_json: str) -> None:
     finally:
         done.set()
         sampler.join()
-    marks["end"] = (time.perf_counter() - t0, tree_cpu())
+    marks["end"] = (time.perf_counter() - t0, *tree_cpu())
     Path(out_json).write_text(
-        json.dumps({"marks": marks, "peak": peak, "stage_peak": stage_peak}), encoding="utf-8"
+        json.dumps(
+            {
+                "marks": marks,
+                "peak": peak,
+                "stage_peak": stage_peak,
+                "sampler_cpu_s": sampler_cpu["s"],
+            }
+        ),
+        encoding="utf-8",
     )
 
 
@@ -629,16 +646,18 @@ def run(
               f"{result['summary']['point_count']:,} points, {recording:.0f} s recorded, "
               f"{result['summary']['section_count']} sections "
               f"({result['summary']['sections_ok']} ok)")  # fmt: skip
-        print(f"  {'stage':<14}{'ends at s':>10}{'wall s':>9}{'CPU s':>8}{'peak RSS MB':>13}")
-        prev_t, prev_c = 0.0, 0.0
+        print(f"  {'stage':<14}{'ends at s':>10}{'wall s':>9}{'CPU s':>8}{'API CPU s':>10}"
+              f"{'peak RSS MB':>13}")  # fmt: skip
+        prev_t, prev_c, prev_a = 0.0, 0.0, 0.0
         order = [s for s, _ in STAGES] + ["end"]
         for stage in order:
             if stage not in marks:
                 continue
-            t, c = marks[stage]
+            t, c, a = marks[stage]
             stage_mb = result.get("stage_peak", {}).get(stage, 0) / 2**20
-            print(f"  {stage:<14}{t:>10.1f}{t - prev_t:>9.1f}{c - prev_c:>8.1f}{stage_mb:>13,.0f}")
-            prev_t, prev_c = t, c
+            print(f"  {stage:<14}{t:>10.1f}{t - prev_t:>9.1f}{c - prev_c:>8.1f}{a - prev_a:>10.1f}"
+                  f"{stage_mb:>13,.0f}")  # fmt: skip
+            prev_t, prev_c, prev_a = t, c, a
         # The chain starts once the archive is staged and the Prefect API is up (a frames
         # archive: its survey; a cloud: staged).
         start_t = marks.get("surveyed", marks["staged"])[0]
@@ -667,6 +686,15 @@ def run(
         print(f"  real time / chain (staged to stored): {row['rt_chain']:.1f}x; "
               f"registration {row['rt_register']:.1f}x; "
               f"with start-up {row['rt_total']:.1f}x")  # fmt: skip
+        start = marks.get("surveyed", marks["staged"])
+        chain_cpu = marks["stored"][1] - start[1]
+        chain_api = marks["stored"][2] - start[2]
+        row.update(chain_cpu_s=chain_cpu, chain_api_cpu_s=chain_api)
+        print(f"  CPU, surveyed to stored: {chain_cpu:.1f} s pipescan (its process tree) + "
+              f"{chain_api:.1f} s Prefect API server = {chain_cpu + chain_api:.1f} s, "
+              f"{1e3 * (chain_cpu + chain_api) / max(frames, 1):.1f} ms a frame; whole run "
+              f"{marks['end'][1] + marks['end'][2]:.1f} s (the benchmark's own sampling, "
+              f"{result.get('sampler_cpu_s', 0.0):.1f} s, left out)")  # fmt: skip
         print(f"  peak RSS: process tree {_fmt_mb(peak['tree_rss'])} MB, "
               f"pipescan process {_fmt_mb(peak['main_rss'])} MB")  # fmt: skip
         if sections_dir is not None and (archive / "ground_truth").is_dir():

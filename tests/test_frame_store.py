@@ -66,3 +66,25 @@ def test_points_placed_in_blocks_come_back_as_placed_at_once(tmp_path, monkeypat
         once = scratch.read_window_rows(tmp_path / "whole", w)
         np.testing.assert_array_equal(scratch.read_window_rows(tmp_path / "b", w), once)
         np.testing.assert_array_equal(scratch.read_window_rows(tmp_path / "s", w), once)
+
+
+def test_a_windows_rows_come_back_in_file_order_and_a_cut_file_is_refused(tmp_path):
+    """A window's files are read into one array in their order, as written; a file cut short
+    fails naming it instead of returning fewer rows."""
+    import pipescan.storage.scratch as scratch
+    from pipescan.core.sections import ChainageWindow
+
+    window = ChainageWindow(0, 2000, 100)
+    out = scratch.window_dir(tmp_path, window)
+    out.mkdir(parents=True)
+    rng = np.random.default_rng(3)
+    parts = [rng.random((n, 3)).astype(np.float32) for n in (5, 0, 17, 1)]
+    for k, part in enumerate(parts):
+        np.save(out / f"chunk_{k:07d}-00000.npy", part)
+    rows = scratch.read_window_rows(tmp_path, window)
+    assert rows.dtype == np.float32
+    np.testing.assert_array_equal(rows, np.concatenate(parts))
+    cut = out / "chunk_0000002-00000.npy"
+    cut.write_bytes(cut.read_bytes()[:-5])
+    with pytest.raises(ValueError, match="chunk_0000002"):
+        scratch.read_window_rows(tmp_path, window)

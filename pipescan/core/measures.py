@@ -490,7 +490,7 @@ def _clean(
     # whole-number stride: a section just over the limit would lose half its points.)
     used = raw
     if len(raw) > params.max_points:
-        used = raw[np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64)]
+        used = np.take(raw, np.linspace(0, len(raw) - 1, params.max_points).astype(np.int64), 0)
     sparse = len(used) < 16 * _BIN_CHOICES[-1]
     pts = remove_stray_points(
         used,
@@ -510,7 +510,7 @@ def _clean(
         # Rays that graze an edge leave a veil of mixed returns behind it; over many frames it
         # fills the shadow, and would count as seen wall and as blockage.
         kept = not_veil(angle, radius, bins, relative_density=params.veil_relative_density)
-        pts, angle, radius = pts[kept], angle[kept], radius[kept]
+        pts, angle, radius = np.compress(kept, pts, axis=0), angle[kept], radius[kept]
     return _CleanSection(used, pts, angle, radius, sparse, bins, slices, min_slices, min_bin_share)
 
 

