@@ -709,3 +709,22 @@ def test_frames_that_disagree_still_smear_a_section_seen_head_on():
         points, params=own, chainage_start_m=3.0, chainage_end_m=3.1, nominal_diameter_m=0.6
     )
     assert measured.status == SectionStatus.SMEARED_WALL
+
+
+def test_surfaceless_water_is_read_at_the_walls_median_edge_not_its_lowest_point():
+    # A 0.4 m section, 7 mm of noise across the wall, water 6 % of the diameter deep with no
+    # return from its surface: the level is where the wall stops, whatever its scatter.
+    rng = np.random.default_rng(3)
+    radius, depth = 0.2, 0.06
+    level = -radius + depth * 2 * radius
+    angles = rng.uniform(0, 2 * np.pi, 40_000)
+    r = radius + rng.normal(0, 0.007, len(angles))
+    xy = np.column_stack((r * np.cos(angles), r * np.sin(angles)))
+    along = rng.uniform(0, 0.1, len(angles))
+    points = np.column_stack((xy, along))[radius * np.sin(angles) > level]
+    section = measure_section(
+        points, chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=2 * radius
+    )
+    # One section cannot tell water from a view that stops short: a candidate depth.
+    assert section.water_from_surface is False
+    assert section.water_depth_ratio == pytest.approx(depth, abs=0.01)

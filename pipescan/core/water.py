@@ -174,8 +174,9 @@ def _invert_gap(
 def _wall_edges(
     xy: np.ndarray, run: np.ndarray, bins: int, wall_radius_m: float, sigma_m: float
 ) -> list[float] | None:
-    """The height where the wall stops on each side of ``run`` (its lowest point at the wall
-    in the nearest bin, or the next one when that holds nothing); None when a side has none."""
+    """The height where the wall stops on each side of ``run``: the median height of its
+    points at the wall in the nearest bin (or the next one when that holds nothing); None when
+    a side has none."""
     dtheta = 2.0 * math.pi / bins
     ang, rad = polar_coordinates(xy)
     b_idx = np.minimum((ang / dtheta).astype(np.int64), bins - 1)
@@ -187,7 +188,9 @@ def _wall_edges(
             near = at_wall & (b_idx == (b + away) % bins)
         if not near.any():
             return None
-        edges.append(float(xy[near, 1].min()))
+        # The median, not the lowest: the lowest takes the extreme of the noise and of the
+        # frames' pose errors, and read surfaceless water 1.3 pp shallow (docs/measures.md).
+        edges.append(float(np.median(xy[near, 1])))
     return edges
 
 
