@@ -150,6 +150,20 @@ def test_the_cover_says_how_far_to_trust_and_the_appendix_says_why(tmp_path):
     )
     assert "rested on the odometer alone" in appendix  # the caveat, in full, for the engineer
     assert "bound by" not in appendix
+    assert "sensor" not in appendix  # stored before the instrument was read
+
+
+def test_the_appendix_names_the_sensor_the_limits_came_from(tmp_path):
+    inp = make_input()
+    described = (
+        "sensor unknown; minimum range 0.50 m (estimated); range noise 6.3 mm (estimated); "
+        "one frame sees 97 % of the view (estimated)"
+    )
+    reg = {**inp.registration, "instrument": described}
+    pages = _pages(render_pdf(dataclasses.replace(inp, registration=reg), tmp_path / "s.pdf"))
+    appendix = re.sub(r"\s+", " ", next(p for p in pages if "Appendix A: registration" in p))
+    assert "sensor minimum range 0.50 m (estimated); range noise 6.3 mm (estimated)" in appendix
+    assert "sensor unknown" not in appendix
 
 
 def test_tables_break_neither_inside_a_header_nor_before_a_short_tail(sample_pdf):

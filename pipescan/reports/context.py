@@ -486,7 +486,24 @@ def _registration_rows(inp: ReportInput) -> list[tuple[str, str]]:
         if inp.start_source
         else []
     )
-    return start + _registration_only_rows(inp)
+    return start + _registration_only_rows(inp) + _sensor_rows(inp)
+
+
+def _sensor_rows(inp: ReportInput) -> list[tuple[str, str]]:
+    """The sensor as the run used it: its blind zone, noise and share of the view, each from
+    the inspection's ``[sensor]`` profile or estimated from the scan (the limits the sections
+    were held to follow from them). None for an inspection stored before they were read."""
+    described = (inp.registration or {}).get("instrument")
+    if not described:
+        return []
+    parts = [part for part in described.split("; ") if part != "sensor unknown"]
+    return [
+        (
+            "sensor",
+            "; ".join(parts) + ". The smear and blind-zone limits the sections were held to "
+            "follow from these",
+        )
+    ]
 
 
 def _stride_reason(reason: str) -> str:
