@@ -711,20 +711,39 @@ def test_frames_that_disagree_still_smear_a_section_seen_head_on():
     assert measured.status == SectionStatus.SMEARED_WALL
 
 
-def test_surfaceless_water_is_read_at_the_walls_median_edge_not_its_lowest_point():
-    # A 0.4 m section, 7 mm of noise across the wall, water 6 % of the diameter deep with no
-    # return from its surface: the level is where the wall stops, whatever its scatter.
+def _water_section(radius: float = 0.2, depth: float = 0.06) -> np.ndarray:
+    """A 0.4 m section with 7 mm of noise across the wall, water ``depth`` of the diameter
+    deep with no return from its surface."""
     rng = np.random.default_rng(3)
-    radius, depth = 0.2, 0.06
     level = -radius + depth * 2 * radius
     angles = rng.uniform(0, 2 * np.pi, 40_000)
     r = radius + rng.normal(0, 0.007, len(angles))
     xy = np.column_stack((r * np.cos(angles), r * np.sin(angles)))
     along = rng.uniform(0, 0.1, len(angles))
-    points = np.column_stack((xy, along))[radius * np.sin(angles) > level]
+    return np.column_stack((xy, along))[radius * np.sin(angles) > level]
+
+
+def test_surfaceless_water_is_read_at_the_walls_median_edge_not_its_lowest_point():
+    # The level is where the wall stops, whatever its scatter.
     section = measure_section(
-        points, chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=2 * radius
+        _water_section(), chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=0.4
     )
     # One section cannot tell water from a view that stops short: a candidate depth.
     assert section.water_from_surface is False
-    assert section.water_depth_ratio == pytest.approx(depth, abs=0.01)
+    assert section.water_depth_ratio == pytest.approx(0.06, abs=0.01)
+
+
+def test_water_is_withheld_where_the_registration_is_weak():
+    from pipescan.core.water import confirm_surfaceless_water
+
+    # Where the frames that placed the wall are not trusted, neither is the water's level.
+    weak = measure_section(
+        _water_section(),
+        chainage_start_m=0.0,
+        chainage_end_m=0.1,
+        nominal_diameter_m=0.4,
+        registration_weak=True,
+    )
+    assert weak.status == SectionStatus.WEAK_REGISTRATION and weak.water_depth_ratio is None
+    run = [dataclasses.replace(weak, chainage_start_m=0.1 * i) for i in range(6)]
+    assert all(s.status == SectionStatus.WEAK_REGISTRATION for s in confirm_surfaceless_water(run))

@@ -351,7 +351,9 @@ def measure_section(
         return SectionMeasures(status=status, coverage_ratio=profile.coverage_ratio, **base)
     noise = _wall_noise(clean, profile, length_m)
     water, profile, water_depth = _water(clean, noise, nominal_diameter_m, has_invert, params)
-    from_surface = None if water is None else water.from_surface
+    from_surface = None if water is None or registration_weak else water.from_surface
+    if registration_weak:
+        water_depth = None  # withheld with the section (``_status``)
     base.update(coverage_ratio=profile.coverage_ratio, water_depth_ratio=water_depth)
     base.update(water_from_surface=from_surface)
     found = found.profiled(profile, water, registration_weak)
@@ -426,6 +428,10 @@ def _status(found: _Evidence, params: MeasureParams) -> SectionStatus:
         return SectionStatus.TOO_FEW_POINTS
     if not found.seen_any:
         return SectionStatus.LOW_COVERAGE
+    if found.water is not None and found.registration_weak:
+        # Water's level is where the frames put the wall or its surface: no better than the
+        # registration that placed them (a rosette's read 22-44 pp off).
+        return SectionStatus.WEAK_REGISTRATION
     if found.water is not None and not found.water.from_surface:
         # Water with no return from its surface: one section cannot tell it from a view that
         # stops short of the invert. Low coverage, until the sections along the pipe agree
