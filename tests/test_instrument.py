@@ -747,3 +747,25 @@ def test_water_is_withheld_where_the_registration_is_weak():
     assert weak.status == SectionStatus.WEAK_REGISTRATION and weak.water_depth_ratio is None
     run = [dataclasses.replace(weak, chainage_start_m=0.1 * i) for i in range(6)]
     assert all(s.status == SectionStatus.WEAK_REGISTRATION for s in confirm_surfaceless_water(run))
+
+
+def test_stray_returns_in_the_open_pipe_are_no_water_surface():
+    # Early returns from dust or spray, 1.5 % of the section, scattered through the open
+    # pipe: some land on the chord where the view stops short, but no more than anywhere.
+    rng = np.random.default_rng(4)
+    points = _water_section()
+    n = int(0.015 * len(points))
+    r = 0.2 * np.sqrt(rng.uniform(0, 0.9, n))
+    a = rng.uniform(0, 2 * np.pi, n)
+    stray = np.column_stack((r * np.cos(a), r * np.sin(a), rng.uniform(0, 0.1, n)))
+    kw = dict(chainage_start_m=0.0, chainage_end_m=0.1, nominal_diameter_m=0.4)
+    dusty = measure_section(np.vstack((points, stray)), **kw)
+    assert dusty.water_from_surface is False  # a candidate, for the pipe to confirm
+    # A surface's returns along the chord stand out of the strays.
+    level = -0.2 + 0.06 * 0.4
+    half = np.sqrt(0.2**2 - level**2) - 0.02
+    x = rng.uniform(-half, half, 150)
+    surface = np.column_stack((x, level + rng.normal(0, 0.003, 150), rng.uniform(0, 0.1, 150)))
+    wet = measure_section(np.vstack((points, stray, surface)), **kw)
+    assert wet.water_from_surface is True
+    assert wet.water_depth_ratio == pytest.approx(0.06, abs=0.01)

@@ -219,7 +219,33 @@ def _surface_returns(
         & (raw_rad < wall_radius_m - max(3.0 * sigma_m, 0.01))
         & (np.abs(raw[:, 1] - edge_level) <= tolerance)
     )
+    # A surface returns more than free space does: the chord's count must stand out of what
+    # the stray returns in the open pipe above it would put there by chance (early returns
+    # from dust or spray at 1-2 % of a frame made a "surface" where the view stopped short).
+    expected = _stray_density(raw, raw_rad, edge_level + tolerance, wall_radius_m) * (
+        2.0 * math.sqrt(max(wall_radius_m**2 - edge_level**2, 0.0)) * 2.0 * tolerance
+    )
+    if on_chord.sum() <= expected + 3.0 * math.sqrt(expected):
+        return raw[:0, 1]
     return raw[on_chord, 1]
+
+
+_OPEN_RADIUS_SHARE = 0.6
+"""The open middle of the pipe, where no wall is, as a share of its radius: where stray
+returns in free space are counted."""
+
+
+def _stray_density(
+    raw: np.ndarray, raw_rad: np.ndarray, above_m: float, wall_radius_m: float
+) -> float:
+    """Returns per square metre of the section plane in the open middle of the pipe above
+    ``above_m`` (none where that region is empty)."""
+    a = _OPEN_RADIUS_SHARE * wall_radius_m
+    y0 = min(max(above_m, -a), a)
+    area = a * a * math.acos(y0 / a) - y0 * math.sqrt(a * a - y0 * y0)
+    if area <= 0.0:
+        return 0.0
+    return float(np.count_nonzero((raw_rad < a) & (raw[:, 1] > above_m))) / area
 
 
 SHADOW_LEVEL_MARGIN_RATIO = 0.01
