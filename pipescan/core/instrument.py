@@ -319,35 +319,9 @@ def wall_noise_m(frames_sensor_m: Sequence[np.ndarray], *, max_range_m: float) -
     >>> round(wall_noise_m([tube], max_range_m=5.0) * 1000)
     4
     """
-    estimates, weights = [], []
-    for fits in _plane_fits(frames_sensor_m, max_range_m=max_range_m):
-        estimates.append(float(np.median(fits.across_var_m2)))
-        weights.append(len(fits.across_var_m2))
-    if not estimates:
-        return None
-    median = float(np.average(estimates, weights=weights))
-    return math.sqrt(max(median, 0.0) * _NOISE_NEIGHBOURS / _CHI2_MEDIAN_13)
-
-
-@dataclass(frozen=True)
-class _PlaneFits:
-    """One frame's plane fits through each sampled return's 16 nearest neighbours (sensor
-    frame)."""
-
-    centroid_m: np.ndarray
-    """(N, 3) the neighbourhoods' centroids."""
-    across_var_m2: np.ndarray
-    """(N,) the smallest covariance eigenvalue: the variance across the fitted plane."""
-    normal: np.ndarray
-    """(N, 3) unit normals (the smallest eigenvalue's eigenvector)."""
-
-
-def _plane_fits(frames_sensor_m: Sequence[np.ndarray], *, max_range_m: float) -> list[_PlaneFits]:
-    """The plane fits of each frame with enough returns within ``max_range_m`` (at most
-    :data:`_NOISE_SAMPLE_POINTS` returns each, evenly spread)."""
     from scipy.spatial import cKDTree
 
-    out = []
+    estimates, weights = [], []
     for frame in frames_sensor_m:
         pts = np.asarray(frame, dtype=np.float64)
         if pts.ndim != 2 or pts.shape[1] != 3:
@@ -359,11 +333,15 @@ def _plane_fits(frames_sensor_m: Sequence[np.ndarray], *, max_range_m: float) ->
         if len(pts) > _NOISE_SAMPLE_POINTS:
             pts = pts[np.linspace(0, len(pts) - 1, _NOISE_SAMPLE_POINTS).astype(np.int64)]
         _, idx = cKDTree(pts).query(pts, k=_NOISE_NEIGHBOURS)
-        centroid = pts[idx].mean(axis=1)
-        nb = pts[idx] - centroid[:, None, :]
-        values, vectors = np.linalg.eigh(np.einsum("nki,nkj->nij", nb, nb) / _NOISE_NEIGHBOURS)
-        out.append(_PlaneFits(centroid, values[:, 0], vectors[:, :, 0]))
-    return out
+        nb = pts[idx] - pts[idx].mean(axis=1, keepdims=True)
+        cov = np.einsum("nki,nkj->nij", nb, nb) / _NOISE_NEIGHBOURS
+        smallest = np.linalg.eigvalsh(cov)[:, 0]
+        estimates.append(float(np.median(smallest)))
+        weights.append(len(pts))
+    if not estimates:
+        return None
+    median = float(np.average(estimates, weights=weights))
+    return math.sqrt(max(median, 0.0) * _NOISE_NEIGHBOURS / _CHI2_MEDIAN_13)
 
 
 def _range_fits(frame_sensor_m: np.ndarray, *, max_range_m: float) -> tuple[np.ndarray, ...]:
@@ -393,7 +371,8 @@ def _range_fits(frame_sensor_m: np.ndarray, *, max_range_m: float) -> tuple[np.n
         raise ValueError(f"A frame must have shape (N, 3), got {pts.shape}.")
     pts = pts[np.isfinite(pts).all(axis=1)]
     r = np.linalg.norm(pts, axis=1)
-    pts, r = pts[(r > 0) & (r <= max_range_m)], r[(r > 0) & (r <= max_range_m)]
+    in_range = (r > 0) & (r <= max_range_m)
+    pts, r = pts[in_range], r[in_range]
     if len(pts) < 10 * _NOISE_NEIGHBOURS:
         return np.empty((0, 3)), np.empty(0), np.empty(0)
     if len(pts) > _NOISE_SAMPLE_POINTS:
@@ -425,7 +404,8 @@ def _range_fits(frame_sensor_m: np.ndarray, *, max_range_m: float) -> tuple[np.n
     ok = np.linalg.cond(normal) < 1e8
     coef = np.zeros((len(pts), design.shape[2]))
     coef[ok] = np.linalg.solve(normal[ok], rhs[ok][:, :, None])[:, :, 0]
-    rss = np.einsum("nk,nk->n", *(2 * (y - np.einsum("nki,ni->nk", design, coef),)))
+    resid = y - np.einsum("nki,ni->nk", design, coef)
+    rss = np.einsum("nk,nk->n", resid, resid)
     slopes_var = np.zeros(len(pts))
     slopes_var[ok] = np.trace(np.linalg.inv(normal[ok])[:, 1:3, 1:3], axis1=1, axis2=2)
     dof = _NOISE_NEIGHBOURS - design.shape[2]
@@ -441,10 +421,10 @@ def surface_noise(
     distance along the pipe (:class:`SurfaceNoise`), from single frames; None with too few
     returns.
 
-    A smooth surface's range is, over a few neighbouring rays, a linear function of their
-    direction; what the range scatters about that line is the range noise
-    (:func:`_range_fits`: 16 neighbours, 3 coefficients, so the residual sum of squares is
-    σ² χ²₁₃, whose median is σ² × 12.34). The median over the fits leaves edges and stray
+    A smooth surface's range is, over a few neighbouring rays, a quadratic function of their
+    direction; what the range scatters about it is the range noise (:func:`_range_fits`: 16
+    neighbours, 6 coefficients, so the residual sum of squares is σ² χ²₁₀, whose median is
+    σ² × 9.342, :data:`_CHI2_MEDIAN_10`). The median over the fits leaves edges and stray
     returns out. The range's gradient gives the incidence θ, and the noise across the surface
     is ``σ × |cos θ|``. Both are read per bin of distance along the pipe
     (:data:`_DISTANCE_BIN_M`, along the frame's main direction: a pipe's returns stretch along
@@ -646,12 +626,11 @@ def estimate_instrument(
     # test range and target, and a limit looser than the scan's noise passes frames that
     # disagree.
     across = surface_noise(sampled, max_range_m=max_range_m)
-    ranging, by_distance = (None, None) if across is None else across
-    sources["range_noise_m"] = "estimated"
-    if ranging is None:
-        ranging, sources["range_noise_m"] = stated.range_noise_m, "profile"
-        if ranging is None:
-            sources["range_noise_m"] = "default"
+    if across is not None:
+        (ranging, by_distance), sources["range_noise_m"] = across, "estimated"
+    else:
+        ranging, by_distance = stated.range_noise_m, None
+        sources["range_noise_m"] = "profile" if ranging is not None else "default"
     if stated.pattern in ("repetitive", "profiler", "static"):
         share, seed, sources["frame_view_share"] = 1.0, 1, "profile"
     else:
