@@ -1081,8 +1081,7 @@ def code_contour(
     status; None when it has no contour or no nominal size."""
     if section.contour_m is None or not section.nominal_area_m2 > 0:
         return None
-    diameter_m = 2.0 * math.sqrt(section.nominal_area_m2 / math.pi)
-    return code_section(section.contour_m, diameter_m, params)
+    return code_section(section.contour_m, section.nominal_diameter_m, params)
 
 
 # --- along the chainage -----------------------------------------------------------------------

@@ -621,7 +621,7 @@ def _coder_estimate(feature: WallFeature, s: SectionMeasures) -> float:
     nominal area."""
     if feature.measure == "blockage_ratio" or not s.nominal_area_m2 > 0:
         return feature.lost_area_m2 / s.nominal_area_m2 if s.nominal_area_m2 > 0 else 0.0
-    return feature.height_m / (2.0 * math.sqrt(s.nominal_area_m2 / math.pi))
+    return feature.height_m / s.nominal_diameter_m
 
 
 def worst_defect(defects: Iterable[Defect]) -> Defect | None:

@@ -209,6 +209,11 @@ class SectionMeasures:
     def is_ok(self) -> bool:
         return self.status == SectionStatus.OK
 
+    @property
+    def nominal_diameter_m(self) -> float:
+        """The diameter of a circle of ``nominal_area_m2`` (the nominal inner diameter)."""
+        return 2.0 * math.sqrt(self.nominal_area_m2 / math.pi)
+
 
 @dataclass(frozen=True)
 class Defect:

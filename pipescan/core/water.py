@@ -462,14 +462,16 @@ def _casts(height: float | None, depth: float) -> bool:
     return height is not None and height >= depth - SHADOW_LEVEL_MARGIN_RATIO
 
 
+def _is_water(s: SectionMeasures) -> bool:
+    """Read as water, with its depth: what a shadow may take back."""
+    return s.status == SectionStatus.INVERT_UNDER_WATER and s.water_depth_ratio is not None
+
+
 def _shadowed_within_reach(ordered: list[SectionMeasures], sight: SensorSight) -> list[int]:
     """The water sections within the reach of a shadow (:func:`explain_invert_shadows`)."""
     sign = sight.forward_sign
     along = ordered if sign > 0 else ordered[::-1]  # in the direction the sensor looked
     index = list(range(len(ordered))) if sign > 0 else list(range(len(ordered)))[::-1]
-
-    def wet(s: SectionMeasures) -> bool:
-        return s.status == SectionStatus.INVERT_UNDER_WATER and s.water_depth_ratio is not None
 
     shadowed: set[int] = set()
     for j, top in enumerate(along):
@@ -479,16 +481,16 @@ def _shadowed_within_reach(ordered: list[SectionMeasures], sight: SensorSight) -
         # Sections read as water at the top's own height may hold the rest of the top, seen
         # only from above: the top reaches to the end of the last of them.
         last = j
-        while last + 1 < len(along) and wet(along[last + 1]):
+        while last + 1 < len(along) and _is_water(along[last + 1]):
             if (along[last + 1].water_depth_ratio or 0.0) < height - SHADOW_LEVEL_MARGIN_RATIO:
                 break
             last += 1
         top_u = max(sign * along[last].chainage_start_m, sign * along[last].chainage_end_m)
-        diameter = math.sqrt(4.0 * top.nominal_area_m2 / math.pi)
+        diameter = top.nominal_diameter_m
         top_y = (height + SHADOW_LEVEL_MARGIN_RATIO - 0.5) * diameter
         for k in range(j + 1, len(along)):
             s = along[k]
-            if not wet(s) or not _casts(height, s.water_depth_ratio or 0.0):
+            if not _is_water(s) or not _casts(height, s.water_depth_ratio or 0.0):
                 continue
             start_u, end_u = sorted((sign * s.chainage_start_m, sign * s.chainage_end_m))
             if _shadow_end(sight, top_u, top_y, -0.5 * diameter, end_u) > start_u:
@@ -514,9 +516,7 @@ def _shadowed_stretches(ordered: list[SectionMeasures]) -> list[int]:
         beside = [ordered[k].deposit_height_ratio for k in (i - 1, j) if 0 <= k < len(ordered)]
         for k in range(i, j):
             s = ordered[k]
-            if s.status != SectionStatus.INVERT_UNDER_WATER or s.water_depth_ratio is None:
-                continue
-            if any(_casts(h, s.water_depth_ratio) for h in beside):
+            if _is_water(s) and any(_casts(h, s.water_depth_ratio or 0.0) for h in beside):
                 shadowed.append(k)
         i = j
     return shadowed
@@ -568,7 +568,7 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
 
     def level_m(k: int) -> float:
         s = ordered[k]
-        return (s.water_depth_ratio or 0.0) * math.sqrt(4.0 * s.nominal_area_m2 / math.pi)
+        return (s.water_depth_ratio or 0.0) * s.nominal_diameter_m
 
     for run in adjacent_runs(ordered, [wet(k) for k in range(len(ordered))]):
         i, j = run.start, run.stop
