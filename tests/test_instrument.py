@@ -651,6 +651,14 @@ def _pooled_section(by_distance, distances_m, range_noise_m, *, deposit_ratio, s
     return np.vstack(parts)
 
 
+def _seen_from(chainages: np.ndarray):
+    """A trajectory's evidence with frames at ``chainages``, none weak or slid, seen from 5 m."""
+    from pipescan.core.registration.metrics import RegistrationEvidence
+
+    n = len(chainages)
+    return RegistrationEvidence(chainages, np.zeros(n), np.zeros(n, bool), np.zeros(n, bool), 5.0)
+
+
 def test_a_deposit_seen_head_on_is_not_smeared():
     """At 15 mm of range noise, a section with a deposit seen from close behind (the run began
     1.5 m before it), pooled from frames that agree, is measured under the limit from where
@@ -662,10 +670,7 @@ def test_a_deposit_seen_head_on_is_not_smeared():
     frame = _forward_tube(0.015)
     sigma, by_distance = surface_noise([frame], max_range_m=5.0)
     chainages = np.arange(1.5, 4.0, 0.05)
-    evidence = RegistrationEvidence(
-        chainages, np.zeros(len(chainages)), np.zeros(len(chainages), bool),
-        np.zeros(len(chainages), bool), 5.0,
-    )  # fmt: skip
+    evidence = _seen_from(chainages)
     points = _pooled_section(by_distance, 3.05 - chainages, sigma, deposit_ratio=0.2)
     scan_wide = MeasureParams(
         max_wall_spread_m=SMEAR_SPREAD_RATIO * wall_noise_m([frame], max_range_m=5.0)
@@ -692,15 +697,11 @@ def test_a_deposit_seen_head_on_is_not_smeared():
 def test_frames_that_disagree_still_smear_a_section_seen_head_on():
     """The same section, its frames split in two halves 5 cm apart across the pipe (a
     registration error): smeared under its own limit."""
-    from pipescan.core.registration.metrics import RegistrationEvidence
     from pipescan.core.sections import section_params
 
     sigma, by_distance = surface_noise([_forward_tube(0.015)], max_range_m=5.0)
     chainages = np.arange(0.0, 4.0, 0.05)
-    evidence = RegistrationEvidence(
-        chainages, np.zeros(len(chainages)), np.zeros(len(chainages), bool),
-        np.zeros(len(chainages), bool), 5.0,
-    )  # fmt: skip
+    evidence = _seen_from(chainages)
     points = _pooled_section(by_distance, 3.05 - chainages, sigma, deposit_ratio=0.2)
     half = np.arange(len(points)) % 2 == 0
     points[half, 0] += 0.05

@@ -472,6 +472,26 @@ def test_a_sub_flow_that_failed_for_a_transient_cause_leaves_no_task_run_pending
     assert (state.type.value, state.message) == ("CRASHED", "slot refused, tried again")
 
 
+def _stand_in_runs():
+    """A network run, an archive's sub-flow and the task that wraps it, by the names the
+    recovery looks for (bodies are never run: runs are created through the client)."""
+    from prefect import task
+
+    @flow(name="inspect-network")
+    def network_run():
+        pass
+
+    @flow(name="inspect-archive")
+    def subflow():
+        pass
+
+    @task(name="archive")
+    def archive():
+        pass
+
+    return network_run, subflow, archive
+
+
 def test_what_an_outage_of_prefects_database_left_active_is_closed_at_the_end(prefect):
     """PostgreSQL stopped for 20 s under Prefect left a sub-flow Running and task runs Pending
     after the run was over (their final states were lost). At the end of the run: its sub-flow
@@ -486,17 +506,7 @@ def test_what_an_outage_of_prefects_database_left_active_is_closed_at_the_end(pr
 
     from pipescan.flows.recovery import close_leftovers
 
-    @flow(name="inspect-network")
-    def network_run():
-        pass
-
-    @flow(name="inspect-archive")
-    def subflow():
-        pass
-
-    @task(name="archive")
-    def archive():
-        pass
+    network_run, subflow, archive = _stand_in_runs()
 
     @task(name="fit-axis")
     def fit_axis():
@@ -539,23 +549,12 @@ def test_what_a_run_cancelled_on_a_dead_host_left_active_is_closed_by_a_later_ru
     same deployment closes it (here: once the earlier run ended 1 s ago, not 30 min)."""
     import time
 
-    from prefect import task
     from prefect.client.orchestration import get_client
     from prefect.states import Cancelled, Running
 
     from pipescan.flows.recovery import close_abandoned_runs
 
-    @flow(name="inspect-network")
-    def network_run():
-        pass
-
-    @flow(name="inspect-archive")
-    def subflow():
-        pass
-
-    @task(name="archive")
-    def archive():
-        pass
+    network_run, subflow, archive = _stand_in_runs()
 
     with get_client(sync_client=True) as client:
         deployment = client.create_deployment(client.create_flow(network_run), "nightly")
