@@ -1,0 +1,109 @@
+"""Deskew a frame: place each point as the sensor saw it from its pose at the frame's start.
+
+A scanning LiDAR fires a frame's rays over the frame period (0.1 s at 10 Hz) while the crawler
+moves: at 0.15 m/s the sensor travels 15 mm within a frame, at 0.5 m/s 50 mm. Placing every
+point with the frame's one pose smears the frame along the motion by that much. Where the
+points carry their capture times, :func:`deskew_points` moves each point into the sensor
+frame at the frame's reference time, from the motion over the frame: translation linear in
+time, rotation by slerp (constant velocity and angular rate within the frame).
+
+The reference time is the frame's earliest point time, so only differences between a frame's
+own point times matter: times in any base (seconds since the scan start, GPS week seconds,
+adjusted GPS seconds) give the same result, and the frame's pose is its pose when its first
+point was captured.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+FRAME_TIME_SPAN_RATIO = 2.0
+"""A frame's point times may span at most this many intervals between frames. Beyond it they
+are not one frame's capture times in seconds (nanoseconds, a cloud's times, a clock jump):
+reading them is an error rather than a deskew by a motion they do not describe."""
+
+
+def deskew_points(
+    points_sensor_m: np.ndarray,
+    time_s: np.ndarray,
+    T_motion: np.ndarray,
+    motion_period_s: float,
+    reference_time_s: float | None = None,
+) -> np.ndarray:
+    """Move each point of a frame into the sensor frame at the reference time.
+
+    The sensor's pose at time ``t``, seen from its pose at the reference time ``t0``, is
+    ``T_motion`` scaled to ``s = (t - t0) / motion_period_s`` of the way: translation
+    ``s`` times ``T_motion``'s, rotation ``s`` times its rotation vector (slerp from the
+    identity). A point ``p`` captured at ``t`` is then ``T(s) p`` in the sensor frame at ``t0``.
+
+    Parameters
+    ----------
+    points_sensor_m : (N, 3) float
+        The frame's points, sensor frame, metres, each as seen at its own time.
+    time_s : (N,) float
+        Each point's capture time, seconds (any base).
+    T_motion : (4, 4) float
+        The sensor's pose ``motion_period_s`` after the reference time in the sensor frame at
+        the reference time: ``inv(T_world_frame_i) @ T_world_frame_j`` for frames ``i`` and
+        ``j`` that far apart.
+    motion_period_s : float
+        The time over which ``T_motion`` happens (> 0).
+    reference_time_s : float, optional
+        The time to deskew to; default the earliest of ``time_s``.
+
+    Returns
+    -------
+    (N, 3) float64, metres, in the sensor frame at the reference time.
+
+    Raises
+    ------
+    ValueError
+        For shapes that do not match, times that are not finite, or a period that is not
+        positive.
+
+    Examples
+    --------
+    >>> T = np.eye(4)
+    >>> T[0, 3] = 0.05  # 50 mm forward over 0.1 s
+    >>> p = np.array([[2.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    >>> deskew_points(p, np.array([0.0, 0.05]), T, 0.1).round(3).tolist()
+    [[2.0, 0.0, 0.0], [2.025, 0.0, 0.0]]
+    """
+    pts = np.asarray(points_sensor_m, dtype=np.float64)
+    t = np.asarray(time_s, dtype=np.float64)
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points_sensor_m must have shape (N, 3), got {pts.shape}.")
+    if t.shape != (len(pts),):
+        raise ValueError(f"time_s must have shape ({len(pts)},), got {t.shape}.")
+    if np.shape(T_motion) != (4, 4):
+        raise ValueError(f"T_motion must have shape (4, 4), got {np.shape(T_motion)}.")
+    if not motion_period_s > 0:
+        raise ValueError(f"motion_period_s must be > 0, got {motion_period_s!r}.")
+    if len(pts) == 0:
+        return pts.copy()
+    if not np.isfinite(t).all():
+        raise ValueError("time_s must be finite.")
+    t0 = float(t.min()) if reference_time_s is None else float(reference_time_s)
+    share = (t - t0) / motion_period_s
+    rotvec = Rotation.from_matrix(np.asarray(T_motion)[:3, :3]).as_rotvec()
+    translation = np.asarray(T_motion, dtype=np.float64)[:3, 3]
+    # Points share few distinct times (a sensor stamps packets of points): one rotation per
+    # distinct share.
+    shares, inverse = np.unique(share, return_inverse=True)
+    matrices = Rotation.from_rotvec(shares[:, None] * rotvec[None, :]).as_matrix()
+    moved = np.einsum("nij,nj->ni", matrices[inverse], pts)
+    return moved + share[:, None] * translation[None, :]
+
+
+def frame_time_span_s(time_s: np.ndarray) -> float:
+    """How long a frame's points took to capture (s): the spread of their times (0 for none)."""
+    t = np.asarray(time_s, dtype=np.float64)
+    return float(t.max() - t.min()) if t.size else 0.0
+
+
+def relative_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
+    """The pose of ``b`` in the frame of ``a``, (4, 4): what :func:`deskew_points` takes as
+    ``T_motion`` for the time from ``a`` to ``b``."""
+    return np.linalg.inv(np.asarray(T_world_a, dtype=np.float64)) @ np.asarray(T_world_b)
