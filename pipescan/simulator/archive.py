@@ -1,9 +1,11 @@
 """Write a simulated scan to disk as a scan archive, with its ground truth beside it.
 
 The archive is an ordinary scan archive (docs/archive.md): ``inspection.toml`` and
-``frames/NNNNNN.npy``; or, with ``layout="cloud"`` (the default for the ring profiler and the
-static scanner, whose data arrive as one registered cloud), ``inspection.toml`` and one
-``cloud.laz`` in the world frame, each point with its capture time as GPS time.
+``frames/NNNNNN.npy`` (``frames/NNNNNN.laz``, each point with its capture time as GPS time
+(:func:`gps_time_offset_s`), when the scan has ``Effects.motion_within_frame``); or, with
+``layout="cloud"`` (the default for the ring profiler and the static scanner, whose data
+arrive as one registered cloud), ``inspection.toml`` and one ``cloud.laz`` in the world
+frame, each point with its capture time as GPS time.
 The ground truth sits in ``ground_truth/``, which archive readers
 ignore:
 
@@ -28,6 +30,7 @@ import shutil
 import tempfile
 import tomllib
 from collections.abc import Callable, Iterator, Mapping
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +71,21 @@ POSE_COLUMNS = (
 SECTION_COLUMNS = tuple(f.name for f in dataclasses.fields(TrueSection))
 
 _SCENE = Path("ground_truth") / "scene.toml"
+
+
+_GPS_EPOCH = datetime(1980, 1, 6, tzinfo=UTC)
+_GPS_LEAP_S = 18.0  # GPS time runs ahead of UTC by the leap seconds since 1980 (18 since 2017)
+_ADJUSTED_GPS_S = 1e9  # LAS "adjusted standard GPS time": GPS seconds less 10^9
+
+
+def gps_time_offset_s(scan: SimulatedScan) -> float:
+    """What a frame's LAZ adds to the scan's clock (seconds from the first frame) to write
+    each point's GPS time: the inspection's start as LAS adjusted standard GPS time (GPS
+    seconds less 10^9), about 4 x 10^8 s, as a real scanner writes absolute times. Frames
+    written so hold times in another base than ``inspection.toml``'s ``time_s``, as real
+    archives do."""
+    start = scan.scenario.inspected_at
+    return (start - _GPS_EPOCH).total_seconds() + _GPS_LEAP_S - _ADJUSTED_GPS_S
 
 
 # --------------------------------------------------------------------------- TOML
@@ -234,7 +252,12 @@ def write_simulated_archive(
             (tmp / "frames").mkdir()
             total = len(scan)
             for frame in scan.frames():
-                np.save(tmp / scan.meta.frames[frame.index].file, frame.points_sensor)
+                path = tmp / scan.meta.frames[frame.index].file
+                if frame.point_time_s is None:
+                    np.save(path, frame.points_sensor)
+                else:
+                    gps_time_s = frame.point_time_s + gps_time_offset_s(scan)
+                    write_points(path, frame.points_sensor.astype(np.float64), time_s=gps_time_s)
                 if progress is not None:
                     progress(frame.index + 1, total)
         elif layout == "bag":
@@ -320,13 +343,19 @@ def _world_frames(
 ) -> Iterator[tuple[np.ndarray, np.ndarray]]:
     """Each frame of :func:`world_cloud`, in order: its points (world frame) and times."""
     period_s = 1.0 / scan.scenario.frame_rate_hz
+    T_world_pipe = scan.T_world_pipe
     for frame in scan.frames():
-        p = frame.points_sensor.astype(np.float64)
-        T = frame.T_world_sensor
-        yield (
-            p @ T[:3, :3].T + T[:3, 3],
-            frame.time_s + period_s * np.arange(len(p)) / max(len(p), 1),
-        )
+        if frame.point_time_s is not None:
+            # Each point placed with the true pose at its own time.
+            p = scan.points_pipe(frame) @ T_world_pipe[:3, :3].T + T_world_pipe[:3, 3]
+            yield p, frame.point_time_s
+        else:
+            p = frame.points_sensor.astype(np.float64)
+            T = frame.T_world_sensor
+            yield (
+                p @ T[:3, :3].T + T[:3, 3],
+                frame.time_s + period_s * np.arange(len(p)) / max(len(p), 1),
+            )
         if progress is not None:
             progress(frame.index + 1, len(scan))
 

@@ -22,7 +22,8 @@ Frames of reference
     ``world_yaw_deg``, tilted down by ``world_gradient_ratio`` and shifted by
     ``world_origin_m``, so that no coordinate axis is the pipe axis.
 Simplifications (on purpose)
-    One pose per frame (no motion within the 0.1 s of a frame); the crawler's body is not
+    One pose per frame (no motion within the 0.1 s of a frame) unless
+    ``Effects.motion_within_frame`` is set; the crawler's body is not
     modelled (the sensor may pass above deposits and below obstacles, but never through
     them: :class:`Scenario` checks it); returns at 0.5-2 m are not distorted.
 Ground truth
@@ -50,7 +51,7 @@ from datetime import UTC, datetime
 from typing import TypeVar
 
 import numpy as np
-from scipy.spatial.transform import Rotation
+from scipy.spatial.transform import Rotation, Slerp
 
 from pipescan.core.coding import clock_angle_rad
 from pipescan.core.model import FrameRef, InspectionMeta
@@ -85,6 +86,11 @@ AREA_QUADRATURE_POINTS = 2001
 
 SUB_SLICES_PER_SECTION = 20
 """Sub-slices whose free areas are averaged into a section's true open area."""
+
+PACKETS_PER_FRAME = 50
+"""Packets a frame's rays are fired in with ``Effects.motion_within_frame`` (2 ms each at
+10 Hz): the rays of a packet share its time and pose, as a sensor stamps a packet of points.
+At 0.5 m/s the sensor moves 1 mm from one packet to the next."""
 
 # R2 sequence (Roberts 2018): the plastic number's powers give the most even 2-D
 # Kronecker sequence, with no period a scan could reveal.
@@ -231,6 +237,14 @@ class Effects:
     IMU
         ``imu`` False: no gravity at all. ``imu_noise_deg``: 1σ per axis of the measured
         gravity direction. ``imu_dropout_ratio``: share of frames that carry no gravity.
+    Motion within a frame (off by default)
+        ``motion_within_frame``: the frame's rays are fired over the frame period in scan
+        order, in :data:`PACKETS_PER_FRAME` packets, and each packet is cast from the sensor's
+        pose at its time (the trajectory between this frame's pose and the next one's:
+        translation linearly, rotation by slerp; the last frame goes on at its last step).
+        Each point's time is :attr:`SimulatedFrame.point_time_s`; the frame's pose
+        (``T_world_sensor``) is the pose at its first packet. Off, every ray is cast from the
+        frame's pose and the frame carries no point times.
     """
 
     range_noise_sigma_m: float = 0.003
@@ -250,6 +264,7 @@ class Effects:
     imu: bool = True
     imu_noise_deg: float = 0.1
     imu_dropout_ratio: float = 0.02
+    motion_within_frame: bool = False
 
     def __post_init__(self) -> None:
         non_negative = (
@@ -287,6 +302,7 @@ class Effects:
             spurious_range_ratio=None,
             imu=True,
             imu_noise_deg=0.0,
+            motion_within_frame=False,
         )
         none.update(overrides)
         return cls(**none)  # type: ignore[arg-type]
@@ -396,6 +412,8 @@ class Scenario:
             and self.fov_vertical_deg / 2 + abs(self.mount_pitch_deg) + swing_deg >= 89
         ):
             raise ValueError("fov_vertical_deg + mount_pitch_deg point the sensor sideways.")
+        if self.sensor is not None and self.effects.motion_within_frame:
+            raise ValueError("Effects.motion_within_frame needs the forward-looking sensor.")
         if self.sensor is not None and self.deformations:
             # Deformations are cast for rays that go forward; these sensors also look back.
             raise ValueError("Scenario.deformations need the forward-looking sensor.")
@@ -525,9 +543,12 @@ class SimulatedFrame:
     """One LiDAR frame.
 
     ``points_sensor`` is (N, 3) float32, metres, in the sensor frame (x forward, y left,
-    z up). ``T_world_sensor`` (4, 4) float64 is the true pose. ``odometer_m`` is the noisy
-    odometer reading, as an archive would hold it; ``gravity`` the IMU's unit gravity
-    direction in the sensor frame (None when ``Scenario.imu`` is off).
+    z up), each point as the sensor saw it when it was captured. ``T_world_sensor`` (4, 4)
+    float64 is the true pose (at ``time_s``). ``odometer_m`` is the noisy odometer reading, as
+    an archive would hold it; ``gravity`` the IMU's unit gravity direction in the sensor frame
+    (None when ``Scenario.imu`` is off). ``point_time_s`` (N,) float64 is each point's capture
+    time, seconds on the scan's clock (``time_s`` and later), with
+    ``Effects.motion_within_frame``; None without (every point at ``time_s``).
     """
 
     index: int
@@ -536,6 +557,7 @@ class SimulatedFrame:
     points_sensor: np.ndarray = field(repr=False)
     T_world_sensor: np.ndarray = field(repr=False)
     gravity: tuple[float, float, float] | None = None
+    point_time_s: np.ndarray | None = field(default=None, repr=False)
 
 
 @dataclass(frozen=True)
@@ -1412,7 +1434,7 @@ class SimulatedScan:
             material=s.material,
             frames=tuple(
                 FrameRef(
-                    frame_file_name(i),
+                    frame_file_name(i, ".laz" if e.motion_within_frame else ".npy"),
                     float(self.times_s[i]),
                     float(self.odometer_m[i]),
                     self.gravity(i),
@@ -1494,10 +1516,20 @@ class SimulatedScan:
         s = self.scenario
         dirs_sensor = ray_directions_sensor(s, i)
         T = self._T_pipe_sensor[i]
-        dirs_pipe = dirs_sensor @ T[:3, :3].T
-        range_m, surface = cast_rays(s, T[:3, 3], dirs_pipe, min_range_m=s.blind_zone_m)
+        packet: np.ndarray | None = None
+        if s.effects.motion_within_frame:
+            # Rays in scan order, in packets; each packet cast from the pose at its time.
+            n_rays = len(dirs_sensor)
+            packet = np.arange(n_rays) * PACKETS_PER_FRAME // max(n_rays, 1)
+            poses = self._poses_within(i, np.arange(PACKETS_PER_FRAME) / PACKETS_PER_FRAME)
+            origins = poses[:, :3, 3]
+            dirs_pipe = np.einsum("nij,nj->ni", poses[packet, :3, :3], dirs_sensor)
+        else:
+            origins = T[:3, 3]
+            dirs_pipe = dirs_sensor @ T[:3, :3].T
+        range_m, surface = _cast_packets(s, origins, packet, dirs_pipe, s.blind_zone_m)
         if not noise_free:
-            range_m = self._returned_ranges(i, T[:3, 3], dirs_pipe, range_m, surface)
+            range_m = self._returned_ranges(i, origins, dirs_pipe, range_m, surface, packet)
         if s.water is not None:
             # Most rays that reach the water give no return (specular, or absorbed below).
             # Turbid water scatters diffusely: returns fall off with the cosine of incidence.
@@ -1512,6 +1544,10 @@ class SimulatedScan:
         keep = np.isfinite(range_m) & (range_m <= s.max_range_m)
         keep &= (range_m >= s.blind_zone_m) | window
         points = (dirs_sensor[keep] * range_m[keep, None]).astype(np.float32)
+        point_time_s = None
+        if packet is not None:
+            share = packet[keep] / PACKETS_PER_FRAME
+            point_time_s = float(self.times_s[i]) + share / s.frame_rate_hz
         return SimulatedFrame(
             index=i,
             time_s=float(self.times_s[i]),
@@ -1519,7 +1555,38 @@ class SimulatedScan:
             points_sensor=points,
             T_world_sensor=self.T_world_sensor[i].copy(),
             gravity=self.gravity(i),
+            point_time_s=point_time_s,
         )
+
+    def _poses_within(self, i: int, share: np.ndarray) -> np.ndarray:
+        """True pipe-frame poses (K, 4, 4) at ``share`` (K,) of frame ``i``'s period: between
+        its pose and the next frame's (translation linearly, rotation by slerp); the last
+        frame goes on by the step that led to it."""
+        T_a = self._T_pipe_sensor[i]
+        if i + 1 < len(self):
+            T_b = self._T_pipe_sensor[i + 1]
+        elif i > 0:
+            T_b = T_a @ np.linalg.inv(self._T_pipe_sensor[i - 1]) @ T_a
+        else:
+            T_b = T_a
+        share = np.asarray(share, dtype=np.float64)
+        out = np.tile(np.eye(4), (len(share), 1, 1))
+        rotations = Rotation.from_matrix(np.stack((T_a[:3, :3], T_b[:3, :3])))
+        out[:, :3, :3] = Slerp([0.0, 1.0], rotations)(share).as_matrix()
+        out[:, :3, 3] = (1.0 - share)[:, None] * T_a[:3, 3] + share[:, None] * T_b[:3, 3]
+        return out
+
+    def points_pipe(self, frame: SimulatedFrame) -> np.ndarray:
+        """A frame's points in the pipe frame, (N, 3) float64, each placed with the true pose
+        at its capture time (the frame's pose when the frame carries no point times)."""
+        p = frame.points_sensor.astype(np.float64)
+        if frame.point_time_s is None:
+            T = self._T_pipe_sensor[frame.index]
+            return p @ T[:3, :3].T + T[:3, 3]
+        share = (frame.point_time_s - frame.time_s) * self.scenario.frame_rate_hz
+        shares, inverse = np.unique(share, return_inverse=True)
+        poses = self._poses_within(frame.index, shares)[inverse]
+        return np.einsum("nij,nj->ni", poses[:, :3, :3], p) + poses[:, :3, 3]
 
     def _returned_ranges(
         self,
@@ -1528,14 +1595,17 @@ class SimulatedScan:
         dirs_pipe: np.ndarray,
         range_m: np.ndarray,
         surface: np.ndarray,
+        packet: np.ndarray | None = None,
     ) -> np.ndarray:
         """The ranges the sensor reports for exact first hits: mixed pixels at depth edges,
         range noise by range and incidence, spurious early returns (see :class:`Effects`).
-        Each effect draws from its own stream of ``(seed, effect, frame)``."""
+        Each effect draws from its own stream of ``(seed, effect, frame)``. With ``packet``,
+        ray ``j`` starts at ``origin_pipe_m[packet[j]]`` (see :func:`_cast_packets`)."""
         s, e = self.scenario, self.scenario.effects
         n = range_m.size
         hit = np.isfinite(range_m)
         out = range_m.copy()
+        ray_origin_m = origin_pipe_m if packet is None else origin_pipe_m[packet]
         if e.mixed_pixel_ratio > 0 and e.beam_footprint_deg > 0:
             rng = np.random.default_rng((self.seed, 12, i))
             # A second ray through the footprint's edge, in a random direction across the beam.
@@ -1543,7 +1613,7 @@ class SimulatedScan:
             across /= np.linalg.norm(across, axis=1, keepdims=True)
             edge = dirs_pipe + math.radians(e.beam_footprint_deg) * across
             edge /= np.linalg.norm(edge, axis=1, keepdims=True)
-            edge_range, edge_surface = cast_rays(s, origin_pipe_m, edge, min_range_m=s.blind_zone_m)
+            edge_range, edge_surface = _cast_packets(s, origin_pipe_m, packet, edge, s.blind_zone_m)
             straddles = (
                 hit
                 & np.isfinite(edge_range)
@@ -1553,7 +1623,7 @@ class SimulatedScan:
             mixed = straddles & (rng.random(n) < e.mixed_pixel_ratio)
             w = rng.random(n)
             out = np.where(mixed, (1.0 - w) * range_m + w * edge_range, out)
-        points = origin_pipe_m + dirs_pipe * np.where(hit, range_m, 0.0)[:, None]
+        points = ray_origin_m + dirs_pipe * np.where(hit, range_m, 0.0)[:, None]
         normals = surface_normals(s, points, surface)
         cos_incidence = np.abs(np.einsum("ij,ij->i", normals, dirs_pipe))
         sigma = e.range_sigma_m(np.where(hit, range_m, 0.0), cos_incidence)
@@ -1585,11 +1655,11 @@ class SimulatedScan:
         """
         parts = []
         for frame in self.frames():
-            p = frame.points_sensor.astype(np.float64)
+            p = self.points_pipe(frame)
             if max_range_m is not None:
-                p = p[np.einsum("ij,ij->i", p, p) <= max_range_m**2]
-            T = self._T_pipe_sensor[frame.index]
-            parts.append(p @ T[:3, :3].T + T[:3, 3])
+                q = frame.points_sensor.astype(np.float64)
+                p = p[np.einsum("ij,ij->i", q, q) <= max_range_m**2]
+            parts.append(p)
         return np.concatenate(parts) if parts else np.empty((0, 3))
 
     def _coverage_grids(self) -> tuple[np.ndarray, np.ndarray]:
@@ -1700,6 +1770,29 @@ class SimulatedScan:
         return sections
 
 
+def _cast_packets(
+    s: Scenario,
+    origins_pipe_m: np.ndarray,
+    packet: np.ndarray | None,
+    dirs_pipe: np.ndarray,
+    min_range_m: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`cast_rays` from one origin (``packet`` None, ``origins_pipe_m`` (3,)) or from
+    one per packet: ray ``j`` from ``origins_pipe_m[packet[j]]`` ((K, 3); ``packet``
+    ascending)."""
+    if packet is None:
+        return cast_rays(s, origins_pipe_m, dirs_pipe, min_range_m=min_range_m)
+    range_m = np.empty(len(dirs_pipe))
+    surface = np.empty(len(dirs_pipe), dtype=np.int8)
+    bounds = np.searchsorted(packet, np.arange(len(origins_pipe_m) + 1))
+    for k, (a, b) in enumerate(itertools.pairwise(bounds)):
+        if b > a:
+            range_m[a:b], surface[a:b] = cast_rays(
+                s, origins_pipe_m[k], dirs_pipe[a:b], min_range_m=min_range_m
+            )
+    return range_m, surface
+
+
 def _occluded(
     s: Scenario, o: np.ndarray, d: np.ndarray, t: np.ndarray, surface: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -1708,9 +1801,11 @@ def _occluded(
     return t2, s2
 
 
-def frame_file_name(i: int) -> str:
-    """Archive-relative file name of frame ``i``: ``frames/000012.npy``."""
-    return f"frames/{i:06d}.npy"
+def frame_file_name(i: int, suffix: str = ".npy") -> str:
+    """Archive-relative file name of frame ``i``: ``frames/000012.npy``. A scan with
+    ``Effects.motion_within_frame`` names its frames ``.laz``, a format that holds each
+    point's time (``.npy`` does not)."""
+    return f"frames/{i:06d}{suffix}"
 
 
 def simulate_scan(scenario: Scenario | str, seed: int = 0) -> SimulatedScan:
