@@ -21,6 +21,7 @@ task reads them as they are.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import os
@@ -30,6 +31,7 @@ import time
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import psutil
@@ -158,12 +160,15 @@ def sweep_stale_runs(work_dir: Path) -> Sweep:
 
 
 _FRAME_INDEX = ".index"
+_FRAME_TIME = ".time"
 
 
 class FrameStore:
     """The frames of one run as read once: per chunk, one file of float32 ``(x, y, z)`` rows
     (``chunk_<first>.f32``) and its index (``.f32.index``, int64: each frame's archive index,
-    then each frame's first row).
+    then each frame's first row). Where some frame of the chunk carries point times, a third
+    file (``.f32.time``) holds one float32 per row: the point's time after its frame's
+    earliest (s; NaN for a frame without times), what deskewing needs.
 
     Write a chunk with :meth:`writer`; read it back with :meth:`iter_frames`. A chunk's file
     appears under its final name only once all its frames are written.
@@ -193,18 +198,40 @@ class FrameStore:
         """Yield ``(frame_index, points)`` for the frames of the chunk that starts at ``first``
         (all, or those in ``indices``), in order; ``points`` is (N, 3) float32, sensor frame.
         Frames are read one at a time."""
+        for i, pts, _ in self.iter_timed_frames(first, indices, with_time=False):
+            yield i, pts
+
+    def iter_timed_frames(
+        self, first: int, indices: Sequence[int] | None = None, *, with_time: bool = True
+    ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None]]:
+        """As :meth:`iter_frames`, with each frame's point times: ``(frame_index, points,
+        time_s)``, ``time_s`` (N,) float32 seconds after the frame's earliest point, or None
+        for a frame stored without times."""
         path = self.chunk_path(first)
         table = np.fromfile(path.with_name(path.name + _FRAME_INDEX), dtype=np.int64)
         frames, starts = table.reshape(2, -1)
         wanted = None if indices is None else set(int(i) for i in indices)
-        with path.open("rb") as fh:
+        time_path = path.with_name(path.name + _FRAME_TIME)
+        with contextlib.ExitStack() as stack:
+            fh = stack.enter_context(path.open("rb"))
+            th = (
+                stack.enter_context(time_path.open("rb"))
+                if with_time and time_path.is_file()
+                else None
+            )
             for k, i in enumerate(frames[:-1]):
                 if wanted is not None and int(i) not in wanted:
                     continue
                 rows = int(starts[k + 1] - starts[k])
                 fh.seek(int(starts[k]) * 12)
                 pts = np.fromfile(fh, dtype=np.float32, count=3 * rows).reshape(rows, 3)
-                yield int(i), pts
+                time_s = None
+                if th is not None:
+                    th.seek(int(starts[k]) * 4)
+                    time_s = np.fromfile(th, dtype=np.float32, count=rows)
+                    if rows == 0 or np.isnan(time_s[0]):
+                        time_s = None
+                yield int(i), pts, time_s
 
     # A registered cloud is kept as float64 rows (it may be georeferenced: float32
     # would lose millimetres there), and placed in slices of rows.
@@ -248,12 +275,28 @@ class FrameWriter:
         self.path = Path(path)
         self._tmp = self.path.with_name(f".{self.path.name}.tmp")
         self._fh = self._tmp.open("wb")
+        self._time_tmp = self.path.with_name(f".{self.path.name}{_FRAME_TIME}.tmp")
+        self._th: BinaryIO | None = None
         self._frames: list[int] = []
         self._starts: list[int] = [0]
 
-    def add(self, frame_index: int, points_m: np.ndarray) -> None:
-        """Append one frame's (N, 3) points (stored as float32)."""
+    def add(self, frame_index: int, points_m: np.ndarray, time_s: np.ndarray | None = None) -> None:
+        """Append one frame's (N, 3) points (stored as float32), and its points' times (N,)
+        seconds when given (stored after the frame's earliest, float32)."""
         pts = np.ascontiguousarray(points_m, dtype=np.float32).reshape(-1, 3)
+        if time_s is not None and self._th is None:
+            # The chunk's first timed frame: the frames before it get NaN rows.
+            self._th = self._time_tmp.open("wb")
+            np.full(self._starts[-1], np.nan, dtype=np.float32).tofile(self._th)
+        if self._th is not None:
+            if time_s is None:
+                rel = np.full(len(pts), np.nan, dtype=np.float32)
+            else:
+                t = np.asarray(time_s, dtype=np.float64)
+                if t.shape != (len(pts),):
+                    raise ValueError(f"time_s must have shape ({len(pts)},), got {t.shape}")
+                rel = (t - t.min()).astype(np.float32) if len(t) else t.astype(np.float32)
+            rel.tofile(self._th)
         pts.tofile(self._fh)
         self._frames.append(int(frame_index))
         self._starts.append(self._starts[-1] + len(pts))
@@ -263,9 +306,14 @@ class FrameWriter:
 
     def __exit__(self, exc_type, exc, tb) -> None:
         self._fh.close()
+        if self._th is not None:
+            self._th.close()
         if exc_type is not None:
             self._tmp.unlink(missing_ok=True)
+            self._time_tmp.unlink(missing_ok=True)
             return
+        if self._th is not None:
+            self._time_tmp.replace(self.path.with_name(self.path.name + _FRAME_TIME))
         # Row 0: archive frame indices (with a -1 after the last); row 1: each frame's first row.
         table = np.array([[*self._frames, -1], self._starts], dtype=np.int64)
         index_tmp = self.path.with_name(f".{self.path.name}{_FRAME_INDEX}.tmp")

@@ -48,7 +48,12 @@ from pipescan.storage.scratch import (
 from pipescan.tasks import enginepool
 from pipescan.tasks.memory import releases_memory
 from pipescan.tasks.retries import IO_RETRY_OPTIONS
-from pipescan.tasks.staged import StagedArchive, crop, frame_along, register_staged_frames
+from pipescan.tasks.staged import (
+    StagedArchive,
+    crop_timed,
+    frame_along,
+    register_staged_frames,
+)
 
 log = logging.getLogger("pipescan")
 
@@ -152,10 +157,11 @@ def survey_scan(
 
 def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float, along=None):
     def cropped():
-        for i, pts in arc.iter_frames(indices):
-            yield i, crop(pts, max_range_m)
+        for i, pts, time_s in arc.iter_timed_frames(indices):
+            yield i, *crop_timed(pts, time_s, max_range_m)
 
-    yield from iter_registered_points(cropped(), trajectory, along)
+    times = [f.time_s for f in arc.meta.frames]
+    yield from iter_registered_points(cropped(), trajectory, along, times)
 
 
 def _stored_frames(
@@ -320,8 +326,9 @@ def bucket_points(
         # Every frame the chunk decoded; its last is the next chunk's first, placed there.
         # Frames that slid along the axis are not placed (iter_registered_points).
         final = last == staged.frame_count - 1
-        frames = ((i, pts) for i, pts in frame_store.iter_frames(first) if i < last or final)
-        placed = iter_registered_points(frames, trajectory, along)
+        frames = (f for f in frame_store.iter_timed_frames(first) if f[0] < last or final)
+        times = [f.time_s for f in staged.meta.frames]
+        placed = iter_registered_points(frames, trajectory, along, times)
         return write_buckets(placed, axis, windows, bucket_root, tag)
     with staged.reopen() as arc:
         if trajectory is None:

@@ -17,7 +17,7 @@ from pipescan.core.registration import (
     Trajectory,
     register_keyframes,
 )
-from pipescan.core.registration.preprocess import crop_range
+from pipescan.core.registration.preprocess import crop_range, range_mask
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.input.readers.bags import BagIndex
@@ -63,6 +63,21 @@ def crop(points_m: np.ndarray, max_range_m: float) -> np.ndarray:
     return crop_range(points_m, max_range_m)
 
 
+def crop_timed(
+    points_m: np.ndarray, time_s: np.ndarray | None, max_range_m: float
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """:func:`crop`, and the kept points' times (None without)."""
+    if time_s is None:
+        return crop(points_m, max_range_m), None
+    keep = range_mask(points_m, max_range_m)
+    return np.compress(keep, points_m, axis=0), np.compress(keep, time_s)
+
+
+def frame_time_at(meta: InspectionMeta, i: int) -> float | None:
+    """Frame ``i``'s time in ``[[frames]]``, if the archive gives one."""
+    return meta.frames[i].time_s if meta.frames else None
+
+
 def register_staged_frames(
     staged: StagedArchive,
     first: int,
@@ -82,7 +97,8 @@ def register_staged_frames(
     that the sections place every frame and never decode the archive again. Only the local
     map and the frames since the last registered one (a share of their points) stay in
     memory. The IMU's gravity direction, when ``[[frames]]`` gives it, holds the roll about
-    the axis.
+    the axis. A frame whose points carry times (:meth:`ScanArchive.iter_timed_frames`) is
+    deskewed before ICP, and its times are kept with its points for the sections.
     """
     meta = staged.meta
     with contextlib.ExitStack() as stack:
@@ -90,11 +106,11 @@ def register_staged_frames(
         keep = None if frame_store is None else stack.enter_context(frame_store.writer(first))
 
         def frames():
-            for i, pts in arc.iter_frames(range(first, last + 1)):
+            for i, pts, time_s in arc.iter_timed_frames(range(first, last + 1)):
                 if keep is not None:
-                    keep.add(i, crop(pts, keep_range_m))
+                    keep.add(i, *crop_timed(pts, time_s, keep_range_m))
                 gravity = meta.frames[i].gravity if meta.frames else None
-                yield i, pts, odometer_at(meta, i), gravity
+                yield i, pts, odometer_at(meta, i), gravity, time_s, frame_time_at(meta, i)
 
         return register_keyframes(frames(), first, last, stride, params, along=frame_along(meta))
 

@@ -48,12 +48,25 @@ def crop_range(points_m: np.ndarray, max_range_m: float, min_range_m: float = 0.
         When ``points_m`` is not (N, 3).
     """
     pts = np.asarray(points_m, dtype=np.float64)
+    # np.compress, not a boolean index: the same rows, a quarter of the time for (N, 3)
+    # (NumPy 2.4: 0.08 against 0.35 ms for a frame of 30,000 points).
+    return np.compress(range_mask(pts, max_range_m, min_range_m), pts, axis=0)
+
+
+def range_mask(points_m: np.ndarray, max_range_m: float, min_range_m: float = 0.0) -> np.ndarray:
+    """Which points (N,) bool lie between ``min_range_m`` and ``max_range_m`` of the sensor
+    (what :func:`crop_range` keeps).
+
+    Raises
+    ------
+    ValueError
+        When ``points_m`` is not (N, 3).
+    """
+    pts = np.asarray(points_m)
     if pts.ndim != 2 or pts.shape[1] != 3:
         raise ValueError(f"A frame must have shape (N, 3), got {pts.shape}.")
     r2 = np.einsum("ij,ij->i", pts, pts)
-    # np.compress, not a boolean index: the same rows, a quarter of the time for (N, 3)
-    # (NumPy 2.4: 0.08 against 0.35 ms for a frame of 30,000 points).
-    return np.compress((r2 <= max_range_m**2) & (r2 >= min_range_m**2), pts, axis=0)
+    return (r2 <= max_range_m**2) & (r2 >= min_range_m**2)
 
 
 def voxel_downsample(points_m: np.ndarray, voxel_m: float) -> np.ndarray:

@@ -9,6 +9,7 @@ import numpy as np
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
+from pipescan.core.registration.deskew import deskew_points, relative_motion
 from pipescan.core.registration.engines import (
     LocalMap,
     aligner,
@@ -109,6 +110,13 @@ class FrameRegistrar:
         self._prev_constrained = False
         self._velocity_m = np.zeros(3)
         self._prev_odometer: float | None = None
+        self._prev_time_s: float | None = None
+        self._motion: tuple[np.ndarray, float] | None = None
+        self._first: tuple[np.ndarray, np.ndarray] | None = None
+        """The first frame's points and times (sensor frame), until the second frame gives
+        the motion to deskew it by."""
+        """The last registered step (its relative pose and time, s): the motion a tracked
+        frame is deskewed by (constant velocity)."""
         self._down_world: np.ndarray | None = None
         self.slid: list[tuple[int, int]] = []
         """Runs of frames (first, last, counted from 0) that slid along the axis."""
@@ -154,6 +162,8 @@ class FrameRegistrar:
         points_sensor_m: np.ndarray,
         odometer_m: float | None = None,
         gravity: np.ndarray | tuple[float, float, float] | None = None,
+        point_time_s: np.ndarray | None = None,
+        time_s: float | None = None,
     ) -> tuple[np.ndarray, FrameQuality]:
         """Register the next frame.
 
@@ -170,6 +180,16 @@ class FrameRegistrar:
             length). The first reading defines the world "down"; later readings turn the
             predicted roll about the pipe axis into agreement with it before ICP, and a held
             (degenerate) roll stays there. A frame without it keeps the previous roll.
+        point_time_s : (N,) float, optional
+            Each point's capture time (s, any base). With ``time_s``, the frame is deskewed
+            before ICP (:func:`~pipescan.core.registration.deskew.deskew_points`) by the
+            predicted motion (the odometer's step or constant velocity, over the time since
+            the last registered frame), and its pose is the sensor's at its earliest point.
+            The first frame, with no motion yet, is deskewed once the second gives one: the
+            map restarts from it then.
+        time_s : float, optional
+            The frame's time (s, the base of the other frames' ``time_s``; it need not be that
+            of ``point_time_s``).
 
         Returns
         -------
@@ -185,6 +205,22 @@ class FrameRegistrar:
         p = self.params
         index = self.count
         gravity_sensor = _unit_gravity(gravity, index)
+        if point_time_s is not None and time_s is not None and self._prev is not None:
+            period_s = time_s - self._prev_time_s if self._prev_time_s is not None else 0.0
+            if period_s > 0:
+                pred, _ = self._predict(odometer_m)
+                motion = relative_motion(self._prev, pred)
+                points_sensor_m = deskew_points(points_sensor_m, point_time_s, motion, period_s)
+                if self._first is not None:
+                    # The first frame had no motion to be deskewed by: now it has (this
+                    # step's, at constant velocity); the map restarts from it deskewed.
+                    first_points, first_time_s = self._first
+                    self._start_map(
+                        preprocess_frame(
+                            deskew_points(first_points, first_time_s, motion, period_s), p
+                        )
+                    )
+        self._first = None
         pts = preprocess_frame(points_sensor_m, p)
         if len(pts) < _MIN_FRAME_POINTS:
             raise RegistrationError(
@@ -195,11 +231,9 @@ class FrameRegistrar:
         if self._prev is None:
             T = np.eye(4)
             quality = FrameQuality(index, 1.0, 0.0, False, along_axis_weight=1.0)
-            self._seed = [pts]
-            self._map.add_keyframe([pts], T[:3, 0])
-            self._last_key_position = T[:3, 3].copy()
-            self._key_positions = [T[:3, 3].copy()]
-            self._axis_world = self._map.axis
+            self._start_map(pts)
+            if point_time_s is not None and time_s is not None:
+                self._first = (np.asarray(points_sensor_m), np.asarray(point_time_s))
         else:
             has_odometer = odometer_m is not None and self._prev_odometer is not None
             pred, step = self._predict(odometer_m)
@@ -223,23 +257,42 @@ class FrameRegistrar:
             self._down_world = T[:3, :3] @ gravity_sensor
         if self._prev is not None and self._prev_constrained and not quality.degenerate:
             self._velocity_m = T[:3, 3] - self._prev[:3, 3]
+        t_prev = self._prev_time_s
+        if self._prev is not None and time_s is not None and t_prev is not None and time_s > t_prev:
+            self._motion = (relative_motion(self._prev, T), time_s - t_prev)
         self._prev, self._prev_constrained = T, not quality.degenerate
         self._prev_odometer = odometer_m
+        self._prev_time_s = time_s
         self.odometer_frames += odometer_m is not None
         self.count += 1
         return T, quality
+
+    def _start_map(self, pts: np.ndarray) -> None:
+        """Start the local map from the first frame (its points, sensor = world frame)."""
+        self._map = LocalMap(self.params)
+        self._seed = [pts]
+        self._map.add_keyframe([pts], np.eye(4)[:3, 0])
+        self._last_key_position = np.zeros(3)
+        self._key_positions = [np.zeros(3)]
+        self._axis_world = self._map.axis
 
     @property
     def last_pose(self) -> np.ndarray | None:
         """The pose of the frame registered last (None before the first)."""
         return self._prev
 
-    def track_source(self, points_sensor_m: np.ndarray) -> np.ndarray:
+    def track_source(
+        self, points_sensor_m: np.ndarray, point_time_s: np.ndarray | None = None
+    ) -> np.ndarray:
         """What :meth:`track` aligns of a frame: at most ``TRACK_POINTS`` of its returns within
         the registration's range, a regular share of them (cheap to hold until the next
-        registered frame)."""
+        registered frame). With ``point_time_s`` (N,) s, the frame is first deskewed by the
+        last registered step's motion (constant velocity)."""
         p = self.params
-        pts = crop_range(np.asarray(points_sensor_m), p.max_range_m, p.min_range_m)
+        points = np.asarray(points_sensor_m)
+        if point_time_s is not None and self._motion is not None:
+            points = deskew_points(points, point_time_s, *self._motion)
+        pts = crop_range(points, p.max_range_m, p.min_range_m)
         if len(pts) > TRACK_POINTS:
             pts = pts[np.linspace(0, len(pts) - 1, TRACK_POINTS).astype(np.int64)]
         return pts.astype(np.float64)
@@ -553,10 +606,12 @@ def register_frames(
 
     Parameters
     ----------
-    frames : iterable of (frame_index, points_sensor_m (N, 3), odometer_m or None[, gravity])
+    frames : iterable of (frame_index, points (N, 3), odometer_m[, gravity[, point_time_s, time_s]])
         Streamed in order; each full frame is dropped once registered. The optional fourth
         element is the IMU's gravity direction in the sensor frame, (3,) or None (see
-        :meth:`FrameRegistrar.add`): it holds the roll about the pipe axis to the IMU.
+        :meth:`FrameRegistrar.add`): it holds the roll about the pipe axis to the IMU. The
+        optional fifth and sixth are each point's time (N,) and the frame's time (s, or
+        None): with both, the frame is deskewed before ICP.
     params : RegistrationParams
     registrar : FrameRegistrar, optional
         A new registrar made with ``params`` for the frames to come, when the caller chooses
@@ -587,8 +642,9 @@ def register_frames(
     poses, quality, indices = [], [], []
     for frame_index, points, odometer, *rest in frames:
         gravity = rest[0] if rest else None
+        point_time_s, time_s = (rest[1], rest[2]) if len(rest) >= 3 else (None, None)
         try:
-            T, q = reg.add(points, odometer, gravity)
+            T, q = reg.add(points, odometer, gravity, point_time_s, time_s)
         except RegistrationError as exc:
             raise RegistrationError(f"frame {frame_index}: {exc.reason}", hint=exc.hint) from exc
         poses.append(T)
@@ -627,9 +683,9 @@ def register_keyframes(
     later one is (:meth:`FrameRegistrar.track`, from the pose interpolated between them at
     :func:`~pipescan.core.registration.trajectory.share_of_way` along ``along``).
 
-    ``frames`` yields ``(frame_index, points, odometer_m, gravity)`` for every frame of the
-    chunk, as :func:`register_frames` takes them. The trajectory carries the tracked frames'
-    poses (NaN for a frame that could not be tracked).
+    ``frames`` yields ``(frame_index, points, odometer_m, gravity[, point_time_s, time_s])``
+    for every frame of the chunk, as :func:`register_frames` takes them. The trajectory
+    carries the tracked frames' poses (NaN for a frame that could not be tracked).
     """
     reg = FrameRegistrar(params)
     chosen = frames_to_register(first, last, stride, lambda: reg.disagreement_sigmas)
@@ -643,7 +699,8 @@ def register_keyframes(
             for frame in source:
                 if frame[0] == wanted:
                     break
-                held.append((frame[0], reg.track_source(frame[1])))
+                point_time_s = frame[4] if len(frame) > 4 else None
+                held.append((frame[0], reg.track_source(frame[1], point_time_s)))
             else:
                 return  # the source ended before the frame wanted
             yield frame

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
+from pipescan.core.registration.deskew import deskew_points, relative_motion
 from pipescan.core.registration.engines import transform
 from pipescan.core.registration.fusion import (
     slip_could_hide,
@@ -302,21 +303,51 @@ class FramePoses:
 
 
 def iter_registered_points(
-    frames: Iterable[tuple[int, np.ndarray]],
+    frames: Iterable[tuple[int, np.ndarray] | tuple[int, np.ndarray, np.ndarray | None]],
     trajectory: Trajectory,
     along: Sequence[float | None] | None = None,
+    frame_time_s: Sequence[float | None] | None = None,
 ) -> Iterator[np.ndarray]:
     """Transform frames into the world frame, one at a time, (N, 3) each: registered frames
     by their own pose, the frames between them by an interpolated one (:class:`FramePoses`,
     with ``along``).
+
+    A frame given as ``(index, points, point_time_s)`` with times (N,) s is deskewed first
+    (:func:`~pipescan.core.registration.deskew.deskew_points`) by the registered motion from
+    its pose to the next frame's over their ``frame_time_s`` (every frame's time, s; from the
+    previous frame's for the last), so that each point is placed from where the sensor was
+    when it was captured. Without times, or without the frames' times, it is placed as is.
 
     Frames that slid along the axis (``fault == "slide"``), and the frames next to them, are
     left out: their place is not known, and the sections are seen from many other frames.
     So are frames outside the registered ones.
     """
     poses = FramePoses(trajectory, along)
-    for frame_index, points in frames:
+    for frame_index, points, *rest in frames:
         pose = poses.pose(frame_index)
         if pose is None:
             continue
-        yield transform(pose, np.asarray(points, dtype=np.float64))
+        pts = np.asarray(points, dtype=np.float64)
+        point_time_s = rest[0] if rest else None
+        if point_time_s is not None and frame_time_s is not None:
+            motion = _registered_motion(poses, frame_index, frame_time_s)
+            if motion is not None:
+                pts = deskew_points(pts, point_time_s, *motion)
+        yield transform(pose, pts)
+
+
+def _registered_motion(
+    poses: FramePoses, index: int, frame_time_s: Sequence[float | None]
+) -> tuple[np.ndarray, float] | None:
+    """The motion over frame ``index`` from the placed poses: to the next frame's pose, or
+    from the previous one's (its relative pose and time, s); None where neither is placed."""
+    for a, b in ((index, index + 1), (index - 1, index)):
+        if a < 0 or b >= len(frame_time_s):
+            continue
+        t_a, t_b = frame_time_s[a], frame_time_s[b]
+        if t_a is None or t_b is None or not t_b > t_a:
+            continue
+        T_a, T_b = poses.pose(a), poses.pose(b)
+        if T_a is not None and T_b is not None:
+            return relative_motion(T_a, T_b), t_b - t_a
+    return None

@@ -36,8 +36,10 @@ import numpy as np
 from pipescan.core.errors import (
     ArchiveError,
     MetadataError,
+    PointFileError,
 )
 from pipescan.core.model import FrameRef, InspectionMeta
+from pipescan.core.registration.deskew import FRAME_TIME_SPAN_RATIO
 from pipescan.storage.input.extract import (
     COPY_CHUNK_BYTES,
     Budget,
@@ -62,6 +64,7 @@ from pipescan.storage.input.pointfiles import (
     point_suffix,
     read_point_time,
     read_points,
+    read_timed_frame,
 )
 from pipescan.storage.input.readers.bags import BagIndex, index_bag, is_bag, iter_bag_frames
 from pipescan.storage.input.urls import without_secrets
@@ -266,6 +269,62 @@ class ScanArchive:
                     limits=self.limits,
                 ),
             )
+
+    def iter_timed_frames(
+        self, indices: Iterable[int] | None = None
+    ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None]]:
+        """Yield ``(i, points, time_s)`` for each frame (or each index in ``indices``), one at
+        a time, each file decoded once: ``points`` as :meth:`read_frame`, ``time_s`` (N,)
+        each point's capture time (s, the file's own time base) where the frame is a LAS/LAZ
+        file with GPS time and ``[[frames]]`` gives frame times (what deskewing needs); None
+        otherwise (a ROS bag's frames, other formats, all points at one time).
+
+        Raises
+        ------
+        PointFileError
+            As :meth:`read_frame`; and when a frame's point times span more than
+            :data:`~pipescan.core.registration.deskew.FRAME_TIME_SPAN_RATIO` times the
+            interval between frames (not one frame's times in seconds).
+        """
+        interval_s = self._frame_interval_s
+        if self.bag is not None or interval_s is None:
+            for i, points in self.iter_frames(indices):
+                yield i, points, None
+            return
+        self._check_open()
+        wanted = range(self.frame_count) if indices is None else indices
+        for i in wanted:
+            if not 0 <= i < self.frame_count:
+                raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+            ref = self.meta.frames[i]
+            points, time_s = read_timed_frame(
+                self.root / ref.file, archive=self.name, member=ref.file, limits=self.limits
+            )
+            if time_s is not None:
+                span_s = float(np.ptp(time_s))
+                if span_s > FRAME_TIME_SPAN_RATIO * interval_s:
+                    raise PointFileError(
+                        f"the points' GPS times span {span_s:.6g} s, more than "
+                        f"{FRAME_TIME_SPAN_RATIO:g} times the {interval_s:.6g} s between "
+                        "frames in inspection.toml: they are not this frame's capture times "
+                        "in seconds",
+                        archive=self.name,
+                        file=ref.file,
+                        field="gps_time",
+                        hint="write each point's capture time in seconds, or no GPS time",
+                    )
+            yield i, points, time_s
+
+    @cached_property
+    def _frame_interval_s(self) -> float | None:
+        """The median time between consecutive frames in ``[[frames]]`` (s), or None when
+        some frame has no time or the times do not increase."""
+        times = [f.time_s for f in self.meta.frames]
+        if len(times) < 2 or any(t is None for t in times):
+            return None
+        steps = np.diff(np.asarray(times, dtype=np.float64))
+        interval = float(np.median(steps))
+        return interval if np.isfinite(interval) and interval > 0 else None
 
     def read_cloud(self) -> np.ndarray:
         """Read the registered cloud.

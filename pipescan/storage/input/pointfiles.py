@@ -62,6 +62,7 @@ __all__ = [
     "point_suffix",
     "read_point_time",
     "read_points",
+    "read_timed_frame",
     "width_across_m",
     "write_points",
 ]
@@ -130,6 +131,49 @@ def read_points(
     points = reader.read(path, where)
     _check_points(points, kind, where)
     return points
+
+
+TIMED_FRAME_SUFFIXES = (".las", ".laz")
+"""Frame formats whose point times :func:`read_timed_frame` reads: LAS/LAZ GPS time, seconds
+by the LAS specification. A PLY or PCD ``time``/``t`` field has no fixed unit (seconds,
+nanoseconds, microseconds by vendor), so a frame in them is read without times."""
+
+
+def read_timed_frame(
+    path: Path,
+    *,
+    archive: str | None = None,
+    member: str | None = None,
+    limits: InputLimits = DEFAULT_LIMITS,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Read a frame and each point's capture time, decoding the file once.
+
+    Returns
+    -------
+    points : (N, 3) float64, metres, sensor frame, as :func:`read_points` returns them
+    time_s : (N,) float64 seconds, or None when the file is not a
+        :data:`TIMED_FRAME_SUFFIXES` file, holds no time, or gives every point the same time
+
+    Raises
+    ------
+    PointFileError
+        As :func:`read_points`, and for a time that is NaN or infinite (field ``time``).
+    """
+    path = Path(path)
+    if point_suffix(path) not in TIMED_FRAME_SUFFIXES:
+        points = read_points(path, archive=archive, member=member, kind="frame", limits=limits)
+        return points, None
+    chunks = list(
+        iter_point_chunks(
+            path, archive=archive, member=member, kind="frame", limits=limits, with_time=True
+        )
+    )
+    points = np.concatenate([c.points for c in chunks])
+    times = [c.time_s for c in chunks]
+    if any(t is None for t in times):
+        return points, None
+    time_s = np.concatenate(times)  # type: ignore[arg-type]
+    return points, time_s if float(np.ptp(time_s)) > 0.0 else None
 
 
 CLOUD_CHUNK_POINTS = 1_000_000
