@@ -1,0 +1,186 @@
+"""Deskewing frames whose points carry times, against the simulator's motion within a frame.
+
+At 0.5 m/s a frame of 0.1 s is captured over 50 mm of travel. The simulator
+(``Effects.motion_within_frame``) casts each packet of a frame's rays from the sensor's pose at
+its time, so the truth of every point is known: ``SimulatedScan.points_pipe``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipescan.core.errors import PointFileError
+from pipescan.core.registration import RegistrationParams, iter_registered_points, register_frames
+from pipescan.core.registration.deskew import deskew_points, relative_motion
+from pipescan.core.registration.engines import transform
+from pipescan.simulator.scan import Effects, get_scenario, simulate_scan
+
+SPEED_M_S = 0.5
+
+
+def _scenario(**overrides):
+    """The paper's pipe from its start, its obstacle 1.4-2.9 m ahead (a sharp edge across
+    the axis for ICP), a fast crawl, and the attitude's smooth rocking. (Vibration, a new
+    attitude every frame, turns the sensor at a rate no constant-velocity motion predicts:
+    deskewing leaves that part of the skew, docs/registration.md, *Deskew*.)"""
+    effects = Effects.ideal(motion_within_frame=True, range_noise_sigma_m=0.002, rocking_deg=1.0)
+    base = dict(travel_m=1.2, speed_m_s=SPEED_M_S, points_per_s=100_000, effects=effects)
+    return get_scenario("paper", **{**base, **overrides})
+
+
+@pytest.fixture(scope="module")
+def moving_scan():
+    scan = simulate_scan(_scenario(), seed=4)
+    return scan, [scan.frame(i) for i in range(len(scan))]
+
+
+def _along_errors_m(scan, frames, placed):
+    """Each placed point's error against its true place (pipe frame, m), (N, 3): the
+    registered world is the first frame's sensor frame."""
+    T0 = scan.T_pipe_sensor(0)
+    return np.concatenate(
+        [transform(T0, p) - scan.points_pipe(f) for f, p in zip(frames, placed, strict=True)]
+    )
+
+
+def test_deskew_undoes_the_simulated_motion_within_a_frame(moving_scan):
+    scan, frames = moving_scan
+    f = frames[5]
+    assert f.point_time_s is not None and f.point_time_s.min() == f.time_s
+    truth = scan.points_pipe(f)
+    T = scan.T_pipe_sensor(5)
+    skewed = transform(T, f.points_sensor.astype(np.float64))
+    # Without deskew the last packets are placed 49 mm (0.098 s at 0.5 m/s) off.
+    assert np.abs(skewed - truth)[:, 0].max() > 0.045
+    motion = relative_motion(T, scan.T_pipe_sensor(6))
+    period_s = float(scan.times_s[6] - scan.times_s[5])
+    deskewed = transform(T, deskew_points(f.points_sensor, f.point_time_s, motion, period_s))
+    np.testing.assert_allclose(deskewed, truth, atol=1e-5)  # float32 points
+
+
+def test_times_in_any_base_give_the_same_points(moving_scan):
+    scan, frames = moving_scan
+    f = frames[2]
+    motion = relative_motion(scan.T_pipe_sensor(2), scan.T_pipe_sensor(3))
+    a = deskew_points(f.points_sensor, f.point_time_s, motion, 0.1)
+    b = deskew_points(f.points_sensor, f.point_time_s + 4.0e8, motion, 0.1)  # GPS seconds
+    np.testing.assert_allclose(a, b, atol=1e-6)
+
+
+def test_registration_and_placing_deskew_to_the_truth(moving_scan):
+    """Registered from the odometer's predicted motion, placed by the registered trajectory:
+    each point lands within a few mm of its true place; the same frames without their times
+    land up to a frame's motion apart (28 mm RMS along the axis)."""
+    scan, frames = moving_scan
+    times = [f.time_s for f in frames]
+    rms_mm = {}
+    for timed in (False, True):
+
+        def point_times(f, timed=timed):
+            return f.point_time_s if timed else None
+
+        trajectory = register_frames(
+            (f.index, f.points_sensor, f.odometer_m, f.gravity, point_times(f), f.time_s)
+            for f in frames
+        )
+        placed = iter_registered_points(
+            ((f.index, f.points_sensor, point_times(f)) for f in frames), trajectory, None, times
+        )
+        err = _along_errors_m(scan, frames, placed)
+        rms_mm[timed] = 1e3 * float(np.sqrt(np.mean(err[:, 0] ** 2)))
+        if timed:
+            p95_mm = 1e3 * float(np.percentile(np.linalg.norm(err, axis=1), 95))
+    assert rms_mm[False] > 20.0
+    assert rms_mm[True] < 1.5
+    assert p95_mm < 5.0
+
+
+def test_a_frame_without_times_is_unchanged(moving_scan):
+    frames = moving_scan[1][:6]
+    plain = register_frames((f.index, f.points_sensor, f.odometer_m) for f in frames)
+    untimed = register_frames(
+        (f.index, f.points_sensor, f.odometer_m, None, None, f.time_s) for f in frames
+    )
+    np.testing.assert_array_equal(plain.T_world_frame, untimed.T_world_frame)
+    times = [f.time_s for f in frames]
+    a = list(iter_registered_points(((f.index, f.points_sensor) for f in frames), plain))
+    b = list(
+        iter_registered_points(
+            ((f.index, f.points_sensor, None) for f in frames), plain, None, times
+        )
+    )
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(x, y)
+    still = simulate_scan(_scenario(effects=Effects.ideal()), seed=4)
+    assert still.frame(0).point_time_s is None
+
+
+def _archive(tmp_path, travel_m=0.6):
+    from pipescan.simulator.archive import write_simulated_archive
+
+    scan = simulate_scan(_scenario(travel_m=travel_m, points_per_s=100_000), seed=2)
+    return scan, write_simulated_archive(scan, tmp_path / "scan")
+
+
+def test_archive_frames_carry_gps_time_and_the_run_places_them_deskewed(tmp_path):
+    """The simulated archive's LAZ frames hold absolute GPS times (about 4 x 10^8 s, another
+    base than inspection.toml's); registering and placing the staged frames through the frame
+    store puts each point within a few mm of its truth, at a stride of 2 (tracked frames)."""
+    from pipescan.storage.input.archive import open_archive
+    from pipescan.storage.scratch import FrameStore
+    from pipescan.tasks.staged import StagedArchive, register_staged_frames
+
+    scan, root = _archive(tmp_path)
+    with open_archive(root) as arc:
+        _, _, time_s = next(arc.iter_timed_frames([1]))
+        assert time_s is not None and time_s.min() > 3e8 and np.ptp(time_s) < 0.1
+        staged = StagedArchive(arc.name, arc.root, arc.meta, "-", arc.frame_count, None)
+        store = FrameStore(tmp_path / "store")
+        n = arc.frame_count
+        trajectory = register_staged_frames(
+            staged, 0, n - 1, RegistrationParams(), store, keep_range_m=np.inf, stride=2
+        )
+        assert trajectory.tracked_indices  # frames between registered ones were tracked
+        stored = list(store.iter_timed_frames(0))
+        assert all(t is not None for _, _, t in stored)
+        times = [f.time_s for f in arc.meta.frames]
+        placed = list(iter_registered_points(iter(stored), trajectory, None, times))
+    frames = [scan.frame(i) for i in range(n)]
+    err = _along_errors_m(scan, frames, placed)
+    assert 1e3 * np.sqrt(np.mean(err[:, 0] ** 2)) < 3.0
+
+
+def test_frame_times_that_are_not_seconds_are_one_clear_error(tmp_path):
+    from pipescan.storage.input.archive import open_archive
+    from pipescan.storage.input.pointfiles import read_timed_frame, write_points
+
+    _, root = _archive(tmp_path, travel_m=0.2)
+    path = root / "frames" / "000002.laz"
+    points, time_s = read_timed_frame(path)
+    write_points(path, points, time_s=time_s.min() + (time_s - time_s.min()) * 1e9)  # ns
+    with open_archive(root) as arc, pytest.raises(PointFileError) as caught:
+        list(arc.iter_timed_frames())
+    message = str(caught.value)
+    assert "frames/000002.laz" in message and "'gps_time'" in message and "\n" not in message
+
+
+def test_frame_store_keeps_times_beside_points(tmp_path):
+    from pipescan.storage.scratch import FrameStore
+
+    rng = np.random.default_rng(1)
+    store = FrameStore(tmp_path / "frames")
+    sent = [
+        (3, rng.normal(size=(40, 3)), None),
+        (4, rng.normal(size=(50, 3)), 1e9 + rng.uniform(0, 0.1, 50)),
+        (5, rng.normal(size=(0, 3)), np.empty(0)),
+        (6, rng.normal(size=(30, 3)), None),
+    ]
+    with store.writer(3) as w:
+        for i, pts, t in sent:
+            w.add(i, pts, t)
+    back = list(store.iter_timed_frames(3))
+    assert [i for i, _, _ in back] == [3, 4, 5, 6]
+    assert back[0][2] is None and back[2][2] is None and back[3][2] is None
+    np.testing.assert_allclose(back[1][2], sent[1][2] - sent[1][2].min(), atol=1e-7)
+    assert [i for i, _ in store.iter_frames(3)] == [3, 4, 5, 6]
