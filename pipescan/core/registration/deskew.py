@@ -89,11 +89,15 @@ def deskew_points(
     share = (t - t0) / motion_period_s
     rotvec = Rotation.from_matrix(np.asarray(T_motion)[:3, :3]).as_rotvec()
     translation = np.asarray(T_motion, dtype=np.float64)[:3, 3]
-    # Points share few distinct times (a sensor stamps packets of points): one rotation per
-    # distinct share.
-    shares, inverse = np.unique(share, return_inverse=True)
-    matrices = Rotation.from_rotvec(shares[:, None] * rotvec[None, :]).as_matrix()
-    moved = np.einsum("nij,nj->ni", matrices[inverse], pts)
+    # Rotation by s times the rotation vector (slerp from the identity), by Rodrigues'
+    # formula per point: R p = p + sin(s a) k x p + (1 - cos(s a)) k x (k x p).
+    angle_rad = float(np.linalg.norm(rotvec))
+    moved = pts.copy()
+    if angle_rad > 0.0:
+        kx, ky, kz = rotvec / angle_rad
+        K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])  # K p = k x p
+        moved += np.sin(share * angle_rad)[:, None] * (pts @ K.T)
+        moved += (1.0 - np.cos(share * angle_rad))[:, None] * (pts @ (K @ K).T)
     return moved + share[:, None] * translation[None, :]
 
 
@@ -107,3 +111,15 @@ def relative_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
     """The pose of ``b`` in the frame of ``a``, (4, 4): what :func:`deskew_points` takes as
     ``T_motion`` for the time from ``a`` to ``b``."""
     return np.linalg.inv(np.asarray(T_world_a, dtype=np.float64)) @ np.asarray(T_world_b)
+
+
+def travel_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
+    """:func:`relative_motion` without its rotation, (4, 4): the translation from ``a`` to
+    ``b`` in the frame of ``a``. What pipescan deskews by: a crawler's travel is smooth and
+    well measured from frame to frame, while the turn between two frames' estimated attitudes
+    is mostly their errors (docs/registration.md, *Deskew*: with the rotation too, points
+    land further from their truth when the sensor vibrates, and no nearer without)."""
+    T_a = np.asarray(T_world_a, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, 3] = T_a[:3, :3].T @ (np.asarray(T_world_b, dtype=np.float64)[:3, 3] - T_a[:3, 3])
+    return T

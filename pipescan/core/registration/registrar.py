@@ -9,7 +9,7 @@ import numpy as np
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
-from pipescan.core.registration.deskew import deskew_points, relative_motion
+from pipescan.core.registration.deskew import deskew_points, travel_motion
 from pipescan.core.registration.engines import (
     LocalMap,
     aligner,
@@ -31,7 +31,7 @@ from pipescan.core.registration.fusion import (
     small_motion,
 )
 from pipescan.core.registration.params import AlongAxisPrior, RegistrationParams
-from pipescan.core.registration.preprocess import crop_range, preprocess_frame
+from pipescan.core.registration.preprocess import preprocess_frame, range_mask
 from pipescan.core.registration.stride import frames_to_register
 from pipescan.core.registration.trajectory import (
     Trajectory,
@@ -115,7 +115,7 @@ class FrameRegistrar:
         self._first: tuple[np.ndarray, np.ndarray] | None = None
         """The first frame's points and times (sensor frame), until the second frame gives
         the motion to deskew it by."""
-        """The last registered step (its relative pose and time, s): the motion a tracked
+        """The last registered step's travel (as a pose, and its time, s): what a tracked
         frame is deskewed by (constant velocity)."""
         self._down_world: np.ndarray | None = None
         self.slid: list[tuple[int, int]] = []
@@ -183,8 +183,9 @@ class FrameRegistrar:
         point_time_s : (N,) float, optional
             Each point's capture time (s, any base). With ``time_s``, the frame is deskewed
             before ICP (:func:`~pipescan.core.registration.deskew.deskew_points`) by the
-            predicted motion (the odometer's step or constant velocity, over the time since
-            the last registered frame), and its pose is the sensor's at its earliest point.
+            predicted travel (the odometer's step or constant velocity, over the time since
+            the last registered frame; :func:`~pipescan.core.registration.deskew.travel_motion`),
+            and its pose is the sensor's at its earliest point.
             The first frame, with no motion yet, is deskewed once the second gives one: the
             map restarts from it then.
         time_s : float, optional
@@ -209,17 +210,13 @@ class FrameRegistrar:
             period_s = time_s - self._prev_time_s if self._prev_time_s is not None else 0.0
             if period_s > 0:
                 pred, _ = self._predict(odometer_m)
-                motion = relative_motion(self._prev, pred)
-                points_sensor_m = deskew_points(points_sensor_m, point_time_s, motion, period_s)
+                motion = (travel_motion(self._prev, pred), period_s)
+                points_sensor_m = self._deskewed(points_sensor_m, point_time_s, motion)
                 if self._first is not None:
                     # The first frame had no motion to be deskewed by: now it has (this
                     # step's, at constant velocity); the map restarts from it deskewed.
-                    first_points, first_time_s = self._first
-                    self._start_map(
-                        preprocess_frame(
-                            deskew_points(first_points, first_time_s, motion, period_s), p
-                        )
-                    )
+                    first = self._deskewed(*self._first, motion)
+                    self._start_map(preprocess_frame(first, p))
         self._first = None
         pts = preprocess_frame(points_sensor_m, p)
         if len(pts) < _MIN_FRAME_POINTS:
@@ -259,13 +256,26 @@ class FrameRegistrar:
             self._velocity_m = T[:3, 3] - self._prev[:3, 3]
         t_prev = self._prev_time_s
         if self._prev is not None and time_s is not None and t_prev is not None and time_s > t_prev:
-            self._motion = (relative_motion(self._prev, T), time_s - t_prev)
+            self._motion = (travel_motion(self._prev, T), time_s - t_prev)
         self._prev, self._prev_constrained = T, not quality.degenerate
         self._prev_odometer = odometer_m
         self._prev_time_s = time_s
         self.odometer_frames += odometer_m is not None
         self.count += 1
         return T, quality
+
+    def _deskewed(
+        self,
+        points_sensor_m: np.ndarray,
+        point_time_s: np.ndarray,
+        motion: tuple[np.ndarray, float],
+    ) -> np.ndarray:
+        """The frame's points within the registration's range, deskewed by ``motion``
+        (relative pose, its time in s): the points beyond the range are never used."""
+        p = self.params
+        keep = range_mask(points_sensor_m, p.max_range_m, p.min_range_m)
+        points = np.compress(keep, points_sensor_m, axis=0)
+        return deskew_points(points, np.compress(keep, point_time_s), *motion)
 
     def _start_map(self, pts: np.ndarray) -> None:
         """Start the local map from the first frame (its points, sensor = world frame)."""
@@ -286,16 +296,17 @@ class FrameRegistrar:
     ) -> np.ndarray:
         """What :meth:`track` aligns of a frame: at most ``TRACK_POINTS`` of its returns within
         the registration's range, a regular share of them (cheap to hold until the next
-        registered frame). With ``point_time_s`` (N,) s, the frame is first deskewed by the
-        last registered step's motion (constant velocity)."""
+        registered frame). With ``point_time_s`` (N,) s, these points are deskewed by the
+        last registered step's travel (constant velocity)."""
         p = self.params
         points = np.asarray(points_sensor_m)
+        keep = np.flatnonzero(range_mask(points, p.max_range_m, p.min_range_m))
+        if len(keep) > TRACK_POINTS:
+            keep = keep[np.linspace(0, len(keep) - 1, TRACK_POINTS).astype(np.int64)]
+        pts = points[keep].astype(np.float64)
         if point_time_s is not None and self._motion is not None:
-            points = deskew_points(points, point_time_s, *self._motion)
-        pts = crop_range(points, p.max_range_m, p.min_range_m)
-        if len(pts) > TRACK_POINTS:
-            pts = pts[np.linspace(0, len(pts) - 1, TRACK_POINTS).astype(np.int64)]
-        return pts.astype(np.float64)
+            pts = deskew_points(pts, np.asarray(point_time_s)[keep], *self._motion)
+        return pts
 
     def track(self, source: np.ndarray, init: np.ndarray) -> np.ndarray | None:
         """The pose of a frame that is not registered, between two that are: ``init``

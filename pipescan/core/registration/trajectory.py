@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
-from pipescan.core.registration.deskew import deskew_points, relative_motion
+from pipescan.core.registration.deskew import deskew_points, travel_motion
 from pipescan.core.registration.engines import transform
 from pipescan.core.registration.fusion import (
     slip_could_hide,
@@ -313,10 +313,11 @@ def iter_registered_points(
     with ``along``).
 
     A frame given as ``(index, points, point_time_s)`` with times (N,) s is deskewed first
-    (:func:`~pipescan.core.registration.deskew.deskew_points`) by the registered motion from
-    its pose to the next frame's over their ``frame_time_s`` (every frame's time, s; from the
-    previous frame's for the last), so that each point is placed from where the sensor was
-    when it was captured. Without times, or without the frames' times, it is placed as is.
+    (:func:`~pipescan.core.registration.deskew.deskew_points`) by the registered travel
+    (:func:`~pipescan.core.registration.deskew.travel_motion`) from its pose to the next
+    frame's over their ``frame_time_s`` (every frame's time, s; from the previous frame's for
+    the last), so that each point is placed from where the sensor was when it was captured.
+    Without times, or without the frames' times, it is placed as is.
 
     Frames that slid along the axis (``fault == "slide"``), and the frames next to them, are
     left out: their place is not known, and the sections are seen from many other frames.
@@ -339,8 +340,8 @@ def iter_registered_points(
 def _registered_motion(
     poses: FramePoses, index: int, frame_time_s: Sequence[float | None]
 ) -> tuple[np.ndarray, float] | None:
-    """The motion over frame ``index`` from the placed poses: to the next frame's pose, or
-    from the previous one's (its relative pose and time, s); None where neither is placed."""
+    """The travel over frame ``index`` from the placed poses: to the next frame's pose, or
+    from the previous one's (as a pose, and its time, s); None where neither is placed."""
     for a, b in ((index, index + 1), (index - 1, index)):
         if a < 0 or b >= len(frame_time_s):
             continue
@@ -349,5 +350,5 @@ def _registered_motion(
             continue
         T_a, T_b = poses.pose(a), poses.pose(b)
         if T_a is not None and T_b is not None:
-            return relative_motion(T_a, T_b), t_b - t_a
+            return travel_motion(T_a, T_b), t_b - t_a
     return None
