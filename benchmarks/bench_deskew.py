@@ -2,6 +2,7 @@
 
     python benchmarks/bench_deskew.py
     python benchmarks/bench_deskew.py --speeds 0.15 0.5 --vibration 0 0.3 --travel-m 1.2
+    python benchmarks/bench_deskew.py --speeds 0.5 --with-turn
 
 Cost: :func:`~pipescan.core.registration.deskew.deskew_points` on a frame of the default
 simulated sensor (452,000 points a second at 10 Hz: 45,200 points), with the simulator's 50
@@ -13,7 +14,9 @@ Effect: the ``paper`` scenario from its start (the obstacle 1.4-2.9 m ahead) wit
 seed 4. Every frame is registered (``register_frames``, odometer exact) and placed
 (``iter_registered_points``) once without the point times and once with them; each point's
 place is compared with its truth (the pose at its own time), per axis of the pipe frame (x
-along the axis): RMS and the 95th percentile of the distance, mm.
+along the axis): RMS and the 95th percentile of the distance, mm. ``--with-turn`` deskews by
+the full relative pose between frames (travel and turn) instead of pipescan's travel only
+(``travel_motion``), to compare (docs/registration.md, *Deskew*).
 """
 
 from __future__ import annotations
@@ -91,7 +94,14 @@ def main() -> None:
     parser.add_argument("--speeds", type=float, nargs="+", default=[0.15, 0.5])
     parser.add_argument("--vibration", type=float, nargs="+", default=[0.0, 0.3])
     parser.add_argument("--travel-m", type=float, default=1.2)
+    parser.add_argument("--with-turn", action="store_true")
     args = parser.parse_args()
+    if args.with_turn:
+        from pipescan.core.registration import registrar, trajectory
+        from pipescan.core.registration.deskew import relative_motion
+
+        registrar.travel_motion = relative_motion  # type: ignore[attr-defined]
+        trajectory.travel_motion = relative_motion  # type: ignore[attr-defined]
     for distinct in (50, 45_200):
         print(f"deskew_points, 45,200 points, {distinct:,} distinct times: "
               f"{cost_ms(45_200, distinct):.1f} ms")  # fmt: skip

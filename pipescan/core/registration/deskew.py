@@ -90,21 +90,24 @@ def deskew_points(
     rotvec = Rotation.from_matrix(np.asarray(T_motion)[:3, :3]).as_rotvec()
     translation = np.asarray(T_motion, dtype=np.float64)[:3, 3]
     # Rotation by s times the rotation vector (slerp from the identity), by Rodrigues'
-    # formula per point: R p = p + sin(s a) k x p + (1 - cos(s a)) k x (k x p).
+    # formula per point: R p = p + sin(s a) k x p + (1 - cos(s a)) k x (k x p). In place into
+    # one scratch array: a fresh (N, 3) array per term costs more than the arithmetic.
     angle_rad = float(np.linalg.norm(rotvec))
     moved = pts.copy()
+    term = np.empty_like(pts)
     if angle_rad > 0.0:
         kx, ky, kz = rotvec / angle_rad
         K = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])  # K p = k x p
-        moved += np.sin(share * angle_rad)[:, None] * (pts @ K.T)
-        moved += (1.0 - np.cos(share * angle_rad))[:, None] * (pts @ (K @ K).T)
-    return moved + share[:, None] * translation[None, :]
-
-
-def frame_time_span_s(time_s: np.ndarray) -> float:
-    """How long a frame's points took to capture (s): the spread of their times (0 for none)."""
-    t = np.asarray(time_s, dtype=np.float64)
-    return float(t.max() - t.min()) if t.size else 0.0
+        for matrix, weight in (
+            (K, np.sin(share * angle_rad)),
+            (K @ K, 1.0 - np.cos(share * angle_rad)),
+        ):
+            np.matmul(pts, np.ascontiguousarray(matrix.T), out=term)
+            term *= weight[:, None]
+            moved += term
+    np.multiply(share[:, None], translation[None, :], out=term)
+    moved += term
+    return moved
 
 
 def relative_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
