@@ -20,6 +20,9 @@ exactly the information that is missing, and let ICP slide along the pipe. The s
     allowed for where it was alone (:func:`unseen_slip_allowance`). About the axis, roll is
     held where the Hessian is degenerate, at an attitude turned to agree with the IMU's
     gravity.
+``deskew``
+    :func:`~pipescan.core.registration.deskew.deskew_points`: a frame whose points carry
+    times, moved to the sensor's pose at its first point by the travel over the frame.
 ``registrar``
     :class:`FrameRegistrar` and :func:`register_frames`: the streaming loop.
 ``trajectory``
