@@ -119,15 +119,21 @@ def test_each_frame_is_decoded_once(inspected, archive, tmp_path):
     chunks = plan_chunks(summary.frame_count, 20, stride)
     assert len(chunks) > 1
     read_points = archive_module.read_points
+    read_timed_frame = archive_module.read_timed_frame
     decoded: Counter[str] = Counter()
 
     def counted(path, **kwargs):
         decoded[kwargs.get("member") or str(path)] += 1
         return read_points(path, **kwargs)
 
+    def counted_timed(path, **kwargs):  # LAS/LAZ frames, read with their point times
+        decoded[kwargs.get("member") or str(path)] += 1
+        return read_timed_frame(path, **kwargs)
+
     store = FrameStore(tmp_path / "frames")
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(archive_module, "read_points", counted)
+        mp.setattr(archive_module, "read_timed_frame", counted_timed)
         registered = {
             i
             for a, b in chunks

@@ -57,6 +57,7 @@ from pipescan.storage.input.limits import (
 from pipescan.storage.input.metadata import INSPECTION_FILE, read_inspection_toml
 from pipescan.storage.input.pointfiles import (
     POINT_SUFFIXES,
+    TIMED_FRAME_SUFFIXES,
     PointChunk,
     check_points,
     is_point_file,
@@ -297,6 +298,9 @@ class ScanArchive:
             if not 0 <= i < self.frame_count:
                 raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
             ref = self.meta.frames[i]
+            if point_suffix(ref.file) not in TIMED_FRAME_SUFFIXES:
+                yield i, self.read_frame(i), None
+                continue
             points, time_s = read_timed_frame(
                 self.root / ref.file, archive=self.name, member=ref.file, limits=self.limits
             )

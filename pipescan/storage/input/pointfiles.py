@@ -54,6 +54,7 @@ _AXES = ("x", "y", "z")
 __all__ = [
     "LAS_SCALE_M",
     "POINT_SUFFIXES",
+    "TIMED_FRAME_SUFFIXES",
     "PointChunk",
     "StridedSample",
     "check_point_file",
