@@ -22,7 +22,7 @@ from typing import Literal
 import numpy as np
 
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
-from pipescan.storage.input.readers import READERS, Where
+from pipescan.storage.input.readers import READERS, Where, las
 from pipescan.storage.input.readers.las import LAS_SCALE_M
 
 POINT_SUFFIXES: tuple[str, ...] = tuple(READERS)
@@ -164,16 +164,17 @@ def read_timed_frame(
     if point_suffix(path) not in TIMED_FRAME_SUFFIXES:
         points = read_points(path, archive=archive, member=member, kind="frame", limits=limits)
         return points, None
-    chunks = list(
-        iter_point_chunks(
-            path, archive=archive, member=member, kind="frame", limits=limits, with_time=True
-        )
-    )
-    points = np.concatenate([c.points for c in chunks])
-    times = [c.time_s for c in chunks]
-    if any(t is None for t in times):
+    where, _ = _reader(path, archive, member, limits)
+    points, time_s = las.read_timed(path, where)
+    _check_points(points, "frame", where)
+    if time_s is None or len(time_s) != len(points):
         return points, None
-    time_s = np.concatenate(times)  # type: ignore[arg-type]
+    if not np.isfinite(time_s).all():
+        raise where.error(
+            f"{int((~np.isfinite(time_s)).sum())} points have a NaN or infinite GPS time",
+            field="gps_time",
+            hint="export the frame again, or without GPS time",
+        )
     return points, time_s if float(np.ptp(time_s)) > 0.0 else None
 
 

@@ -210,6 +210,21 @@ def read(path: Path, where: Where) -> np.ndarray:
     return points
 
 
+def read_timed(path: Path, where: Where) -> tuple[np.ndarray, np.ndarray | None]:
+    """The points, ``(N, 3)`` float64 metres, as :func:`read` returns them, and each point's
+    GPS time ``(N,)`` float64 seconds (None when the point format has none), decoded in one
+    pass."""
+    points, times = [], []
+    for header, chunk in _chunks(path, where, time=True, field="points"):
+        part = np.empty((len(chunk), 3))
+        _scale_into(part, chunk, *_scales_offsets(header))
+        points.append(part)
+        if "gps_time" in header.point_format.dimension_names:
+            times.append(np.asarray(chunk.gps_time, dtype=np.float64))
+    pts = joined(points, (0, 3))
+    return pts, joined(times, (0,)) if len(times) == len(points) and times else None
+
+
 def read_time(path: Path, where: Where) -> np.ndarray | None:
     """Each point's GPS time, ``(N,)`` float64 seconds, or None when the point format has
     none."""
