@@ -165,6 +165,23 @@ def test_frame_times_that_are_not_seconds_are_one_clear_error(tmp_path):
     assert "frames/000002.laz" in message and "'gps_time'" in message and "\n" not in message
 
 
+def test_a_laz_frame_with_no_or_constant_times_reads_as_untimed(tmp_path):
+    from pipescan.storage.input.pointfiles import read_points, read_timed_frame, write_points
+
+    points = np.random.default_rng(0).normal(size=(200, 3)) + np.array([2.0, 0.0, 0.0])
+    write_points(tmp_path / "none.laz", points)  # GPS time 0 for every point
+    write_points(tmp_path / "same.laz", points, time_s=np.full(200, 4.0e8))
+    for name in ("none.laz", "same.laz"):
+        got, time_s = read_timed_frame(tmp_path / name)
+        assert time_s is None
+        np.testing.assert_array_equal(got, read_points(tmp_path / name))
+    nan = np.linspace(4.0e8, 4.0e8 + 0.1, 200)
+    nan[7] = np.nan
+    write_points(tmp_path / "nan.laz", points, time_s=nan)
+    with pytest.raises(PointFileError, match="field 'gps_time'"):
+        read_timed_frame(tmp_path / "nan.laz", archive="run", member="frames/nan.laz")
+
+
 def test_frame_store_keeps_times_beside_points(tmp_path):
     from pipescan.storage.scratch import FrameStore
 
