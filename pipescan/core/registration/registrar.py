@@ -112,11 +112,11 @@ class FrameRegistrar:
         self._prev_odometer: float | None = None
         self._prev_time_s: float | None = None
         self._motion: tuple[np.ndarray, float] | None = None
-        self._first: tuple[np.ndarray, np.ndarray] | None = None
-        """The first frame's points and times (sensor frame), until the second frame gives
-        the motion to deskew it by."""
         """The last registered step's travel (as a pose, and its time, s): what a tracked
         frame is deskewed by (constant velocity)."""
+        self._first: tuple[np.ndarray, np.ndarray] | None = None
+        """The first frame's points and times (sensor frame), until the second frame gives
+        the travel to deskew it by."""
         self._down_world: np.ndarray | None = None
         self.slid: list[tuple[int, int]] = []
         """Runs of frames (first, last, counted from 0) that slid along the axis."""
@@ -186,7 +186,7 @@ class FrameRegistrar:
             predicted travel (the odometer's step or constant velocity, over the time since
             the last registered frame; :func:`~pipescan.core.registration.deskew.travel_motion`),
             and its pose is the sensor's at its earliest point.
-            The first frame, with no motion yet, is deskewed once the second gives one: the
+            The first frame, with no travel yet, is deskewed once the second gives one: the
             map restarts from it then.
         time_s : float, optional
             The frame's time (s, the base of the other frames' ``time_s``; it need not be that
@@ -270,8 +270,8 @@ class FrameRegistrar:
         point_time_s: np.ndarray,
         motion: tuple[np.ndarray, float],
     ) -> np.ndarray:
-        """The frame's points within the registration's range, deskewed by ``motion``
-        (relative pose, its time in s): the points beyond the range are never used."""
+        """The frame's points within the registration's range, deskewed by ``motion`` (a
+        travel as a pose, and its time, s): the points beyond the range are never used."""
         p = self.params
         keep = range_mask(points_sensor_m, p.max_range_m, p.min_range_m)
         points = np.compress(keep, points_sensor_m, axis=0)
