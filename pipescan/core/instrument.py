@@ -653,9 +653,9 @@ def instrumented(
     registration: RegistrationParams, measure: MeasureParams, instrument: Instrument | None
 ) -> tuple[RegistrationParams, MeasureParams]:
     """The registration and measure parameters for a scan made with ``instrument``: its
-    minimum range, its map seed, its ICP gate (:func:`partial_view_gate_m`) and its smear limit (:data:`SMEAR_SPREAD_RATIO` times its
-    wall noise). ``None`` (a registered cloud): no smear test, the registration parameters as
-    given.
+    minimum range, its map seed, its ICP gate (:func:`partial_view_gate_m`) and its smear
+    limit (:data:`SMEAR_SPREAD_RATIO` times its wall noise). ``None`` (a registered cloud):
+    no smear test, the registration parameters as given.
 
     >>> from pipescan.core.measures import MeasureParams
     >>> from pipescan.core.registration import RegistrationParams
