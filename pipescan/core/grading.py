@@ -610,11 +610,21 @@ def is_flagged(
     flag_grade: int = FlagRule.flag_grade,
 ) -> bool:
     """Whether a defect is over the report's threshold: its class is ``flag_grade`` or worse,
-    or its peak blockage is at or above ``blockage_threshold_ratio``."""
+    or its peak blockage is at or above ``blockage_threshold_ratio``. A defect graded on its
+    blockage counts its own share too: under water (a lower bound) the sections give no
+    measured blockage, and the feature alone takes at least that much.
+
+    >>> from pipescan.core.model import Defect
+    >>> under = Defect("BBE", "blockage_ratio", 2.6, 2.9, 2.8, 0.171, None, 3, lower_bound=True)
+    >>> is_flagged(under), is_flagged(replace(under, peak_value=0.05))
+    (True, False)
+    """
     if defect.grade is not None and defect.grade <= flag_grade:
         return True
-    peak = defect.peak_blockage_ratio
-    return peak is not None and math.isfinite(peak) and peak >= blockage_threshold_ratio
+    peaks = [defect.peak_blockage_ratio]
+    if defect.measure == "blockage_ratio":
+        peaks.append(defect.peak_value)
+    return any(p is not None and math.isfinite(p) and p >= blockage_threshold_ratio for p in peaks)
 
 
 def _coder_estimate(feature: WallFeature, s: SectionMeasures) -> float:
