@@ -209,6 +209,16 @@ def test_a_full_view_keeps_the_wide_gate():
     assert params.max_correspondence_m == pytest.approx(np.sqrt(3) / 2 * 0.03 + 0.005)
 
 
+def test_the_small_sample_mad_factor_is_the_normal_distributions_and_errs_safe():
+    # uncertainty.residual_sigma_m's (1 - 1.2 / n): no scanner in it, only normal samples.
+    rng = np.random.default_rng(7)
+    for n in (4, 6, 8, 12, 16):
+        x = rng.standard_normal((40_000, n))
+        mad = np.median(np.abs(x - np.median(x, axis=1, keepdims=True)), axis=1).mean()
+        ratio = mad * 1.4826
+        assert 1.0 - 1.2 / n <= ratio <= 1.06 * (1.0 - 1.2 / n), n
+
+
 # --------------------------------------------------------------------------- the diameter
 
 
