@@ -137,9 +137,10 @@ class MeasureParams:
         (``PolarProfile.wall_behind_deg``), is ``smeared_wall`` too: no ray reaches the wall
         behind an object attached to it, so frames disagree about where the object is (a
         slide along the pipe that registration did not see puts the object where the other
-        frames saw bare wall). 10°: more than twice the most an ok section read with the true
-        poses, well under what an object moved by an unseen slide reads (docs/measures.md,
-        *An object where other frames saw bare wall*).
+        frames saw bare wall). 10°: a real object shows both layers only across its two
+        edges, each within one bin and the beam's footprint (2-3° in 1° bins; the most an ok
+        section read with the true poses was 4°), well under what an object moved by an
+        unseen slide reads (docs/measures.md, *An object where other frames saw bare wall*).
     """
 
     method: str = DEFAULT_CONTOUR_METHOD
