@@ -626,6 +626,7 @@ def estimate_instrument(
     # test range and target, and a limit looser than the scan's noise passes frames that
     # disagree.
     across = surface_noise(sampled, max_range_m=max_range_m)
+    ranging: float | None
     if across is not None:
         (ranging, by_distance), sources["range_noise_m"] = across, "estimated"
     else:
