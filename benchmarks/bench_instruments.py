@@ -12,7 +12,9 @@ Each row is one draw (``pipescan.simulator.sweep.instrument_draws``): the instru
 from the scan, the fully seen sections away from defect edges (all round, in truth, and within
 pipescan's 5 m section range of the sensor's last position) and the share of them measured
 (``ok``), their mean and largest |error| against the truth at the same chainage, the ok
-sections off by more than 2 pp anywhere within their chainage ± ("dishonest"), the true
+sections off by more than 2 pp anywhere within their chainage ±, and the sections with water
+whose figure, a lower bound, is over the truth by more than 2 pp everywhere within it
+("dishonest"), the true
 defects over 5 % that the run coded (a defect as the report lists it, overlapping the true
 span widened by the sections' chainage ±), the frames flagged as
 slides, the chainage ± at the end against what the odometer's stated error and the slips
@@ -129,6 +131,12 @@ def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
         if sec.is_ok and sec.blockage_ratio is not None:
             closest = _closest_error(sec, truth)[1]
             dishonest += closest is not None and closest * 100 > DISHONEST_PP
+        elif sec.is_lower_bound and sec.blockage_ratio is not None:
+            # A lower bound overstates only above the truth everywhere within its ±.
+            u = float(sec.chainage_uncertainty_m or 0.0)
+            most = truth.around(round(sec.chainage_start_m, 3), u)
+            if np.isfinite(most).all():
+                dishonest += (sec.blockage_ratio - float(most.max())) * 100 > DISHONEST_PP
     found, defects = _defects_found(scan, truth, sections)
     slides, u_end, allowed = 0.0, 0.0, 0.0
     if trajectory is not None:

@@ -100,6 +100,7 @@ DEFECTS = [
         grade=2,
         clock_from_h=4.25,
         clock_to_h=7.75,
+        lower_bound=True,  # storage keeps the flag whatever the code
     ),
     Defect(
         code="BAA",
@@ -186,6 +187,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
         "2026_12_01_1600_uncertainty_water_start_source.py",
         "2026_12_01_1700_section_chainage_uncertainty.py",
         "2026_12_01_1800_defect_clock_positions.py",
+        "2026_12_07_1900_defect_lower_bound.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -406,6 +408,8 @@ def test_defect_clock_positions_migration_with_data(engine: sa.Engine) -> None:
         ("BAA", None, None, None),
         ("BBC", None, None, None),
     ]
+    # Stored before the lower bound was recorded: none was one (water was never coded).
+    assert [d.lower_bound for d in before] == [False, False]
     again = save(engine, content_hash="sha256:again")
     assert repository.list_defects(engine, again) == [DEFECTS[1], DEFECTS[0]]
 

@@ -30,6 +30,11 @@ def test_db_upgrade_lists_the_steps_it_ran(tmp_path):
         "  3f6c2d8a1b47 Clock positions and characterisation of each defect. All three are "
         "NULL for defects stored before: they were not coded.",
     ]
+    assert second.output.splitlines()[2] == (
+        "  8b1e4c7d2a90 Whether each defect's figure is a lower bound. NULL for defects "
+        "stored before: sections with water in the invert were not coded then, so none of them "
+        "is a lower bound."
+    )
     again = CliRunner().invoke(app, ["db", "upgrade", "--db", db])
     assert again.output.strip() == f"database already at revision {head_revision()}"
 

@@ -215,6 +215,7 @@ def test_defects_csv(engine: sa.Engine, ids: dict[str, int]) -> None:
             "clock_from_h": "4.25",
             "clock_to_h": "7.75",
             "characterisation": "",
+            "lower_bound": "false",
         }
     ]
 
@@ -257,6 +258,7 @@ def test_defects_jsonl(engine: sa.Engine, ids: dict[str, int]) -> None:
         "clock_from_h": 4.25,
         "clock_to_h": 7.75,
         "characterisation": None,
+        "lower_bound": False,
     }
 
 

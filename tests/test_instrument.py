@@ -8,7 +8,9 @@ import dataclasses
 import numpy as np
 import pytest
 
+from pipescan.core.coding import code_sections
 from pipescan.core.errors import MetadataError
+from pipescan.core.grading import load_table, merge_defects
 from pipescan.core.instrument import (
     SENSOR_MODELS,
     SMEAR_SPREAD_RATIO,
@@ -205,6 +207,16 @@ def test_a_full_view_keeps_the_wide_gate():
     partial = dataclasses.replace(full, map_seed_frames=7)
     params, _ = instrumented(RegistrationParams(), MeasureParams(), partial)
     assert params.max_correspondence_m == pytest.approx(np.sqrt(3) / 2 * 0.03 + 0.005)
+
+
+def test_the_small_sample_mad_factor_is_the_normal_distributions_and_errs_safe():
+    # uncertainty.residual_sigma_m's (1 - 1.2 / n): no scanner in it, only normal samples.
+    rng = np.random.default_rng(7)
+    for n in (4, 6, 8, 12, 16):
+        x = rng.standard_normal((40_000, n))
+        mad = np.median(np.abs(x - np.median(x, axis=1, keepdims=True)), axis=1).mean()
+        ratio = mad * 1.4826
+        assert 1.0 - 1.2 / n <= ratio <= 1.06 * (1.0 - 1.2 / n), n
 
 
 # --------------------------------------------------------------------------- the diameter
@@ -533,6 +545,13 @@ def test_water_is_read_beyond_a_deposits_shadow_and_a_dry_pipe_reads_none():
     assert len(beyond) >= 20 and len(before) >= 5
     assert np.median([s.water_depth_ratio for s in beyond]) == pytest.approx(0.08, abs=0.015)
     assert not [s for s in wet if 4.3 <= s.chainage_start_m < 4.9]
+    # The obstacle (2.6-2.9 m, 16.8 %) stands in the water: coded, at least its figure.
+    codings = code_sections(sections)
+    obstacle = [
+        d for d in merge_defects(sections, load_table(), codings=codings) if d.code == "BBE"
+    ]
+    assert len(obstacle) == 1 and obstacle[0].lower_bound
+    assert 0.12 <= obstacle[0].peak_value <= 0.168 + 0.02
     _, dry_sections = measure_scan(simulate_scan(dry, seed=2))
     assert not [s for s in dry_sections if s.status == SectionStatus.INVERT_UNDER_WATER]
 

@@ -265,6 +265,17 @@ def test_observations_of_a_downstream_survey() -> None:
     assert rating.find("i:MassgebenderSchaden", NS) is None  # the class-1 defect is BAA
 
 
+def test_a_lower_bound_is_said_in_the_observation_and_still_validates() -> None:
+    defects = [replace(d, lower_bound=d.code == "BBE") for d in DEFECTS]
+    document = build_isybau([inspection(defects=defects)], HEADER)
+    assert validation_errors(document) == []
+    (bbe,) = [o for o in observations(parse(document)) if o["InspektionsKode"] == "BBE"]
+    assert bbe["Quantifizierung1Numerisch"] == "17.5"
+    assert "or worse; at least this: part of it stood in water" in bbe["Kommentar"]
+    others = [o for o in observations(parse(document)) if o["InspektionsKode"] == "BBC"]
+    assert not any("at least" in o.get("Kommentar", "") for o in others)
+
+
 def test_stations_of_an_upstream_survey_count_from_its_start() -> None:
     offset = 40.4
     root = parse(

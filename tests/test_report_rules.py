@@ -177,3 +177,15 @@ def test_tables_break_neither_inside_a_header_nor_before_a_short_tail(sample_pdf
     assert "0 (worst)" in grades and "4 (best)" in grades
     inspections = next(p for p in pages if "Inspections of MH1042-MH1043" in p)
     assert "2021-03-15 09:30 UTC" in inspections.split("Inspections of MH1042-MH1043")[1]
+
+
+def test_a_lower_bound_defect_reads_at_least_its_figure(sample):
+    first = dataclasses.replace(sample.defects[0], lower_bound=True, grade=3)
+    inp = dataclasses.replace(sample, defects=[first, *sample.defects[1:]])
+    ctx = build_context(inp, chart=False)
+    row = ctx["defects"][0]
+    assert row["peak_value"].startswith("\u2265\u00a0") and row["grade"] == "3 or worse"
+    assert not any(r["peak_value"].startswith("\u2265") for r in ctx["defects"][1:])
+    html = render_html(inp)
+    assert "the part under the water was not seen" in html
+    assert "the part under the water was not seen" not in render_html(sample)

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from pipescan.core.axis import fit_axis
+from pipescan.core.coding import SectionCoding, WallFeature, lower_bound_coding
 from pipescan.core.errors import GeometryError
 from pipescan.core.measures import measure_section
 from pipescan.core.model import SectionMeasures, SectionStatus
@@ -81,6 +82,22 @@ def test_water_is_never_blockage_and_never_ok(depth_ratio):
         # What was computed counts the water as open: a clean pipe stays near 0.
         assert s.blockage_ratio < 0.05
         assert s.deposit_height_ratio is None
+
+
+def test_what_water_hides_is_left_out_of_a_lower_bounds_coding():
+    fill = WallFeature("BBC", 3.9, 5.5, 0.018, 0.07, "a chord", measure="deposit_height_ratio")
+    squash = WallFeature("BAA", None, None, 0.0, 0.02, "an ellipse", measure="deformation_ratio")
+    body = WallFeature("BBE", 1.0, 1.5, 0.01, 0.1, "a body", measure="blockage_ratio")
+    coding = SectionCoding((fill, squash, body), 0.25, 0.001, 0.0075)
+    assert lower_bound_coding(coding).features == (body,)
+    assert lower_bound_coding(SectionCoding((fill,), 0.25, 0.001, 0.0075)) is None
+    # A section is a lower bound only with water, and all above it checked.
+    s = SectionMeasures(
+        0, 0.1, 0.2, SectionStatus.INVERT_UNDER_WATER, 900, 0.8, above_water_ok=True
+    )
+    assert s.is_lower_bound
+    assert not dataclasses.replace(s, above_water_ok=False).is_lower_bound
+    assert not dataclasses.replace(s, status=SectionStatus.SMEARED_WALL).is_lower_bound
 
 
 def test_a_deposit_is_not_water():

@@ -36,6 +36,7 @@ Everything here is pure: arrays and small frozen dataclasses in, small dataclass
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -1070,8 +1071,31 @@ def code_sections(
     sections: Sequence[SectionMeasures], params: CodingParams = CodingParams()
 ) -> list[SectionCoding | None]:
     """:func:`code_section` for every measured section that has a contour; None for the rest
-    (a section that is not ``ok`` is never coded, and one without a contour cannot be)."""
-    return [code_contour(s, params) if s.is_ok else None for s in sections]
+    (a section that is not ``ok`` is never coded, and one without a contour cannot be).
+
+    A section with water in its invert whose figures are lower bounds
+    (:attr:`~pipescan.core.model.SectionMeasures.is_lower_bound`) is coded too, keeping only
+    the features graded on their blockage (:func:`lower_bound_coding`)."""
+    return [
+        code_contour(s, params)
+        if s.is_ok
+        else lower_bound_coding(code_contour(s, params))
+        if s.is_lower_bound
+        else None
+        for s in sections
+    ]
+
+
+def lower_bound_coding(coding: SectionCoding | None) -> SectionCoding | None:
+    """What a section with water in its invert can tell of its features: those graded on
+    their blockage (an obstacle, an attached deposit, an unclassified blockage), each at
+    least as large as its figure, since the contour runs along the nominal wall under the
+    water. A settled deposit's height and a deformation are read at the invert or across the
+    whole ring, where the water hides the wall: they are left out. None when none is left."""
+    if coding is None:
+        return None
+    kept = tuple(f for f in coding.features if f.measure == "blockage_ratio")
+    return dataclasses.replace(coding, features=kept) if kept else None
 
 
 def code_contour(

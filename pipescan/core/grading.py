@@ -447,7 +447,9 @@ def grade_feature(
     -------
     grade : int or None
         0 (worst) ... 4 (best); None when the section is not ``ok``, its figure is missing, or
-        no rule of the table grades that code.
+        no rule of the table grades that code. A section with water in its invert whose
+        figures are lower bounds (``SectionMeasures.is_lower_bound``) is graded on them: its
+        feature is at least that bad.
     rule : GradeRule or None
         The rule that gave the grade.
 
@@ -463,7 +465,7 @@ def grade_feature(
     >>> grade, rule.code
     (4, 'BBE')
     """
-    if not s.is_ok:
+    if not (s.is_ok or s.is_lower_bound):
         return None, None
     if feature.code == UNCLASSIFIED:
         rules = [r for r in table.rules_for(pipe_class) if r.measure == feature.measure]
@@ -608,11 +610,21 @@ def is_flagged(
     flag_grade: int = FlagRule.flag_grade,
 ) -> bool:
     """Whether a defect is over the report's threshold: its class is ``flag_grade`` or worse,
-    or its peak blockage is at or above ``blockage_threshold_ratio``."""
+    or its peak blockage is at or above ``blockage_threshold_ratio``. A defect graded on its
+    blockage counts its own share too: under water (a lower bound) the sections give no
+    measured blockage, and the feature alone takes at least that much.
+
+    >>> from pipescan.core.model import Defect
+    >>> under = Defect("BBE", "blockage_ratio", 2.6, 2.9, 2.8, 0.171, None, 3, lower_bound=True)
+    >>> is_flagged(under), is_flagged(replace(under, peak_value=0.05))
+    (True, False)
+    """
     if defect.grade is not None and defect.grade <= flag_grade:
         return True
-    peak = defect.peak_blockage_ratio
-    return peak is not None and math.isfinite(peak) and peak >= blockage_threshold_ratio
+    peaks = [defect.peak_blockage_ratio]
+    if defect.measure == "blockage_ratio":
+        peaks.append(defect.peak_value)
+    return any(p is not None and math.isfinite(p) and p >= blockage_threshold_ratio for p in peaks)
 
 
 def _coder_estimate(feature: WallFeature, s: SectionMeasures) -> float:
@@ -686,7 +698,9 @@ def merge_defects(
     - ``peak_blockage_ratio``: the largest measured blockage over the run's span (all that is
       lost there, whatever takes it);
     - ``clock_from_h``, ``clock_to_h``: the union of its sections' displaced arcs;
-    - ``characterisation``: a deformation's, at its peak.
+    - ``characterisation``: a deformation's, at its peak;
+    - ``lower_bound``: a section of the run had water in its invert, which returned nothing:
+      its figure, and so the peak and the class, are at least what they say.
 
     A defect of a known family is listed whatever its class (it is an observation; see
     :func:`is_flagged` for the report's threshold). An unclassified one is listed only when it
@@ -724,7 +738,9 @@ def merge_defects(
     coded: list[SectionCoding | None] = []
     for i in order:
         s, c = sections[i], codings[i]
-        if not s.is_ok:
+        if s.is_lower_bound:
+            coded.append(c)  # what the water leaves to code (coding.lower_bound_coding)
+        elif not s.is_ok:
             coded.append(None)
         elif c is None:
             coded.append(_uncoded(s, table, pipe_class, **flags))
@@ -787,6 +803,7 @@ def _run_defect(
         clock_from_h=None if arc_from is None else clock_hours(arc_from),
         clock_to_h=None if arc_to is None else clock_hours(arc_to),
         characterisation=peak_feature.characterisation if run.code == BAA else None,
+        lower_bound=any(ordered[k].is_lower_bound for k in run.sections),
     )
 
 

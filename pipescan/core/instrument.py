@@ -626,6 +626,7 @@ def estimate_instrument(
     # test range and target, and a limit looser than the scan's noise passes frames that
     # disagree.
     across = surface_noise(sampled, max_range_m=max_range_m)
+    ranging: float | None
     if across is not None:
         (ranging, by_distance), sources["range_noise_m"] = across, "estimated"
     else:
@@ -653,9 +654,9 @@ def instrumented(
     registration: RegistrationParams, measure: MeasureParams, instrument: Instrument | None
 ) -> tuple[RegistrationParams, MeasureParams]:
     """The registration and measure parameters for a scan made with ``instrument``: its
-    minimum range, its map seed, its ICP gate (:func:`partial_view_gate_m`) and its smear limit (:data:`SMEAR_SPREAD_RATIO` times its
-    wall noise). ``None`` (a registered cloud): no smear test, the registration parameters as
-    given.
+    minimum range, its map seed, its ICP gate (:func:`partial_view_gate_m`) and its smear
+    limit (:data:`SMEAR_SPREAD_RATIO` times its wall noise). ``None`` (a registered cloud):
+    no smear test, the registration parameters as given.
 
     >>> from pipescan.core.measures import MeasureParams
     >>> from pipescan.core.registration import RegistrationParams

@@ -42,6 +42,8 @@ from pipescan.core.uncertainty import (
     height_uncertainty_m,
     residual_sigma_m,
     smear_bias_m2,
+    unseen_area_m2,
+    unseen_runs,
 )
 from pipescan.core.water import WaterLevel, detect_water
 
@@ -135,9 +137,10 @@ class MeasureParams:
         (``PolarProfile.wall_behind_deg``), is ``smeared_wall`` too: no ray reaches the wall
         behind an object attached to it, so frames disagree about where the object is (a
         slide along the pipe that registration did not see puts the object where the other
-        frames saw bare wall). 10°: more than twice the most an ok section read with the true
-        poses, well under what an object moved by an unseen slide reads (docs/measures.md,
-        *An object where other frames saw bare wall*).
+        frames saw bare wall). 10°: a real object shows both layers only across its two
+        edges, each within one bin and the beam's footprint (2-3° in 1° bins; the most an ok
+        section read with the true poses was 4°), well under what an object moved by an
+        unseen slide reads (docs/measures.md, *An object where other frames saw bare wall*).
     """
 
     method: str = DEFAULT_CONTOUR_METHOD
@@ -363,8 +366,12 @@ def measure_section(
         return SectionMeasures(status=_status(found, params), **base)
     figures = _figures(clean, profile, contour, water, nominal_diameter_m, has_invert, params)
     u = _uncertainty(clean, profile, noise, contour, figures, nominal_diameter_m, params)
+    found = found.measured(figures, u)
+    if water is not None and not registration_weak:
+        above = _above_water_ok(found, profile, water, noise.wall_radius_m, nominal_area, params)
+        base.update(above_water_ok=above)
     return SectionMeasures(
-        status=_status(found.measured(figures, u), params),
+        status=_status(found, params),
         contour_m=contour.polygon_m,
         open_area_m2=figures.open_area_m2,
         blockage_ratio=1.0 - figures.open_area_m2 / nominal_area,
@@ -372,6 +379,37 @@ def measure_section(
         **u.measures(),
         **base,
     )
+
+
+def _above_water_ok(
+    found: _Evidence,
+    profile: PolarProfile,
+    water: WaterLevel,
+    wall_radius_m: float,
+    nominal_area_m2: float,
+    params: MeasureParams,
+) -> bool:
+    """Whether what was seen above the water passes the rules after the water's
+    (:func:`_status`): coverage and the largest gap over the arc above it, registration, the
+    contour, the ± and the smear. The water's bins count as seen, and the ± leaves out what
+    their arc may hide: that they were not seen is what makes the figures lower bounds, not
+    an uncertainty of them."""
+    seen = profile.seen.copy()
+    seen[water.bins] = True
+    gap = max(map(len, unseen_runs(seen)), default=0) * 360.0 / len(seen)
+    under = (
+        unseen_area_m2(profile.seen, wall_radius_m) - unseen_area_m2(seen, wall_radius_m)
+    ) / nominal_area_m2
+    u = found.blockage_uncertainty_ratio
+    found = dataclasses.replace(
+        found,
+        water=None,
+        coverage_ratio=float(seen.mean()),
+        max_gap_deg=float(gap),
+        blockage_uncertainty_ratio=None if u is None else u - under,
+        blockage_uncertainty_but_smear_ratio=found.blockage_uncertainty_but_smear_ratio - under,
+    )
+    return _status(found, params) == SectionStatus.OK
 
 
 @dataclass(frozen=True)

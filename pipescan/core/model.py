@@ -204,10 +204,23 @@ class SectionMeasures:
     """Whether the water depth was read from returns on its surface (else from where the wall
     stops, confirmed along the pipe: ``core.water.confirm_surfaceless_water``; not stored)."""
     wall_behind_deg: float | None = field(default=None, compare=False)
+    above_water_ok: bool | None = field(default=None, compare=False)
+    """For a section with water in its invert: whether what was seen above the water passed
+    every check an ``ok`` section passes (coverage of the arc above it, registration, the
+    contour, the ±, the smear). None without water. Not stored: the defects coded from it
+    are (:attr:`is_lower_bound`)."""
 
     @property
     def is_ok(self) -> bool:
         return self.status == SectionStatus.OK
+
+    @property
+    def is_lower_bound(self) -> bool:
+        """Whether the section's figures are lower bounds: water fills its invert, which
+        returned nothing below the level, and all above the water passed every check. The
+        contour runs along the nominal wall under the water, so whatever stands there
+        unseen is not counted: a blockage is at least the figure, never more."""
+        return self.status == SectionStatus.INVERT_UNDER_WATER and bool(self.above_water_ok)
 
     @property
     def nominal_diameter_m(self) -> float:
@@ -229,6 +242,10 @@ class Defect:
     from ``clock_from_h`` to ``clock_to_h``. Both are None for a deformation, which moves the
     whole ring. ``characterisation`` is the EN 13508-2 characterisation where the geometry
     tells it (``A`` vertical or ``B`` horizontal for a deformation), else None.
+
+    ``lower_bound`` is True when part of the feature stood in water that returned nothing
+    (a section of it ``is_lower_bound``): the part under the water was not seen, so the
+    feature is at least ``peak_value`` and its class at least as bad as ``grade``.
     """
 
     code: str
@@ -242,6 +259,7 @@ class Defect:
     clock_from_h: float | None = None
     clock_to_h: float | None = None
     characterisation: str | None = None
+    lower_bound: bool = False
 
 
 @dataclass(frozen=True)

@@ -176,6 +176,7 @@ _DEFECT_FIELDS = {
     "peak_blockage_ratio": "float",
     "clock_from_h": "float",
     "clock_to_h": "float",
+    "lower_bound": "int",
     "beyond_line_m": "float",
     "position_note": "str",
 }
@@ -293,6 +294,7 @@ def _features(
                     peak_blockage_ratio=defect.peak_blockage_ratio,
                     clock_from_h=defect.clock_from_h,
                     clock_to_h=defect.clock_to_h,
+                    lower_bound=int(defect.lower_bound),
                     beyond_line_m=cut.beyond_m,
                     position_note=_beyond_words(cut.beyond_m),
                 )

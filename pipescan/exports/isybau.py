@@ -317,6 +317,11 @@ def _describe(inspection: IsybauInspection) -> _Pipe:
                 else ""
             )
             + (f", condition class {defect.grade}" if defect.grade is not None else ", not graded")
+            + (
+                " or worse; at least this: part of it stood in water that returned nothing"
+                if defect.lower_bound
+                else ""
+            )
         )
         if code is None:
             pipe.remarks.append(

@@ -76,6 +76,7 @@ DEFECT_CSV_COLUMNS: tuple[str, ...] = (
     "clock_from_h",
     "clock_to_h",
     "characterisation",
+    "lower_bound",
 )
 """Header of the defects CSV, in order."""
 
@@ -146,6 +147,11 @@ def _float_cell(value: float | None) -> str:
 
 def _chainage_cell(value_m: float) -> str:
     return f"{value_m:.3f}"
+
+
+def _bool_cell(value: bool | None) -> str:
+    """``true``, ``false``, or empty when not recorded."""
+    return "" if value is None else ("true" if value else "false")
 
 
 def _int_cell(value: int | None) -> str:
@@ -220,6 +226,7 @@ def _defect_rows(
         DefectRow.clock_from_h,
         DefectRow.clock_to_h,
         DefectRow.characterisation,
+        DefectRow.lower_bound,
     ).join(DefectRow, DefectRow.inspection_id == Inspection.id)
     statement = _filtered(statement, asset_id, inspection_id).order_by(
         Inspection.asset_id,
@@ -264,6 +271,7 @@ def _defect_csv_cells(record: Mapping[str, Any]) -> list[str]:
         _float_cell(record["clock_from_h"]),
         _float_cell(record["clock_to_h"]),
         text_cell(record["characterisation"]),
+        _bool_cell(record["lower_bound"]),
     ]
 
 
@@ -320,7 +328,9 @@ def export_defects_csv(
     main code (or ``unclassified``); ``clock_from_h`` and ``clock_to_h`` the arc it takes, in
     hours clockwise looking in the survey's direction (12 at the crown), empty for a
     deformation; ``characterisation`` the EN 13508-2 characterisation where the geometry tells
-    it (docs/coding.md).
+    it (docs/coding.md); ``lower_bound`` ``true`` where part of the defect stood in water
+    that returned nothing, so that it is at least ``peak_value`` and its class at least as
+    bad as ``grade`` (empty for a defect stored before this was recorded).
 
     Returns
     -------
@@ -408,7 +418,8 @@ def export_defects_jsonl(
 
     Numbers are written at full precision, unknown figures (``peak_blockage_ratio``,
     ``grade``, the clock positions of a deformation or of a defect stored before coding, a
-    missing ``characterisation``) as ``null``, ``inspected_at`` as ISO 8601 UTC text.
+    missing ``characterisation``, a ``lower_bound`` stored before it was recorded) as
+    ``null``, ``inspected_at`` as ISO 8601 UTC text.
     Selection and order are those of :func:`export_defects_csv`.
 
     Returns

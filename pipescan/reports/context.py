@@ -771,8 +771,8 @@ def _defect_figures(
             "clock": fmt_clock(d.clock_from_h, d.clock_to_h, d.code),
             "at": fmt_m(d.peak_chainage_m),
             "measure": MEASURE_LABELS.get(d.measure, d.measure),
-            "value": fmt_pct(d.peak_value),
-            "grade": fmt_grade(d.grade),
+            "value": fmt_bound_pct(d, unit=True),
+            "grade": fmt_bound_grade(d),
             "uri": None,
             "missing": "",
         }
@@ -1084,6 +1084,24 @@ def _unmeasured_rows(
     return unmeasured
 
 
+def fmt_bound_pct(d: Defect, *, unit: bool = False) -> str:
+    """A defect's peak value in per cent, ``≥`` before it when it is a lower bound.
+
+    >>> from pipescan.core.model import Defect
+    >>> fmt_bound_pct(Defect("BBE", "blockage_ratio", 2.6, 2.9, 2.7, 0.169, None, 3,
+    ...                      lower_bound=True))
+    '≥\xa016.9'
+    """
+    text = fmt_pct(d.peak_value, unit=unit)
+    return f"\u2265\u00a0{text}" if d.lower_bound and _finite(d.peak_value) else text
+
+
+def fmt_bound_grade(d: Defect) -> str:
+    """A defect's class, ``"3 or worse"`` when it is a lower bound (0 is the worst)."""
+    text = fmt_grade(d.grade)
+    return f"{text} or worse" if d.lower_bound and d.grade is not None and d.grade > 0 else text
+
+
 def _defect_row(d: Defect, flagged: bool) -> dict[str, Any]:
     """One row of the defects table."""
     return {
@@ -1096,9 +1114,10 @@ def _defect_row(d: Defect, flagged: bool) -> dict[str, Any]:
         "end": fmt_m(d.chainage_end_m, unit=False),
         "length": fmt_m(d.chainage_end_m - d.chainage_start_m, unit=False),
         "peak_at": fmt_m(d.peak_chainage_m, unit=False),
-        "peak_value": fmt_pct(d.peak_value, unit=False),
+        "peak_value": fmt_bound_pct(d),
         "peak_blockage": fmt_pct(d.peak_blockage_ratio, unit=False),
-        "grade": fmt_grade(d.grade),
+        "grade": fmt_bound_grade(d),
+        "lower_bound": d.lower_bound,
     }
 
 

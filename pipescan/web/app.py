@@ -48,9 +48,10 @@ from pipescan.core.trends import (
 from pipescan.core.wording import signed
 from pipescan.reports.context import (
     STATUS_LABELS,
+    fmt_bound_grade,
+    fmt_bound_pct,
     fmt_clock,
     fmt_datetime,
-    fmt_grade,
     fmt_m,
     fmt_pct,
 )
@@ -242,6 +243,9 @@ class DefectOut(BaseModel):
     clock_from_h: float | None
     clock_to_h: float | None
     characterisation: str | None
+    lower_bound: bool = False
+    """Part of the feature stood in water that returned nothing: it is at least
+    ``peak_value``, and its class at least as bad as ``grade``."""
 
 
 class TrendSurvey(BaseModel):
@@ -1071,6 +1075,7 @@ def create_app(config: WebConfig) -> FastAPI:
                 clock_from_h=d.clock_from_h,
                 clock_to_h=d.clock_to_h,
                 characterisation=d.characterisation,
+                lower_bound=d.lower_bound,
             )
             for d in list_defects(engine, inspection_id)
         ]
@@ -1247,9 +1252,9 @@ def _defect_row(d: Any) -> dict[str, Any]:
         "start": fmt_m(d.chainage_start_m, unit=False),
         "end": fmt_m(d.chainage_end_m, unit=False),
         "peak_at": fmt_m(d.peak_chainage_m, unit=False),
-        "peak_value": fmt_pct(d.peak_value),
+        "peak_value": fmt_bound_pct(d, unit=True),
         "peak_blockage": fmt_pct(d.peak_blockage_ratio),
-        "grade": fmt_grade(d.grade),
+        "grade": fmt_bound_grade(d),
         "grade_value": d.grade,
     }
 

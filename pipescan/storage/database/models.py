@@ -238,6 +238,9 @@ class DefectRow(Base):
     clock_from_h: Mapped[float | None] = mapped_column(sa.Float())
     clock_to_h: Mapped[float | None] = mapped_column(sa.Float())
     characterisation: Mapped[str | None] = mapped_column(sa.String())
+    lower_bound: Mapped[bool | None] = mapped_column(sa.Boolean())
+    """True where part of the feature stood in water that returned nothing: its figure and
+    class are at least what they say. NULL for defects stored before it was recorded."""
 
     inspection: Mapped[Inspection] = relationship(back_populates="defects")
 

@@ -382,6 +382,7 @@ def _defect_row(defect: Defect) -> dict[str, Any]:
         "clock_from_h": _finite_or_none(defect.clock_from_h),
         "clock_to_h": _finite_or_none(defect.clock_to_h),
         "characterisation": defect.characterisation,
+        "lower_bound": bool(defect.lower_bound),
     }
 
 
@@ -1094,6 +1095,7 @@ def defect_from_row(row: DefectRow) -> Defect:
         clock_from_h=row.clock_from_h,
         clock_to_h=row.clock_to_h,
         characterisation=row.characterisation,
+        lower_bound=bool(row.lower_bound),
     )
 
 
