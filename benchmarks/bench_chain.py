@@ -802,7 +802,7 @@ def main() -> None:
         "--rosette",
         action="store_true",
         help=f"also write rosette<L>-npy and rosette<L>-laz: the long scenario seen by a "
-        f"non-repetitive pattern, {ROSETTE_SHARE:.0%} of the view a frame",
+        f"non-repetitive pattern, {ROSETTE_SHARE:.0%}% of the view a frame",
     )
     p.add_argument(
         "--slow",
