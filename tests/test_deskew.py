@@ -201,3 +201,48 @@ def test_frame_store_keeps_times_beside_points(tmp_path):
     assert back[0][2] is None and back[2][2] is None and back[3][2] is None
     np.testing.assert_allclose(back[1][2], sent[1][2] - sent[1][2].min(), atol=1e-7)
     assert [i for i, _ in store.iter_frames(3)] == [3, 4, 5, 6]
+
+
+# --- the unit of a time field, from the frame's own span ------------------------------------
+
+
+def test_point_times_unit_is_chosen_by_the_frame_span():
+    from pipescan.core.registration.deskew import point_times_s
+
+    rng = np.random.default_rng(3)
+    true_s = np.sort(rng.uniform(0.0, 0.1, 1000))
+    true_s[[0, -1]] = 0.0, 0.0999
+    # Velodyne: float32 seconds since the frame's start.
+    np.testing.assert_allclose(point_times_s(true_s.astype(np.float32), 0.1), true_s, atol=1e-8)
+    # Ouster: uint32 nanoseconds since the frame's start (as seconds it would span 10^8 s).
+    ns = np.round(true_s * 1e9).astype(np.uint32)
+    np.testing.assert_allclose(point_times_s(ns, 0.1), true_s, atol=1e-9)
+    # Livox: float64 absolute nanoseconds (1.7 x 10^18); only differences matter.
+    absolute = 1.7e18 + true_s * 1e9
+    got = point_times_s(absolute, 0.1)
+    np.testing.assert_allclose(got - got.min(), true_s, atol=1e-6)
+    assert got.min() == pytest.approx(1.7e9)
+    # Milliseconds and microseconds too, as integers.
+    np.testing.assert_allclose(
+        point_times_s(np.round(true_s * 1e6).astype(np.int64), 0.1), true_s, atol=1e-6
+    )
+    # A span of just over one interval (within the ratio) keeps the nearest unit.
+    np.testing.assert_allclose(point_times_s(np.array([0.0, 0.15]), 0.1), [0.0, 0.15])
+
+
+def test_point_times_constant_none_and_impossible_spans():
+    from pipescan.core.registration.deskew import point_times_s
+
+    assert point_times_s(np.zeros(50, dtype=np.uint32), 0.1) is None
+    assert point_times_s(np.full(50, 4.0e8), 0.1) is None
+    assert point_times_s(np.empty(0), 0.1) is None
+    # 10^13 is over 2 intervals in every unit (10^4 s as nanoseconds).
+    with pytest.raises(ValueError, match="every unit"):
+        point_times_s(np.array([0, 10**13], dtype=np.uint64), 0.1)
+    # LAS GPS time is seconds: nanoseconds in it are refused, not rescaled.
+    with pytest.raises(ValueError, match="every unit"):
+        point_times_s(np.array([0.0, 1e8]), 0.1, units=("s",))
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        point_times_s(np.array([0.0, np.nan, 0.05]), 0.1)
+    with pytest.raises(ValueError, match="not an integer or a float"):
+        point_times_s(np.array([True, False]), 0.1)
