@@ -36,6 +36,11 @@ EMPTY_HEADER = (
 
 def check(path: Path, where: Where) -> int:
     """Check the header against the bytes present; return the point count."""
+    return _check(path, where)[0]
+
+
+def _check(path: Path, where: Where) -> tuple[int, dict[str, list[str]]]:
+    """As :func:`check`; also return the header's lines by key (``FIELDS``, ``TYPE``...)."""
     head = read_head(path, where)
     fields: dict[str, list[str]] = {}
     offset = 0
@@ -99,7 +104,7 @@ def check(path: Path, where: Where) -> int:
             )
     else:
         raise where.corrupt(f"unknown PCD DATA kind {data!r}")
-    return declared
+    return declared, fields
 
 
 def read(path: Path, where: Where) -> np.ndarray:
@@ -146,6 +151,44 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
             field=found,
         )
     return time_s
+
+
+def read_timed(path: Path, where: Where) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """The points of :func:`read` and each point's raw time, decoded once: ``(N, 3)`` float64
+    metres, the first field named in :data:`TIME_NAMES` as the file holds it (``(N,)``, its
+    own dtype and unit) and that field's name; ``None, None`` without such a field, the points
+    then read by :func:`read` itself."""
+    declared, fields = _check(path, where)
+    names = fields["FIELDS"]
+    found = next((n for n in TIME_NAMES if n in names), None)
+    if found is None or declared == 0:
+        return read(path, where), None, None
+    k = names.index(found)
+    kind = fields.get("TYPE", ["F"] * len(names))[k : k + 1]
+    counts = fields.get("COUNT", ["1"] * len(names))
+    if kind not in (["F"], ["I"], ["U"]) or counts[k] != "1":
+        raise where.error(
+            f"the time field is of TYPE {' '.join(kind) or '?'} and COUNT {counts[k]}, not one "
+            "number (F, I or U) per point",
+            field=found,
+            hint="write one numeric time per point, or no time field",
+        )
+    import open3d as o3d
+
+    # The tensor API keeps every field in its own dtype: one decode gives points and times.
+    with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+        cloud = o3d.t.io.read_point_cloud(str(path))
+    if "positions" not in cloud.point or found not in cloud.point:
+        raise where.corrupt(f"Open3D read no points or no {found!r} from the file", field=found)
+    points = cloud.point["positions"].numpy().astype(np.float64).reshape(-1, 3)
+    time = cloud.point[found].numpy().reshape(-1).copy()
+    if len(points) != declared or len(time) != declared:
+        raise where.corrupt(
+            f"the header declares {declared:,} points but Open3D read {len(points):,} points "
+            f"and {len(time):,} times",
+            field=found,
+        )
+    return points, time, found
 
 
 def write(path: Path, pts: np.ndarray, time_s: np.ndarray | None = None) -> None:
