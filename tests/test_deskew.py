@@ -246,3 +246,117 @@ def test_point_times_constant_none_and_impossible_spans():
         point_times_s(np.array([0.0, np.nan, 0.05]), 0.1)
     with pytest.raises(ValueError, match="not an integer or a float"):
         point_times_s(np.array([True, False]), 0.1)
+
+
+# --- PCD, PLY and bag frames with their times ----------------------------------------------
+
+
+def _pcd_with_t_ns(path, points, t_ns):
+    """A binary PCD frame whose uint32 field ``t`` is each point's time in ns since the frame's
+    start, as an Ouster driver's cloud saved by PCL."""
+    header = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z t\nSIZE 8 8 8 4\nTYPE F F F U\nCOUNT 1 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+        "DATA binary\n"
+    )
+    rows = np.empty(len(points), dtype=[("xyz", "<f8", 3), ("t", "<u4")])
+    rows["xyz"], rows["t"] = points, t_ns
+    path.write_bytes(header.encode("ascii") + rows.tobytes())
+
+
+def _replace_frame(root, i, name, write):
+    """Frame ``i`` of a simulated archive (LAZ with GPS times) rewritten as ``name`` by
+    ``write(path, points, time_s)``; inspection.toml names the new file."""
+    from pipescan.storage.input.pointfiles import read_timed_frame
+
+    old = root / "frames" / f"{i:06d}.laz"
+    points, time_s = read_timed_frame(old)
+    write(root / "frames" / name, points, time_s)
+    toml = root / "inspection.toml"
+    toml.write_text(toml.read_text().replace(old.name, name), encoding="utf-8")
+    old.unlink()
+    return points, time_s
+
+
+def test_pcd_times_in_ns_and_ply_times_in_s_deskew_alike(tmp_path):
+    """The same frame as a PCD with Ouster's uint32 ``t`` in ns and as a PLY with float64
+    ``time`` in s: through the archive, the same times (s) and the same deskewed points."""
+    from pipescan.storage.input.archive import open_archive
+    from pipescan.storage.input.pointfiles import read_points, write_points
+
+    _, root = _archive(tmp_path, travel_m=0.2)
+
+    def as_pcd(path, points, time_s):
+        _pcd_with_t_ns(path, points, np.round((time_s - time_s.min()) * 1e9).astype(np.uint32))
+
+    points, gps_s = _replace_frame(root, 2, "000002.pcd", as_pcd)
+    ply_points, ply_gps_s = _replace_frame(
+        root, 3, "000003.ply", lambda p, x, t: write_points(p, x, time_s=t)
+    )
+    with open_archive(root) as arc:
+        got = {i: (pts, t) for i, pts, t in arc.iter_timed_frames([2, 3])}
+        period_s = arc.meta.frames[1].time_s - arc.meta.frames[0].time_s
+    pcd_pts, pcd_s = got[2]
+    np.testing.assert_array_equal(pcd_pts, points)
+    np.testing.assert_allclose(pcd_s, gps_s - gps_s.min(), atol=1e-9)
+    ply_pts, ply_s = got[3]
+    np.testing.assert_array_equal(ply_pts, ply_points)
+    np.testing.assert_array_equal(ply_s, ply_gps_s)  # seconds, kept in their own base
+    T = np.eye(4)
+    T[0, 3] = 0.05
+    np.testing.assert_allclose(
+        deskew_points(pcd_pts, pcd_s, T, period_s),
+        deskew_points(points, gps_s, T, period_s),
+        atol=1e-9,
+    )
+    # A PCD or PLY frame without a time field reads as before, bit for bit.
+    for name in ("plain.pcd", "plain.ply"):
+        write_points(root / "frames" / name, points)
+        from pipescan.storage.input.pointfiles import read_timed_frame
+
+        got_pts, got_t = read_timed_frame(root / "frames" / name, interval_s=period_s)
+        assert got_t is None
+        np.testing.assert_array_equal(got_pts, read_points(root / "frames" / name))
+
+
+def test_a_pcd_time_that_fits_no_unit_is_one_error_naming_the_field(tmp_path):
+    from pipescan.storage.input.archive import open_archive
+
+    _, root = _archive(tmp_path, travel_m=0.2)
+
+    def far(path, points, time_s):  # 4 s apart as ns, more in any other unit
+        t = np.zeros(len(points), dtype=np.uint32)
+        t[-1] = 4_000_000_000
+        _pcd_with_t_ns(path, points, t)
+
+    _replace_frame(root, 2, "000002.pcd", far)
+    with open_archive(root) as arc, pytest.raises(PointFileError) as caught:
+        list(arc.iter_timed_frames())
+    message = str(caught.value)
+    assert "frames/000002.pcd" in message and "field 't'" in message and "\n" not in message
+
+
+def test_a_bag_with_ouster_t_is_read_with_times_and_deskewed(tmp_path):
+    """A bag of the moving scan: PointCloud2 with a uint32 ``t`` (ns since the stamp) goes
+    through the archive with each point's time in s, and deskewing it puts the frame's points
+    on their truth."""
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.storage.input.archive import open_archive
+
+    scan = simulate_scan(_scenario(travel_m=0.3), seed=2)
+    write_simulated_archive(scan, tmp_path / "arc", layout="bag")
+    with open_archive(tmp_path / "arc") as arc:
+        got = {i: (pts, t) for i, pts, t in arc.iter_timed_frames([3])}
+        plain = dict(arc.iter_frames([3]))
+    f = scan.frame(3)
+    pts, time_s = got[3]
+    np.testing.assert_array_equal(pts, plain[3])
+    np.testing.assert_allclose(pts, f.points_sensor, atol=0)
+    np.testing.assert_allclose(time_s - time_s.min(), f.point_time_s - f.time_s, atol=1e-9)
+    T = scan.T_pipe_sensor(3)
+    motion = relative_motion(T, scan.T_pipe_sensor(4))
+    period_s = float(scan.times_s[4] - scan.times_s[3])
+    deskewed = transform(T, deskew_points(pts, time_s, motion, period_s))
+    np.testing.assert_allclose(deskewed, scan.points_pipe(f), atol=1e-5)
+    skewed = transform(T, pts)
+    assert np.abs(skewed - scan.points_pipe(f))[:, 0].max() > 0.04

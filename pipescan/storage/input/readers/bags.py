@@ -440,7 +440,7 @@ def iter_bag_frames(
 
 def write_bag(
     path: Path,
-    frames: Iterable[tuple[int, np.ndarray]],
+    frames: Iterable[tuple[int, np.ndarray] | tuple[int, np.ndarray, np.ndarray | None]],
     *,
     odometry: Sequence[tuple[int, tuple[float, float, float]]] = (),
     imu: Sequence[tuple[int, tuple[float, float, float]]] = (),
@@ -450,8 +450,9 @@ def write_bag(
     imu_topic: str = "/imu/data",
 ) -> Path:
     """Write a bag with the ``rosbags`` writers: ``frames`` as ``(time_ns, points (N, 3))``
-    PointCloud2 messages (float32 x, y, z), ``odometry`` as ``(time_ns, position)`` and ``imu``
-    as ``(time_ns, linear_acceleration)``.
+    PointCloud2 messages (float32 x, y, z), or ``(time_ns, points, t (N,))`` with a uint32
+    field ``t`` too (each point's time, ns since ``time_ns``, as Ouster's driver writes it),
+    ``odometry`` as ``(time_ns, position)`` and ``imu`` as ``(time_ns, linear_acceleration)``.
 
     ``storage``: ``"rosbag1"`` (a ``.bag`` file), ``"sqlite3"`` or ``"mcap"`` (a ROS 2 bag
     folder at ``path``). Returns ``path``.
@@ -471,13 +472,21 @@ def write_bag(
 
     field_cls = types["sensor_msgs/msg/PointField"]
     fields = [field_cls(name=a, offset=4 * k, datatype=7, count=1) for k, a in enumerate("xyz")]
+    timed_fields = [*fields, field_cls(name="t", offset=12, datatype=6, count=1)]
     vector = types["geometry_msgs/msg/Vector3"]
 
-    def cloud(t_ns: int, pts: np.ndarray):
-        data = np.ascontiguousarray(pts, dtype="<f4").view(np.uint8).reshape(-1)
+    def cloud(t_ns: int, pts: np.ndarray, point_t_ns: np.ndarray | None = None):
+        if point_t_ns is None:
+            data = np.ascontiguousarray(pts, dtype="<f4").view(np.uint8).reshape(-1)
+            step, names = 12, fields
+        else:
+            rows = np.empty(len(pts), dtype=[("xyz", "<f4", 3), ("t", "<u4")])
+            rows["xyz"], rows["t"] = pts, point_t_ns
+            data = rows.view(np.uint8).reshape(-1)
+            step, names = 16, timed_fields
         return types[POINTS_TYPE](
-            header=header(t_ns, "lidar"), height=1, width=len(pts), fields=fields,
-            is_bigendian=False, point_step=12, row_step=12 * len(pts), data=data,
+            header=header(t_ns, "lidar"), height=1, width=len(pts), fields=names,
+            is_bigendian=False, point_step=step, row_step=step * len(pts), data=data,
             is_dense=True,
         )  # fmt: skip
 
@@ -527,11 +536,12 @@ def write_bag(
             messages += [(t, c_imu, imu_msg(t, acc)) for t, acc in imu]
         small = iter(sorted(messages, key=lambda m: m[0]))
         pending = next(small, None)
-        for t_ns, pts in frames:
+        for t_ns, pts, *point_t_ns in frames:
             while pending is not None and pending[0] <= t_ns:
                 writer.write(pending[1], pending[0], serialize(pending[2], pending[2].__msgtype__))
                 pending = next(small, None)
-            writer.write(c_points, t_ns, serialize(cloud(t_ns, pts), POINTS_TYPE))
+            message = cloud(t_ns, pts, *point_t_ns)
+            writer.write(c_points, t_ns, serialize(message, POINTS_TYPE))
         while pending is not None:
             writer.write(pending[1], pending[0], serialize(pending[2], pending[2].__msgtype__))
             pending = next(small, None)
