@@ -360,3 +360,72 @@ def test_a_bag_with_ouster_t_is_read_with_times_and_deskewed(tmp_path):
     np.testing.assert_allclose(deskewed, scan.points_pipe(f), atol=1e-5)
     skewed = transform(T, pts)
     assert np.abs(skewed - scan.points_pipe(f))[:, 0].max() > 0.04
+
+
+def _cloud_msg(points, t, *, datatype=6, count=1, bigendian=False):
+    """A PointCloud2 message of float32 x, y, z and a field ``t`` (PointField ``datatype``)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    types = get_typestore(Stores.ROS2_HUMBLE).types
+    order = ">" if bigendian else "<"
+    t_type = {6: "u4", 7: "f4", 8: "f8"}[datatype]
+    shape = (count,) if count > 1 else ()
+    rows = np.empty(len(points), dtype=[("xyz", order + "f4", 3), ("t", order + t_type, shape)])
+    rows["xyz"], rows["t"] = points, t
+    field = types["sensor_msgs/msg/PointField"]
+    fields = [field(name=a, offset=4 * k, datatype=7, count=1) for k, a in enumerate("xyz")]
+    fields.append(field(name="t", offset=12, datatype=datatype, count=count))
+    stamp = types["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    return types["sensor_msgs/msg/PointCloud2"](
+        header=types["std_msgs/msg/Header"](stamp=stamp, frame_id="lidar"),
+        height=1,
+        width=len(points),
+        fields=fields,
+        is_bigendian=bigendian,
+        point_step=rows.itemsize,
+        row_step=rows.itemsize * len(points),
+        data=rows.view(np.uint8).reshape(-1),
+        is_dense=False,
+    )
+
+
+def test_a_pointcloud2_time_follows_its_points_and_is_one_number():
+    from pipescan.storage.input.readers.bags import cloud_to_points, cloud_to_timed_points
+
+    points = np.array([[2.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [2.0, 1.0, 0.0], [1.0, 0.0, 0.5]])
+    t = np.array([0, 10, 20, 30], dtype=np.uint32)
+    for bigendian in (False, True):
+        msg = _cloud_msg(points, t, bigendian=bigendian)
+        got, time, field = cloud_to_timed_points(msg)
+        assert field == "t" and time.dtype == np.uint32 and time.tolist() == [0, 20, 30]
+        np.testing.assert_array_equal(got, points[[0, 2, 3]])
+        np.testing.assert_array_equal(cloud_to_points(msg), got)  # without times: the same
+    with pytest.raises(ValueError, match=r"time field t .* not one number per point"):
+        cloud_to_timed_points(_cloud_msg(points, np.zeros((4, 2)), datatype=8, count=2))
+
+
+def test_a_pcd_time_field_of_two_numbers_is_an_error_naming_it(tmp_path):
+    from pipescan.storage.input.pointfiles import read_timed_frame
+
+    header = (
+        "VERSION 0.7\nFIELDS x y z t\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 2\nWIDTH 2\n"
+        "HEIGHT 1\nPOINTS 2\nDATA ascii\n"
+    )
+    (tmp_path / "f.pcd").write_text(header + "2 0 0 0 0\n2 1 0 5 0\n", encoding="ascii")
+    with pytest.raises(PointFileError, match=r"field 't'.*COUNT 2") as caught:
+        read_timed_frame(tmp_path / "f.pcd", interval_s=0.1, archive="a", member="frames/f.pcd")
+    assert "frames/f.pcd" in str(caught.value)
+
+
+def test_a_bag_without_time_fields_reads_as_before(tmp_path):
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.storage.input.archive import open_archive
+
+    scan = simulate_scan(get_scenario("paper", travel_m=0.3), seed=0)
+    write_simulated_archive(scan, tmp_path / "arc", layout="bag")
+    with open_archive(tmp_path / "arc") as arc:
+        timed = list(arc.iter_timed_frames([1, 2]))
+        plain = list(arc.iter_frames([1, 2]))
+    for (i, pts, time_s), (j, expected) in zip(timed, plain, strict=True):
+        assert i == j and time_s is None
+        np.testing.assert_array_equal(pts, expected)
