@@ -183,6 +183,7 @@ def read_timed_frame(
         points = read_points(path, archive=archive, member=member, kind="frame", limits=limits)
         return points, None
     where, _ = _reader(path, archive, member, limits)
+    units: tuple[str, ...]
     if suffix in las.SUFFIXES:
         points, raw = las.read_timed(path, where)
         field, units = "gps_time", ("s",)
