@@ -201,3 +201,231 @@ def test_frame_store_keeps_times_beside_points(tmp_path):
     assert back[0][2] is None and back[2][2] is None and back[3][2] is None
     np.testing.assert_allclose(back[1][2], sent[1][2] - sent[1][2].min(), atol=1e-7)
     assert [i for i, _ in store.iter_frames(3)] == [3, 4, 5, 6]
+
+
+# --- the unit of a time field, from the frame's own span ------------------------------------
+
+
+def test_point_times_unit_is_chosen_by_the_frame_span():
+    from pipescan.core.registration.deskew import point_times_s
+
+    rng = np.random.default_rng(3)
+    true_s = np.sort(rng.uniform(0.0, 0.1, 1000))
+    true_s[[0, -1]] = 0.0, 0.0999
+    # Velodyne: float32 seconds since the frame's start.
+    np.testing.assert_allclose(point_times_s(true_s.astype(np.float32), 0.1), true_s, atol=1e-8)
+    # Ouster: uint32 nanoseconds since the frame's start (as seconds it would span 10^8 s).
+    ns = np.round(true_s * 1e9).astype(np.uint32)
+    np.testing.assert_allclose(point_times_s(ns, 0.1), true_s, atol=1e-9)
+    # Livox: float64 absolute nanoseconds (1.7 x 10^18); only differences matter.
+    absolute = 1.7e18 + true_s * 1e9
+    got = point_times_s(absolute, 0.1)
+    np.testing.assert_allclose(got - got.min(), true_s, atol=1e-6)
+    assert got.min() == pytest.approx(1.7e9)
+    # Milliseconds and microseconds too, as integers.
+    np.testing.assert_allclose(
+        point_times_s(np.round(true_s * 1e6).astype(np.int64), 0.1), true_s, atol=1e-6
+    )
+    # A span of just over one interval (within the ratio) keeps the nearest unit.
+    np.testing.assert_allclose(point_times_s(np.array([0.0, 0.15]), 0.1), [0.0, 0.15])
+
+
+def test_point_times_constant_none_and_impossible_spans():
+    from pipescan.core.registration.deskew import point_times_s
+
+    assert point_times_s(np.zeros(50, dtype=np.uint32), 0.1) is None
+    assert point_times_s(np.full(50, 4.0e8), 0.1) is None
+    assert point_times_s(np.empty(0), 0.1) is None
+    # 10^13 is over 2 intervals in every unit (10^4 s as nanoseconds).
+    with pytest.raises(ValueError, match="every unit"):
+        point_times_s(np.array([0, 10**13], dtype=np.uint64), 0.1)
+    # LAS GPS time is seconds: nanoseconds in it are refused, not rescaled.
+    with pytest.raises(ValueError, match="every unit"):
+        point_times_s(np.array([0.0, 1e8]), 0.1, units=("s",))
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        point_times_s(np.array([0.0, np.nan, 0.05]), 0.1)
+    with pytest.raises(ValueError, match="not an integer or a float"):
+        point_times_s(np.array([True, False]), 0.1)
+
+
+# --- PCD, PLY and bag frames with their times ----------------------------------------------
+
+
+def _pcd_with_t_ns(path, points, t_ns):
+    """A binary PCD frame whose uint32 field ``t`` is each point's time in ns since the frame's
+    start, as an Ouster driver's cloud saved by PCL."""
+    header = (
+        "# .PCD v0.7\nVERSION 0.7\nFIELDS x y z t\nSIZE 8 8 8 4\nTYPE F F F U\nCOUNT 1 1 1 1\n"
+        f"WIDTH {len(points)}\nHEIGHT 1\nVIEWPOINT 0 0 0 1 0 0 0\nPOINTS {len(points)}\n"
+        "DATA binary\n"
+    )
+    rows = np.empty(len(points), dtype=[("xyz", "<f8", 3), ("t", "<u4")])
+    rows["xyz"], rows["t"] = points, t_ns
+    path.write_bytes(header.encode("ascii") + rows.tobytes())
+
+
+def _replace_frame(root, i, name, write):
+    """Frame ``i`` of a simulated archive (LAZ with GPS times) rewritten as ``name`` by
+    ``write(path, points, time_s)``; inspection.toml names the new file."""
+    from pipescan.storage.input.pointfiles import read_timed_frame
+
+    old = root / "frames" / f"{i:06d}.laz"
+    points, time_s = read_timed_frame(old)
+    write(root / "frames" / name, points, time_s)
+    toml = root / "inspection.toml"
+    toml.write_text(toml.read_text().replace(old.name, name), encoding="utf-8")
+    old.unlink()
+    return points, time_s
+
+
+def test_pcd_times_in_ns_and_ply_times_in_s_deskew_alike(tmp_path):
+    """The same frame as a PCD with Ouster's uint32 ``t`` in ns and as a PLY with float64
+    ``time`` in s: through the archive, the same times (s) and the same deskewed points."""
+    from pipescan.storage.input.archive import open_archive
+    from pipescan.storage.input.pointfiles import read_points, write_points
+
+    _, root = _archive(tmp_path, travel_m=0.2)
+
+    def as_pcd(path, points, time_s):
+        _pcd_with_t_ns(path, points, np.round((time_s - time_s.min()) * 1e9).astype(np.uint32))
+
+    points, gps_s = _replace_frame(root, 2, "000002.pcd", as_pcd)
+    ply_points, ply_gps_s = _replace_frame(
+        root, 3, "000003.ply", lambda p, x, t: write_points(p, x, time_s=t)
+    )
+    with open_archive(root) as arc:
+        got = {i: (pts, t) for i, pts, t in arc.iter_timed_frames([2, 3])}
+        period_s = arc.meta.frames[1].time_s - arc.meta.frames[0].time_s
+    pcd_pts, pcd_s = got[2]
+    np.testing.assert_array_equal(pcd_pts, points)
+    np.testing.assert_allclose(pcd_s, gps_s - gps_s.min(), atol=1e-9)
+    ply_pts, ply_s = got[3]
+    np.testing.assert_array_equal(ply_pts, ply_points)
+    np.testing.assert_array_equal(ply_s, ply_gps_s)  # seconds, kept in their own base
+    T = np.eye(4)
+    T[0, 3] = 0.05
+    np.testing.assert_allclose(
+        deskew_points(pcd_pts, pcd_s, T, period_s),
+        deskew_points(points, gps_s, T, period_s),
+        atol=1e-9,
+    )
+    # A PCD or PLY frame without a time field reads as before, bit for bit.
+    for name in ("plain.pcd", "plain.ply"):
+        write_points(root / "frames" / name, points)
+        from pipescan.storage.input.pointfiles import read_timed_frame
+
+        got_pts, got_t = read_timed_frame(root / "frames" / name, interval_s=period_s)
+        assert got_t is None
+        np.testing.assert_array_equal(got_pts, read_points(root / "frames" / name))
+
+
+def test_a_pcd_time_that_fits_no_unit_is_one_error_naming_the_field(tmp_path):
+    from pipescan.storage.input.archive import open_archive
+
+    _, root = _archive(tmp_path, travel_m=0.2)
+
+    def far(path, points, time_s):  # 4 s apart as ns, more in any other unit
+        t = np.zeros(len(points), dtype=np.uint32)
+        t[-1] = 4_000_000_000
+        _pcd_with_t_ns(path, points, t)
+
+    _replace_frame(root, 2, "000002.pcd", far)
+    with open_archive(root) as arc, pytest.raises(PointFileError) as caught:
+        list(arc.iter_timed_frames())
+    message = str(caught.value)
+    assert "frames/000002.pcd" in message and "field 't'" in message and "\n" not in message
+
+
+def test_a_bag_with_ouster_t_is_read_with_times_and_deskewed(tmp_path):
+    """A bag of the moving scan: PointCloud2 with a uint32 ``t`` (ns since the stamp) goes
+    through the archive with each point's time in s, and deskewing it puts the frame's points
+    on their truth."""
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.storage.input.archive import open_archive
+
+    scan = simulate_scan(_scenario(travel_m=0.3), seed=2)
+    write_simulated_archive(scan, tmp_path / "arc", layout="bag")
+    with open_archive(tmp_path / "arc") as arc:
+        got = {i: (pts, t) for i, pts, t in arc.iter_timed_frames([3])}
+        plain = dict(arc.iter_frames([3]))
+    f = scan.frame(3)
+    pts, time_s = got[3]
+    np.testing.assert_array_equal(pts, plain[3])
+    np.testing.assert_allclose(pts, f.points_sensor, atol=0)
+    np.testing.assert_allclose(time_s - time_s.min(), f.point_time_s - f.time_s, atol=1e-9)
+    T = scan.T_pipe_sensor(3)
+    motion = relative_motion(T, scan.T_pipe_sensor(4))
+    period_s = float(scan.times_s[4] - scan.times_s[3])
+    deskewed = transform(T, deskew_points(pts, time_s, motion, period_s))
+    np.testing.assert_allclose(deskewed, scan.points_pipe(f), atol=1e-5)
+    skewed = transform(T, pts)
+    assert np.abs(skewed - scan.points_pipe(f))[:, 0].max() > 0.04
+
+
+def _cloud_msg(points, t, *, datatype=6, count=1, bigendian=False):
+    """A PointCloud2 message of float32 x, y, z and a field ``t`` (PointField ``datatype``)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    types = get_typestore(Stores.ROS2_HUMBLE).types
+    order = ">" if bigendian else "<"
+    t_type = {6: "u4", 7: "f4", 8: "f8"}[datatype]
+    shape = (count,) if count > 1 else ()
+    rows = np.empty(len(points), dtype=[("xyz", order + "f4", 3), ("t", order + t_type, shape)])
+    rows["xyz"], rows["t"] = points, t
+    field = types["sensor_msgs/msg/PointField"]
+    fields = [field(name=a, offset=4 * k, datatype=7, count=1) for k, a in enumerate("xyz")]
+    fields.append(field(name="t", offset=12, datatype=datatype, count=count))
+    stamp = types["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    return types["sensor_msgs/msg/PointCloud2"](
+        header=types["std_msgs/msg/Header"](stamp=stamp, frame_id="lidar"),
+        height=1,
+        width=len(points),
+        fields=fields,
+        is_bigendian=bigendian,
+        point_step=rows.itemsize,
+        row_step=rows.itemsize * len(points),
+        data=rows.view(np.uint8).reshape(-1),
+        is_dense=False,
+    )
+
+
+def test_a_pointcloud2_time_follows_its_points_and_is_one_number():
+    from pipescan.storage.input.readers.bags import cloud_to_points, cloud_to_timed_points
+
+    points = np.array([[2.0, 0.0, 0.0], [np.nan, 0.0, 0.0], [2.0, 1.0, 0.0], [1.0, 0.0, 0.5]])
+    t = np.array([0, 10, 20, 30], dtype=np.uint32)
+    for bigendian in (False, True):
+        msg = _cloud_msg(points, t, bigendian=bigendian)
+        got, time, field = cloud_to_timed_points(msg)
+        assert field == "t" and time.dtype == np.uint32 and time.tolist() == [0, 20, 30]
+        np.testing.assert_array_equal(got, points[[0, 2, 3]])
+        np.testing.assert_array_equal(cloud_to_points(msg), got)  # without times: the same
+    with pytest.raises(ValueError, match=r"time field t .* not one number per point"):
+        cloud_to_timed_points(_cloud_msg(points, np.zeros((4, 2)), datatype=8, count=2))
+
+
+def test_a_pcd_time_field_of_two_numbers_is_an_error_naming_it(tmp_path):
+    from pipescan.storage.input.pointfiles import read_timed_frame
+
+    header = (
+        "VERSION 0.7\nFIELDS x y z t\nSIZE 4 4 4 4\nTYPE F F F U\nCOUNT 1 1 1 2\nWIDTH 2\n"
+        "HEIGHT 1\nPOINTS 2\nDATA ascii\n"
+    )
+    (tmp_path / "f.pcd").write_text(header + "2 0 0 0 0\n2 1 0 5 0\n", encoding="ascii")
+    with pytest.raises(PointFileError, match=r"field 't'.*COUNT 2") as caught:
+        read_timed_frame(tmp_path / "f.pcd", interval_s=0.1, archive="a", member="frames/f.pcd")
+    assert "frames/f.pcd" in str(caught.value)
+
+
+def test_a_bag_without_time_fields_reads_as_before(tmp_path):
+    from pipescan.simulator.archive import write_simulated_archive
+    from pipescan.storage.input.archive import open_archive
+
+    scan = simulate_scan(get_scenario("paper", travel_m=0.3), seed=0)
+    write_simulated_archive(scan, tmp_path / "arc", layout="bag")
+    with open_archive(tmp_path / "arc") as arc:
+        timed = list(arc.iter_timed_frames([1, 2]))
+        plain = list(arc.iter_frames([1, 2]))
+    for (i, pts, time_s), (j, expected) in zip(timed, plain, strict=True):
+        assert i == j and time_s is None
+        np.testing.assert_array_equal(pts, expected)

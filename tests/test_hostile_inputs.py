@@ -409,3 +409,49 @@ def test_a_bad_frame_found_mid_run_names_the_archive_given(tmp_path, engine_proc
     with pytest.raises(PointFileError) as info:
         register_chunk.fn(staged, 0, 0, RegistrationParams(), engine_processes=engine_processes)
     assert info.value.archive == str(zip_path) and info.value.file == "frames/000000.ply"
+
+
+_timed_headers = st.one_of(
+    st.builds(
+        lambda c, t, d, b: (
+            "pcd",
+            (
+                f"VERSION 0.7\nFIELDS x y z t\nSIZE 4 4 4 {t[1]}\nTYPE F F F {t[0]}\n"
+                f"COUNT 1 1 1 {t[2]}\nWIDTH {c}\nHEIGHT 1\nPOINTS {c}\nDATA {d}\n"
+            ).encode()
+            + b,
+        ),
+        _counts,
+        st.tuples(st.sampled_from("FIUX"), st.sampled_from([1, 2, 3, 4, 8]), st.integers(0, 3)),
+        st.sampled_from(["ascii", "binary", "binary_compressed"]),
+        st.binary(max_size=200),
+    ),
+    st.builds(
+        lambda c, t, f, b: ("ply", _ply(c, f, "", b).replace(b"end_header", t + b"end_header")),
+        _counts,
+        st.sampled_from([b"property uint t\n", b"property double time\n", b"property char t\n"]),
+        st.sampled_from(["ascii", "binary_little_endian", "binary_big_endian"]),
+        st.binary(max_size=200),
+    ),
+)
+
+
+@settings(max_examples=100 * FUZZ_EXAMPLES, deadline=None, suppress_health_check=list(HealthCheck))
+@given(header=_timed_headers)
+def test_fuzz_timed_frame_headers(tmp_path_factory, header) -> None:
+    """A PCD or PLY frame with a time field of any type, size and count, and any body: points
+    and times that match it, or a PointFileError; never another exception or a crash in the
+    reader it is handed to."""
+    from pipescan.storage.input.pointfiles import read_timed_frame
+
+    suffix, data = header
+    path = tmp_path_factory.mktemp("timed") / f"frame.{suffix}"
+    path.write_bytes(data)
+    try:
+        with time_limit(30):
+            points, time_s = read_timed_frame(path, interval_s=0.1, archive="fuzz.zip")
+    except PipescanError as exc:
+        assert not is_transient_io_error(exc)
+        return
+    assert points.ndim == 2 and points.shape[1] == 3 and np.isfinite(points).all()
+    assert time_s is None or time_s.shape == (len(points),)

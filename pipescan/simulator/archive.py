@@ -285,6 +285,8 @@ def write_simulated_bag(
     """Write the scan's frames as a ROS bag: PointCloud2 frames in the sensor frame at their
     capture times, odometry (the odometer's reading along x) and IMU readings (the specific
     force against the measured gravity, 9.81 m/s², one per frame) when the scan has them.
+    With ``Effects.motion_within_frame``, each point carries its capture time as an Ouster
+    driver writes it: a uint32 field ``t``, nanoseconds since the frame's stamp.
 
     ``path`` ending ``.bag`` is a ROS 1 bag; ``.db3`` or ``.mcap`` a ROS 2 bag folder named
     without the suffix, holding that storage.
@@ -300,7 +302,10 @@ def write_simulated_bag(
         for frame in scan.frames():
             if progress is not None:
                 progress(frame.index + 1, len(scan))
-            yield ns(frame.time_s), frame.points_sensor
+            t_ns = None
+            if frame.point_time_s is not None:
+                t_ns = np.round((frame.point_time_s - frame.time_s) * 1e9).astype(np.uint32)
+            yield ns(frame.time_s), frame.points_sensor, t_ns
 
     # Odometry and IMU just before each frame, so that the frame's period holds them.
     odometry = [

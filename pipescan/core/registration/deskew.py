@@ -126,3 +126,85 @@ def travel_motion(T_world_a: np.ndarray, T_world_b: np.ndarray) -> np.ndarray:
     T = np.eye(4)
     T[:3, 3] = T_a[:3, :3].T @ (np.asarray(T_world_b, dtype=np.float64)[:3, 3] - T_a[:3, 3])
     return T
+
+
+TIME_UNITS_S: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}
+"""The units a point time field may be in, and one of each in seconds."""
+
+
+def point_times_s(
+    raw_time: np.ndarray, frame_interval_s: float, *, units: tuple[str, ...] = tuple(TIME_UNITS_S)
+) -> np.ndarray | None:
+    """A frame's raw point times in seconds, their unit chosen from the frame's own span.
+
+    A PLY, PCD or PointCloud2 time field has no fixed unit (Ouster's ``t`` is uint32
+    nanoseconds, Velodyne's ``time`` float32 seconds, Livox's ``timestamp`` float64
+    nanoseconds), but physics fixes it: a frame is captured over about one frame interval.
+    So the unit is the one of ``units`` whose span is nearest ``frame_interval_s`` (by
+    ratio) among those spanning more than 0 and at most :data:`FRAME_TIME_SPAN_RATIO`
+    intervals. The units are 1000 apart, so two never both fall within a factor of 2 of the
+    interval; a uint32 offset in nanoseconds (span ~10^8) cannot be seconds.
+
+    Parameters
+    ----------
+    raw_time : (N,) integer or float
+        Each point's time as the file holds it, any base.
+    frame_interval_s : float
+        The interval between frames (> 0), seconds.
+    units : tuple of str
+        The keys of :data:`TIME_UNITS_S` the field may be in (``("s",)`` for LAS GPS time).
+
+    Returns
+    -------
+    (N,) float64 seconds, in the field's own base; None when there are no points or every
+    point has the same time (a frame without times).
+
+    Raises
+    ------
+    ValueError
+        For a dtype that is not integer or float, a NaN or infinite time, or a span that no
+        unit of ``units`` puts within :data:`FRAME_TIME_SPAN_RATIO` frame intervals.
+
+    Examples
+    --------
+    >>> ns = np.array([0, 50_000_000, 99_000_000], dtype=np.uint32)  # Ouster's t
+    >>> point_times_s(ns, 0.1).tolist()
+    [0.0, 0.05, 0.099]
+    >>> point_times_s(np.array([0.0, 0.05, 0.099], dtype=np.float32), 0.1).round(3).tolist()
+    [0.0, 0.05, 0.099]
+    """
+    raw = np.asarray(raw_time)
+    if raw.dtype.kind not in "iuf":
+        raise ValueError(f"the time field is of type {raw.dtype}, not an integer or a float")
+    if not frame_interval_s > 0:
+        raise ValueError(f"frame_interval_s must be > 0, got {frame_interval_s!r}")
+    if raw.size == 0:
+        return None
+    if raw.dtype.kind == "f" and not np.isfinite(raw).all():
+        raise ValueError(f"{int((~np.isfinite(raw)).sum())} points have a NaN or infinite time")
+    low, high = raw.min(), raw.max()
+    # Integers' span exactly (Python ints: no overflow for int64 or uint64 values).
+    span = (int(high) - int(low)) if raw.dtype.kind in "iu" else float(high) - float(low)
+    if span == 0:
+        return None
+    fitting = [
+        (abs(np.log(span * TIME_UNITS_S[u] / frame_interval_s)), u)
+        for u in units
+        if span * TIME_UNITS_S[u] <= FRAME_TIME_SPAN_RATIO * frame_interval_s
+    ]
+    if not fitting:
+        spans = ", ".join(f"{span * TIME_UNITS_S[u]:.4g} s in {u}" for u in units)
+        raise ValueError(
+            f"the points' times span {span:.6g} ({spans}), more than "
+            f"{FRAME_TIME_SPAN_RATIO:g} times the {frame_interval_s:.6g} s between frames in "
+            "every unit: they are not one frame's capture times"
+        )
+    scale = TIME_UNITS_S[min(fitting)[1]]
+    # The offsets from the earliest point are small (within the bound): exact for integers.
+    if raw.dtype.kind == "u":
+        offsets = (raw - low).astype(np.float64)
+    elif raw.dtype.kind == "i":
+        offsets = (raw.astype(np.int64) - np.int64(low)).astype(np.float64)
+    else:
+        offsets = raw.astype(np.float64) - float(low)
+    return offsets * scale + float(low) * scale

@@ -36,10 +36,8 @@ import numpy as np
 from pipescan.core.errors import (
     ArchiveError,
     MetadataError,
-    PointFileError,
 )
 from pipescan.core.model import FrameRef, InspectionMeta
-from pipescan.core.registration.deskew import FRAME_TIME_SPAN_RATIO
 from pipescan.storage.input.extract import (
     COPY_CHUNK_BYTES,
     Budget,
@@ -60,6 +58,7 @@ from pipescan.storage.input.pointfiles import (
     TIMED_FRAME_SUFFIXES,
     PointChunk,
     check_points,
+    frame_times_s,
     is_point_file,
     iter_point_chunks,
     point_suffix,
@@ -67,6 +66,7 @@ from pipescan.storage.input.pointfiles import (
     read_points,
     read_timed_frame,
 )
+from pipescan.storage.input.readers import Where
 from pipescan.storage.input.readers.bags import BagIndex, index_bag, is_bag, iter_bag_frames
 from pipescan.storage.input.urls import without_secrets
 
@@ -252,48 +252,68 @@ class ScanArchive:
             for i in wanted:
                 yield i, self.read_frame(i)
             return
+        for i, points, _ in self._iter_bag_frames(wanted, None):
+            yield i, points
+
+    def _iter_bag_frames(
+        self, wanted: Iterable[int], interval_s: float | None
+    ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None]]:
+        """The bag's frames ``wanted``, checked; with ``interval_s``, each point's time (s)
+        from the message's time field, decoded with its points."""
         self._check_open()
         wanted = list(wanted)
         for i in wanted:
             if not 0 <= i < self.frame_count:
                 raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
         bag = self.bag
-        for i, points in iter_bag_frames(
-            self.root / bag.member, bag, wanted, archive=self.name, limits=self.limits
+        assert bag is not None
+        for i, points, raw, field in iter_bag_frames(
+            self.root / bag.member,
+            bag,
+            wanted,
+            archive=self.name,
+            limits=self.limits,
+            with_time=interval_s is not None,
         ):
-            yield (
-                i,
-                check_points(
-                    points,
-                    archive=self.name,
-                    member=f"{bag.member} ({bag.points_topic}, frame {i})",
-                    limits=self.limits,
-                ),
-            )
+            where = Where(self.name, f"{bag.member} ({bag.points_topic}, frame {i})", self.limits)
+            check_points(points, archive=where.archive, member=where.member, limits=self.limits)
+            time_s = None
+            if raw is not None and field is not None and interval_s is not None:
+                time_s = frame_times_s(raw, interval_s, where, field=field)
+            yield i, points, time_s
 
     def iter_timed_frames(
         self, indices: Iterable[int] | None = None
     ) -> Iterator[tuple[int, np.ndarray, np.ndarray | None]]:
         """Yield ``(i, points, time_s)`` for each frame (or each index in ``indices``), one at
-        a time, each file decoded once: ``points`` as :meth:`read_frame`, ``time_s`` (N,)
-        each point's capture time (s, the file's own time base) where the frame is a LAS/LAZ
-        file with GPS time and ``[[frames]]`` gives frame times (what deskewing needs); None
-        otherwise (a ROS bag's frames, other formats, all points at one time).
+        a time, each file or message decoded once: ``points`` as :meth:`read_frame`, ``time_s``
+        (N,) each point's capture time (s, the file's own time base) where the frame carries
+        times and ``[[frames]]`` (or the bag) gives frame times (what deskewing needs); None
+        otherwise (formats without times, all points at one time).
+
+        Times come from a LAS/LAZ frame's GPS time (seconds), a PCD field or PLY property
+        ``time``, ``timestamp``, ``gps_time`` or ``t``, or a bag's PointCloud2 field ``t``,
+        ``time``, ``timestamp`` or ``offset_time``; the unit of the last three kinds is told
+        by the frame's span (:func:`~pipescan.core.registration.deskew.point_times_s`).
 
         Raises
         ------
         PointFileError
             As :meth:`read_frame`; and when a frame's point times span more than
             :data:`~pipescan.core.registration.deskew.FRAME_TIME_SPAN_RATIO` times the
-            interval between frames (not one frame's times in seconds).
+            interval between frames in every unit its field may be in (not one frame's
+            times), or its time field is not one number per point, naming the field.
         """
         interval_s = self._frame_interval_s
-        if self.bag is not None or interval_s is None:
+        if interval_s is None:
             for i, points in self.iter_frames(indices):
                 yield i, points, None
             return
-        self._check_open()
         wanted = range(self.frame_count) if indices is None else indices
+        if self.bag is not None:
+            yield from self._iter_bag_frames(wanted, interval_s)
+            return
+        self._check_open()
         for i in wanted:
             if not 0 <= i < self.frame_count:
                 raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
@@ -302,21 +322,12 @@ class ScanArchive:
                 yield i, self.read_frame(i), None
                 continue
             points, time_s = read_timed_frame(
-                self.root / ref.file, archive=self.name, member=ref.file, limits=self.limits
+                self.root / ref.file,
+                interval_s=interval_s,
+                archive=self.name,
+                member=ref.file,
+                limits=self.limits,
             )
-            if time_s is not None:
-                span_s = float(np.ptp(time_s))
-                if span_s > FRAME_TIME_SPAN_RATIO * interval_s:
-                    raise PointFileError(
-                        f"the points' GPS times span {span_s:.6g} s, more than "
-                        f"{FRAME_TIME_SPAN_RATIO:g} times the {interval_s:.6g} s between "
-                        "frames in inspection.toml: they are not this frame's capture times "
-                        "in seconds",
-                        archive=self.name,
-                        file=ref.file,
-                        field="gps_time",
-                        hint="write each point's capture time in seconds, or no GPS time",
-                    )
             yield i, points, time_s
 
     @cached_property

@@ -21,8 +21,9 @@ from typing import Literal
 
 import numpy as np
 
+from pipescan.core.registration.deskew import TIME_UNITS_S, point_times_s
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
-from pipescan.storage.input.readers import READERS, Where, las
+from pipescan.storage.input.readers import READERS, Where, las, pcd, ply
 from pipescan.storage.input.readers.las import LAS_SCALE_M
 
 POINT_SUFFIXES: tuple[str, ...] = tuple(READERS)
@@ -58,6 +59,7 @@ __all__ = [
     "PointChunk",
     "StridedSample",
     "check_point_file",
+    "frame_times_s",
     "is_point_file",
     "iter_point_chunks",
     "point_suffix",
@@ -134,48 +136,95 @@ def read_points(
     return points
 
 
-TIMED_FRAME_SUFFIXES = (".las", ".laz")
-"""Frame formats whose point times :func:`read_timed_frame` reads: LAS/LAZ GPS time, seconds
-by the LAS specification. A PLY or PCD ``time``/``t`` field has no fixed unit (seconds,
-nanoseconds, microseconds by vendor), so a frame in them is read without times."""
+TIMED_FRAME_SUFFIXES = (".las", ".laz", ".pcd", ".ply")
+"""Frame formats whose point times :func:`read_timed_frame` reads: LAS/LAZ GPS time (seconds,
+by the LAS specification), a PCD field or PLY property named in ``TIME_NAMES`` (no fixed unit:
+seconds, milliseconds, microseconds or nanoseconds, told by the frame's span)."""
 
 
 def read_timed_frame(
     path: Path,
     *,
+    interval_s: float | None = None,
     archive: str | None = None,
     member: str | None = None,
     limits: InputLimits = DEFAULT_LIMITS,
 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Read a frame and each point's capture time, decoding the file once.
 
+    Parameters
+    ----------
+    path, archive, member, limits
+        As :func:`read_points`.
+    interval_s : float, optional
+        The interval between frames (s). With it, the times' span is checked against it and
+        a field of no fixed unit (PCD, PLY) gets its unit from it
+        (:func:`~pipescan.core.registration.deskew.point_times_s`); without it, only LAS/LAZ
+        GPS time is read, unchecked.
+
     Returns
     -------
     points : (N, 3) float64, metres, sensor frame, as :func:`read_points` returns them
     time_s : (N,) float64 seconds, or None when the file is not a
-        :data:`TIMED_FRAME_SUFFIXES` file, holds no time, or gives every point the same time
+        :data:`TIMED_FRAME_SUFFIXES` file, holds no time, gives every point the same time, or
+        (PCD, PLY) no ``interval_s`` is given
 
     Raises
     ------
     PointFileError
-        As :func:`read_points`, and for a time that is NaN or infinite (field ``time``).
+        As :func:`read_points`; for a time that is NaN or infinite, a time field that is not
+        one number per point, or times that span more than
+        :data:`~pipescan.core.registration.deskew.FRAME_TIME_SPAN_RATIO` frame intervals in
+        every unit; naming the time field.
     """
     path = Path(path)
-    if point_suffix(path) not in TIMED_FRAME_SUFFIXES:
+    suffix = point_suffix(path)
+    if suffix not in TIMED_FRAME_SUFFIXES:
         points = read_points(path, archive=archive, member=member, kind="frame", limits=limits)
         return points, None
     where, _ = _reader(path, archive, member, limits)
-    points, time_s = las.read_timed(path, where)
+    units: tuple[str, ...]
+    if suffix in las.SUFFIXES:
+        points, raw = las.read_timed(path, where)
+        field, units = "gps_time", ("s",)
+    else:
+        points, raw, found = (pcd if suffix in pcd.SUFFIXES else ply).read_timed(path, where)
+        field, units = found or "time", tuple(TIME_UNITS_S)
     _check_points(points, "frame", where)
-    if time_s is None or len(time_s) != len(points):
+    if raw is None or len(raw) != len(points):
         return points, None
-    if not np.isfinite(time_s).all():
+    if interval_s is None:
+        if suffix not in las.SUFFIXES:
+            return points, None
+        if not np.isfinite(raw).all():
+            raise where.error(
+                f"{int((~np.isfinite(raw)).sum())} points have a NaN or infinite GPS time",
+                field=field,
+                hint="export the frame again, or without GPS time",
+            )
+        return points, raw if float(np.ptp(raw)) > 0.0 else None
+    return points, frame_times_s(raw, interval_s, where, field=field, units=units)
+
+
+def frame_times_s(
+    raw: np.ndarray,
+    interval_s: float,
+    where: Where,
+    *,
+    field: str,
+    units: tuple[str, ...] = tuple(TIME_UNITS_S),
+) -> np.ndarray | None:
+    """:func:`~pipescan.core.registration.deskew.point_times_s` on a frame's raw times, its
+    error as a :class:`PointFileError` naming ``where``'s file and ``field``."""
+    try:
+        return point_times_s(raw, interval_s, units=units)
+    except ValueError as exc:
+        unit = "seconds" if units == ("s",) else "s, ms, us or ns"
         raise where.error(
-            f"{int((~np.isfinite(time_s)).sum())} points have a NaN or infinite GPS time",
-            field="gps_time",
-            hint="export the frame again, or without GPS time",
-        )
-    return points, time_s if float(np.ptp(time_s)) > 0.0 else None
+            f"{exc} ({unit})",
+            field=field,
+            hint="write each point's capture time within its frame, or no time field",
+        ) from None
 
 
 CLOUD_CHUNK_POINTS = 1_000_000

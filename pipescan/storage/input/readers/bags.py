@@ -38,6 +38,12 @@ ODOMETRY_TYPE = "nav_msgs/msg/Odometry"
 IMU_TYPE = "sensor_msgs/msg/Imu"
 _FLOAT_TYPES = {7: "f4", 8: "f8"}  # sensor_msgs/PointField FLOAT32, FLOAT64
 _FIELD_BYTES = {1: 1, 2: 1, 3: 2, 4: 2, 5: 4, 6: 4, 7: 4, 8: 8}  # PointField datatypes' sizes
+_FIELD_TYPES = {1: "i1", 2: "u1", 3: "i2", 4: "u2", 5: "i4", 6: "u4", 7: "f4", 8: "f8"}
+TIME_NAMES = ("t", "time", "timestamp", "offset_time")
+"""PointCloud2 fields read as each point's capture time, the first one present: Ouster's
+``t`` (uint32 ns since the frame's start), Velodyne's ``time`` (float32 s since it), Hesai's
+and Livox's ``timestamp`` (float64, absolute), Livox's ``offset_time`` (uint32 ns). Their unit
+is told by the frame's span (:func:`~pipescan.core.registration.deskew.point_times_s`)."""
 _HINT = "the bag is corrupt or truncated: copy or record it again"
 
 
@@ -281,6 +287,19 @@ def cloud_to_points(msg, *, points_max_count: int | None = None) -> np.ndarray:
     """A ``sensor_msgs/PointCloud2`` as ``(N, 3)`` float64; points with a NaN or infinite
     coordinate (no return, in an organised cloud) are left out.
 
+    As :func:`cloud_to_timed_points`, without the times.
+    """
+    return cloud_to_timed_points(msg, points_max_count=points_max_count, time_names=())[0]
+
+
+def cloud_to_timed_points(
+    msg, *, points_max_count: int | None = None, time_names: Sequence[str] = TIME_NAMES
+) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """A ``sensor_msgs/PointCloud2`` as ``(N, 3)`` float64 points, each point's raw time and
+    the time field's name: the first field of ``time_names`` the message has, ``(N,)`` in its
+    own dtype (None, None when it has none). Points with a NaN or infinite coordinate (no
+    return, in an organised cloud) are left out, and their times with them.
+
     The message must hold exactly ``height`` rows of ``row_step`` bytes, each row at least
     ``width`` points of ``point_step`` bytes, and its fields must lie within a point without
     overlapping: nothing is allocated for what the message does not hold.
@@ -288,8 +307,8 @@ def cloud_to_points(msg, *, points_max_count: int | None = None) -> np.ndarray:
     Raises
     ------
     ValueError
-        When the message's fields, steps and data disagree, or it declares more than
-        ``points_max_count`` points.
+        When the message's fields, steps and data disagree, it declares more than
+        ``points_max_count`` points, or its time field is not one number per point.
     """
     fields = {f.name: f for f in msg.fields}
     missing = [a for a in "xyz" if a not in fields]
@@ -327,10 +346,22 @@ def cloud_to_points(msg, *, points_max_count: int | None = None) -> np.ndarray:
             raise ValueError(f"field {a} has datatype {f.datatype}, not FLOAT32 or FLOAT64")
         formats.append(order + _FLOAT_TYPES[f.datatype])
         offsets.append(int(f.offset))
+    names = ["x", "y", "z"]
+    found = next((n for n in time_names if n in fields), None)
+    if found is not None:
+        f = fields[found]
+        if int(f.datatype) not in _FIELD_TYPES or int(f.count) > 1:
+            raise ValueError(
+                f"time field {found} has datatype {f.datatype} and count {f.count}, not one "
+                "number per point"
+            )
+        names.append(found)
+        formats.append(order + _FIELD_TYPES[int(f.datatype)])
+        offsets.append(int(f.offset))
     if rows * width == 0:
-        return np.empty((0, 3))
+        return np.empty((0, 3)), None, None
     data = np.asarray(data, dtype=np.uint8)
-    dtype = np.dtype({"names": ["x", "y", "z"], "formats": formats, "offsets": offsets,
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
                       "itemsize": step})  # fmt: skip
     table = np.lib.stride_tricks.as_strided(
         np.frombuffer(data.tobytes(), dtype=np.uint8),
@@ -339,7 +370,12 @@ def cloud_to_points(msg, *, points_max_count: int | None = None) -> np.ndarray:
     )
     records = np.ascontiguousarray(table).view(dtype).reshape(-1)
     pts = np.column_stack([records[a].astype(np.float64) for a in "xyz"])
-    return pts[np.isfinite(pts).all(axis=1)]
+    finite = np.isfinite(pts).all(axis=1)
+    if found is None:
+        return pts[finite], None, None
+    # Native byte order, so that the time's dtype is what point_times_s expects.
+    time = records[found][finite]
+    return pts[finite], time.astype(time.dtype.newbyteorder("=")), found
 
 
 def iter_bag_frames(
@@ -349,8 +385,11 @@ def iter_bag_frames(
     *,
     archive: str | None,
     limits: InputLimits = DEFAULT_LIMITS,
-) -> Iterator[tuple[int, np.ndarray]]:
-    """Yield ``(i, points)`` for the frames ``indices`` (ascending), one message at a time.
+    with_time: bool = False,
+) -> Iterator[tuple[int, np.ndarray, np.ndarray | None, str | None]]:
+    """Yield ``(i, points, raw_time, time_field)`` for the frames ``indices`` (ascending), one
+    message at a time; with ``with_time``, each point's raw time and its field's name as
+    :func:`cloud_to_timed_points` gives them, decoded with the points (None, None without).
 
     Raises
     ------
@@ -378,12 +417,16 @@ def iter_bag_frames(
                     continue
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
-                    points = cloud_to_points(msg, points_max_count=limits.points_max_count)
+                    points, time, field = cloud_to_timed_points(
+                        msg,
+                        points_max_count=limits.points_max_count,
+                        time_names=TIME_NAMES if with_time else (),
+                    )
                 except _read_errors() as exc:
                     raise _error(
                         archive, index.member, where, f"frame {i} cannot be read: {exc}"
                     ) from exc
-                yield i, points
+                yield i, points, time, field
                 if i >= wanted[-1]:
                     return
     except PointFileError:
@@ -397,7 +440,7 @@ def iter_bag_frames(
 
 def write_bag(
     path: Path,
-    frames: Iterable[tuple[int, np.ndarray]],
+    frames: Iterable[tuple[int, np.ndarray] | tuple[int, np.ndarray, np.ndarray | None]],
     *,
     odometry: Sequence[tuple[int, tuple[float, float, float]]] = (),
     imu: Sequence[tuple[int, tuple[float, float, float]]] = (),
@@ -407,8 +450,9 @@ def write_bag(
     imu_topic: str = "/imu/data",
 ) -> Path:
     """Write a bag with the ``rosbags`` writers: ``frames`` as ``(time_ns, points (N, 3))``
-    PointCloud2 messages (float32 x, y, z), ``odometry`` as ``(time_ns, position)`` and ``imu``
-    as ``(time_ns, linear_acceleration)``.
+    PointCloud2 messages (float32 x, y, z), or ``(time_ns, points, t (N,))`` with a uint32
+    field ``t`` too (each point's time, ns since ``time_ns``, as Ouster's driver writes it),
+    ``odometry`` as ``(time_ns, position)`` and ``imu`` as ``(time_ns, linear_acceleration)``.
 
     ``storage``: ``"rosbag1"`` (a ``.bag`` file), ``"sqlite3"`` or ``"mcap"`` (a ROS 2 bag
     folder at ``path``). Returns ``path``.
@@ -428,13 +472,21 @@ def write_bag(
 
     field_cls = types["sensor_msgs/msg/PointField"]
     fields = [field_cls(name=a, offset=4 * k, datatype=7, count=1) for k, a in enumerate("xyz")]
+    timed_fields = [*fields, field_cls(name="t", offset=12, datatype=6, count=1)]
     vector = types["geometry_msgs/msg/Vector3"]
 
-    def cloud(t_ns: int, pts: np.ndarray):
-        data = np.ascontiguousarray(pts, dtype="<f4").view(np.uint8).reshape(-1)
+    def cloud(t_ns: int, pts: np.ndarray, point_t_ns: np.ndarray | None = None):
+        if point_t_ns is None:
+            data = np.ascontiguousarray(pts, dtype="<f4").view(np.uint8).reshape(-1)
+            step, names = 12, fields
+        else:
+            rows = np.empty(len(pts), dtype=[("xyz", "<f4", 3), ("t", "<u4")])
+            rows["xyz"], rows["t"] = pts, point_t_ns
+            data = rows.view(np.uint8).reshape(-1)
+            step, names = 16, timed_fields
         return types[POINTS_TYPE](
-            header=header(t_ns, "lidar"), height=1, width=len(pts), fields=fields,
-            is_bigendian=False, point_step=12, row_step=12 * len(pts), data=data,
+            header=header(t_ns, "lidar"), height=1, width=len(pts), fields=names,
+            is_bigendian=False, point_step=step, row_step=step * len(pts), data=data,
             is_dense=True,
         )  # fmt: skip
 
@@ -484,11 +536,12 @@ def write_bag(
             messages += [(t, c_imu, imu_msg(t, acc)) for t, acc in imu]
         small = iter(sorted(messages, key=lambda m: m[0]))
         pending = next(small, None)
-        for t_ns, pts in frames:
+        for t_ns, pts, *point_t_ns in frames:
             while pending is not None and pending[0] <= t_ns:
                 writer.write(pending[1], pending[0], serialize(pending[2], pending[2].__msgtype__))
                 pending = next(small, None)
-            writer.write(c_points, t_ns, serialize(cloud(t_ns, pts), POINTS_TYPE))
+            message = cloud(t_ns, pts, *point_t_ns)
+            writer.write(c_points, t_ns, serialize(message, POINTS_TYPE))
         while pending is not None:
             writer.write(pending[1], pending[0], serialize(pending[2], pending[2].__msgtype__))
             pending = next(small, None)

@@ -205,6 +205,18 @@ def read_time(path: Path, where: Where) -> np.ndarray | None:
     return _read_properties(path, where, (found,))[:, 0]
 
 
+def read_timed(path: Path, where: Where) -> tuple[np.ndarray, np.ndarray | None, str | None]:
+    """The vertices of :func:`read` and each one's raw time, read in one pass: ``(N, 3)``
+    float64 metres, the first property named in :data:`TIME_NAMES` in the file's own unit
+    (``(N,)`` float64: exact, a PLY property being at most a 32-bit integer or a double) and
+    its name; ``None, None`` without such a property."""
+    found = _time_name(path, where)
+    if found is None:
+        return read(path, where), None, None
+    rows = _read_properties(path, where, (*AXES, found))
+    return np.ascontiguousarray(rows[:, :3]), rows[:, 3].copy(), found
+
+
 def _time_name(path: Path, where: Where) -> str | None:
     """The vertex property read as each point's time: the first of :data:`TIME_NAMES` the
     file has, or None."""
