@@ -193,11 +193,16 @@ def point_times_s(
         if span * TIME_UNITS_S[u] <= FRAME_TIME_SPAN_RATIO * frame_interval_s
     ]
     if not fitting:
-        spans = ", ".join(f"{span * TIME_UNITS_S[u]:.4g} s in {u}" for u in units)
+        limit = f"{FRAME_TIME_SPAN_RATIO:g} times the {frame_interval_s:.6g} s between frames"
+        if len(units) == 1:
+            raise ValueError(
+                f"the points' times span {span * TIME_UNITS_S[units[0]]:.4g} s, more than "
+                f"{limit}: they are not one frame's capture times"
+            )
+        spans = ", ".join(f"{span * TIME_UNITS_S[u]:.4g} s if in {u}" for u in units)
         raise ValueError(
-            f"the points' times span {span:.6g} ({spans}), more than "
-            f"{FRAME_TIME_SPAN_RATIO:g} times the {frame_interval_s:.6g} s between frames in "
-            "every unit: they are not one frame's capture times"
+            f"the points' times span {span:.6g} ({spans}), more than {limit} in every unit: "
+            "they are not one frame's capture times"
         )
     scale = TIME_UNITS_S[min(fitting)[1]]
     # The offsets from the earliest point are small (within the bound): exact for integers.
