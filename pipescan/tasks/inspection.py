@@ -51,6 +51,7 @@ from pipescan.tasks.retries import IO_RETRY_OPTIONS
 from pipescan.tasks.staged import (
     StagedArchive,
     crop_timed,
+    deskewed_by_odometer,
     frame_along,
     register_staged_frames,
 )
@@ -134,7 +135,11 @@ def survey_scan(
     meta, n = staged.meta, staged.frame_count
     sample_at, run_at = sample_frame_indices(n), consecutive_frame_indices(n)
     with staged.reopen() as arc:
-        read = dict(arc.iter_frames(sorted(set(sample_at) | set(run_at))))
+        # Deskewed where the points carry times: a frame's motion reads as range noise.
+        read = {
+            i: deskewed_by_odometer(meta, i, pts, time_s)
+            for i, pts, time_s in arc.iter_timed_frames(sorted(set(sample_at) | set(run_at)))
+        }
     sample = [read[i] for i in sample_at]
     instrument = estimate_instrument(
         sample, [read[i] for i in run_at], max_range_m=max_range_m, profile=meta.sensor
