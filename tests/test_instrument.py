@@ -200,6 +200,32 @@ def test_a_partial_view_gate_holds_a_rosette_across_the_axis():
     assert gated < 0.5 * wide
 
 
+def test_a_frame_the_tight_gate_cannot_hold_is_registered_with_the_wide_one():
+    # rosette-avia 17 (0.3 m pipe, no IMU) stopped at a chunk's third frame: "ICP found only
+    # 0 correspondences" within its 3 cm gate, against a map of two partial frames.
+    from pipescan.core.errors import RegistrationError
+    from pipescan.core.registration import register_frames
+
+    scan = simulate_scan(_scene(0.3, coverage=0.3), seed=1)
+    frames = [(f.index, f.points_sensor, None) for f in scan.frames()][:6]
+    tight = RegistrationParams(max_correspondence_m=0.002, map_seed_frames=3)
+    with pytest.raises(RegistrationError, match="correspondences"):
+        register_frames(frames, tight)
+    both = dataclasses.replace(tight, wide_correspondence_m=0.08)
+    trajectory = register_frames(frames, both)
+    truth = scan.T_world_sensor[list(trajectory.frame_indices)]
+    assert trajectory_errors(trajectory.T_world_frame, truth).across_rms_m < 0.02
+    # The instrument sets it for a partial view only.
+    partial = Instrument(map_seed_frames=7, range_noise_m=0.005)
+    assert instrumented(RegistrationParams(), MeasureParams(), partial)[
+        0
+    ].wide_correspondence_m == pytest.approx(0.08)
+    full = Instrument(map_seed_frames=1, range_noise_m=0.005)
+    assert (
+        instrumented(RegistrationParams(), MeasureParams(), full)[0].wide_correspondence_m is None
+    )
+
+
 def test_a_full_view_keeps_the_wide_gate():
     full = Instrument(map_seed_frames=1, range_noise_m=0.005)
     params, _ = instrumented(RegistrationParams(), MeasureParams(), full)

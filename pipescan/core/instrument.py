@@ -672,6 +672,9 @@ def instrumented(
         min_range_m=min(instrument.min_range_m, registration.max_range_m / 2),
         map_seed_frames=instrument.map_seed_frames,
         max_correspondence_m=partial_view_gate_m(instrument, registration),
+        wide_correspondence_m=registration.max_correspondence_m
+        if instrument.partial_view
+        else None,
     )
     if instrument.max_wall_spread_m is not None:
         measure = dataclasses.replace(measure, max_wall_spread_m=instrument.max_wall_spread_m)

@@ -109,6 +109,12 @@ class RegistrationParams:
         saw to hold on to (measured: ``docs/instrument.md``).
         :func:`~pipescan.core.instrument.view_coverage` chooses it from what the scan's own
         consecutive frames cover.
+    wide_correspondence_m : float, optional
+        The gate a frame is registered with instead, where it finds fewer than 30
+        correspondences within ``max_correspondence_m``: a partial view's tight gate
+        (:func:`~pipescan.core.instrument.partial_view_gate_m`) against a map just restarted
+        from a frame or two, from a prediction without an IMU, can find none. None: no
+        second try (the frame is an error, as before).
     num_threads : int
         Threads the engine may use for one frame. 1 by default: parallelism comes from
         registering chunks of frames in parallel, in processes. On a thread pool, small_gicp
@@ -142,6 +148,7 @@ class RegistrationParams:
     converged_translation_m: float = 5e-4
     num_threads: int = 1
     map_seed_frames: int = 1
+    wide_correspondence_m: float | None = None
 
     def __post_init__(self) -> None:
         if self.method not in REGISTRATION_METHODS:
@@ -174,6 +181,11 @@ class RegistrationParams:
         if not self.odometer_slip_m >= 0:
             raise ValueError(
                 f"RegistrationParams.odometer_slip_m must be >= 0, got {self.odometer_slip_m!r}."
+            )
+        if self.wide_correspondence_m is not None and not self.wide_correspondence_m > 0:
+            raise ValueError(
+                "RegistrationParams.wide_correspondence_m must be > 0 or None, "
+                f"got {self.wide_correspondence_m!r}."
             )
         if self.source_voxel_m is not None and not self.source_voxel_m > 0:
             raise ValueError(

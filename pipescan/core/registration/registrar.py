@@ -398,6 +398,13 @@ class FrameRegistrar:
         # Correspondences at the solution, the same for every engine: they give the fitness,
         # the point-to-plane RMSE, the Hessian and the information along the axis.
         matches = self._matches(pts, T)
+        wide = self.params.wide_correspondence_m
+        if (
+            len(matches.src) < _MIN_CORRESPONDENCES
+            and wide
+            and wide > self.params.max_correspondence_m
+        ):
+            T, matches = self._icp_with_gate(pts, pred, wide)
         if len(matches.src) < _MIN_CORRESPONDENCES:
             raise RegistrationError(
                 f"frame {index}: ICP found only {len(matches.src)} correspondences",
@@ -419,6 +426,20 @@ class FrameRegistrar:
             gate_sigma_m=self._axial.last_gate_sigma_m,
             overrode=self._axial.last_overrode,
         )
+
+    def _icp_with_gate(
+        self, pts: np.ndarray, pred: np.ndarray, gate_m: float
+    ) -> tuple[np.ndarray, _Matches]:
+        """ICP from ``pred`` and its correspondences with the gate ``gate_m`` for this frame
+        only (``RegistrationParams.wide_correspondence_m``): the engines and the map read the
+        gate from the parameters, which are put back after."""
+        own = self.params
+        self.params = self._map.params = dataclasses.replace(own, max_correspondence_m=gate_m)
+        try:
+            T = self._icp(pts, pred)
+            return T, self._matches(pts, T)
+        finally:
+            self.params = self._map.params = own
 
     def _icp(self, pts: np.ndarray, pred: np.ndarray) -> np.ndarray:
         """ICP from the prior pose ``pred``.
