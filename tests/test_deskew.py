@@ -152,7 +152,7 @@ def test_archive_frames_carry_gps_time_and_the_run_places_them_deskewed(tmp_path
 
 
 def test_frame_times_that_are_not_seconds_are_one_clear_error(tmp_path):
-    from pipescan.storage.input.archive import open_archive
+    from pipescan.storage.input.archive import open_archive, validate_archive
     from pipescan.storage.input.pointfiles import read_timed_frame, write_points
 
     _, root = _archive(tmp_path, travel_m=0.2)
@@ -163,6 +163,9 @@ def test_frame_times_that_are_not_seconds_are_one_clear_error(tmp_path):
         list(arc.iter_timed_frames())
     message = str(caught.value)
     assert "frames/000002.laz" in message and "'gps_time'" in message and "\n" not in message
+    # Checking the whole archive before anything is processed finds it too.
+    with open_archive(root) as arc, pytest.raises(PointFileError, match="gps_time"):
+        validate_archive(arc)
 
 
 def test_a_laz_frame_with_no_or_constant_times_reads_as_untimed(tmp_path):

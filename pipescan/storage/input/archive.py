@@ -523,7 +523,8 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     """Check a whole archive before anything is processed or written.
 
     With ``check_points``, every point file is read once, one at a time, and checked as
-    :func:`~pipescan.storage.input.pointfiles.read_points` does; the first problem is raised.
+    :func:`~pipescan.storage.input.pointfiles.read_points` does, with its points' times where
+    it carries them (:meth:`ScanArchive.iter_timed_frames`); the first problem is raised.
 
     Returns
     -------
@@ -533,7 +534,8 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     Raises
     ------
     PointFileError
-        The first corrupt, empty, non-finite or millimetre point file.
+        The first corrupt, empty, non-finite or millimetre point file, or one whose points'
+        times are not one frame's.
     ArchiveError
         A point file vanished since the archive was opened.
     """
@@ -548,7 +550,7 @@ def validate_archive(arc: ScanArchive, *, check_points: bool = True) -> ArchiveS
     if not check_points:
         return ArchiveSummary(frame_count=arc.frame_count, point_count=None)
     if arc.has_frames:
-        total = sum(len(points) for _, points in arc.iter_frames())
+        total = sum(len(points) for _, points, _ in arc.iter_timed_frames())
     else:
         total = sum(len(chunk.points) for chunk in arc.iter_cloud())
     return ArchiveSummary(frame_count=arc.frame_count, point_count=total)
