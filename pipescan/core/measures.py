@@ -40,10 +40,10 @@ from pipescan.core.uncertainty import (
     area_uncertainty,
     diameter_uncertainty_m,
     height_uncertainty_m,
+    longest_unseen_deg,
     residual_sigma_m,
     smear_bias_m2,
     unseen_area_m2,
-    unseen_runs,
 )
 from pipescan.core.water import WaterLevel, detect_water
 
@@ -396,7 +396,6 @@ def _above_water_ok(
     an uncertainty of them."""
     seen = profile.seen.copy()
     seen[water.bins] = True
-    gap = max(map(len, unseen_runs(seen)), default=0) * 360.0 / len(seen)
     under = (
         unseen_area_m2(profile.seen, wall_radius_m) - unseen_area_m2(seen, wall_radius_m)
     ) / nominal_area_m2
@@ -405,7 +404,7 @@ def _above_water_ok(
         found,
         water=None,
         coverage_ratio=float(seen.mean()),
-        max_gap_deg=float(gap),
+        max_gap_deg=longest_unseen_deg(seen),
         blockage_uncertainty_ratio=None if u is None else u - under,
         blockage_uncertainty_but_smear_ratio=found.blockage_uncertainty_but_smear_ratio - under,
     )

@@ -295,6 +295,15 @@ def area_uncertainty(
     )
 
 
+def longest_unseen_deg(seen: np.ndarray) -> float:
+    """The longest run of unseen bins around the circle, in degrees (wrapping around).
+
+    >>> longest_unseen_deg(np.arange(360) % 90 >= 20)
+    20.0
+    """
+    return float(max(map(len, unseen_runs(seen)), default=0)) * 360.0 / len(seen)
+
+
 def unseen_area_m2(seen: np.ndarray, radius_m: float) -> float:
     """What the unseen arcs of a section may hide, m²: for each run of unseen bins, the
     segment of a circle of ``radius_m`` behind the chord across it (``r²/2 (g − sin g)``

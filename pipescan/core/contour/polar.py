@@ -18,7 +18,7 @@ import numpy as np
 
 from pipescan.core.contour.base import ContourResult, angle_bins, polar_coordinates
 from pipescan.core.errors import GeometryError
-from pipescan.core.uncertainty import unseen_runs
+from pipescan.core.uncertainty import longest_unseen_deg
 
 
 @dataclass(frozen=True)
@@ -65,8 +65,7 @@ class PolarProfile:
     @property
     def max_gap_deg(self) -> float:
         """The longest run of unseen bins, in degrees (wrapping around)."""
-        runs = unseen_runs(self.seen)
-        return float(max(map(len, runs), default=0)) * 360.0 / len(self.seen)
+        return longest_unseen_deg(self.seen)
 
     def filled_radii(self) -> np.ndarray:
         """Radii of the nearest surface, with unseen bins linearly interpolated around the circle.
