@@ -17,7 +17,7 @@ from pipescan.core.registration import (
     Trajectory,
     register_keyframes,
 )
-from pipescan.core.registration.deskew import deskew_points, odometer_motion
+from pipescan.core.registration.deskew import deskew_points, odometer_travel
 from pipescan.core.registration.preprocess import crop_range, range_mask
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
@@ -77,19 +77,15 @@ def crop_timed(
 def deskewed_by_odometer(
     meta: InspectionMeta, i: int, points_m: np.ndarray, time_s: np.ndarray | None
 ) -> np.ndarray:
-    """Frame ``i``'s points deskewed by the odometer's travel over its interval (to the next
-    frame, or from the one before for the last), where its points carry times and
-    ``[[frames]]`` gives times and odometer readings: for what is read before registration
-    (the survey's instrument). As read otherwise."""
-    frames = meta.frames
-    if time_s is None or not frames or len(frames) < 2:
+    """Frame ``i``'s points deskewed by the odometer's travel over its interval
+    (:func:`~pipescan.core.registration.deskew.odometer_travel`), where its points carry
+    times and ``[[frames]]`` gives times and odometer readings: for what is read before
+    registration (the survey's instrument). As read otherwise."""
+    if time_s is None or not meta.frames:
         return points_m
-    a, b = (i, i + 1) if i + 1 < len(frames) else (i - 1, i)
-    odo_a, odo_b = frames[a].odometer_m, frames[b].odometer_m
-    t_a, t_b = frames[a].time_s, frames[b].time_s
-    if None in (odo_a, odo_b, t_a, t_b) or not t_b > t_a:
-        return points_m
-    return deskew_points(points_m, time_s, odometer_motion(odo_b - odo_a), t_b - t_a)
+    times = [f.time_s for f in meta.frames]
+    motion = odometer_travel(i, times, [f.odometer_m for f in meta.frames])
+    return points_m if motion is None else deskew_points(points_m, time_s, *motion)
 
 
 def frame_time_at(meta: InspectionMeta, i: int) -> float | None:

@@ -15,6 +15,8 @@ point was captured.
 
 from __future__ import annotations
 
+from collections.abc import Iterator, Sequence
+
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -140,6 +142,39 @@ def odometer_motion(step_m: float) -> np.ndarray:
     T = np.eye(4)
     T[0, 3] = float(step_m)
     return T
+
+
+def frame_intervals(
+    index: int, frame_time_s: Sequence[float | None]
+) -> Iterator[tuple[int, int, float]]:
+    """The intervals whose travel stands for frame ``index``'s own, in order of preference:
+    to the next frame, then from the one before (the last frame has no next). Each is
+    ``(a, b, seconds)``, only where both frames' times are known and increase.
+
+    >>> [(a, b) for a, b, _ in frame_intervals(1, [0.0, 0.1, 0.2])]
+    [(1, 2), (0, 1)]
+    >>> [(a, b) for a, b, _ in frame_intervals(2, [0.0, 0.1, None])]
+    []
+    """
+    for a, b in ((index, index + 1), (index - 1, index)):
+        if a < 0 or b >= len(frame_time_s):
+            continue
+        t_a, t_b = frame_time_s[a], frame_time_s[b]
+        if t_a is not None and t_b is not None and t_b > t_a:
+            yield a, b, t_b - t_a
+
+
+def odometer_travel(
+    index: int, frame_time_s: Sequence[float | None], odometer_m: Sequence[float | None]
+) -> tuple[np.ndarray, float] | None:
+    """The odometer's travel over frame ``index`` (:func:`frame_intervals`), as the motion
+    to deskew by and its time (:func:`odometer_motion`), or None where no interval has both
+    readings: what is read before the frames are registered (the survey's instrument)."""
+    for a, b, period_s in frame_intervals(index, frame_time_s):
+        odo_a, odo_b = odometer_m[a], odometer_m[b]
+        if odo_a is not None and odo_b is not None:
+            return odometer_motion(odo_b - odo_a), period_s
+    return None
 
 
 TIME_UNITS_S: dict[str, float] = {"s": 1.0, "ms": 1e-3, "us": 1e-6, "ns": 1e-9}

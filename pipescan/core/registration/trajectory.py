@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation, Slerp
 
 from pipescan.core.errors import RegistrationError
 from pipescan.core.model import FrameQuality
-from pipescan.core.registration.deskew import deskew_points, travel_motion
+from pipescan.core.registration.deskew import deskew_points, frame_intervals, travel_motion
 from pipescan.core.registration.engines import transform
 from pipescan.core.registration.fusion import (
     slip_could_hide,
@@ -342,13 +342,8 @@ def _registered_motion(
 ) -> tuple[np.ndarray, float] | None:
     """The travel over frame ``index`` from the placed poses: to the next frame's pose, or
     from the previous one's (as a pose, and its time, s); None where neither is placed."""
-    for a, b in ((index, index + 1), (index - 1, index)):
-        if a < 0 or b >= len(frame_time_s):
-            continue
-        t_a, t_b = frame_time_s[a], frame_time_s[b]
-        if t_a is None or t_b is None or not t_b > t_a:
-            continue
+    for a, b, period_s in frame_intervals(index, frame_time_s):
         T_a, T_b = poses.pose(a), poses.pose(b)
         if T_a is not None and T_b is not None:
-            return travel_motion(T_a, T_b), t_b - t_a
+            return travel_motion(T_a, T_b), period_s
     return None
