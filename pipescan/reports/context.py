@@ -976,6 +976,7 @@ def build_context(inp: ReportInput, *, chart: bool = True) -> dict[str, Any]:
         "unmeasured": _unmeasured_rows(sections, limits),
         "worst": [_section_row(s, section_flagged(s), limits) for s in worst_sections],
         "defects": [_defect_row(d, is_flagged(d, **flags)) for d in defects],
+        "lower_bound_note": LOWER_BOUND_NOTE if any(d.lower_bound for d in defects) else "",
         "sections": appendix_rows,
         "appendix": {
             "complete": appendix_complete,
@@ -1084,6 +1085,14 @@ def _unmeasured_rows(
     return unmeasured
 
 
+LOWER_BOUND_NOTE = (
+    "A value marked ≥ stood in water that returned nothing: the part under the water was not "
+    "seen, so the defect is at least that large and its class at least that bad."
+)
+"""What a lower bound's ``≥`` means, under the defects table of the report and the web view
+(present only where a defect is one)."""
+
+
 def fmt_bound_pct(d: Defect, *, unit: bool = False) -> str:
     """A defect's peak value in per cent, ``≥`` before it when it is a lower bound.
 
@@ -1117,7 +1126,6 @@ def _defect_row(d: Defect, flagged: bool) -> dict[str, Any]:
         "peak_value": fmt_bound_pct(d),
         "peak_blockage": fmt_pct(d.peak_blockage_ratio, unit=False),
         "grade": fmt_bound_grade(d),
-        "lower_bound": d.lower_bound,
     }
 
 
