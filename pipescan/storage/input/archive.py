@@ -229,8 +229,7 @@ class ScanArchive:
                 file=self.cloud_member,
                 hint="use read_cloud()",
             )
-        if not 0 <= i < len(self.meta.frames):
-            raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+        self._check_index(i)
         if self.bag is not None:
             return next(self.iter_frames([i]))[1]
         ref = self.meta.frames[i]
@@ -263,8 +262,7 @@ class ScanArchive:
         self._check_open()
         wanted = list(wanted)
         for i in wanted:
-            if not 0 <= i < self.frame_count:
-                raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+            self._check_index(i)
         bag = self.bag
         assert bag is not None
         for i, points, raw, field in iter_bag_frames(
@@ -315,8 +313,7 @@ class ScanArchive:
             return
         self._check_open()
         for i in wanted:
-            if not 0 <= i < self.frame_count:
-                raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
+            self._check_index(i)
             ref = self.meta.frames[i]
             if point_suffix(ref.file) not in TIMED_FRAME_SUFFIXES:
                 yield i, self.read_frame(i), None
@@ -434,6 +431,10 @@ class ScanArchive:
     def _check_open(self) -> None:
         if self._closed:
             raise ArchiveError("the archive is closed", archive=self.name)
+
+    def _check_index(self, i: int) -> None:
+        if not 0 <= i < self.frame_count:
+            raise IndexError(f"frame {i} out of range: the archive has {self.frame_count}")
 
 
 def open_archive(
