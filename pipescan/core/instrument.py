@@ -691,11 +691,8 @@ def partial_view_gate_m(instrument: Instrument, registration: RegistrationParams
     wide gate: one-sided pulls, which tilt the frame toward what the map holds, and the
     next keyframe carries that on. A true correspondence lies within the map's sampling
     (a voxel's half-diagonal, √3/2 × ``voxel_m``) and the range noise (1σ: a noisier true
-    match gated out drops evenly from either side; a false one admitted pulls one way).
-    On the sweep's eight rosette draws this gate (3.0-5.8 cm) against 8 cm took the ok
-    sections from 122 to 204, those off by more than 2 pp from 42 to 30, and the draws with
-    slides from two to none
-    (docs/history/instruments.md). A full view keeps the parameters' gate, which is ICP's
+    match gated out drops evenly from either side; a false one admitted pulls one way;
+    measured: docs/instrument.md). A full view keeps the parameters' gate, which is ICP's
     reach under the crawler's vibration.
 
     >>> from pipescan.core.registration import RegistrationParams

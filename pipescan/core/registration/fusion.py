@@ -636,9 +636,8 @@ usual travel a frame (:func:`standstill_allowance`): stopped for at least half t
 interval. Halfway between standing (0) and the usual travel (1), it leaves the same margin
 each side: a moving count departs from 1 by the crawler's speed changes and the odometer's
 noise (±10 % and 1-2 mm on a 15 mm step a frame: under a fifth), a standing one from 0 by
-its noise alone. On random layout 2 a moving count advanced 0.88-1.17 of its usual travel a
-registered frame and a standing one under 0.15 of it; a crawler slowed below half its speed
-where nothing is in view gets a wider ±, the safe side."""
+its noise alone. A crawler slowed below half its speed where nothing is in view gets a wider
+±, the safe side (measured: docs/registration.md, *When the count stood*)."""
 
 
 def standstill_allowance(
