@@ -608,8 +608,9 @@ def _fmt_mb(b: float) -> str:
     return f"{b / 2**20:,.0f}"
 
 
-EVERY_FRAME = {"PIPESCAN_FRAME_STRIDE": "1"}
-"""The environment of a run that registers every frame: what a speed-up is compared with."""
+EVERY_FRAME = {"PIPESCAN_FRAME_STRIDE": "1", "PIPESCAN_PLACED_SHARE": "1"}
+"""The environment of a run that registers every frame and places every point of it: what a
+speed-up is compared with."""
 
 SHARE_LOSS_MAX_PP = 1.0
 """A speed-up that measures a share of the fully seen sections more than this many points
@@ -828,8 +829,9 @@ def main() -> None:
     r.add_argument(
         "--every-frame",
         action="store_true",
-        help="also run each scan registering every frame (PIPESCAN_FRAME_STRIDE=1), and compare "
-        "coverage and the share of fully seen sections measured",
+        help="also run each scan registering every frame and placing every point "
+        "(PIPESCAN_FRAME_STRIDE=1, PIPESCAN_PLACED_SHARE=1), and compare coverage and the share "
+        "of fully seen sections measured",
     )
     args = parser.parse_args()
     if args.command == "prepare":

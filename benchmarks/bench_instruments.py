@@ -67,19 +67,23 @@ def _defects_found(scan, truth, sections) -> tuple[int, int]:
     return found, total
 
 
-def run_draw(name: str, count: int, seed: int, before: bool = False) -> dict:
+def run_draw(
+    name: str, count: int, seed: int, before: bool = False, placed_share: float | None = None
+) -> dict:
     """One draw, inspected in memory and scored; a run that stops with an error (as the
     inspection would, with one line and nothing stored) is a row that says so."""
     from pipescan.core.errors import PipescanError
 
     started = time.perf_counter()
     try:
-        return _run_draw(name, count, seed, before)
+        return _run_draw(name, count, seed, before, placed_share)
     except PipescanError as exc:
         return {"name": name, "error": str(exc), "seconds": time.perf_counter() - started}
 
 
-def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
+def _run_draw(
+    name: str, count: int, seed: int, before: bool, placed_share: float | None = None
+) -> dict:
     from pipescan.simulator.scan import simulate_scan
     from pipescan.simulator.sweep import (
         DISHONEST_PP,
@@ -100,7 +104,7 @@ def _run_draw(name: str, count: int, seed: int, before: bool) -> dict:
         sections = measure_cloud_scan(scan)
     else:
         instrument = scan_instrument(scan)
-        trajectory, sections = measure_scan(scan, instrument=not before)
+        trajectory, sections = measure_scan(scan, instrument=not before, placed_share=placed_share)
     truth = TrueBlockage(scan)
     by_start = {round(sec.chainage_start_m, 3): sec for sec in sections}
     # Fully seen within pipescan's section range (5 m): the truth's coverage counts every
@@ -263,6 +267,13 @@ def main() -> None:
         help="leave the scan's instrument out: pipescan as it measured before it read it",
     )
     parser.add_argument(
+        "--placed-share",
+        type=float,
+        default=None,
+        help="the share of each frame's points placed in the sections (1: every point); "
+        "default: chosen per scan, as the flow chooses it",
+    )
+    parser.add_argument(
         "--findings",
         action="store_true",
         help="issue 50's three findings (early returns, a rosette with and without the stride), "
@@ -282,7 +293,10 @@ def main() -> None:
     results = []
     with ProcessPoolExecutor(args.workers) as pool:
         n = len(names)
-        for r in pool.map(run_draw, names, [args.count] * n, [args.seed] * n, [args.before] * n):
+        shares = [args.placed_share] * n
+        for r in pool.map(
+            run_draw, names, [args.count] * n, [args.seed] * n, [args.before] * n, shares
+        ):
             results.append(r)
             print(row(r), flush=True)
     print()

@@ -72,8 +72,15 @@ class Settings(BaseSettings):
     frame_stride: int | None = Field(
         None,
         ge=1,
-        description="read and register every k-th frame (1: all); none: the largest k that "
-        "keeps each section's points and views and the local map (docs/throughput.md)",
+        description="register every k-th frame and track the others (1: all); every frame is "
+        "placed either way; none: the largest k the local map allows (docs/throughput.md)",
+    )
+    placed_share: float | None = Field(
+        None,
+        gt=0,
+        le=1,
+        description="share of each frame's points placed in the sections (1: every point); "
+        "none: twice what an inner section keeps, from the scan (docs/throughput.md)",
     )
     workers: int = Field(2, ge=1, description="parallel task workers")
     task_runner: Literal["threads", "processes"] = "threads"

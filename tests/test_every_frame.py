@@ -97,3 +97,62 @@ def test_a_frame_next_to_a_slide_or_beyond_the_registered_ones_is_not_placed(sha
     assert all(poses.pose(i) is None for i in range(a + 1, c))
     assert poses.pose(a) is not None and poses.pose(c) is not None
     assert poses.pose(strided.frame_indices[-1] + 1) is None
+
+
+def test_a_placed_share_keeps_every_frame_and_a_random_share_of_its_points(shaken):
+    """Each frame gives a random share of its points, the same share from every frame (none
+    left out), and the same points each run."""
+    _, frames, strided, _, along = shaken
+    source = [(i, p) for i, p, *_ in frames]
+    every = list(iter_registered_points(iter(source), strided, along))
+    share = list(iter_registered_points(iter(source), strided, along, placed_share=0.25))
+    again = list(iter_registered_points(iter(source), strided, along, placed_share=0.25))
+    assert len(share) == len(every) > 0
+    kept = np.array([len(s) / len(e) for s, e in zip(share, every, strict=True)])
+    assert np.all(np.abs(kept - 0.25) < 0.05), (kept.min(), kept.max())
+    assert all(np.array_equal(a, b) for a, b in zip(share, again, strict=True))
+    # The kept points are the frame's own points, placed where every point was placed.
+    first = {tuple(p) for p in np.round(every[0], 9)}
+    assert all(tuple(p) in first for p in np.round(share[0], 9))
+
+
+@pytest.fixture(scope="module")
+def slow_sections():
+    """A slow crawler in a 0.6 m pipe (0.1 m/s: each section passes about 300,000 points),
+    measured with every point placed and with the share the scan chooses."""
+    from pipescan.core.registration import choose_placed_share, sample_frame_indices
+    from pipescan.simulator.sweep import measure_scan
+
+    scene = get_scenario("long", travel_m=1.5, nominal_diameter_m=0.6, speed_m_s=0.1035)
+    scan = simulate_scan(scene, seed=3)
+    frames = [f.points_sensor for f in scan.frames()]
+    chosen = choose_placed_share(
+        [frames[i] for i in sample_frame_indices(len(frames))],
+        [f.odometer_m for f in scan.frames()],
+        max_range_m=5.0,
+        step_m=0.1,
+        section_points=40_000,
+    )
+    _, every = measure_scan(scan, placed_share=1.0)
+    _, placed = measure_scan(scan)
+    return chosen, every, placed
+
+
+@pytest.mark.slow
+def test_placing_a_share_of_each_frame_leaves_the_figures_as_every_point(slow_sections):
+    """The share keeps twice the points a section measures from: the sections measured, their
+    coverage and their figures are those of every point placed, within their sampling."""
+    chosen, every, placed = slow_sections
+    assert 0.1 < chosen.share < 0.5, chosen
+    assert [s.chainage_start_m for s in every] == [s.chainage_start_m for s in placed]
+    ok_every = {s.chainage_start_m for s in every if s.is_ok}
+    ok_placed = {s.chainage_start_m for s in placed if s.is_ok}
+    assert len(ok_every) >= 10
+    assert len(ok_every ^ ok_placed) <= 2, sorted(ok_every ^ ok_placed)
+    cov_e = np.mean([s.coverage_ratio or 0.0 for s in every])
+    cov_p = np.mean([s.coverage_ratio or 0.0 for s in placed])
+    assert abs(cov_e - cov_p) < 0.01
+    for a, b in zip(every, placed, strict=True):
+        if a.is_ok and b.is_ok:
+            both = a.blockage_uncertainty_ratio + b.blockage_uncertainty_ratio
+            assert abs(a.blockage_ratio - b.blockage_ratio) <= both, a.chainage_start_m

@@ -445,9 +445,11 @@ def _print_summary(summary, replaced: bool = False, unmeasured: list[str] | None
         tracked = summary.registration.get("frames_tracked")
         others = f"; {tracked:,} tracked between them" if tracked else ""
         content += f" ({read:,} registered: every {stride}{more}{others})"
-    typer.echo(
-        f"  {content}, {summary.point_count:,} points, {summary.scanned_length_m:.1f} m scanned"
-    )
+    share = (summary.registration or {}).get("placed_share")
+    points = f"{summary.point_count:,} points"
+    if share is not None and share < 1.0:
+        points += f" placed ({100 * share:.0f} % of each frame's, at random)"
+    typer.echo(f"  {content}, {points}, {summary.scanned_length_m:.1f} m scanned")
     typer.echo(f"  {plural(summary.section_count, 'section')}, {summary.sections_ok} measured")
     for line in unmeasured if unmeasured is not None else _raw_unmeasured_lines(summary):
         typer.echo(line)  # under the sections' line they break down

@@ -30,6 +30,7 @@ from pipescan.core.measures import MeasureParams, withhold_smeared_object_edges
 from pipescan.core.model import SectionMeasures
 from pipescan.core.registration import (
     FrameStride,
+    PlacedShare,
     RegistrationEvidence,
     RegistrationParams,
     Trajectory,
@@ -89,6 +90,9 @@ class InspectionParams:
     frame_stride: int | None = None
     """Register every k-th frame (the others are tracked, and every frame is placed); None:
     chosen from the scan (the largest k the local map allows: ``choose_frame_stride``)."""
+    placed_share: float | None = None
+    """The share of each frame's points placed in the sections (1: every point); None: chosen
+    from the scan (``choose_placed_share``: twice what an inner section keeps)."""
     threshold_table: str = DEFAULT_TABLE
     pipe_class: str = defaults.PIPE_CLASS
     blockage_threshold_ratio: float = FlagRule.blockage_threshold_ratio
@@ -300,6 +304,7 @@ class _Registered:
 
     instrument: Instrument | None
     stride: FrameStride
+    placed: PlacedShare
     registration: RegistrationParams
     measure: MeasureParams
     chunks: list[tuple[int, int]]
@@ -318,14 +323,23 @@ def _register(
     # scan: figures of the run, not of the stored parameters (the same archive and parameters
     # give the same instrument, so the stored hash still keys re-runs).
     survey = (
-        survey_scan(quote(staged), frame_stride=params.frame_stride, **params.stride_bounds())
+        survey_scan(
+            quote(staged),
+            frame_stride=params.frame_stride,
+            placed_share=params.placed_share,
+            **params.stride_bounds(),
+        )
         if staged.frame_count
         else None
     )
     instrument = survey.instrument if survey else None
     stride = survey.stride if survey else FrameStride(1, "a registered cloud")
+    placed = survey.placed if survey else PlacedShare(1.0)
     reg_params, measure_params = instrumented(params.registration, params.measure, instrument)
-    chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride)
+    # As many chunks as registering at once keeps every core busy to the end: the engine
+    # pool's processes, or the task runner's workers.
+    workers = pooled or get_settings().workers
+    chunks = plan_chunks(staged.frame_count, params.chunk_frames, stride.stride, workers)
     # Each frame is decoded once: registration keeps what the sections need here.
     frame_store = FrameStore(run_dir / "frames")
     trajectory, closer = None, 0
@@ -364,7 +378,15 @@ def _register(
             + (f", tracked {tracked}" if tracked else "")
         )
     return _Registered(
-        instrument, stride, reg_params, measure_params, chunks, frame_store, trajectory, closer
+        instrument,
+        stride,
+        placed,
+        reg_params,
+        measure_params,
+        chunks,
+        frame_store,
+        trajectory,
+        closer,
     )
 
 
@@ -445,6 +467,7 @@ def _place_and_measure(
             bucket_root,
             params.max_section_range_m,
             scan.frame_store,
+            scan.placed.share,
         )
 
     def measure(w: int, after: list):
@@ -567,6 +590,9 @@ def _grade_and_store(
         | {
             "frame_stride": scan.stride.stride,
             "frame_stride_reason": scan.stride.reason,
+            "placed_share": scan.placed.share,
+            "points_per_section": scan.placed.points_per_section,
+            "section_points": scan.placed.section_points,
             "frames_looked_closer": scan.closer,
         }
         | instrument_summary(scan.instrument)

@@ -216,6 +216,7 @@ def params_from_settings(settings, *, contour: str | None = None, registration: 
         window_m=settings.window_m,
         chunk_frames=settings.chunk_frames,
         frame_stride=settings.frame_stride,
+        placed_share=settings.placed_share,
         threshold_table=settings.threshold_table,
         pipe_class=settings.pipe_class,
         blockage_threshold_ratio=settings.blockage_threshold_ratio,

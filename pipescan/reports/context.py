@@ -567,6 +567,16 @@ def _registration_only_rows(inp: ReportInput) -> list[tuple[str, str]]:
                 + (f"; {fmt_int(lost)} that could not be are left out" if lost else "")
             )
             frame_rows = [("frames registered", chosen), ("frames placed", placed)]
+    share, per_section = reg.get("placed_share"), reg.get("points_per_section")
+    if _finite(share) and share < 1.0:
+        kept = reg.get("section_points")
+        of = (
+            f": an inner section gets about {fmt_int(int(round(share * per_section, -3)))} of its "
+            f"{fmt_int(int(round(per_section, -3)))} and measures from {fmt_int(kept)} of them"
+            if _finite(per_section) and kept
+            else ""
+        )
+        frame_rows.append(("points placed", f"{fmt_pct(share, 0)} of each frame's, at random{of}"))
     rows = [
         *frame_rows,
         ("scan matching", _matching_words(engine)),

@@ -742,6 +742,7 @@ def measure_scan(
     params: RegistrationParams | None = None,
     frame_stride: int | None = None,
     instrument: bool = True,
+    placed_share: float | None = None,
 ):
     """The inspect flow's stages on a simulated scan, in memory and without Prefect: the
     scan's instrument (:func:`scan_instrument`) applied to the parameters, registration in
@@ -752,7 +753,9 @@ def measure_scan(
     (the flow buckets points on disk instead). ``params``: the ``RegistrationParams`` to
     register with (the defaults when None). ``frame_stride``: every k-th frame is used (and
     the last), as the flow does; None chooses it as the flow does (every frame for a partial
-    view, else ``choose_frame_stride``).
+    view, else ``choose_frame_stride``). ``placed_share``: the share of each frame's points
+    placed in the sections (1: every point); None chooses it as the flow does
+    (``choose_placed_share``).
 
     Returns
     -------
@@ -764,8 +767,10 @@ def measure_scan(
     from pipescan.core.registration import (
         FramePoses,
         RegistrationParams,
+        choose_placed_share,
         iter_registered_points,
         registration_evidence,
+        sample_frame_indices,
     )
     from pipescan.core.sections import measure_window, plan_windows
     from pipescan.core.water import confirm_surfaceless_water, explain_invert_shadows, sensor_sight
@@ -785,7 +790,20 @@ def measure_scan(
         (i, p[np.einsum("ij,ij->i", p, p) <= max_section_range_m**2]) for i, p, _, _ in frames
     )
     along = FramePoses.along_from([float(t) for t in scan.times_s], [f[2] for f in frames])
-    points = np.concatenate(list(iter_registered_points(cropped, trajectory, along)))
+    placed = (
+        placed_share
+        if placed_share is not None
+        else choose_placed_share(
+            [frames[i][1] for i in sample_frame_indices(len(frames))],
+            [f[2] for f in frames],
+            max_range_m=max_section_range_m,
+            step_m=0.1,
+            section_points=measure.max_points,
+        ).share
+    )
+    points = np.concatenate(
+        list(iter_registered_points(cropped, trajectory, along, placed_share=placed))
+    )
     positions = trajectory.positions_m()
     axis = fit_axis(
         points,

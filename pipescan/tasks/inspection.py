@@ -28,10 +28,12 @@ from pipescan.core.measures import MeasureParams
 from pipescan.core.model import Defect, SectionMeasures
 from pipescan.core.registration import (
     FrameStride,
+    PlacedShare,
     RegistrationEvidence,
     RegistrationParams,
     Trajectory,
     choose_frame_stride,
+    choose_placed_share,
     iter_registered_points,
     sample_frame_indices,
 )
@@ -114,6 +116,7 @@ class ScanSurvey:
 
     instrument: Instrument
     stride: FrameStride
+    placed: PlacedShare
 
 
 @task(name="survey-scan", cache_policy=NO_CACHE)
@@ -125,6 +128,7 @@ def survey_scan(
     section_points: int,
     keyframe_distance_m: float,
     frame_stride: int | None = None,
+    placed_share: float | None = None,
 ) -> ScanSurvey:
     """The scan's instrument (:func:`~pipescan.core.instrument.estimate_instrument`:
     ``inspection.toml``'s ``[sensor]`` where it says, the frames otherwise) and which frames
@@ -145,28 +149,45 @@ def survey_scan(
         sample, [read[i] for i in run_at], max_range_m=max_range_m, profile=meta.sensor
     )
     log.info(instrument.describe())
+    odometer = [f.odometer_m for f in meta.frames] if meta.frames else None
     if frame_stride:
         stride = FrameStride(frame_stride, "set for the run")
     else:
         stride = partial_view_stride(instrument) or choose_frame_stride(
             sample,
-            [f.odometer_m for f in meta.frames] if meta.frames else None,
+            odometer,
             max_range_m=max_range_m,
             step_m=step_m,
             section_points=section_points,
             keyframe_distance_m=keyframe_distance_m,
         )
     log.info(stride.describe(n))
-    return ScanSurvey(instrument, stride)
+    placed = (
+        PlacedShare(placed_share)
+        if placed_share
+        else choose_placed_share(
+            sample,
+            odometer,
+            max_range_m=max_range_m,
+            step_m=step_m,
+            section_points=section_points,
+        )
+    )
+    log.info(placed.describe())
+    return ScanSurvey(instrument, stride, placed)
 
 
-def _frame_points_world(arc, trajectory: Trajectory, indices, max_range_m: float, along=None):
+def _frame_points_world(
+    arc, trajectory: Trajectory, indices, max_range_m: float, along=None, placed_share=1.0
+):
     def cropped():
         for i, pts, time_s in arc.iter_timed_frames(indices):
             yield i, *crop_timed(pts, time_s, max_range_m)
 
     times = [f.time_s for f in arc.meta.frames]
-    yield from iter_registered_points(cropped(), trajectory, along, times)
+    yield from iter_registered_points(
+        cropped(), trajectory, along, times, placed_share=placed_share
+    )
 
 
 def _stored_frames(
@@ -310,6 +331,7 @@ def bucket_points(
     bucket_root: Path,
     max_range_m: float,
     frame_store: FrameStore | None = None,
+    placed_share: float = 1.0,
 ) -> Bucketed:
     """Write the points of every frame ``first..last`` (or the cloud) into window files:
     registered frames by their poses, the frames between them by interpolated ones
@@ -320,7 +342,8 @@ def bucket_points(
     With ``frame_store``, the frames are those :func:`register_chunk` stored for the chunk
     that starts at ``first`` (already cropped to ``max_range_m``): the archive is not read.
     A registered cloud that :func:`fit_pipe_axis` kept there is placed by rows: ``first`` to
-    ``last`` (exclusive).
+    ``last`` (exclusive). ``placed_share``: the share of each frame's points placed
+    (:func:`~pipescan.core.registration.stride.choose_placed_share`); a cloud's every row.
     """
     if trajectory is None and frame_store is not None and frame_store.cloud_rows():
         rows = frame_store.read_cloud_rows(first, last)
@@ -333,14 +356,16 @@ def bucket_points(
         final = last == staged.frame_count - 1
         frames = (f for f in frame_store.iter_timed_frames(first) if f[0] < last or final)
         times = [f.time_s for f in staged.meta.frames]
-        placed = iter_registered_points(frames, trajectory, along, times)
+        placed = iter_registered_points(frames, trajectory, along, times, placed_share=placed_share)
         return write_buckets(placed, axis, windows, bucket_root, tag)
     with staged.reopen() as arc:
         if trajectory is None:
             chunks = (chunk.points for chunk in arc.iter_cloud())
             return write_buckets(chunks, axis, windows, bucket_root, "cloud")
         stop = last + 1 if last == staged.frame_count - 1 else last
-        placed = _frame_points_world(arc, trajectory, range(first, stop), max_range_m, along)
+        placed = _frame_points_world(
+            arc, trajectory, range(first, stop), max_range_m, along, placed_share
+        )
         return write_buckets(placed, axis, windows, bucket_root, tag)
 
 

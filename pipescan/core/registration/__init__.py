@@ -83,7 +83,9 @@ from pipescan.core.registration.registrar import (
 )
 from pipescan.core.registration.stride import (
     FrameStride,
+    PlacedShare,
     choose_frame_stride,
+    choose_placed_share,
     frames_to_register,
     is_stride_frame,
     sample_frame_indices,
@@ -109,6 +111,7 @@ __all__ = [
     "FrameRegistrar",
     "FrameStride",
     "LocalMap",
+    "PlacedShare",
     "RegistrationEngine",
     "RegistrationEvidence",
     "RegistrationMethod",
@@ -120,6 +123,7 @@ __all__ = [
     "axial_information",
     "chain_trajectories",
     "choose_frame_stride",
+    "choose_placed_share",
     "chunk_frame_indices",
     "degenerate_directions",
     "degenerate_spans",

@@ -170,15 +170,11 @@ def choose_frame_stride(
         if odometer_m is None or any(v is None for v in odometer_m):
             return FrameStride(1, "no odometer: the frames' spacing is not known")
         return FrameStride(1, "too few frames, or no travel, to tell the frames' spacing")
-    in_range = [
-        f[np.einsum("ij,ij->i", f, f) <= max_range_m**2]
-        for f in (np.asarray(s, dtype=np.float64) for s in sample_frames)
-    ]
+    in_range = _in_range(sample_frames, max_range_m)
     if not in_range:
         return FrameStride(1, "no frame to sample", d)
-    n = float(np.percentile([len(f) for f in in_range], 25))
+    per_section = _points_per_section(in_range, d, step_m)
     length = float(np.median([view_length(f) for f in in_range]))
-    per_section = n * step_m / d  # with every frame placed
     if length == 0.0:
         return FrameStride(
             1, "one ring a frame (a profiler): every frame registered", d, per_section, length
@@ -191,6 +187,91 @@ def choose_frame_stride(
         f"groups {FRAMES_PER_KEYFRAME} or more registered frames)"
     )
     return FrameStride(stride, reason, d, per_section, length)
+
+
+def _in_range(sample_frames: Sequence[np.ndarray], max_range_m: float) -> list[np.ndarray]:
+    return [
+        f[np.einsum("ij,ij->i", f, f) <= max_range_m**2]
+        for f in (np.asarray(s, dtype=np.float64) for s in sample_frames)
+    ]
+
+
+def _points_per_section(in_range: list[np.ndarray], d: float, step_m: float) -> float:
+    """Points an inner section gets with every frame placed: a frame's points in range (the
+    sample's 25th percentile) times the frames that pass over a section (``step / d``)."""
+    return float(np.percentile([len(f) for f in in_range], 25)) * step_m / d
+
+
+PLACE_MARGIN = 2.0
+"""How many times the points a section keeps (``MeasureParams.max_points``) an inner section
+still gets when each frame's points are placed at :func:`choose_placed_share`'s share. A
+section keeps a random share of its points once it holds more than it keeps
+(``sections.iter_section_points``); placing a random share of each frame first draws the
+same kind of sample, so the figures do not change while a section still holds more than it
+keeps. Twice: the estimate is of an inner section seen as the crawler passes at its fastest,
+and a section half hidden (a shadow, a stretch the crawler crossed quicker) still fills."""
+
+
+@dataclass(frozen=True)
+class PlacedShare:
+    """The share of each frame's points (in the sections' range) that is placed in the
+    sections, and the figures behind it."""
+
+    share: float
+    points_per_section: float | None = None
+    section_points: int | None = None
+
+    def describe(self) -> str:
+        """One line for the log."""
+        if self.share >= 1.0:
+            return "every point of every frame placed in the sections"
+        return (
+            f"{100 * self.share:.0f} % of each frame's points placed in the sections, at random: "
+            f"an inner section gets about {self.share * (self.points_per_section or 0):,.0f} "
+            f"of its {self.points_per_section or 0:,.0f} and keeps {self.section_points:,}"
+        )
+
+
+def choose_placed_share(
+    sample_frames: Sequence[np.ndarray],
+    odometer_m: Sequence[float | None] | np.ndarray | None,
+    *,
+    max_range_m: float,
+    step_m: float,
+    section_points: int,
+) -> PlacedShare:
+    """The share of each frame's points to place: ``PLACE_MARGIN`` times the points a
+    section keeps over the points an inner section gets with every point placed, at most 1.
+    Every frame is placed either way, so a section's coverage (which frames saw which part
+    of it) is what it is with every point; only the sample each section keeps is drawn
+    earlier. 1 without an odometer (the frames' spacing, and so a section's points, is not
+    known). Sections that few frames reach (the run's ends) hold fewer points than before
+    where they held more than they keep; their ± says so.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(0)
+    >>> a = rng.uniform(0, 2 * np.pi, 30_000)
+    >>> tube = np.column_stack((rng.uniform(0.5, 4.5, 30_000), 0.3 * np.cos(a),
+    ...                         0.3 * np.sin(a)))
+    >>> slow = np.arange(600) * 0.01  # 0.1 m/s at 10 Hz: 300,000 points a section
+    >>> round(choose_placed_share([tube] * 3, slow, max_range_m=5.0, step_m=0.1,
+    ...                           section_points=40_000).share, 4)  # 2 × 40,000 / 300,000
+    0.2667
+    >>> fast = np.arange(600) * 0.05  # 60,000 points a section: every point
+    >>> choose_placed_share([tube] * 3, fast, max_range_m=5.0, step_m=0.1,
+    ...                     section_points=40_000).share
+    1.0
+    """
+    d = travel_per_frame(odometer_m)
+    in_range = _in_range(sample_frames, max_range_m)
+    if d is None or not in_range:
+        return PlacedShare(1.0)
+    per_section = _points_per_section(in_range, d, step_m)
+    if per_section <= 0:
+        return PlacedShare(1.0)
+    share = min(1.0, PLACE_MARGIN * section_points / per_section)
+    return PlacedShare(share, per_section, section_points)
 
 
 LOOK_CLOSER_SIGMAS = 2.0

@@ -92,14 +92,19 @@ class Trajectory:
         return int((~np.isfinite(self.T_world_tracked).all(axis=(1, 2))).sum())
 
 
-def plan_chunks(frame_count: int, chunk_frames: int, stride: int = 1) -> list[tuple[int, int]]:
+def plan_chunks(
+    frame_count: int, chunk_frames: int, stride: int = 1, workers: int = 1
+) -> list[tuple[int, int]]:
     """Split frames into chunks ``[first, last]`` (inclusive) that overlap by one frame.
 
     The shared frame lets consecutive chunks, registered independently and in parallel, be
     chained into one trajectory. With ``stride`` k, a chunk holds at most ``chunk_frames``
     of the frames used (every k-th, and the last: :func:`chunk_frame_indices`). The chunks
-    are as few as that allows, and as equal as they can be: a short last chunk would leave a
-    core idle at the end of registration while another chunk finishes.
+    are as few as that allows and as equal as they can be, and where there are more than
+    one, their count is a multiple of ``workers`` (the chunks registered at once): a short
+    last chunk, or a last round with fewer chunks than workers, would leave a core idle at
+    the end of registration while another chunk finishes (7 chunks on 2 workers: a core
+    idle for an eighth of the time).
 
     Examples
     --------
@@ -107,6 +112,10 @@ def plan_chunks(frame_count: int, chunk_frames: int, stride: int = 1) -> list[tu
     [(0, 3), (3, 6), (6, 9)]
     >>> plan_chunks(12, 5)
     [(0, 4), (4, 7), (7, 11)]
+    >>> plan_chunks(12, 5, workers=2)
+    [(0, 3), (3, 6), (6, 8), (8, 11)]
+    >>> plan_chunks(4, 5, workers=2)  # one chunk is not split
+    [(0, 3)]
     """
     if frame_count <= 0:
         return []
@@ -114,6 +123,8 @@ def plan_chunks(frame_count: int, chunk_frames: int, stride: int = 1) -> list[tu
     used = used_frame_indices(frame_count, stride)
     steps = len(used) - 1  # frame-to-frame steps; each chunk takes a run of them
     count = max(1, -(-steps // (chunk_frames - 1)))
+    if count > 1 and workers > 1:
+        count = min(steps, -(-count // workers) * workers)
     bounds = [round(i * steps / count) for i in range(count + 1)]
     return [(used[a], used[b]) for a, b in itertools.pairwise(bounds)]
 
@@ -307,10 +318,16 @@ def iter_registered_points(
     trajectory: Trajectory,
     along: Sequence[float | None] | None = None,
     frame_time_s: Sequence[float | None] | None = None,
+    *,
+    placed_share: float = 1.0,
 ) -> Iterator[np.ndarray]:
     """Transform frames into the world frame, one at a time, (N, 3) each: registered frames
     by their own pose, the frames between them by an interpolated one (:class:`FramePoses`,
     with ``along``).
+
+    With ``placed_share`` under 1, each frame's points are a random share of them (drawn with
+    the frame's index as the seed: a run places the same points each time; the share's rule:
+    :func:`~pipescan.core.registration.stride.choose_placed_share`).
 
     A frame given as ``(index, points, point_time_s)`` with times (N,) s is deskewed first
     (:func:`~pipescan.core.registration.deskew.deskew_points`) by the registered travel
@@ -328,8 +345,13 @@ def iter_registered_points(
         pose = poses.pose(frame_index)
         if pose is None:
             continue
-        pts = np.asarray(points, dtype=np.float64)
         point_time_s = rest[0] if rest else None
+        if placed_share < 1.0:
+            keep = np.random.default_rng(frame_index).random(len(points)) < placed_share
+            points = np.compress(keep, points, axis=0)
+            if point_time_s is not None:
+                point_time_s = np.compress(keep, point_time_s)
+        pts = np.asarray(points, dtype=np.float64)
         if point_time_s is not None and frame_time_s is not None:
             motion = _registered_motion(poses, frame_index, frame_time_s)
             if motion is not None:
