@@ -111,7 +111,12 @@ def detect_water(
     if run is None:
         return None
     xy = np.asarray(points, dtype=np.float64)[:, :2]
-    sides = _wall_edges(xy, run, len(angles_rad), wall_radius_m, sigma_m)
+    # Rule: the depth is counted from the bottom of the section's own wall circle, not from
+    # the axis less the radius. Why: the registered cloud's wall may lie off the fitted axis
+    # by more than a centimetre where the frames were seen from afar (docs/measures.md).
+    centre_m, radius_m = _wall_circle(angles_rad, radii_m, seen, run)
+    invert_m = centre_m[1] - radius_m
+    sides = _wall_edges(xy, run, len(angles_rad), centre_m, radius_m, sigma_m)
     edges = [e.level_m for e in sides] if sides else [0.0, 0.0]
     tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(2.0 * math.pi / len(seen))
     if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
@@ -122,11 +127,6 @@ def detect_water(
     if len(surface_y) > typical / 3.0 * len(run):
         # As dense as a wall: a deposit's top seen along part of the section (its shadow).
         return None
-    # Rule: the depth is counted from the bottom of the section's own wall circle, not from
-    # the axis less the radius. Why: the registered cloud's wall may lie off the fitted axis
-    # by more than a centimetre where the frames were seen from afar (docs/measures.md).
-    up_m, radius_m = _wall_circle(angles_rad, radii_m, seen, run)
-    invert_m = up_m - radius_m
     if len(surface_y) < MIN_SURFACE_POINTS:
         # No surface seen: water whose surface returns nothing, or a view that stops short of
         # the invert. One section cannot tell; the sections along the pipe can
@@ -201,7 +201,12 @@ class _Edge:
 
 
 def _wall_edges(
-    xy: np.ndarray, run: np.ndarray, bins: int, wall_radius_m: float, sigma_m: float
+    xy: np.ndarray,
+    run: np.ndarray,
+    bins: int,
+    centre_m: tuple[float, float],
+    wall_radius_m: float,
+    sigma_m: float,
 ) -> list[_Edge] | None:
     """Where the wall stops on each side of ``run``, from its points at the wall in the
     nearest bin (or the next one when that holds nothing); None when a side has none.
@@ -213,8 +218,11 @@ def _wall_edges(
     deeper by half a bin (0.2 pp at 1°, 1.3 pp at 6°: docs/measures.md).
     """
     dtheta = 2.0 * math.pi / bins
-    ang, rad = polar_coordinates(xy)
+    ang, _ = polar_coordinates(xy)
     b_idx = np.minimum((ang / dtheta).astype(np.int64), bins - 1)
+    # At the wall: around its own circle, not the axis (off it, the axis would cut the
+    # scatter on one side and lift the median height: 3 mm with the wall 12 mm low).
+    rad = np.hypot(xy[:, 0] - centre_m[0], xy[:, 1] - centre_m[1])
     at_wall = np.abs(rad - wall_radius_m) <= max(3.0 * sigma_m, 0.01)
     edges = []
     for b, away in (((run[0] - 1) % bins, -1), ((run[-1] + 1) % bins, 1)):
@@ -255,8 +263,8 @@ def _edge_uncertainty_m(sides: list[_Edge], sigma_m: float) -> float:
 
 def _wall_circle(
     angles_rad: np.ndarray, radii_m: np.ndarray, seen: np.ndarray, run: np.ndarray
-) -> tuple[float, float]:
-    """The height of the centre of the section's own wall above the axis, and its radius,
+) -> tuple[tuple[float, float], float]:
+    """The centre of the section's own wall (across, up from the axis) and its radius,
     metres: the seen bins' radii outside ``run`` fitted by ``R + x cos θ + y sin θ``
     (a circle off the axis by ``(x, y)``, for offsets small against ``R``) plus
     ``a cos 2θ + b sin 2θ`` (an oval: a deformation that flattens the crown would otherwise
@@ -265,7 +273,7 @@ def _wall_circle(
     where the bins kept do not ring the pipe (:func:`_rings_the_pipe`)."""
     use = seen & np.isfinite(radii_m)
     use[run] = False
-    fallback = 0.0, float(np.median(radii_m[use])) if use.any() else 0.0
+    fallback = (0.0, 0.0), float(np.median(radii_m[use])) if use.any() else 0.0
     if use.sum() < 12:
         return fallback
     theta, radii = angles_rad[use], radii_m[use]
@@ -288,7 +296,7 @@ def _wall_circle(
     # The radius: the median distance of the wall from that centre, as the axis's is, so an
     # oval's flattened crown does not shrink it.
     x, y = radii * np.cos(theta) - fit[1], radii * np.sin(theta) - fit[2]
-    return float(fit[2]), float(np.median(np.hypot(x, y)[keep]))
+    return (float(fit[1]), float(fit[2])), float(np.median(np.hypot(x, y)[keep]))
 
 
 def _rings_the_pipe(angles_rad: np.ndarray, bins: int) -> bool:
