@@ -146,7 +146,7 @@ def detect_water(
     if depth <= 0:
         return None
     # The surface and the wall's edge are two readings of one level: either may be the one
-    # off (a few stray returns taken for a surface read 1-2 pp deep on ``hap 8``).
+    # off (a few stray returns taken for a surface read up to 1.8 pp deep on ``hap 8``).
     spread = MAD_TO_SIGMA * float(np.median(np.abs(surface_y - level)))
     noise = Z95 * MEDIAN_EFFICIENCY * spread / math.sqrt(len(surface_y))
     u = (noise + abs(level - edge_level)) / nominal_diameter_m
