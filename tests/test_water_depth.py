@@ -105,6 +105,26 @@ def test_the_stated_plus_minus_holds_the_truth_on_nine_in_ten_seeded_sections():
     assert held >= 0.9 * total
 
 
+def test_water_read_from_its_surface_has_a_plus_minus_too():
+    # A line of returns on the surface: the level is their median, and the ± holds how far
+    # it lies from where the wall stops.
+    rng = np.random.default_rng(5)
+    level = -RADIUS_M + 0.06 * DIAMETER_M
+    half = np.sqrt(RADIUS_M**2 - level**2) - 0.02
+    x = rng.uniform(-half, half, 150)
+    surface = np.column_stack((x, level + rng.normal(0, 0.003, 150), rng.uniform(0, 0.1, 150)))
+    section = _measure(np.vstack((_water_section(0.06), surface)))
+    assert section.water_from_surface is True
+    assert section.water_depth_uncertainty_ratio is not None
+    assert abs(section.water_depth_ratio - 0.06) <= section.water_depth_uncertainty_ratio
+    # A "surface" of stray returns 1 cm above where the wall stops: the ± covers the gap.
+    high = surface + np.array([0.0, 0.01, 0.0])
+    stray = _measure(np.vstack((_water_section(0.06), high)))
+    assert stray.water_from_surface is True
+    assert stray.water_depth_ratio - 0.06 == pytest.approx(0.025, abs=0.003)
+    assert abs(stray.water_depth_ratio - 0.06) <= stray.water_depth_uncertainty_ratio
+
+
 def test_the_plus_minus_goes_where_the_depth_goes():
     section = _measure(_water_section(0.06))
     assert section.water_depth_uncertainty_ratio is not None

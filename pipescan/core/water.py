@@ -301,8 +301,9 @@ def _wall_circle(
 
 def _rings_the_pipe(angles_rad: np.ndarray, bins: int) -> bool:
     """Whether the wall bins a circle was fitted to hold a third of each quadrant above the
-    water (right, crown, left): one side's arc alone lets the centre slide (on ``hap 16``,
-    9 mm low where an obstacle hid the crown and the left wall)."""
+    water (right, crown, left): the arcs left beside a hidden quarter let the centre slide
+    along them (on ``hap 12`` at 2.6-2.8 m, the obstacle hanging from the crown hides it, and
+    the axis stands there)."""
     quadrant = np.round(np.mod(angles_rad, 2.0 * math.pi) / (0.5 * math.pi)).astype(np.int64) % 4
     held = np.bincount(quadrant, minlength=4)
     return bool(np.all(held[:3] >= bins / 12.0))
