@@ -117,22 +117,27 @@ def detect_water(
     centre_m, radius_m = _wall_circle(angles_rad, radii_m, seen, run)
     invert_m = centre_m[1] - radius_m
     sides = _wall_edges(xy, run, len(angles_rad), centre_m, radius_m, sigma_m)
-    edges = [e.level_m for e in sides] if sides else [0.0, 0.0]
+    if sides is None:
+        return None  # no wall on a side
+    # Whether this is water is told from the edge bins' medians, as it was tuned; the depth
+    # from where the wall stops below them.
+    medians = [e.level_m + e.rise_m for e in sides]
     tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(2.0 * math.pi / len(seen))
-    if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
-        return None  # no wall on a side, the sides at different heights, or above the axis
+    if abs(medians[0] - medians[1]) > tolerance or max(medians) >= 0.0:
+        return None  # the sides at different heights, or above the axis
     raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
-    edge_level = 0.5 * (edges[0] + edges[1])
-    surface_y = _surface_returns(raw, run, len(seen), edge_level, tolerance, wall_radius_m, sigma_m)
+    window = 0.5 * (medians[0] + medians[1])
+    surface_y = _surface_returns(raw, run, len(seen), window, tolerance, wall_radius_m, sigma_m)
     if len(surface_y) > typical / 3.0 * len(run):
         # As dense as a wall: a deposit's top seen along part of the section (its shadow).
         return None
+    edge_level = 0.5 * (sides[0].level_m + sides[1].level_m)
     if len(surface_y) < MIN_SURFACE_POINTS:
         # No surface seen: water whose surface returns nothing, or a view that stops short of
         # the invert. One section cannot tell; the sections along the pipe can
         # (:func:`confirm_surfaceless_water`).
         depth = (edge_level - invert_m) / nominal_diameter_m
-        if depth <= 0 or sides is None:
+        if depth <= 0:
             return None
         u = _edge_uncertainty_m(sides, sigma_m) / nominal_diameter_m
         return WaterLevel(edge_level, depth, run, from_surface=False, uncertainty_ratio=u)
@@ -270,7 +275,8 @@ def _wall_circle(
     ``a cos 2θ + b sin 2θ`` (an oval: a deformation that flattens the crown would otherwise
     pull the centre down, 9 mm on ``hap 16``), bins further off than three times their
     robust spread (an obstacle's face, a deposit) left out. The axis and the median radius
-    where the bins kept do not ring the pipe (:func:`_rings_the_pipe`)."""
+    where the bins kept do not ring the pipe (:func:`_rings_the_pipe`), or where the offset
+    up is within twice its standard error."""
     use = seen & np.isfinite(radii_m)
     use[run] = False
     fallback = (0.0, 0.0), float(np.median(radii_m[use])) if use.any() else 0.0
@@ -292,6 +298,12 @@ def _wall_circle(
         if keep.sum() < 12:
             return fallback
     if not _rings_the_pipe(theta[keep], len(angles_rad)):
+        return fallback
+    # Only an offset the bins show clearly (over twice its standard error): a sparse ring's
+    # few noisy bins would move the invert by more than they correct (on a ring profiler's
+    # 18-24 bins at 15 mm of noise, 5-12 mm where the axis was true).
+    cov = spread**2 * np.linalg.pinv(design[keep].T @ design[keep])
+    if abs(fit[2]) <= 2.0 * math.sqrt(max(float(cov[2, 2]), 0.0)):
         return fallback
     # The radius: the median distance of the wall from that centre, as the axis's is, so an
     # oval's flattened crown does not shrink it.
