@@ -18,7 +18,8 @@ whose figure, a lower bound, is over the truth by more than 2 pp everywhere with
 defects over 5 % that the run coded (a defect as the report lists it, overlapping the true
 span widened by the sections' chainage ±), the frames flagged as
 slides, the chainage ± at the end against what the odometer's stated error and the slips
-caught allow, and the water read where water returned nothing. The last lines compare every
+caught allow, and the water read where water returned nothing: its sections, their median
+depth error and how many hold the truth within their stated ±. The last lines compare every
 row with issue 50's targets.
 """
 
@@ -39,7 +40,8 @@ TARGET_SLIDES = 0.02
 
 HEADER = (
     "| draw | instrument (estimated) | fully seen, away from edges | ok | mean pp | max pp | "
-    "dishonest | defects > 5 % found | slides | ± end (allowed) m | water read (depth err pp) "
+    "dishonest | defects > 5 % found | slides | ± end (allowed) m | water read (depth err pp; "
+    "within its ±) "
     "| s |\n|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"
 )
 
@@ -149,11 +151,13 @@ def _run_draw(
         travel = float(scan.odometer_m[-1])
         allowed = 0.03 * travel + sum(trajectory.odometer_slips_m) + trajectory.stated_slip_m
     water_true = scan.scenario.water.depth_ratio if scan.scenario.water is not None else None
-    wet = [sec.water_depth_ratio for sec in sections if sec.status.value == "invert_under_water"]
+    wet = [sec for sec in sections if sec.status.value == "invert_under_water"]
     water = "-"
     if water_true is not None or wet:
-        err = np.median(np.abs(np.array(wet) - (water_true or 0.0))) * 100 if wet else float("nan")
-        water = f"{len(wet)} ({err:.1f})"
+        off = np.abs(np.array([sec.water_depth_ratio for sec in wet]) - (water_true or 0.0))
+        err = np.median(off) * 100 if wet else float("nan")
+        u = np.array([sec.water_depth_uncertainty_ratio or np.nan for sec in wet])
+        water = f"{len(wet)} ({err:.2f}; {int(np.sum(off <= u))} within ±)"
     e = np.array(errors) if errors else np.array([np.nan])
     return {
         "name": name,

@@ -188,6 +188,7 @@ def test_one_head_in_a_date_prefixed_file() -> None:
         "2026_12_01_1700_section_chainage_uncertainty.py",
         "2026_12_01_1800_defect_clock_positions.py",
         "2026_12_07_1900_defect_lower_bound.py",
+        "2026_12_07_2300_section_water_depth_uncertainty.py",
     ]
     assert scripts.get_revision(db.head_revision()).path.endswith(files[-1])
     # One line of revisions, oldest file first.
@@ -392,6 +393,33 @@ def test_chainage_uncertainty_round_trip_and_migration(engine: sa.Engine) -> Non
     again = repository.list_sections(engine, inspection_id)
     assert [s.chainage_uncertainty_m for s in again] == [None] * 5
     assert [s.blockage_ratio for s in again] == [s.blockage_ratio for s in stored]
+
+
+def test_water_depth_uncertainty_round_trip_and_migration(engine: sa.Engine) -> None:
+    sections = [
+        dataclasses.replace(
+            s,
+            status=SectionStatus.INVERT_UNDER_WATER,
+            water_depth_ratio=0.06,
+            water_depth_uncertainty_ratio=0.008,
+        )
+        for s in make_sections()
+    ]
+    sections[-1] = dataclasses.replace(
+        sections[-1], water_depth_ratio=None, water_depth_uncertainty_ratio=None
+    )
+    inspection_id = save(engine, sections=sections)
+    stored = repository.list_sections(engine, inspection_id)
+    assert [s.water_depth_uncertainty_ratio for s in stored] == [0.008] * 4 + [None]
+    # Down to the revision before it: the column goes, the sections and their depths stay;
+    # up again: it is back, unknown (NULL).
+    db.downgrade(engine, "8b1e4c7d2a90")
+    columns = {c["name"] for c in sa.inspect(engine).get_columns("sections")}
+    assert "water_depth_uncertainty_ratio" not in columns
+    db.upgrade(engine)
+    again = repository.list_sections(engine, inspection_id)
+    assert [s.water_depth_uncertainty_ratio for s in again] == [None] * 5
+    assert [s.water_depth_ratio for s in again] == [s.water_depth_ratio for s in stored]
 
 
 def test_defect_clock_positions_migration_with_data(engine: sa.Engine) -> None:

@@ -35,6 +35,11 @@ def test_db_upgrade_lists_the_steps_it_ran(tmp_path):
         "stored before: sections with water in the invert were not coded then, so none of them "
         "is a lower bound."
     )
+    assert second.output.splitlines()[3] == (
+        "  5d2e8b7c4a16 The 95 % uncertainty of each section's water depth. NULL for sections "
+        "stored before: their water depth was read without a stated ±, and from the axis "
+        "rather than the wall's own circle."
+    )
     again = CliRunner().invoke(app, ["db", "upgrade", "--db", db])
     assert again.output.strip() == f"database already at revision {head_revision()}"
 

@@ -24,7 +24,8 @@ DOCUMENTED_COLUMNS = (
     "nominal_area_m2,blockage_ratio,ovality_ratio,deformation_ratio,deposit_height_ratio,"
     "coverage_ratio,point_count,status,grade,blockage_uncertainty_ratio,"
     "ovality_uncertainty_ratio,deformation_uncertainty_ratio,deposit_height_uncertainty_ratio,"
-    "water_depth_ratio,chainage_uncertainty_m,measured_inner_diameter_m"
+    "water_depth_ratio,chainage_uncertainty_m,measured_inner_diameter_m,"
+    "water_depth_uncertainty_ratio"
 )
 NOMINAL_AREA_M2 = math.pi * 0.6**2 / 4
 MEASURED = SectionMeasures(
@@ -147,6 +148,7 @@ def test_sections_csv_values(engine: sa.Engine, ids: dict[str, int]) -> None:
         "water_depth_ratio": "0",
         "chainage_uncertainty_m": "0.042",
         "measured_inner_diameter_m": "",  # stored without one
+        "water_depth_uncertainty_ratio": "",  # seen dry: no water, no ±
     }
     assert float(measured["blockage_ratio"]) == pytest.approx(0.125, abs=1e-3)
     # Unmeasured figures are empty, never 0.

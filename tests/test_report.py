@@ -173,6 +173,23 @@ def test_context_figures(report_input):
     assert rows[22]["blockage"] == "31.0" and rows[22]["flagged"]
 
 
+def test_water_depth_is_reported_with_its_plus_minus():
+    sections = _sections()
+    sections[10] = dataclasses.replace(
+        sections[10],
+        status=SectionStatus.INVERT_UNDER_WATER,
+        water_depth_ratio=0.059,
+        water_depth_uncertainty_ratio=0.0081,
+    )
+    sections[11] = dataclasses.replace(
+        sections[11], status=SectionStatus.INVERT_UNDER_WATER, water_depth_ratio=0.06
+    )
+    rows = build_context(make_input(sections=sections), chart=False)["sections"]
+    assert plain(rows[10]["reason"]) == "not measured (water 5.9 ± 0.8 % of the diameter deep)"
+    # Stored before the ± was recorded: the depth alone, as before.
+    assert plain(rows[11]["reason"]) == "not measured (water 6 % of the diameter deep)"
+
+
 def test_fmt_pct_never_prints_none_or_nan():
     assert fmt_pct(None) == "not measured"
     assert fmt_pct(math.nan) == "not measured"

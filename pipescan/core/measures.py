@@ -355,9 +355,11 @@ def measure_section(
     noise = _wall_noise(clean, profile, length_m)
     water, profile, water_depth = _water(clean, noise, nominal_diameter_m, has_invert, params)
     from_surface = None if water is None or registration_weak else water.from_surface
+    water_u = None if water is None else water.uncertainty_ratio
     if registration_weak:
-        water_depth = None  # withheld with the section (``_status``)
+        water_depth = water_u = None  # withheld with the section (``_status``)
     base.update(coverage_ratio=profile.coverage_ratio, water_depth_ratio=water_depth)
+    base.update(water_depth_uncertainty_ratio=water_u)
     base.update(water_from_surface=from_surface)
     found = found.profiled(profile, water, registration_weak)
     contour = _contour(clean, profile, params)

@@ -197,6 +197,9 @@ class SectionMeasures:
     # Depth of water in the invert over the nominal diameter: 0 when the invert was seen dry,
     # None when it could not be told.
     water_depth_ratio: float | None = None
+    # Its 95 % uncertainty (±, ``core.water.WaterLevel.uncertainty_ratio``); None where no
+    # water was read (the invert seen dry, or not known).
+    water_depth_uncertainty_ratio: float | None = None
     contour_m: np.ndarray | None = field(default=None, compare=False, repr=False)
     chainage_uncertainty_m: float | None = None
     wall_spread_m: float | None = field(default=None, compare=False)

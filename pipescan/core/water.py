@@ -19,7 +19,7 @@ from pipescan.core.axis import PipeAxis
 from pipescan.core.contour.base import angle_from_invert_rad, polar_coordinates
 from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.summary import adjacent_runs
-from pipescan.core.uncertainty import unseen_runs
+from pipescan.core.uncertainty import MAD_TO_SIGMA, MEDIAN_EFFICIENCY, Z95, unseen_runs
 
 MIN_SURFACE_POINTS = 3
 """Points on the chord that make it a seen water surface."""
@@ -40,7 +40,8 @@ class WaterLevel:
     level_m : float
         Height of the surface above the axis (negative: below it), section-plane metres.
     depth_ratio : float
-        Depth above the invert over the nominal diameter.
+        Depth above the invert over the nominal diameter. The invert is the bottom of the
+        section's own wall circle (:func:`_wall_circle`), not the axis less the radius.
     bins : (K,) int
         The angle bins under water (unseen wall, or a sparse chord), to be left out of the
         contour.
@@ -53,6 +54,10 @@ class WaterLevel:
     depth_ratio: float
     bins: np.ndarray
     from_surface: bool
+    uncertainty_ratio: float | None = None
+    """The depth's 95 % uncertainty (half-width) over the nominal diameter: where the level
+    was read from where the wall stops, :func:`_edge_uncertainty_m`; from the surface, its
+    median's noise and how far it lies from where the wall stops."""
 
 
 def detect_water(
@@ -106,34 +111,51 @@ def detect_water(
     if run is None:
         return None
     xy = np.asarray(points, dtype=np.float64)[:, :2]
-    edges = _wall_edges(xy, run, len(angles_rad), wall_radius_m, sigma_m) or [0.0, 0.0]
+    # Rule: the depth is counted from the bottom of the section's own wall circle, not from
+    # the axis less the radius. Why: the registered cloud's wall may lie off the fitted axis
+    # by more than a centimetre where the frames were seen from afar (docs/measures.md).
+    centre_m, radius_m = _wall_circle(angles_rad, radii_m, seen, run)
+    invert_m = centre_m[1] - radius_m
+    sides = _wall_edges(xy, run, len(angles_rad), centre_m, radius_m, sigma_m)
+    if sides is None:
+        return None  # no wall on a side
+    # Whether this is water is told from the edge bins' medians, as it was tuned; the depth
+    # from where the wall stops below them.
+    medians = [e.level_m + e.rise_m for e in sides]
     tolerance = max(3.0 * sigma_m, 0.02) + wall_radius_m * math.sin(2.0 * math.pi / len(seen))
-    if abs(edges[0] - edges[1]) > tolerance or max(edges) >= 0.0:
-        return None  # no wall on a side, the sides at different heights, or above the axis
+    if abs(medians[0] - medians[1]) > tolerance or max(medians) >= 0.0:
+        return None  # the sides at different heights, or above the axis
     raw = xy if surface_points is None else np.asarray(surface_points, dtype=np.float64)[:, :2]
-    edge_level = 0.5 * (edges[0] + edges[1])
-    surface_y = _surface_returns(raw, run, len(seen), edge_level, tolerance, wall_radius_m, sigma_m)
+    window = 0.5 * (medians[0] + medians[1])
+    surface_y = _surface_returns(raw, run, len(seen), window, tolerance, wall_radius_m, sigma_m)
     if len(surface_y) > typical / 3.0 * len(run):
         # As dense as a wall: a deposit's top seen along part of the section (its shadow).
         return None
+    edge_level = 0.5 * (sides[0].level_m + sides[1].level_m)
     if len(surface_y) < MIN_SURFACE_POINTS:
         # No surface seen: water whose surface returns nothing, or a view that stops short of
         # the invert. One section cannot tell; the sections along the pipe can
         # (:func:`confirm_surfaceless_water`).
-        depth = (edge_level + wall_radius_m) / nominal_diameter_m
+        depth = (edge_level - invert_m) / nominal_diameter_m
         if depth <= 0:
             return None
-        return WaterLevel(level_m=edge_level, depth_ratio=depth, bins=run, from_surface=False)
+        u = _edge_uncertainty_m(sides, sigma_m) / nominal_diameter_m
+        return WaterLevel(edge_level, depth, run, from_surface=False, uncertainty_ratio=u)
     # Then only the points close to their median: stray returns in the window do not count.
     level = float(np.median(surface_y))
     surface_y = surface_y[np.abs(surface_y - level) <= max(3.0 * sigma_m, 0.02)]
     if len(surface_y) < MIN_SURFACE_POINTS:
         return None
     level = float(np.median(surface_y))
-    depth = (level + wall_radius_m) / nominal_diameter_m
+    depth = (level - invert_m) / nominal_diameter_m
     if depth <= 0:
         return None
-    return WaterLevel(level_m=level, depth_ratio=depth, bins=run, from_surface=True)
+    # The surface and the wall's edge are two readings of one level: either may be the one
+    # off (a few stray returns taken for a surface read up to 1.8 pp deep on ``hap 8``).
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(surface_y - level)))
+    noise = Z95 * MEDIAN_EFFICIENCY * spread / math.sqrt(len(surface_y))
+    u = (noise + abs(level - edge_level)) / nominal_diameter_m
+    return WaterLevel(level, depth, run, from_surface=True, uncertainty_ratio=u)
 
 
 def _invert_gap(
@@ -171,27 +193,132 @@ def _invert_gap(
     return run
 
 
+@dataclass(frozen=True)
+class _Edge:
+    """Where the wall stops on one side of the water (:func:`_wall_edges`)."""
+
+    level_m: float
+    """Its height, section-plane metres."""
+    noise_m: float
+    """The standard error of the median height it was read from."""
+    rise_m: float
+    """How far below that median it was placed: the wall's rise over half the points' span."""
+
+
 def _wall_edges(
-    xy: np.ndarray, run: np.ndarray, bins: int, wall_radius_m: float, sigma_m: float
-) -> list[float] | None:
-    """The height where the wall stops on each side of ``run``: the median height of its
-    points at the wall in the nearest bin (or the next one when that holds nothing); None when
-    a side has none."""
+    xy: np.ndarray,
+    run: np.ndarray,
+    bins: int,
+    centre_m: tuple[float, float],
+    wall_radius_m: float,
+    sigma_m: float,
+) -> list[_Edge] | None:
+    """Where the wall stops on each side of ``run``, from its points at the wall in the
+    nearest bin (or the next one when that holds nothing); None when a side has none.
+
+    The median height of those points, not the lowest: the lowest takes the extreme of the
+    noise and of the frames' pose errors, and read surfaceless water 1.3 pp shallow
+    (docs/measures.md). Less the wall's rise over half their span: they run from where the
+    wall stops to the bin's far side, so their median lies halfway up, and read the water
+    deeper by half a bin (0.2 pp at 1°, 1.3 pp at 6°: docs/measures.md).
+    """
     dtheta = 2.0 * math.pi / bins
-    ang, rad = polar_coordinates(xy)
+    ang, _ = polar_coordinates(xy)
     b_idx = np.minimum((ang / dtheta).astype(np.int64), bins - 1)
+    # At the wall: around its own circle, not the axis (off it, the axis would cut the
+    # scatter on one side and lift the median height: 3 mm with the wall 12 mm low).
+    rad = np.hypot(xy[:, 0] - centre_m[0], xy[:, 1] - centre_m[1])
     at_wall = np.abs(rad - wall_radius_m) <= max(3.0 * sigma_m, 0.01)
     edges = []
     for b, away in (((run[0] - 1) % bins, -1), ((run[-1] + 1) % bins, 1)):
         near = at_wall & (b_idx == b)
         if not near.any():
-            near = at_wall & (b_idx == (b + away) % bins)
+            b = (b + away) % bins
+            near = at_wall & (b_idx == b)
         if not near.any():
             return None
-        # The median, not the lowest: the lowest takes the extreme of the noise and of the
-        # frames' pose errors, and read surfaceless water 1.3 pp shallow (docs/measures.md).
-        edges.append(float(np.median(xy[near, 1])))
+        far_rad = (b + (away > 0)) * dtheta  # the bin's side away from the water
+        middle_rad = float(np.median(ang[near]))
+        span = abs(math.remainder(far_rad - middle_rad, 2.0 * math.pi))
+        heights = xy[near, 1]
+        median = float(np.median(heights))
+        spread = MAD_TO_SIGMA * float(np.median(np.abs(heights - median)))
+        rise = wall_radius_m * abs(math.cos(middle_rad)) * span
+        noise = MEDIAN_EFFICIENCY * spread / math.sqrt(len(heights))
+        edges.append(_Edge(level_m=median - rise, noise_m=noise, rise_m=rise))
     return edges
+
+
+def _edge_uncertainty_m(sides: list[_Edge], sigma_m: float) -> float:
+    """The 95 % uncertainty of the level read where the wall stops, metres. Its parts,
+    added (all but the first are bounds, as the blockage's are: ``core.uncertainty``):
+
+    - the noise of the two sides' medians (1.96 standard errors of their mean);
+    - half their difference: either side may be the one off;
+    - half the rise taken off them: the points need not spread evenly over the bin;
+    - the wall's scatter ``sigma_m`` (1σ): frames placed at slightly different heights
+      each stop at their own level, and the first bin dense enough to count as seen lies
+      among the lowest of them (on ``hap 12``, 2-3 mm low where the frames were seen from
+      1-2 m off, with a wall scatter of 2-3 mm).
+    """
+    a, b = sides
+    noise = Z95 * 0.5 * math.hypot(a.noise_m, b.noise_m)
+    return noise + 0.5 * abs(a.level_m - b.level_m) + 0.25 * (a.rise_m + b.rise_m) + sigma_m
+
+
+def _wall_circle(
+    angles_rad: np.ndarray, radii_m: np.ndarray, seen: np.ndarray, run: np.ndarray
+) -> tuple[tuple[float, float], float]:
+    """The centre of the section's own wall (across, up from the axis) and its radius,
+    metres: the seen bins' radii outside ``run`` fitted by ``R + x cos θ + y sin θ``
+    (a circle off the axis by ``(x, y)``, for offsets small against ``R``) plus
+    ``a cos 2θ + b sin 2θ`` (an oval: a deformation that flattens the crown would otherwise
+    pull the centre down, 9 mm on ``hap 16``), bins further off than three times their
+    robust spread (an obstacle's face, a deposit) left out. The axis and the median radius
+    where the bins kept do not ring the pipe (:func:`_rings_the_pipe`), or where the offset
+    up is within twice its standard error."""
+    use = seen & np.isfinite(radii_m)
+    use[run] = False
+    fallback = (0.0, 0.0), float(np.median(radii_m[use])) if use.any() else 0.0
+    if use.sum() < 12:
+        return fallback
+    theta, radii = angles_rad[use], radii_m[use]
+    design = np.column_stack(
+        (np.ones_like(theta), np.cos(theta), np.sin(theta), np.cos(2 * theta), np.sin(2 * theta))
+    )
+    # Start from the bins near the median radius: an obstacle's face over a third of the
+    # wall would otherwise pull the first fit, and stay in it (on ``hap 12``, 40 mm low).
+    off = np.abs(radii - np.median(radii))
+    keep = off <= max(3.0 * MAD_TO_SIGMA * float(np.median(off)), 1e-4)
+    for _ in range(5):
+        fit, *_ = np.linalg.lstsq(design[keep], radii[keep], rcond=None)
+        residual = radii - design @ fit
+        spread = MAD_TO_SIGMA * float(np.median(np.abs(residual[keep])))
+        keep = np.abs(residual) <= max(3.0 * spread, 1e-4)
+        if keep.sum() < 12:
+            return fallback
+    if not _rings_the_pipe(theta[keep], len(angles_rad)):
+        return fallback
+    # Only an offset the bins show clearly (over twice its standard error): a sparse ring's
+    # few noisy bins would move the invert by more than they correct (on a ring profiler's
+    # 18-24 bins at 15 mm of noise, 5-12 mm where the axis was true).
+    cov = spread**2 * np.linalg.pinv(design[keep].T @ design[keep])
+    if abs(fit[2]) <= 2.0 * math.sqrt(max(float(cov[2, 2]), 0.0)):
+        return fallback
+    # The radius: the median distance of the wall from that centre, as the axis's is, so an
+    # oval's flattened crown does not shrink it.
+    x, y = radii * np.cos(theta) - fit[1], radii * np.sin(theta) - fit[2]
+    return (float(fit[1]), float(fit[2])), float(np.median(np.hypot(x, y)[keep]))
+
+
+def _rings_the_pipe(angles_rad: np.ndarray, bins: int) -> bool:
+    """Whether the wall bins a circle was fitted to hold a third of each quadrant above the
+    water (right, crown, left): the arcs left beside a hidden quarter let the centre slide
+    along them (on ``hap 12`` at 2.6-2.8 m, the obstacle hanging from the crown hides it, and
+    the axis stands there)."""
+    quadrant = np.round(np.mod(angles_rad, 2.0 * math.pi) / (0.5 * math.pi)).astype(np.int64) % 4
+    held = np.bincount(quadrant, minlength=4)
+    return bool(np.all(held[:3] >= bins / 12.0))
 
 
 def _surface_returns(
@@ -432,7 +559,10 @@ def explain_invert_shadows(
         shadowed = _shadowed_within_reach(ordered, sight)
     for k in shadowed:
         out[k] = dataclasses.replace(
-            ordered[k], status=SectionStatus.LOW_COVERAGE, water_depth_ratio=None
+            ordered[k],
+            status=SectionStatus.LOW_COVERAGE,
+            water_depth_ratio=None,
+            water_depth_uncertainty_ratio=None,
         )
     return out
 
@@ -588,5 +718,7 @@ def confirm_surfaceless_water(sections: Sequence[SectionMeasures]) -> list[Secti
             if confirmed[k - i]:
                 out[k] = dataclasses.replace(ordered[k], status=SectionStatus.INVERT_UNDER_WATER)
             else:
-                out[k] = dataclasses.replace(ordered[k], water_depth_ratio=None)
+                out[k] = dataclasses.replace(
+                    ordered[k], water_depth_ratio=None, water_depth_uncertainty_ratio=None
+                )
     return out

@@ -54,12 +54,15 @@ SECTION_CSV_COLUMNS: tuple[str, ...] = (
     "water_depth_ratio",
     "chainage_uncertainty_m",
     "measured_inner_diameter_m",
+    "water_depth_uncertainty_ratio",
 )
 """Header of the sections CSV, in order. ``chainage_uncertainty_m`` bounds how far the
 section's true place along the pipe may be from its chainage (empty when not known).
 ``measured_inner_diameter_m`` is the inner diameter the inspection measured on the clean
 wall (``core.summary.measured_inner_diameter``; the same on every row of an inspection, empty
-when it measured none): blockage is against the nominal diameter."""
+when it measured none): blockage is against the nominal diameter.
+``water_depth_uncertainty_ratio`` is the 95 % ± of ``water_depth_ratio`` (empty where no
+water was read, and for sections stored before it was recorded)."""
 
 DEFECT_CSV_COLUMNS: tuple[str, ...] = (
     "asset_id",
@@ -193,6 +196,7 @@ def _section_rows(
         Inspection.registration_json["measured_inner_diameter_m"]
         .as_float()
         .label("measured_inner_diameter_m"),
+        Section.water_depth_uncertainty_ratio,
     ).join(Section, Section.inspection_id == Inspection.id)
     statement = _filtered(statement, asset_id, inspection_id).order_by(
         Inspection.asset_id, Inspection.inspected_at, Inspection.id, Section.chainage_start_mm
@@ -252,6 +256,7 @@ def _section_csv_cells(record: Mapping[str, Any]) -> list[str]:
         _int_cell(record["grade"]),
         *(_float_cell(record[name]) for name in _LATER_COLUMNS),
         _float_cell(record["measured_inner_diameter_m"]),
+        _float_cell(record["water_depth_uncertainty_ratio"]),
     ]
 
 
@@ -402,7 +407,12 @@ def export_sections_jsonl(
         out,
         SECTION_CSV_COLUMNS,
         _section_rows(engine, asset_id, inspection_id),
-        (*_MEASURE_COLUMNS, *_LATER_COLUMNS, "measured_inner_diameter_m"),
+        (
+            *_MEASURE_COLUMNS,
+            *_LATER_COLUMNS,
+            "measured_inner_diameter_m",
+            "water_depth_uncertainty_ratio",
+        ),
     )
 
 

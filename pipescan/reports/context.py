@@ -457,7 +457,10 @@ def _section_row(s: SectionMeasures, flagged: bool, limits: MeasureLimits) -> di
         # Figures computed for a section that is not trusted stay out of the report.
         reason = NOT_MEASURED
         if _finite(s.water_depth_ratio) and s.water_depth_ratio:
-            reason += f" (water {fmt_pct(s.water_depth_ratio, 0)} of the diameter deep)"
+            depth, u = fmt_pct(s.water_depth_ratio, 0), s.water_depth_uncertainty_ratio
+            if _finite(u):
+                depth = _with_uncertainty(s.water_depth_ratio, u) + "\u00a0%"
+            reason += f" (water {depth} of the diameter deep)"
         row.update(reason=reason)
     return row
 

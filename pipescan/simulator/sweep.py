@@ -832,7 +832,9 @@ def measure_scan(
         sections = confirm_surfaceless_water(sections)
     else:  # as before the instrument: water is read only from its surface's returns
         sections = [
-            dataclasses.replace(s, water_depth_ratio=None) if s.water_from_surface is False else s
+            dataclasses.replace(s, water_depth_ratio=None, water_depth_uncertainty_ratio=None)
+            if s.water_from_surface is False
+            else s
             for s in sections
         ]
     by_index = {f[0]: f[1] for f in frames}

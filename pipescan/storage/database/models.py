@@ -210,6 +210,7 @@ class Section(Base):
     deformation_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
     deposit_height_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
     water_depth_ratio: Mapped[float | None] = mapped_column(sa.Float())
+    water_depth_uncertainty_ratio: Mapped[float | None] = mapped_column(sa.Float())
     # How far the section's true place may be from its chainage (registration's); NULL when
     # not known.
     chainage_uncertainty_m: Mapped[float | None] = mapped_column(sa.Float())

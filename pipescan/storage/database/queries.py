@@ -294,6 +294,7 @@ def section_profiles(
         Section.deformation_uncertainty_ratio,
         Section.deposit_height_uncertainty_ratio,
         Section.water_depth_ratio,
+        Section.water_depth_uncertainty_ratio,
         # Named, so that section_from_row finds it (None) without a failed lookup per row.
         sa.null().label("contour_json"),
     )

@@ -322,6 +322,7 @@ def _section_row(section: SectionMeasures) -> dict[str, Any]:
                 ("deformation_uncertainty_ratio", section.deformation_uncertainty_ratio),
                 ("deposit_height_uncertainty_ratio", section.deposit_height_uncertainty_ratio),
                 ("water_depth_ratio", section.water_depth_ratio),
+                ("water_depth_uncertainty_ratio", section.water_depth_uncertainty_ratio),
                 ("chainage_uncertainty_m", section.chainage_uncertainty_m),
             )
         },
@@ -363,6 +364,7 @@ def section_from_row(row: Any) -> SectionMeasures:
         deformation_uncertainty_ratio=getattr(row, "deformation_uncertainty_ratio", None),
         deposit_height_uncertainty_ratio=getattr(row, "deposit_height_uncertainty_ratio", None),
         water_depth_ratio=getattr(row, "water_depth_ratio", None),
+        water_depth_uncertainty_ratio=getattr(row, "water_depth_uncertainty_ratio", None),
         contour_m=_contour_from_json(getattr(row, "contour_json", None)),
         chainage_uncertainty_m=getattr(row, "chainage_uncertainty_m", None),
     )
@@ -557,6 +559,7 @@ _SECTION_COPY_TYPES: dict[str, str] = {
     "deformation_uncertainty_ratio": "float8",
     "deposit_height_uncertainty_ratio": "float8",
     "water_depth_ratio": "float8",
+    "water_depth_uncertainty_ratio": "float8",
     "chainage_uncertainty_m": "float8",
 }
 
