@@ -292,7 +292,11 @@ def main() -> None:
     names = [d.name for d in instrument_draws(args.count, args.seed)]
     if args.only:
         names = [n for n in names if any(o in n for o in args.only)]
-    print(f"{len(names)} draws; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n")
+    placed = "chosen per scan" if args.placed_share is None else f"{args.placed_share:g}"
+    print(
+        f"{len(names)} draws; each frame's points placed at a share {placed}; load average "
+        f"{os.getloadavg()[0]:.1f} on {os.cpu_count()} CPUs\n"
+    )
     print(HEADER, flush=True)
     results = []
     with ProcessPoolExecutor(args.workers) as pool:
