@@ -205,3 +205,40 @@ def test_the_command_line_starts_the_workers_ahead_and_a_cloud_stops_them(tmp_pa
         assert result.exit_code == 0, result.output
         assert started == [True, True, False]  # and staging the frames finds it running
         assert enginepool.pool_size() == 2
+
+
+def test_a_window_measured_in_a_worker_is_the_window_measured_here(tmp_path):
+    """The measure-window task hands its window to a worker process where registration ran
+    there: the same sections, field by field, as measured in the flow's own process."""
+    import dataclasses
+
+    import numpy as np
+
+    from pipescan.core.axis import fit_axis
+    from pipescan.core.measures import MeasureParams
+    from pipescan.core.sections import plan_windows
+    from pipescan.storage.scratch import write_buckets
+    from pipescan.tasks.staged import measure_placed_window
+
+    rng = np.random.default_rng(7)
+    s = rng.uniform(0.0, 2.0, 200_000)
+    theta = rng.uniform(0, 2 * np.pi, s.size)
+    r = np.where((s > 0.8) & (s < 1.1) & (np.sin(theta) > 0.8), 0.2, 0.25)  # a crown obstacle
+    points = np.column_stack((s, r * np.cos(theta), r * np.sin(theta)))
+    points += rng.normal(scale=0.002, size=points.shape)
+    axis = fit_axis(points, start_m=np.zeros(3), travel_m=np.array([2.0, 0.0, 0.0]))
+    window = plan_windows(0.0, 2.0, step_m=0.1, window_m=2.0)[0]
+    write_buckets(points, axis, [window], tmp_path, "chunk_0000000")
+    args = (tmp_path, window, axis, 0.5, MeasureParams())
+    here, read_here = measure_placed_window(*args)
+    there, read_there = enginepool.run(1, measure_placed_window, *args)
+    assert read_here == read_there > 0.95 * len(points)
+    assert any(sec.is_ok for sec in here)
+    assert len(here) == len(there) == 20
+    for a, b in zip(here, there, strict=True):
+        for field in dataclasses.fields(a):
+            x, y = getattr(a, field.name), getattr(b, field.name)
+            if isinstance(x, np.ndarray):
+                np.testing.assert_array_equal(x, y)
+            else:
+                assert x == y, (a.chainage_start_m, field.name)

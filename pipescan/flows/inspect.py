@@ -470,6 +470,10 @@ def _place_and_measure(
             scan.placed.share,
         )
 
+    # Windows are measured in the engine pool's processes where registration ran there: on
+    # the flow's threads two windows would share one core (measure_sections).
+    engines = enginepool.pool_size()
+
     def measure(w: int, after: list):
         return measure_sections.submit(
             bucket_root,
@@ -478,6 +482,7 @@ def _place_and_measure(
             staged.meta.nominal_diameter_m,
             scan.measure,
             quote(evidence),
+            engines,
             wait_for=after,
         )
 

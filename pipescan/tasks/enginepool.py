@@ -3,7 +3,9 @@
 small_gicp holds the GIL for the whole of each call, and so does LAZ decoding: on the flow's
 thread pool two chunks never register at the same time, whatever the number of threads. The
 register-chunk task therefore hands its chunk to one of these processes and waits for the
-result, while the rest of the flow stays on threads (and in one process's memory).
+result, while the rest of the flow stays on threads (and in one process's memory). The
+measure-window task does the same with its window: measuring is NumPy in many small steps,
+holding the GIL between them.
 
 The workers import only what registering needs (NumPy, SciPy, Open3D, small_gicp and the
 archive readers; not Prefect nor the database): about 2 s and 160 MB each, paid once per
@@ -67,6 +69,7 @@ def _start_worker(parent: int) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, args=(parent,), daemon=True).start()
     import open3d  # noqa: F401  (imported here, once, instead of in the first chunk)
+    import scipy.stats  # noqa: F401  (a section's ± reads Student's t: the first window)
     import small_gicp  # noqa: F401
 
     import pipescan.tasks.staged  # noqa: F401

@@ -37,14 +37,13 @@ from pipescan.core.registration import (
     iter_registered_points,
     sample_frame_indices,
 )
-from pipescan.core.sections import ChainageWindow, measure_window
+from pipescan.core.sections import ChainageWindow
 from pipescan.core.start import cloud_start, sensor_ahead_m
 from pipescan.core.water import SensorSight, sensor_sight
 from pipescan.storage.input.pointfiles import StridedSample
 from pipescan.storage.scratch import (
     Bucketed,
     FrameStore,
-    read_window_rows,
     write_buckets,
 )
 from pipescan.tasks import enginepool
@@ -55,6 +54,7 @@ from pipescan.tasks.staged import (
     crop_timed,
     deskewed_by_odometer,
     frame_along,
+    measure_placed_window,
     register_staged_frames,
 )
 
@@ -395,19 +395,18 @@ def measure_sections(
     nominal_diameter_m: float,
     params: MeasureParams,
     evidence: RegistrationEvidence | None = None,
+    engine_processes: int = 0,
 ) -> list[SectionMeasures]:
-    """Measure every section of one chainage window (with what registration says of it)."""
-    points = read_window_rows(bucket_root, window)
-    sections = measure_window(
-        points,
-        axis,
-        window,
-        nominal_diameter_m=nominal_diameter_m,
-        params=params,
-        evidence=evidence,
-        section_rows=points,
-    )
-    log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, len(points))
+    """Measure every section of one chainage window (with what registration says of it), in
+    this process or, with ``engine_processes`` > 0, in one of the engine pool's worker
+    processes: measuring is NumPy work in many small steps, which holds the GIL between them,
+    so on the flow's threads two windows share one core."""
+    args = (bucket_root, window, axis, nominal_diameter_m, params, evidence)
+    if engine_processes:
+        sections, points = enginepool.run(engine_processes, measure_placed_window, *args)
+    else:
+        sections, points = measure_placed_window(*args)
+    log.info("measured %.1f-%.1f m (%d points)", window.start_m, window.end_m, points)
     return sections
 
 

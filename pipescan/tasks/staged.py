@@ -1,6 +1,6 @@
-"""A staged archive, and registering a chunk of its frames: the work of the register-chunk
-task, without Prefect, so that it also runs in the engine pool's lean worker processes
-(:mod:`pipescan.tasks.enginepool`)."""
+"""A staged archive, registering a chunk of its frames, and measuring a window of placed
+points: the work of the register-chunk and measure-window tasks, without Prefect, so that it
+also runs in the engine pool's lean worker processes (:mod:`pipescan.tasks.enginepool`)."""
 
 from __future__ import annotations
 
@@ -10,19 +10,23 @@ from pathlib import Path
 
 import numpy as np
 
-from pipescan.core.model import InspectionMeta
+from pipescan.core.axis import PipeAxis
+from pipescan.core.measures import MeasureParams
+from pipescan.core.model import InspectionMeta, SectionMeasures
 from pipescan.core.registration import (
     FramePoses,
+    RegistrationEvidence,
     RegistrationParams,
     Trajectory,
     register_keyframes,
 )
 from pipescan.core.registration.deskew import deskew_points, odometer_travel
 from pipescan.core.registration.preprocess import crop_range, range_mask
+from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.input.readers.bags import BagIndex
-from pipescan.storage.scratch import FrameStore
+from pipescan.storage.scratch import FrameStore, read_window_rows
 
 
 @dataclass(frozen=True)
@@ -138,3 +142,26 @@ def frame_along(meta: InspectionMeta) -> list[float | None] | None:
     return FramePoses.along_from(
         [f.time_s for f in meta.frames], [f.odometer_m for f in meta.frames]
     )
+
+
+def measure_placed_window(
+    bucket_root: Path,
+    window: ChainageWindow,
+    axis: PipeAxis,
+    nominal_diameter_m: float,
+    params: MeasureParams,
+    evidence: RegistrationEvidence | None = None,
+) -> tuple[list[SectionMeasures], int]:
+    """Measure every section of one window from the points placed in its files (with what
+    registration says of each); the sections, and the points read."""
+    points = read_window_rows(bucket_root, window)
+    sections = measure_window(
+        points,
+        axis,
+        window,
+        nominal_diameter_m=nominal_diameter_m,
+        params=params,
+        evidence=evidence,
+        section_rows=points,
+    )
+    return sections, len(points)
