@@ -802,7 +802,15 @@ def measure_scan(
         ).share
     )
     points = np.concatenate(
-        list(iter_registered_points(cropped, trajectory, along, placed_share=placed))
+        list(
+            iter_registered_points(
+                cropped,
+                trajectory,
+                along,
+                placed_share=placed,
+                early_return_ratio=params.early_return_ratio,
+            )
+        )
     )
     positions = trajectory.positions_m()
     axis = fit_axis(

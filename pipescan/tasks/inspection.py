@@ -55,6 +55,7 @@ from pipescan.tasks.staged import (
     deskewed_by_odometer,
     frame_along,
     measure_placed_window,
+    place_stored_frames,
     register_staged_frames,
 )
 
@@ -178,7 +179,13 @@ def survey_scan(
 
 
 def _frame_points_world(
-    arc, trajectory: Trajectory, indices, max_range_m: float, along=None, placed_share=1.0
+    arc,
+    trajectory: Trajectory,
+    indices,
+    max_range_m: float,
+    along=None,
+    placed_share=1.0,
+    early_return_ratio=0.0,
 ):
     def cropped():
         for i, pts, time_s in arc.iter_timed_frames(indices):
@@ -186,7 +193,12 @@ def _frame_points_world(
 
     times = [f.time_s for f in arc.meta.frames]
     yield from iter_registered_points(
-        cropped(), trajectory, along, times, placed_share=placed_share
+        cropped(),
+        trajectory,
+        along,
+        times,
+        placed_share=placed_share,
+        early_return_ratio=early_return_ratio,
     )
 
 
@@ -332,6 +344,7 @@ def bucket_points(
     max_range_m: float,
     frame_store: FrameStore | None = None,
     placed_share: float = 1.0,
+    early_return_ratio: float = 0.0,
 ) -> Bucketed:
     """Write the points of every frame ``first..last`` (or the cloud) into window files:
     registered frames by their poses, the frames between them by interpolated ones
@@ -344,6 +357,7 @@ def bucket_points(
     A registered cloud that :func:`fit_pipe_axis` kept there is placed by rows: ``first`` to
     ``last`` (exclusive). ``placed_share``: the share of each frame's points placed
     (:func:`~pipescan.core.registration.stride.choose_placed_share`); a cloud's every row.
+    ``early_return_ratio``: the frames' early returns are left out (``iter_registered_points``).
     """
     if trajectory is None and frame_store is not None and frame_store.cloud_rows():
         rows = frame_store.read_cloud_rows(first, last)
@@ -351,20 +365,31 @@ def bucket_points(
     tag = f"chunk_{first:07d}"
     along = frame_along(staged.meta)
     if trajectory is not None and frame_store is not None:
-        # Every frame the chunk decoded; its last is the next chunk's first, placed there.
-        # Frames that slid along the axis are not placed (iter_registered_points).
-        final = last == staged.frame_count - 1
-        frames = (f for f in frame_store.iter_timed_frames(first) if f[0] < last or final)
-        times = [f.time_s for f in staged.meta.frames]
-        placed = iter_registered_points(frames, trajectory, along, times, placed_share=placed_share)
-        return write_buckets(placed, axis, windows, bucket_root, tag)
+        return place_stored_frames(
+            staged,
+            trajectory,
+            first,
+            last,
+            axis,
+            windows,
+            bucket_root,
+            frame_store,
+            placed_share,
+            early_return_ratio,
+        )
     with staged.reopen() as arc:
         if trajectory is None:
             chunks = (chunk.points for chunk in arc.iter_cloud())
             return write_buckets(chunks, axis, windows, bucket_root, "cloud")
         stop = last + 1 if last == staged.frame_count - 1 else last
         placed = _frame_points_world(
-            arc, trajectory, range(first, stop), max_range_m, along, placed_share
+            arc,
+            trajectory,
+            range(first, stop),
+            max_range_m,
+            along,
+            placed_share,
+            early_return_ratio,
         )
         return write_buckets(placed, axis, windows, bucket_root, tag)
 

@@ -21,6 +21,7 @@ from pipescan.core.registration.fusion import (
     unseen_slip_allowance,
 )
 from pipescan.core.registration.params import AlongAxisPrior
+from pipescan.core.registration.preprocess import early_return_mask
 
 
 @dataclass(frozen=True)
@@ -320,6 +321,7 @@ def iter_registered_points(
     frame_time_s: Sequence[float | None] | None = None,
     *,
     placed_share: float = 1.0,
+    early_return_ratio: float = 0.0,
 ) -> Iterator[np.ndarray]:
     """Transform frames into the world frame, one at a time, (N, 3) each: registered frames
     by their own pose, the frames between them by an interpolated one (:class:`FramePoses`,
@@ -327,7 +329,10 @@ def iter_registered_points(
 
     With ``placed_share`` under 1, each frame's points are a random share of them (drawn with
     the frame's index as the seed: a run places the same points each time; the share's rule:
-    :func:`~pipescan.core.registration.stride.choose_placed_share`).
+    :func:`~pipescan.core.registration.stride.choose_placed_share`). With
+    ``early_return_ratio`` over 0, the returns that came back early (in front of what the rays
+    around them hit: :func:`~pipescan.core.registration.preprocess.early_return_mask`) are left
+    out: such a return lies inside the pipe, in a section the ray only passed through.
 
     A frame given as ``(index, points, point_time_s)`` with times (N,) s is deskewed first
     (:func:`~pipescan.core.registration.deskew.deskew_points`) by the registered travel
@@ -348,6 +353,11 @@ def iter_registered_points(
         point_time_s = rest[0] if rest else None
         if placed_share < 1.0:
             keep = np.random.default_rng(frame_index).random(len(points)) < placed_share
+            points = np.compress(keep, points, axis=0)
+            if point_time_s is not None:
+                point_time_s = np.compress(keep, point_time_s)
+        if early_return_ratio > 0.0:
+            keep = early_return_mask(points, early_return_ratio)
             points = np.compress(keep, points, axis=0)
             if point_time_s is not None:
                 point_time_s = np.compress(keep, point_time_s)
