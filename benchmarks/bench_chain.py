@@ -34,8 +34,10 @@ read from pipescan's own log lines, so what is timed is the command a user runs:
 
 With ``--baseline DIR`` (another pipescan checkout, e.g. ``git archive main | tar -x -C DIR``),
 each scan runs under that version and then under this one, back to back: on a shared machine
-the two rows of a pair are what can be compared. With ``--sections DIR``, each run's sections
-are exported (``DIR/<scan>.csv``, ``-baseline.csv``) to compare the figures.
+the two rows of a pair are what can be compared. Each run's sections are exported (to a
+scratch directory, or with ``--sections DIR`` to ``DIR/<scan>.csv``, ``-baseline.csv``), and
+where the scan has ground truth each speed is printed beside the sections' mean coverage and
+the share of the sections fully seen in truth that are measured (ok).
 
 With ``--profile DIR``, each run is recorded by py-spy (all processes, 100 samples a second)
 and the top 10 functions by cumulative time are printed (``DIR/<archive>.txt`` keeps the raw
@@ -633,7 +635,9 @@ def run(
     if every_frame:
         variants.append(("-every-frame", None, EVERY_FRAME))
     scratch = None
-    if every_frame and sections_dir is None:
+    # The sections are always exported (to a scratch directory unless asked for): every
+    # speed is printed beside the coverage and the share of fully seen sections measured.
+    if sections_dir is None:
         scratch = tempfile.TemporaryDirectory(prefix="bench-chain-sections-")
         sections_dir = Path(scratch.name)
     runs = [(a, v) for a in archives for v in variants]
@@ -702,6 +706,9 @@ def run(
             csv_name = f"{archive.name}{tag}.csv"
             print("  against ground truth:", truth_errors(sections_dir / csv_name, archive))
             row.update(seen_and_measured(sections_dir / csv_name, archive))
+            share = 100 * row["measured_share"]
+            print(f"  coverage {100 * row['coverage']:.1f} %; of the {row['seen']} sections "
+                  f"fully seen in truth, {share:.1f} % measured (ok)")  # fmt: skip
         if result["raw_profile"]:
             print("  where the time went, by stage (share of busy samples, all processes):")
             for stage, share in stage_shares(Path(result["raw_profile"])):
@@ -713,6 +720,15 @@ def run(
     for r in rows:
         print(TABLE_ROW.format(**r).replace("nan", "-"))
     print()
+    measured = [r for r in rows if "measured_share" in r]
+    if measured:
+        print("| scan | register x | chain x | coverage | fully seen | measured |")
+        print("|---|---:|---:|---:|---:|---:|")
+        for r in measured:
+            print(f"| {r['scan']} | {r['rt_register']:.1f} | {r['rt_chain']:.1f} "
+                  f"| {100 * r['coverage']:.1f} % | {r['seen']} "
+                  f"| {100 * r['measured_share']:.1f} % |")  # fmt: skip
+        print()
     if every_frame:
         for line in every_frame_lines(rows):
             print(line)
