@@ -1,6 +1,7 @@
-"""A staged archive, registering a chunk of its frames, and measuring a window of placed
-points: the work of the register-chunk and measure-window tasks, without Prefect, so that it
-also runs in the engine pool's lean worker processes (:mod:`pipescan.tasks.enginepool`)."""
+"""A staged archive, registering a chunk of its frames, placing them, and measuring a window
+of placed points: the work of the register-chunk, bucket-points and measure-window tasks,
+without Prefect, so that registering and measuring also run in the engine pool's lean worker
+processes (:mod:`pipescan.tasks.enginepool`)."""
 
 from __future__ import annotations
 
