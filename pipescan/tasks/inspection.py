@@ -55,7 +55,6 @@ from pipescan.tasks.staged import (
     deskewed_by_odometer,
     frame_along,
     measure_placed_window,
-    place_stored_frames,
     register_staged_frames,
 )
 
@@ -365,18 +364,20 @@ def bucket_points(
     tag = f"chunk_{first:07d}"
     along = frame_along(staged.meta)
     if trajectory is not None and frame_store is not None:
-        return place_stored_frames(
-            staged,
+        # Every frame the chunk decoded; its last is the next chunk's first, placed there.
+        # Frames that slid along the axis are not placed (iter_registered_points).
+        final = last == staged.frame_count - 1
+        frames = (f for f in frame_store.iter_timed_frames(first) if f[0] < last or final)
+        times = [f.time_s for f in staged.meta.frames]
+        placed = iter_registered_points(
+            frames,
             trajectory,
-            first,
-            last,
-            axis,
-            windows,
-            bucket_root,
-            frame_store,
-            placed_share,
-            early_return_ratio,
+            along,
+            times,
+            placed_share=placed_share,
+            early_return_ratio=early_return_ratio,
         )
+        return write_buckets(placed, axis, windows, bucket_root, tag)
     with staged.reopen() as arc:
         if trajectory is None:
             chunks = (chunk.points for chunk in arc.iter_cloud())

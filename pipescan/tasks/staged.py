@@ -1,7 +1,6 @@
-"""A staged archive, registering a chunk of its frames, placing them, and measuring a window
-of placed points: the work of the register-chunk, bucket-points and measure-window tasks,
-without Prefect, so that registering and measuring also run in the engine pool's lean worker
-processes (:mod:`pipescan.tasks.enginepool`)."""
+"""A staged archive, registering a chunk of its frames, and measuring a window of placed
+points: the work of the register-chunk and measure-window tasks, without Prefect, so that it
+also runs in the engine pool's lean worker processes (:mod:`pipescan.tasks.enginepool`)."""
 
 from __future__ import annotations
 
@@ -19,7 +18,6 @@ from pipescan.core.registration import (
     RegistrationEvidence,
     RegistrationParams,
     Trajectory,
-    iter_registered_points,
     register_keyframes,
 )
 from pipescan.core.registration.deskew import deskew_points, odometer_travel
@@ -28,7 +26,7 @@ from pipescan.core.sections import ChainageWindow, measure_window
 from pipescan.storage.input.archive import ScanArchive
 from pipescan.storage.input.limits import DEFAULT_LIMITS, InputLimits
 from pipescan.storage.input.readers.bags import BagIndex
-from pipescan.storage.scratch import Bucketed, FrameStore, read_window_rows, write_buckets
+from pipescan.storage.scratch import FrameStore, read_window_rows
 
 
 @dataclass(frozen=True)
@@ -167,33 +165,3 @@ def measure_placed_window(
         section_rows=points,
     )
     return sections, len(points)
-
-
-def place_stored_frames(
-    staged: StagedArchive,
-    trajectory: Trajectory,
-    first: int,
-    last: int,
-    axis: PipeAxis,
-    windows: list[ChainageWindow],
-    bucket_root: Path,
-    frame_store: FrameStore,
-    placed_share: float = 1.0,
-    early_return_ratio: float = 0.0,
-) -> Bucketed:
-    """Place the frames that registration stored for the chunk starting at ``first`` into
-    the windows' files: every frame the chunk decoded (its last is the next chunk's first,
-    placed there; the run's last frame here), by its pose (``iter_registered_points``, with
-    its share of points and without its early returns)."""
-    final = last == staged.frame_count - 1
-    frames = (f for f in frame_store.iter_timed_frames(first) if f[0] < last or final)
-    times = [f.time_s for f in staged.meta.frames]
-    placed = iter_registered_points(
-        frames,
-        trajectory,
-        frame_along(staged.meta),
-        times,
-        placed_share=placed_share,
-        early_return_ratio=early_return_ratio,
-    )
-    return write_buckets(placed, axis, windows, bucket_root, f"chunk_{first:07d}")

@@ -351,13 +351,8 @@ def iter_registered_points(
         if pose is None:
             continue
         point_time_s = rest[0] if rest else None
-        if placed_share < 1.0:
-            keep = np.random.default_rng(frame_index).random(len(points)) < placed_share
-            points = np.compress(keep, points, axis=0)
-            if point_time_s is not None:
-                point_time_s = np.compress(keep, point_time_s)
-        if early_return_ratio > 0.0:
-            keep = early_return_mask(points, early_return_ratio)
+        keep = _placed_points(points, frame_index, placed_share, early_return_ratio)
+        if keep is not None:
             points = np.compress(keep, points, axis=0)
             if point_time_s is not None:
                 point_time_s = np.compress(keep, point_time_s)
@@ -367,6 +362,22 @@ def iter_registered_points(
             if motion is not None:
                 pts = deskew_points(pts, point_time_s, *motion)
         yield transform(pose, pts)
+
+
+def _placed_points(
+    points: np.ndarray, frame_index: int, placed_share: float, early_return_ratio: float
+) -> np.ndarray | None:
+    """Which of a frame's points :func:`iter_registered_points` places, (N,) bool (None:
+    every one): its random share, less its early returns among them."""
+    keep = None
+    if placed_share < 1.0:
+        keep = np.random.default_rng(frame_index).random(len(points)) < placed_share
+    if early_return_ratio > 0.0:
+        if keep is None:
+            return early_return_mask(points, early_return_ratio)
+        which = np.flatnonzero(keep)
+        keep[which] = early_return_mask(np.take(points, which, axis=0), early_return_ratio)
+    return keep
 
 
 def _registered_motion(
