@@ -154,7 +154,16 @@ def _run_draw(
     wet = [sec for sec in sections if sec.status.value == "invert_under_water"]
     water = "-"
     if water_true is not None or wet:
-        off = np.abs(np.array([sec.water_depth_ratio for sec in wet]) - (water_true or 0.0))
+        # Against the depth above each section's own invert: over a deformation the invert
+        # rises (or falls) under the same level.
+        true_depth = [
+            getattr(truth.sections.get(round(sec.chainage_start_m, 3)), "water_depth_ratio", None)
+            for sec in wet
+        ]
+        off = np.abs(
+            np.array([sec.water_depth_ratio for sec in wet])
+            - np.array([water_true or 0.0 if t is None else t for t in true_depth])
+        )
         err = np.median(off) * 100 if wet else float("nan")
         u = np.array([sec.water_depth_uncertainty_ratio or np.nan for sec in wet])
         water = f"{len(wet)} ({err:.2f}; {int(np.sum(off <= u))} within ±)"

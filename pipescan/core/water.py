@@ -114,8 +114,13 @@ def detect_water(
     # Rule: the depth is counted from the bottom of the section's own wall circle, not from
     # the axis less the radius. Why: the registered cloud's wall may lie off the fitted axis
     # by more than a centimetre where the frames were seen from afar (docs/measures.md).
-    centre_m, radius_m = _wall_circle(angles_rad, radii_m, seen, run)
-    invert_m = centre_m[1] - radius_m
+    centre_m, radius_m, oval_m = _wall_circle(angles_rad, radii_m, seen, run)
+    # Rule: under an oval wall the hidden invert is taken halfway between the circle's bottom
+    # and the oval's (higher by its amplitude where the crown is flattened), and the depth's
+    # ± holds both. Why: a flexible pipe deflects as an ellipse, its invert rising as its
+    # crown falls, but a dented crown leaves the invert round; the water hides which.
+    invert_m = centre_m[1] - radius_m + 0.5 * oval_m
+    hidden_m = 0.5 * abs(oval_m)
     sides = _wall_edges(xy, run, len(angles_rad), centre_m, radius_m, sigma_m)
     if sides is None:
         return None  # no wall on a side
@@ -139,7 +144,7 @@ def detect_water(
         depth = (edge_level - invert_m) / nominal_diameter_m
         if depth <= 0:
             return None
-        u = _edge_uncertainty_m(sides, sigma_m) / nominal_diameter_m
+        u = (_edge_uncertainty_m(sides, sigma_m) + hidden_m) / nominal_diameter_m
         return WaterLevel(edge_level, depth, run, from_surface=False, uncertainty_ratio=u)
     # Then only the points close to their median: stray returns in the window do not count.
     level = float(np.median(surface_y))
@@ -154,7 +159,7 @@ def detect_water(
     # off (a few stray returns taken for a surface read up to 1.8 pp deep on ``hap 8``).
     spread = MAD_TO_SIGMA * float(np.median(np.abs(surface_y - level)))
     noise = Z95 * MEDIAN_EFFICIENCY * spread / math.sqrt(len(surface_y))
-    u = (noise + abs(level - edge_level)) / nominal_diameter_m
+    u = (noise + abs(level - edge_level) + hidden_m) / nominal_diameter_m
     return WaterLevel(level, depth, run, from_surface=True, uncertainty_ratio=u)
 
 
@@ -268,9 +273,11 @@ def _edge_uncertainty_m(sides: list[_Edge], sigma_m: float) -> float:
 
 def _wall_circle(
     angles_rad: np.ndarray, radii_m: np.ndarray, seen: np.ndarray, run: np.ndarray
-) -> tuple[tuple[float, float], float]:
-    """The centre of the section's own wall (across, up from the axis) and its radius,
-    metres: the seen bins' radii outside ``run`` fitted by ``R + x cos θ + y sin θ``
+) -> tuple[tuple[float, float], float, float]:
+    """The centre of the section's own wall (across, up from the axis), its radius and its
+    oval's amplitude ``a`` (the ``cos 2θ`` term: wider across than high by ``2a``; 0 unless
+    the bins show it over twice its standard error), metres: the seen bins' radii outside
+    ``run`` fitted by ``R + x cos θ + y sin θ``
     (a circle off the axis by ``(x, y)``, for offsets small against ``R``) plus
     ``a cos 2θ + b sin 2θ`` (an oval: a deformation that flattens the crown would otherwise
     pull the centre down, 9 mm on ``hap 16``), bins further off than three times their
@@ -279,7 +286,7 @@ def _wall_circle(
     up is within twice its standard error."""
     use = seen & np.isfinite(radii_m)
     use[run] = False
-    fallback = (0.0, 0.0), float(np.median(radii_m[use])) if use.any() else 0.0
+    fallback = (0.0, 0.0), float(np.median(radii_m[use])) if use.any() else 0.0, 0.0
     if use.sum() < 12:
         return fallback
     theta, radii = angles_rad[use], radii_m[use]
@@ -303,12 +310,13 @@ def _wall_circle(
     # few noisy bins would move the invert by more than they correct (on a ring profiler's
     # 18-24 bins at 15 mm of noise, 5-12 mm where the axis was true).
     cov = spread**2 * np.linalg.pinv(design[keep].T @ design[keep])
+    oval = float(fit[3]) if abs(fit[3]) > 2.0 * math.sqrt(max(float(cov[3, 3]), 0.0)) else 0.0
     if abs(fit[2]) <= 2.0 * math.sqrt(max(float(cov[2, 2]), 0.0)):
-        return fallback
+        return fallback[0], fallback[1], oval
     # The radius: the median distance of the wall from that centre, as the axis's is, so an
     # oval's flattened crown does not shrink it.
     x, y = radii * np.cos(theta) - fit[1], radii * np.sin(theta) - fit[2]
-    return (float(fit[1]), float(fit[2])), float(np.median(np.hypot(x, y)[keep]))
+    return (float(fit[1]), float(fit[2])), float(np.median(np.hypot(x, y)[keep])), oval
 
 
 def _rings_the_pipe(angles_rad: np.ndarray, bins: int) -> bool:
