@@ -17,6 +17,7 @@ from pipescan.core.instrument import (
     Instrument,
     SensorProfile,
     estimate_instrument,
+    frame_diameter_m,
     instrumented,
     nearest_range_m,
     partial_view_stride,
@@ -839,3 +840,57 @@ def test_stray_returns_in_the_open_pipe_are_no_water_surface():
     wet = measure_section(np.vstack((points, stray, surface)), **kw)
     assert wet.water_from_surface is True
     assert wet.water_depth_ratio == pytest.approx(0.06, abs=0.01)
+
+
+def _tube_frame(rng, radius_m: float, noise_m: float, early: float) -> np.ndarray:
+    """One forward-looking frame in a tube whose axis is 3° off the sensor's and 2 cm beside
+    it: returns with ``noise_m`` along their rays, ``early`` of them cut short (20-80 % of
+    their range, as dust and spray return)."""
+    n = 20_000
+    a, x = rng.uniform(0, 2 * np.pi, n), rng.uniform(0.6, 4.5, n)
+    wall = np.column_stack((x, 0.02 + radius_m * np.cos(a), radius_m * np.sin(a)))
+    tilt = np.radians(3.0)
+    turn = np.array([[np.cos(tilt), -np.sin(tilt), 0], [np.sin(tilt), np.cos(tilt), 0], [0, 0, 1]])
+    wall = wall @ turn.T
+    rays = np.linalg.norm(wall, axis=1)
+    wall *= ((rays + rng.normal(0, noise_m, n)) / rays)[:, None]
+    cut = rng.random(n) < early
+    wall[cut] *= rng.uniform(0.2, 0.8, cut.sum())[:, None]
+    return wall
+
+
+def test_single_frames_measure_the_pipe_free_of_registration():
+    rng = np.random.default_rng(4)
+    frames = [_tube_frame(rng, 0.2, 0.01, 0.01) for _ in range(8)]
+    measured = frame_diameter_m(frames, max_range_m=5.0)
+    assert measured is not None
+    diameter, se = measured
+    assert diameter == pytest.approx(0.4, rel=0.005)
+    assert 0 < se < 0.002
+    assert frame_diameter_m(frames[:4], max_range_m=5.0) is None  # too few frames to tell
+
+
+def test_a_wall_wider_than_the_frames_pipe_widens_the_blockage_plus_minus():
+    # A ring 1 % wider than the pipe the single frames saw: the registered frames pushed it
+    # out, and it reads 2 pp too open. The ± takes that in; a ring of the frames' own
+    # diameter gets nothing.
+    def section(radius_m: float, params: MeasureParams):
+        rng = np.random.default_rng(2)
+        a = rng.uniform(0, 2 * np.pi, 40_000)
+        r = radius_m + rng.normal(0, 0.002, len(a))
+        pts = np.column_stack((r * np.cos(a), r * np.sin(a), rng.uniform(0, 0.1, len(a))))
+        return measure_section(
+            pts, chainage_start_m=0, chainage_end_m=0.1, nominal_diameter_m=0.4, params=params
+        )
+
+    plain = MeasureParams()
+    held = dataclasses.replace(plain, frame_diameter_m=0.4, frame_diameter_se_m=0.0003)
+    wide_plain, wide_held = section(0.202, plain), section(0.202, held)
+    assert wide_held.blockage_ratio == pytest.approx(wide_plain.blockage_ratio)
+    error = abs(wide_held.blockage_ratio)
+    assert error > 0.015
+    assert wide_plain.blockage_uncertainty_ratio < error <= wide_held.blockage_uncertainty_ratio
+    same = section(0.2, held)
+    assert same.blockage_uncertainty_ratio == pytest.approx(
+        section(0.2, plain).blockage_uncertainty_ratio, abs=0.001
+    )

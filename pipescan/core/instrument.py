@@ -31,7 +31,7 @@ import numpy as np
 
 from pipescan.core.model import SCAN_PATTERNS as SCAN_PATTERNS
 from pipescan.core.model import SensorProfile
-from pipescan.core.registration.preprocess import crop_range
+from pipescan.core.registration.preprocess import crop_range, early_return_mask
 from pipescan.core.uncertainty import MAD_TO_SIGMA
 
 if TYPE_CHECKING:
@@ -262,6 +262,8 @@ class Instrument:
     pattern: str | None = None
     model: str = "unknown"
     sources: dict[str, str] = dataclasses.field(default_factory=dict)
+    frame_diameter_m: float | None = None
+    frame_diameter_se_m: float | None = None
 
     @property
     def partial_view(self) -> bool:
@@ -289,6 +291,8 @@ class Instrument:
         ]
         if self.partial_view:
             parts.append(f"map seeded by {self.map_seed_frames} frames")
+        if self.frame_diameter_m is not None:
+            parts.append(f"the pipe {self.frame_diameter_m:.3f} m across in single frames")
         return "; ".join(parts)
 
 
@@ -588,6 +592,82 @@ def nearest_range_m(frames_sensor_m: Sequence[np.ndarray], *, max_range_m: float
     return round(float(first[0] * 0.01), 2) if len(first) else None
 
 
+EARLY_RETURN_RATIO = 0.8
+"""Returns left out of a frame's cylinder as early (``preprocess.early_return_mask``): the
+registration's ratio (``RegistrationParams.early_return_ratio``)."""
+
+FRAME_DIAMETER_POINTS = 1500
+"""Points a frame's cylinder is fitted to (drawn at random, seeded): enough for a radius known to
+a fraction of a millimetre, few enough for a few milliseconds a frame."""
+
+
+def frame_diameter_m(
+    frames_sensor_m: Sequence[np.ndarray], *, max_range_m: float
+) -> tuple[float, float] | None:
+    """The pipe's inner diameter as single frames see it, and the standard error of that
+    figure (m), or None with fewer than five frames that hold a pipe.
+
+    A frame is not registered against anything: its own returns cannot be misplaced against
+    each other, so a cylinder fitted to one frame measures the pipe free of registration. Each
+    frame's returns within ``max_range_m``, less its early returns
+    (:func:`~pipescan.core.registration.preprocess.early_return_mask`), at most
+    :data:`FRAME_DIAMETER_POINTS` of them, get a cylinder (:func:`_cylinder_radius_m`); the
+    figure is twice the median radius over the frames, its standard error 1.2533 × the
+    radii's robust σ / √n (a median's).
+    """
+    radii = []
+    for k, frame in enumerate(frames_sensor_m):
+        pts = np.asarray(frame, dtype=np.float64)
+        pts = pts[np.einsum("ij,ij->i", pts, pts) <= max_range_m**2]
+        pts = pts[early_return_mask(pts, EARLY_RETURN_RATIO)]
+        if len(pts) < 500:
+            continue
+        if len(pts) > FRAME_DIAMETER_POINTS:
+            pick = np.random.default_rng(k).choice(len(pts), FRAME_DIAMETER_POINTS, replace=False)
+            pts = pts[pick]
+        radius = _cylinder_radius_m(pts)
+        if radius is not None:
+            radii.append(radius)
+    if len(radii) < 5:
+        return None
+    r = np.asarray(radii)
+    spread = MAD_TO_SIGMA * float(np.median(np.abs(r - np.median(r))))
+    return 2.0 * float(np.median(r)), 2.0 * 1.2533 * spread / math.sqrt(len(r))
+
+
+def _cylinder_radius_m(points_m: np.ndarray) -> float | None:
+    """The radius of the cylinder through ``points_m`` (N, 3), or None where the fit fails:
+    robust least squares (scipy's ``least_squares``, ``soft_l1`` at 1 cm), the axis started
+    along the points' main direction through their centre, then fitted again (twice at most)
+    on the points within three robust σ of it: early returns the cell test kept and an
+    object's face lie off it by far more than the noise."""
+    from scipy.optimize import least_squares
+
+    centre = points_m.mean(axis=0)
+    _, _, vt = np.linalg.svd(points_m - centre, full_matrices=False)
+    along, u, v = vt[0], vt[1], vt[2]
+
+    def residual(q: np.ndarray, pts: np.ndarray) -> np.ndarray:
+        d = along + q[0] * u + q[1] * v
+        d = d / np.linalg.norm(d)
+        rel = pts - (centre + q[2] * u + q[3] * v)
+        perp = rel - np.outer(rel @ d, d)
+        return np.sqrt(np.einsum("ij,ij->i", perp, perp)) - q[4]
+
+    pts = points_m
+    q = np.zeros(5)
+    q[4] = float(np.median(residual(q, pts)))
+    for _ in range(3):
+        fit = least_squares(residual, q, loss="soft_l1", f_scale=0.01, args=(pts,))
+        q = fit.x
+        off = residual(q, pts)
+        keep = np.abs(off) <= max(3.0 * MAD_TO_SIGMA * float(np.median(np.abs(off))), 1e-3)
+        if keep.all() or keep.sum() < 300:
+            break
+        pts = pts[keep]
+    return float(q[4]) if fit.success and q[4] > 0 else None
+
+
 def estimate_instrument(
     sample_frames: Sequence[np.ndarray],
     consecutive_frames: Sequence[np.ndarray],
@@ -637,7 +717,12 @@ def estimate_instrument(
     else:
         share, seed = view_coverage(beyond_min_range(consecutive_frames))
         sources["frame_view_share"] = "estimated"
+    across_pipe = frame_diameter_m(
+        [*sampled, *beyond_min_range(consecutive_frames)[::6]], max_range_m=max_range_m
+    )
     return Instrument(
+        frame_diameter_m=None if across_pipe is None else across_pipe[0],
+        frame_diameter_se_m=None if across_pipe is None else across_pipe[1],
         min_range_m=float(min_range),
         wall_noise_m=noise,
         range_noise_m=ranging,
@@ -680,6 +765,12 @@ def instrumented(
         measure = dataclasses.replace(measure, max_wall_spread_m=instrument.max_wall_spread_m)
     if instrument.surface_noise is not None:
         measure = dataclasses.replace(measure, surface_noise=instrument.surface_noise)
+    if instrument.frame_diameter_m is not None:
+        measure = dataclasses.replace(
+            measure,
+            frame_diameter_m=instrument.frame_diameter_m,
+            frame_diameter_se_m=instrument.frame_diameter_se_m,
+        )
     return registration, measure
 
 
@@ -738,6 +829,8 @@ def instrument_summary(instrument: Instrument | None) -> dict:
         "max_wall_spread_m": instrument.max_wall_spread_m,
         "frame_view_share": instrument.frame_view_share,
         "map_seed_frames": instrument.map_seed_frames,
+        "frame_diameter_m": instrument.frame_diameter_m,
+        "frame_diameter_se_m": instrument.frame_diameter_se_m,
         "instrument_sources": dict(instrument.sources),
         "instrument": instrument.describe(),
     }

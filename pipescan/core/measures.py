@@ -37,6 +37,7 @@ from pipescan.core.model import SectionMeasures, SectionStatus
 from pipescan.core.summary import touches
 from pipescan.core.uncertainty import (
     MAD_TO_SIGMA,
+    Z95,
     area_uncertainty,
     diameter_uncertainty_m,
     height_uncertainty_m,
@@ -141,6 +142,12 @@ class MeasureParams:
         edges, each within one bin and the beam's footprint (2-3° in 1° bins; the most an ok
         section read with the true poses was 4°), well under what an object moved by an
         unseen slide reads (docs/measures.md, *An object where other frames saw bare wall*).
+    frame_diameter_m, frame_diameter_se_m : float or None
+        The pipe's diameter as single frames see it, and that figure's standard error
+        (:func:`pipescan.core.instrument.frame_diameter_m`). A section more open than that
+        pipe (its diameter widened by 1.96 standard errors) gets the area it is more open by
+        in the smear's part of its blockage ±: a frame cannot be misplaced against itself,
+        registered frames can. None (a registered cloud, or too few frames): no such part.
     """
 
     method: str = DEFAULT_CONTOUR_METHOD
@@ -156,6 +163,8 @@ class MeasureParams:
     grid: GridParams = field(default_factory=GridParams)
     max_wall_spread_m: float | None = 0.008
     surface_noise: SpreadModel | None = None
+    frame_diameter_m: float | None = None
+    frame_diameter_se_m: float | None = None
     max_wall_behind_deg: float = 10.0
     max_uncertainty_ratio: float = 0.025
 
@@ -808,6 +817,16 @@ def _uncertainty(
         smear = smear_bias_m2(figures.open_area_m2, noise.sigma_bins_m[wall], wall_radius_m)
         area_u = dataclasses.replace(area_u, smear_m2=smear)
     area_u = dataclasses.replace(area_u, hidden_m2=figures.hidden_half_m2)
+    if params.frame_diameter_m is not None:
+        # Rule: a section more open than the pipe its single frames see (beyond their
+        # median's 95 %) adds that much area to the smear's part. Why: a frame cannot be
+        # misplaced against itself; registered frames can, and a wall they push out or blur
+        # reads open.
+        pipe_m2 = math.pi / 4.0 * params.frame_diameter_m**2
+        allowed = params.frame_diameter_m + Z95 * (params.frame_diameter_se_m or 0.0)
+        if figures.open_area_m2 > math.pi / 4.0 * allowed**2:
+            extra = figures.open_area_m2 - pipe_m2
+            area_u = dataclasses.replace(area_u, smear_m2=area_u.smear_m2 + extra)
     per_bin = float(np.median(profile.counts[profile.seen]))
     half = clean.bins // 2
     diameter_u = diameter_uncertainty_m(sigma_m, per_bin, int((wall[:half] & wall[half:]).sum()))
