@@ -99,6 +99,20 @@ def test_nearest_range_ignores_returns_inside_the_blind_zone():
     assert nearest_range_m(frames, max_range_m=5.0) == pytest.approx(0.5, abs=0.02)
 
 
+def test_dense_dust_cut_off_from_the_wall_is_not_the_nearest_surface():
+    # rosette-avia 1 (0.3 m pipe, the Avia's 1.0 m blind zone): rays whose wall lies inside
+    # the blind zone come back as dust short of it, 60 returns a centimetre at 0.05-0.3 m,
+    # then almost nothing, then the wall from 1.0 m. The first dense run was the dust (0.02 m).
+    rng = np.random.default_rng(7)
+    wall = rng.uniform(1.0, 4.5, 40_000)
+    dust = np.concatenate((rng.uniform(0.05, 0.3, 1_500), rng.uniform(0.3, 0.95, 60)))
+    r = np.concatenate((wall, dust))
+    direction = rng.normal(size=(len(r), 3))
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    nearest = nearest_range_m([r[:, None] * direction], max_range_m=5.0)
+    assert nearest == pytest.approx(1.0, abs=0.02)
+
+
 def test_wall_noise_follows_the_sensor_noise():
     quiet, noisy = (
         scan_instrument(simulate_scan(_scene(range_noise_sigma_m=s), seed=1)).wall_noise_m
